@@ -1,0 +1,179 @@
+"""``femcal`` command line: reads params.yaml and the environment, calls the library, prints.
+
+Every DVC stage is one sub-command, e.g. ``femcal train --split large``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from femcal.config import load_params, section
+from femcal.errors import FemcalError
+
+
+def _tracking(params: dict) -> None:
+    from femcal.tracking import configure_tracking, ensure_experiment
+
+    store = section(params, "mlflow", "store_dir")
+    configure_tracking(store_dir=store)
+    ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
+
+
+def cmd_fetch(args: argparse.Namespace, params: dict) -> None:
+    from femcal.fetch import fetch_dataset, mirror_from_env
+
+    out = Path(args.out or section(params, "data", "raw_dir"))
+    mirror = mirror_from_env()
+    paths = fetch_dataset(out, mirror=mirror, progress=True)
+    src = f"mirror {mirror}" if mirror else "the study's pinned public address"
+    print(f"fetched {len(paths)} files from {src} into {out} (SHA-256 verified)")
+
+
+def cmd_prepare(args: argparse.Namespace, params: dict) -> None:
+    from femcal.prepare import prepare_dataset
+
+    raw = Path(section(params, "data", "raw_dir"))
+    out = Path(section(params, "data", "prepared_dir"))
+    written = prepare_dataset(raw, out)
+    for name, path in written.items():
+        print(f"{name}: {path}")
+
+
+def cmd_train(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_train
+
+    _tracking(params)
+    split = args.split
+    storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or section(params, "train", "storage")
+    if storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
+        Path(storage[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+    result = run_train(
+        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        split=split,
+        out_dir=Path(f"models/surrogate-{split}"),
+        metrics_path=Path(f"reports/train-{split}.json"),
+        settings=section(params, "train", split),
+        storage=storage,
+        study_name=section(params, "train", "study_name"),
+        seed=int(section(params, "train", "seed")),
+        val_fraction=float(section(params, "train", "val_fraction")),
+        model_name=section(params, "mlflow", "model_name"),
+        progress=sys.stderr.isatty(),
+    )
+    reg = (
+        f"; registered as version {result.version} ("
+        f"{'now champion' if result.promoted else 'champion unchanged'})"
+        if result.version
+        else ""
+    )
+    print(
+        f"trained on {split}: validation MAE {result.val_mae_deg:.4f} deg after "
+        f"{result.n_trials} Optuna trials in {result.seconds:.0f} s{reg}"
+    )
+
+
+def cmd_baselines(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_baselines
+
+    _tracking(params)
+    seconds = run_baselines(
+        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        split=args.split,
+        out_dir=Path(f"models/baselines-{args.split}"),
+        models=section(params, "baselines", "models"),
+        seed=int(section(params, "baselines", "seed")),
+        n_jobs=int(section(params, "baselines", "n_jobs")),
+    )
+    for name, s in seconds.items():
+        print(f"{name:>18} fitted on {args.split} in {s:6.1f} s")
+
+
+def cmd_interpolate(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_interpolation
+
+    _tracking(params)
+    scores = run_interpolation(
+        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        out_path=Path("reports/interpolation.json"),
+        train_moments=section(params, "interpolation", "train_moments"),
+        test_moments=section(params, "interpolation", "test_moments"),
+        fixed=section(params, "train", "large", "fixed"),
+        final_members=int(section(params, "interpolation", "final_members")),
+        baselines=section(params, "interpolation", "baselines"),
+        seed=int(section(params, "train", "seed")),
+        val_fraction=float(section(params, "train", "val_fraction")),
+        n_jobs=int(section(params, "baselines", "n_jobs")),
+    )
+    for s in scores:
+        print(f"{s.model:>18}: MAE {s.scores['mae']:.3f} deg at unseen moments")
+
+
+def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_evaluate
+
+    _tracking(params)
+    splits = ("large", "small")
+    sections = run_evaluate(
+        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        surrogate_dirs={s: Path(f"models/surrogate-{s}") for s in splits},
+        baseline_dirs={s: Path(f"models/baselines-{s}") for s in splits},
+        baseline_models=section(params, "baselines", "models"),
+        interpolation_path=Path("reports/interpolation.json"),
+        markdown=Path("reports/surrogates.md"),
+        json_path=Path("reports/surrogates.json"),
+    )
+    for title, rows in sections.items():
+        print(title)
+        for s in rows:
+            print(f"  {s.model:>18} {s.train_split:>6}: MAE {s.scores['mae']:.3f} deg, "
+                  f"mean R² {s.scores['r2_mean']:.4f}")
+    print("report: reports/surrogates.md")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="femcal", description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml", help="settings file (params.yaml)")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("fetch", help="get the study's FE data (mirror or pinned download)")
+    p.add_argument("--out", help="destination folder (default: data.raw_dir)")
+    p.set_defaults(func=cmd_fetch)
+    sub.add_parser("prepare", help="tidy tables + parameter space").set_defaults(func=cmd_prepare)
+    for name, func, helptext in (
+        ("train", cmd_train, "Optuna search + final surrogate, logged and registered in MLflow"),
+        ("baselines", cmd_baselines, "fit the study's model zoo"),
+    ):
+        p = sub.add_parser(name, help=helptext)
+        p.add_argument("--split", required=True, choices=("large", "small"))
+        p.set_defaults(func=func)
+    sub.add_parser("interpolate", help="train on 1,3,5 Nm, test at 2,4 Nm").set_defaults(
+        func=cmd_interpolate
+    )
+    sub.add_parser("evaluate", help="Test-set table for every surrogate").set_defaults(
+        func=cmd_evaluate
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    logging.getLogger("femcal").setLevel(logging.INFO)
+    try:
+        params = load_params(args.params)
+        args.func(args, params)
+    except FemcalError as exc:
+        print(f"femcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

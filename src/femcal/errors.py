@@ -1,0 +1,25 @@
+"""Exception hierarchy: one root, mixed with the matching built-in type."""
+
+
+class FemcalError(Exception):
+    """Root of every error femcal raises on purpose."""
+
+
+class InputDataError(FemcalError, ValueError):
+    """A user-supplied file or table is malformed (names the file, the field and the fix)."""
+
+
+class ChecksumError(FemcalError, ValueError):
+    """A downloaded or mirrored file does not match its pinned SHA-256."""
+
+
+class DataSourceError(FemcalError, OSError):
+    """A data file could not be obtained (missing in the mirror, download failed)."""
+
+
+class ConfigError(FemcalError, ValueError):
+    """A setting (params.yaml, argument, environment variable) is invalid."""
+
+
+class ModelRegistryError(FemcalError, LookupError):
+    """A model could not be found in, or loaded from, the MLflow registry."""

@@ -1,0 +1,245 @@
+"""The DVC stages as library functions: explicit arguments in, files out.
+
+``femcal.cli`` reads params.yaml and calls these; tests call them directly.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import joblib
+import numpy as np
+
+from femcal.evaluate import Score, score_model, write_reports
+from femcal.space import ParameterSpace
+
+logger = logging.getLogger(__name__)
+
+SPACE_FILE = "parameter_space.json"
+
+
+def load_split(prepared_dir: Path, split: str):
+    """Read a prepared split and the parameter space."""
+    from femcal.prepare import load_tidy
+
+    space = ParameterSpace.from_json(prepared_dir / SPACE_FILE)
+    return load_tidy(prepared_dir / f"{split}.csv", space), space
+
+
+def run_train(
+    *,
+    prepared_dir: Path,
+    split: str,
+    out_dir: Path,
+    metrics_path: Path,
+    settings: Mapping[str, Any],
+    storage: str,
+    study_name: str,
+    seed: int,
+    val_fraction: float,
+    model_name: str | None,
+    progress: bool = False,
+):
+    """Train (search + final ensemble) on one split; save the model dir and the summary."""
+    import mlflow
+
+    from femcal.tracking import copy_tree
+    from femcal.train import train_surrogate, write_summary
+
+    table, space = load_split(prepared_dir, split)
+    result = train_surrogate(
+        table,
+        space,
+        search_space=settings.get("search_space") or {},
+        fixed=settings.get("fixed") or {},
+        n_trials=int(settings.get("n_trials", 0)),
+        final_members=int(settings.get("final_members", 1)),
+        storage=storage,
+        study_name=f"{study_name}-{split}",
+        seed=seed,
+        val_fraction=val_fraction,
+        register_as=model_name if settings.get("register") else None,
+        run_name=f"train-{split}",
+        progress=progress,
+    )
+    tmp = out_dir.with_name(out_dir.name + ".tmp")
+    if tmp.exists():
+        import shutil
+
+        shutil.rmtree(tmp)
+    result.surrogate.save(tmp)
+    (tmp / "mlflow.json").write_text(
+        json.dumps(
+            {
+                "tracking_uri": mlflow.get_tracking_uri(),
+                "run_id": result.run_id,
+                "model_uri": result.model_uri,
+                "registered_model": model_name if settings.get("register") else None,
+                "version": result.version,
+                "promoted": result.promoted,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    copy_tree(tmp, out_dir)
+    import shutil
+
+    shutil.rmtree(tmp)
+    write_summary(result, metrics_path)
+    return result
+
+
+def run_baselines(
+    *,
+    prepared_dir: Path,
+    split: str,
+    out_dir: Path,
+    models: Sequence[str],
+    seed: int,
+    n_jobs: int,
+) -> dict[str, float]:
+    """Fit the study's model zoo on one split; save each fitted model; log each as a run."""
+    import mlflow
+
+    from femcal.surrogates import make_surrogate
+    from femcal.train import ok_rows
+
+    table, space = load_split(prepared_dir, split)
+    data = ok_rows(table)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    seconds: dict[str, float] = {}
+    with mlflow.start_run(run_name=f"baselines-{split}"):
+        mlflow.set_tag("femcal.stage", "baselines")
+        for name in models:
+            with mlflow.start_run(run_name=f"{name}-{split}", nested=True):
+                model = make_surrogate(name, space=space, seed=seed, n_jobs=n_jobs)
+                t0 = time.perf_counter()
+                model.fit(data, data["rom_deg"].to_numpy())
+                seconds[name] = time.perf_counter() - t0
+                mlflow.log_params({"model": name, "train_split": split, "seed": seed})
+                mlflow.log_metric("fit_seconds", seconds[name])
+                path = out_dir / f"{name}.joblib"
+                joblib.dump(model, path)
+                logger.info("%s on %s fitted in %.1f s", name, split, seconds[name])
+    (out_dir / "fit_seconds.json").write_text(json.dumps(seconds, indent=2) + "\n")
+    return seconds
+
+
+def _load_nn(path: Path):
+    from femcal.surrogates.nn import NeuralSurrogate
+
+    return NeuralSurrogate.load(path)
+
+
+def run_evaluate(
+    *,
+    prepared_dir: Path,
+    surrogate_dirs: Mapping[str, Path],
+    baseline_dirs: Mapping[str, Path],
+    baseline_models: Sequence[str],
+    interpolation_path: Path | None,
+    markdown: Path,
+    json_path: Path,
+) -> dict[str, list[Score]]:
+    """Score every model on the Test split; write Markdown + JSON; log to MLflow."""
+    import mlflow
+
+    test, _ = load_split(prepared_dir, "test")
+    sections: dict[str, list[Score]] = {}
+    for split in surrogate_dirs:
+        rows: list[Score] = []
+        nn_dir = surrogate_dirs[split]
+        info = json.loads((nn_dir / "mlflow.json").read_text()) if (
+            nn_dir / "mlflow.json"
+        ).exists() else {}
+        rows.append(
+            score_model(
+                _load_nn(nn_dir), test, name="nn", train_split=split,
+                extra={"registered_version": info.get("version")},
+            )
+        )
+        for name in baseline_models:
+            path = baseline_dirs[split] / f"{name}.joblib"
+            rows.append(score_model(joblib.load(path), test, name=name, train_split=split))
+        rows.sort(key=lambda s: s.scores["mae"])
+        sections[f"Trained on {split.capitalize()}"] = rows
+    if interpolation_path is not None and interpolation_path.exists():
+        sections["Interpolation: trained on 1, 3, 5 Nm, tested at 2 and 4 Nm"] = [
+            Score(r["model"], r["train_split"], r["scores"], r["n_rows"], {})
+            for r in json.loads(interpolation_path.read_text())
+        ]
+    preamble = (
+        "MAE in degrees over all rows; mean R² = R² per load case pooled over configurations "
+        "and moments, averaged over load cases; curve R² = the study's per-specimen R² across "
+        "the moments of a curve, averaged. Study figures: Atad et al., 4-fold CV means."
+    )
+    write_reports(sections, markdown=markdown, json_path=json_path, preamble=preamble)
+    with mlflow.start_run(run_name="evaluate"):
+        mlflow.set_tag("femcal.stage", "evaluate")
+        for title, rows in sections.items():
+            for s in rows:
+                with mlflow.start_run(run_name=f"eval-{s.model}-{s.train_split}", nested=True):
+                    mlflow.log_params(
+                        {"model": s.model, "train_split": s.train_split, "section": title[:200]}
+                    )
+                    mlflow.log_metrics(
+                        {k: float(v) for k, v in s.scores.items() if np.isfinite(v)}
+                    )
+        mlflow.log_artifact(str(markdown))
+        mlflow.log_artifact(str(json_path))
+    return sections
+
+
+def run_interpolation(
+    *,
+    prepared_dir: Path,
+    out_path: Path,
+    train_moments: Sequence[float],
+    test_moments: Sequence[float],
+    fixed: Mapping[str, Any],
+    final_members: int,
+    baselines: Sequence[str],
+    seed: int,
+    val_fraction: float,
+    n_jobs: int = 1,
+) -> list[Score]:
+    """Train on some moments of Large, test at others on Test (NN and chosen baselines)."""
+    import mlflow
+
+    from femcal.surrogates import make_surrogate
+    from femcal.surrogates.nn import NeuralSurrogate
+    from femcal.train import ok_rows, surrogate_kwargs, validation_split
+
+    large, space = load_split(prepared_dir, "large")
+    test, _ = load_split(prepared_dir, "test")
+    data = ok_rows(large)
+    data = data[data["moment_nm"].isin(list(train_moments))].reset_index(drop=True)
+    tr, va = validation_split(data, fraction=val_fraction, seed=seed)
+    scores: list[Score] = []
+    with mlflow.start_run(run_name="interpolation"):
+        mlflow.set_tag("femcal.stage", "interpolation")
+        mlflow.log_params({"train_moments": list(train_moments),
+                           "test_moments": list(test_moments)})
+        nn = NeuralSurrogate(space, **surrogate_kwargs(fixed), n_members=final_members, seed=seed)
+        nn.fit(tr, tr["rom_deg"].to_numpy(), X_val=va, y_val=va["rom_deg"].to_numpy())
+        scores.append(score_model(nn, test, name="nn", train_split="large",
+                                  moments=test_moments))
+        for name in baselines:
+            model = make_surrogate(name, space=space, seed=seed, n_jobs=n_jobs)
+            model.fit(data, data["rom_deg"].to_numpy())
+            scores.append(score_model(model, test, name=name, train_split="large",
+                                      moments=test_moments))
+        for s in scores:
+            mlflow.log_metrics({f"{s.model}.{k}": float(v) for k, v in s.scores.items()
+                                if np.isfinite(v)})
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(
+        [{"model": s.model, "train_split": s.train_split, "scores": s.scores,
+          "n_rows": s.n_rows} for s in scores], indent=2) + "\n")
+    return scores

@@ -1,0 +1,17 @@
+"""Surrogates of the FE outputs, behind one registry of names."""
+
+from femcal.surrogates.base import (
+    Surrogate,
+    available_surrogates,
+    encode_features,
+    make_surrogate,
+    register_surrogate,
+)
+
+__all__ = [
+    "Surrogate",
+    "available_surrogates",
+    "encode_features",
+    "make_surrogate",
+    "register_surrogate",
+]
