@@ -38,7 +38,8 @@ def cmd_prepare(args: argparse.Namespace, params: dict) -> None:
 
     raw = Path(section(params, "data", "raw_dir"))
     out = Path(section(params, "data", "prepared_dir"))
-    written = prepare_dataset(raw, out)
+    limit = section(params, "data").get("limit_configs")
+    written = prepare_dataset(raw, out, limit_configs=limit)
     for name, path in written.items():
         print(f"{name}: {path}")
 
