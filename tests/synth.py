@@ -34,8 +34,14 @@ def tidy_table(n_configs: int, seed: int, moments=(1, 2, 3, 4, 5)) -> pd.DataFra
             for m in moments:
                 rom = float(rom_function(u[c : c + 1], k, np.array([float(m)]))[0])
                 rows.append(
-                    {"config_id": c, "load_case": lc, "moment_nm": float(m),
-                     **dict(zip(space.names, x[c])), "rom_deg": rom,
-                     "idp_mpa": 0.1 * m, "status": "ok"}
+                    {
+                        "config_id": c,
+                        "load_case": lc,
+                        "moment_nm": float(m),
+                        **dict(zip(space.names, x[c])),
+                        "rom_deg": rom,
+                        "idp_mpa": 0.1 * m,
+                        "status": "ok",
+                    }
                 )
     return pd.DataFrame(rows)

@@ -56,8 +56,13 @@ def _table(n_configs=3):
         for lc in LOAD_CASES:
             for m in range(1, 6):
                 rows.append(
-                    {"config_id": c, "load_case": lc, "moment_nm": float(m),
-                     "rom_deg": (c + 1) * np.log1p(m), "status": "ok"}
+                    {
+                        "config_id": c,
+                        "load_case": lc,
+                        "moment_nm": float(m),
+                        "rom_deg": (c + 1) * np.log1p(m),
+                        "status": "ok",
+                    }
                 )
     return pd.DataFrame(rows)
 

@@ -51,7 +51,7 @@ def cmd_train(args: argparse.Namespace, params: dict) -> None:
     split = args.split
     storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or section(params, "train", "storage")
     if storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
-        Path(storage[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+        Path(storage[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
     result = run_train(
         prepared_dir=Path(section(params, "data", "prepared_dir")),
         split=split,
@@ -130,8 +130,10 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
     for title, rows in sections.items():
         print(title)
         for s in rows:
-            print(f"  {s.model:>18} {s.train_split:>6}: MAE {s.scores['mae']:.3f} deg, "
-                  f"mean R² {s.scores['r2_mean']:.4f}")
+            print(
+                f"  {s.model:>18} {s.train_split:>6}: MAE {s.scores['mae']:.3f} deg, "
+                f"mean R² {s.scores['r2_mean']:.4f}"
+            )
     print("report: reports/surrogates.md")
 
 

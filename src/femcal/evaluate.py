@@ -110,8 +110,13 @@ def markdown_table(scores: list[Score], *, title: str) -> str:
     lines = [f"## {title}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in scores:
         d = s.as_dict()
-        cells = [s.model, s.train_split, _fmt(d["mae"]), _fmt(d["r2_mean"], 4),
-                 _fmt(d.get("r2_curve_mean"), 4)]
+        cells = [
+            s.model,
+            s.train_split,
+            _fmt(d["mae"]),
+            _fmt(d["r2_mean"], 4),
+            _fmt(d.get("r2_curve_mean"), 4),
+        ]
         cells += [_fmt(d.get(f"mae_{lc}")) for lc in LOAD_CASES]
         cells += [_fmt(d.get(f"r2_{lc}"), 4) for lc in LOAD_CASES]
         cells += [_fmt(d["study_mae"], 2), _fmt(d["study_r2_mean"], 2)]

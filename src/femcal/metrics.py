@@ -108,9 +108,7 @@ def surrogate_scores(
     """
     prediction = np.asarray(prediction, dtype=float).reshape(-1)
     if len(prediction) != len(table):
-        raise InputDataError(
-            f"Got {len(prediction)} predictions for a table of {len(table)} rows."
-        )
+        raise InputDataError(f"Got {len(prediction)} predictions for a table of {len(table)} rows.")
     ok = (table["status"] == "ok").to_numpy() if "status" in table else np.ones(len(table), bool)
     df = table.loc[ok, ["config_id", "load_case", "moment_nm", target]].copy()
     df["pred"] = prediction[ok]

@@ -155,12 +155,17 @@ def run_evaluate(
     for split in surrogate_dirs:
         rows: list[Score] = []
         nn_dir = surrogate_dirs[split]
-        info = json.loads((nn_dir / "mlflow.json").read_text()) if (
-            nn_dir / "mlflow.json"
-        ).exists() else {}
+        info = (
+            json.loads((nn_dir / "mlflow.json").read_text())
+            if (nn_dir / "mlflow.json").exists()
+            else {}
+        )
         rows.append(
             score_model(
-                _load_nn(nn_dir), test, name="nn", train_split=split,
+                _load_nn(nn_dir),
+                test,
+                name="nn",
+                train_split=split,
                 extra={"registered_version": info.get("version")},
             )
         )
@@ -188,9 +193,7 @@ def run_evaluate(
                     mlflow.log_params(
                         {"model": s.model, "train_split": s.train_split, "section": title[:200]}
                     )
-                    mlflow.log_metrics(
-                        {k: float(v) for k, v in s.scores.items() if np.isfinite(v)}
-                    )
+                    mlflow.log_metrics({k: float(v) for k, v in s.scores.items() if np.isfinite(v)})
         mlflow.log_artifact(str(markdown))
         mlflow.log_artifact(str(json_path))
     return sections
@@ -224,22 +227,36 @@ def run_interpolation(
     scores: list[Score] = []
     with mlflow.start_run(run_name="interpolation"):
         mlflow.set_tag("femcal.stage", "interpolation")
-        mlflow.log_params({"train_moments": list(train_moments),
-                           "test_moments": list(test_moments)})
+        mlflow.log_params(
+            {"train_moments": list(train_moments), "test_moments": list(test_moments)}
+        )
         nn = NeuralSurrogate(space, **surrogate_kwargs(fixed), n_members=final_members, seed=seed)
         nn.fit(tr, tr["rom_deg"].to_numpy(), X_val=va, y_val=va["rom_deg"].to_numpy())
-        scores.append(score_model(nn, test, name="nn", train_split="large",
-                                  moments=test_moments))
+        scores.append(score_model(nn, test, name="nn", train_split="large", moments=test_moments))
         for name in baselines:
             model = make_surrogate(name, space=space, seed=seed, n_jobs=n_jobs)
             model.fit(data, data["rom_deg"].to_numpy())
-            scores.append(score_model(model, test, name=name, train_split="large",
-                                      moments=test_moments))
+            scores.append(
+                score_model(model, test, name=name, train_split="large", moments=test_moments)
+            )
         for s in scores:
-            mlflow.log_metrics({f"{s.model}.{k}": float(v) for k, v in s.scores.items()
-                                if np.isfinite(v)})
+            mlflow.log_metrics(
+                {f"{s.model}.{k}": float(v) for k, v in s.scores.items() if np.isfinite(v)}
+            )
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(
-        [{"model": s.model, "train_split": s.train_split, "scores": s.scores,
-          "n_rows": s.n_rows} for s in scores], indent=2) + "\n")
+    out_path.write_text(
+        json.dumps(
+            [
+                {
+                    "model": s.model,
+                    "train_split": s.train_split,
+                    "scores": s.scores,
+                    "n_rows": s.n_rows,
+                }
+                for s in scores
+            ],
+            indent=2,
+        )
+        + "\n"
+    )
     return scores

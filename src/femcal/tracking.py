@@ -130,9 +130,7 @@ def input_example(space: ParameterSpace, n_per_case: int = 1) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def log_surrogate(
-    surrogate: Any, space: ParameterSpace, *, name: str = "model"
-) -> Any:
+def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model") -> Any:
     """Log a fitted surrogate (one with ``save(dir)`` and ``load(dir)``) as an MLflow pyfunc model.
 
     Returns
@@ -199,7 +197,9 @@ def register_and_promote(
     from mlflow import MlflowClient
 
     if not np.isfinite(val_metric):
-        raise ConfigError(f"Cannot register a model with a non-finite validation metric: {val_metric}.")
+        raise ConfigError(
+            f"Cannot register a model with a non-finite validation metric: {val_metric}."
+        )
     client = MlflowClient()
     mv = mlflow.register_model(model_uri, name, tags=tags)
     client.set_model_version_tag(name, mv.version, VALIDATION_TAG, repr(float(val_metric)))
@@ -215,12 +215,24 @@ def register_and_promote(
         promoted = val_metric < best
     if promoted:
         client.set_registered_model_alias(name, alias, mv.version)
-        logger.info("%s version %s is the new %s (%s=%.5f)", name, mv.version, alias,
-                    VALIDATION_TAG, val_metric)
+        logger.info(
+            "%s version %s is the new %s (%s=%.5f)",
+            name,
+            mv.version,
+            alias,
+            VALIDATION_TAG,
+            val_metric,
+        )
     else:
         logger.info(
             "%s version %s registered; %s stays at version %s (%s %.5f <= %.5f)",
-            name, mv.version, alias, current.version, VALIDATION_TAG, best, val_metric,
+            name,
+            mv.version,
+            alias,
+            current.version,
+            VALIDATION_TAG,
+            best,
+            val_metric,
         )
     return str(mv.version), promoted
 
