@@ -1,0 +1,497 @@
+"""The study's classical surrogates (LR, PR, SVR, RF, GP, LightGBM) behind one small class.
+
+Every baseline is a :class:`SklearnSurrogate`: the design matrix of
+:func:`~femcal.surrogates.base.encode_features` (one-hot load case, moment in Nm, the 13
+parameters in the unit box by their bounds) fed to one fitted scikit-learn object that owns all
+the scaling::
+
+    TransformedTargetRegressor(                     # RoM min-max scaled to (0, 1), as the study
+        Pipeline([
+            ("scale", ColumnTransformer(...)),      # moment min-max scaled to (0, 1); rest as is
+            ("model", <study estimator>),
+        ]),
+        transformer=MinMaxScaler(),
+    )
+
+Hyperparameters are the study's (appendix "Models hyperparameters"). Differences from the study:
+
+* **Load case one-hot** instead of one number ``c``. With the study's numeric ``c`` this code
+  reproduces the study (Large/Small Test MAE: LR 1.06/1.03, SVR 1.10/1.03, PR2 0.83/0.92,
+  PR3 0.56/0.82, PR4 0.42/0.82 deg); one-hot mainly helps LR, SVR and PR.
+* **Polynomial regression per load case**: one ``PolynomialFeatures(degree) + Ridge(alpha)``
+  per load case on (moment, parameters), the study's alphas, solved exactly in its dual form
+  (:class:`PolynomialRidge`). A global degree-5 expansion of the 18 features has 33,649
+  columns (5.5 GB on Large); per load case the dual needs a 5,120 x 5,120 Gram matrix.
+* **Gaussian process per load case**, exact, on all of that load case's rows (5,120 on Large),
+  with the study's fitted kernel ``C(1.35e-5) * RBF(0.974)`` (isotropic, on moment and
+  parameters), ``normalize_y=True``, held fixed (``optimizer=None``). One GP on all 20,480 rows
+  needs a 3.4 GB Gram matrix and an O(n^3) solve per optimiser step. Re-tuning the kernel by
+  maximum likelihood (on 640-1000-row subsets, with restarts) collapsed to the degenerate
+  length scale 1e-5 (MAE 1.77 deg; likely because, without a noise term, smooth kernels make
+  the Cholesky fail), hence the study's values are used as given. The Cholesky factor is
+  released after fitting: the model offers the predictive mean only and stays O(n) in size.
+
+Test MAE (deg, all 1280 rows of the 64 Test configurations) / mean R^2 (per load case over
+configurations and moments, averaged over load cases), fitted on all of Large (1024 configs) or
+Small (128), one core (whole zoo: 84 s, peak 0.9 GB); the study's 4-fold cross-validated
+numbers in brackets::
+
+    baseline          Large                  Small                  fit s (Large)
+    linear            0.95 [1.05] / 0.63     0.94 [1.03] / 0.63      0.1
+    svr               0.87 [1.04] / 0.71     0.83 [1.05] / 0.74      0.6
+    poly2             0.46 [0.82] / 0.92     0.63 [0.96] / 0.83     11
+    poly3             0.34 [0.61] / 0.95     0.64 [0.94] / 0.83     12
+    poly4             0.33 [0.50] / 0.96     0.77 [0.99] / 0.78     13
+    poly5             0.37 [0.54] / 0.94     0.83 [1.07] / 0.73     16
+    random_forest     0.38 [0.40] / 0.93     0.62 [0.65] / 0.84      8
+    gaussian_process  0.30 [0.33] / 0.96     0.55 [0.62] / 0.85     23
+    lightgbm          0.23 [0.28] / 0.97     0.56 [0.57] / 0.86      1
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from lightgbm import LGBMRegressor
+from scipy.linalg import solve
+from sklearn.base import BaseEstimator, RegressorMixin, clone
+from sklearn.compose import ColumnTransformer, TransformedTargetRegressor
+from sklearn.ensemble import RandomForestRegressor
+from sklearn.exceptions import NotFittedError
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+from sklearn.linear_model import LinearRegression
+from sklearn.pipeline import Pipeline
+from sklearn.preprocessing import MinMaxScaler
+from sklearn.svm import SVR
+from threadpoolctl import ThreadpoolController
+
+from femcal.errors import ConfigError, FemcalError, InputDataError
+from femcal.schema import LOAD_CASES
+from femcal.space import ParameterSpace
+from femcal.surrogates.base import encode_features, register_surrogate
+
+__all__ = [
+    "BASELINE_NAMES",
+    "GaussianProcessSurrogate",
+    "LightGBMSurrogate",
+    "LinearSurrogate",
+    "Poly2Surrogate",
+    "Poly3Surrogate",
+    "Poly4Surrogate",
+    "Poly5Surrogate",
+    "RandomForestSurrogate",
+    "SklearnSurrogate",
+    "SurrogateNotFittedError",
+    "SVRSurrogate",
+]
+
+#: Registered baseline names, in the order of the study's results table.
+BASELINE_NAMES: tuple[str, ...] = (
+    "linear",
+    "svr",
+    "poly2",
+    "poly3",
+    "poly4",
+    "poly5",
+    "random_forest",
+    "gaussian_process",
+    "lightgbm",
+)
+
+_N_CASES = len(LOAD_CASES)  # one-hot columns 0..3 of encode_features; column 4 is the moment
+
+
+@functools.cache
+def _threadpools() -> ThreadpoolController:
+    # Built once (~20 ms); limiting through it then costs ~0.05 ms per fit/predict call.
+    return ThreadpoolController()
+
+
+class SurrogateNotFittedError(FemcalError, NotFittedError):
+    """``predict`` was called before ``fit`` (also an sklearn ``NotFittedError``)."""
+
+
+# --------------------------------------------------------------------------- building blocks
+class PerLoadCaseRegressor(RegressorMixin, BaseEstimator):
+    """One clone of ``estimator`` per load case, on the moment and parameter columns.
+
+    Parameters
+    ----------
+    estimator : sklearn regressor
+        Template; cloned for every load case present in the training rows.
+
+    Notes
+    -----
+    Input ``Z`` has shape (n, 4 + 1 + d): the first four columns are the one-hot load case (as
+    made by :func:`~femcal.surrogates.base.encode_features`), the rest are passed on.
+    """
+
+    def __init__(self, estimator: BaseEstimator) -> None:
+        self.estimator = estimator
+
+    @staticmethod
+    def _case(Z: np.ndarray) -> np.ndarray:
+        return np.argmax(Z[:, :_N_CASES], axis=1)
+
+    def fit(self, Z: np.ndarray, y: np.ndarray) -> PerLoadCaseRegressor:
+        """Fit one estimator per load case; ``Z`` shape (n, 4 + 1 + d), ``y`` shape (n,)."""
+        case = self._case(Z)
+        self.estimators_ = {
+            int(c): clone(self.estimator).fit(Z[case == c, _N_CASES:], y[case == c])
+            for c in np.unique(case)
+        }
+        return self
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        """Predict with each row's load-case model; returns shape (n,)."""
+        case = self._case(Z)
+        out = np.empty(len(Z))
+        for c in np.unique(case):
+            if int(c) not in self.estimators_:
+                raise InputDataError(
+                    f"No training rows had load case {LOAD_CASES[c]}; the surrogate cannot "
+                    "predict it. Train on data that includes this load case."
+                )
+            out[case == c] = self.estimators_[int(c)].predict(Z[case == c, _N_CASES:])
+        return out
+
+
+class PolynomialRidge(RegressorMixin, BaseEstimator):
+    """``make_pipeline(PolynomialFeatures(degree), Ridge(alpha))``, solved in its dual form.
+
+    Same model and same predictions (up to round-off) as the pipeline, at O(n^2) memory
+    instead of O(n * C(p + degree, degree)): degree 5 on 14 columns has 11,628 monomials.
+
+    Parameters
+    ----------
+    degree : int
+        Highest total degree of the monomials (bias included).
+    alpha : float
+        Ridge penalty, > 0; the intercept is not penalised (``fit_intercept=True``).
+    block : int
+        Rows per block when building kernel matrices (bounds the temporary memory).
+
+    Attributes
+    ----------
+    X_fit_ : ndarray, shape (n, p)
+        Training inputs.
+    dual_coef_ : ndarray, shape (n,)
+        Dual coefficients of the centred problem.
+    intercept_ : float
+        Constant added to ``k(x, X_fit_) @ dual_coef_``.
+
+    Notes
+    -----
+    The monomial feature map ``phi`` of ``PolynomialFeatures`` (each monomial once) has the
+    inner product ``phi(x) . phi(z) = sum_{k <= degree} h_k(x * z)``, with ``h_k`` the complete
+    homogeneous symmetric polynomials, obtained from the power sums
+    ``P_i = (x ** i) . (z ** i)`` by Newton's identities ``k h_k = sum_{i=1..k} P_i h_{k-i}``.
+    Ridge with an intercept equals kernel ridge on the doubly centred Gram matrix ``Kc``:
+    ``(Kc + alpha I) a = y - mean(y)``; since ``sum(a) = 0``, the prediction is
+    ``k(x, X) @ a + mean(y) - mean_rows(K) @ a``.
+    """
+
+    def __init__(self, degree: int = 2, alpha: float = 1.0, block: int = 512) -> None:
+        self.degree = degree
+        self.alpha = alpha
+        self.block = block
+
+    def _kernel(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        powers_b = [B**i for i in range(1, self.degree + 1)]
+        out = np.empty((len(A), len(B)))
+        for lo in range(0, len(A), self.block):
+            a = A[lo : lo + self.block]
+            p = [(a**i) @ powers_b[i - 1].T for i in range(1, self.degree + 1)]
+            h = [np.ones_like(p[0])]
+            for k in range(1, self.degree + 1):
+                h.append(sum(p[i - 1] * h[k - i] for i in range(1, k + 1)) / k)
+            out[lo : lo + self.block] = sum(h)
+        return out
+
+    def fit(self, Z: np.ndarray, y: np.ndarray) -> PolynomialRidge:
+        """Solve the centred dual ridge problem; ``Z`` shape (n, p), ``y`` shape (n,)."""
+        if not self.alpha > 0:
+            raise ConfigError(f"PolynomialRidge needs alpha > 0; got {self.alpha}.")
+        Z = np.asarray(Z, dtype=float)
+        y = np.asarray(y, dtype=float).reshape(-1)
+        K = self._kernel(Z, Z)
+        row_mean = K.mean(axis=1)
+        K -= row_mean[:, None]
+        K -= row_mean[None, :]
+        K += row_mean.mean()
+        K[np.diag_indices_from(K)] += self.alpha
+        coef = solve(K, y - y.mean(), assume_a="pos", overwrite_a=True)
+        self.X_fit_ = Z
+        self.dual_coef_ = coef
+        self.intercept_ = float(y.mean() - row_mean @ coef)
+        return self
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        """Predictions, shape (n,)."""
+        return self._kernel(np.asarray(Z, dtype=float), self.X_fit_) @ self.dual_coef_ + (
+            self.intercept_
+        )
+
+
+class _MeanOnlyGP(GaussianProcessRegressor):
+    """A GaussianProcessRegressor that drops its n x n Cholesky factor after fitting.
+
+    Only the predictive mean (``k(x, X) @ alpha_``) is available, and the fitted model stays
+    O(n) in size instead of O(n^2) (otherwise 210 MB per load case, 840 MB in all, on Large).
+    """
+
+    def fit(self, X: np.ndarray, y: np.ndarray) -> _MeanOnlyGP:
+        super().fit(X, y)
+        del self.L_
+        return self
+
+    def predict(self, X: np.ndarray, return_std: bool = False, return_cov: bool = False) -> Any:
+        if return_std or return_cov:
+            raise ConfigError("This GP surrogate offers the predictive mean only.")
+        return super().predict(X)
+
+
+# ------------------------------------------------------------------------ the study's models
+def _linear(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
+    return LinearRegression(**hyper)
+
+
+def _poly(degree: int, alpha: float) -> Callable[..., BaseEstimator]:
+    def make(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
+        return PerLoadCaseRegressor(PolynomialRidge(**{"degree": degree, "alpha": alpha, **hyper}))
+
+    return make
+
+
+def _svr(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
+    return SVR(**{"kernel": "rbf", "C": 2.479459357922161, "gamma": "auto", **hyper})
+
+
+def _random_forest(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
+    params = {"n_estimators": 51, "max_depth": 31, **hyper}
+    return RandomForestRegressor(random_state=seed, n_jobs=n_jobs, **params)
+
+
+def _gaussian_process(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
+    kernel = ConstantKernel(1.3535458162698054e-05) * RBF(length_scale=0.9739157609228299)
+    params = {"kernel": kernel, "normalize_y": True, "optimizer": None, **hyper}
+    return PerLoadCaseRegressor(_MeanOnlyGP(random_state=seed, **params))
+
+
+def _lightgbm(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
+    params = {
+        "num_leaves": 71,
+        "max_depth": 24,
+        "learning_rate": 0.0959080973897064,
+        "n_estimators": 183,
+        **hyper,
+    }
+    return LGBMRegressor(random_state=seed, n_jobs=n_jobs, deterministic=True, verbose=-1, **params)
+
+
+#: name -> factory(seed, n_jobs, **hyper) returning the unfitted study estimator.
+_FACTORIES: dict[str, Callable[..., BaseEstimator]] = {
+    "linear": _linear,
+    "svr": _svr,
+    "poly2": _poly(2, 1.0),
+    "poly3": _poly(3, 1.0),
+    "poly4": _poly(4, 0.11694087489403014),
+    "poly5": _poly(5, 0.7741762364391351),
+    "random_forest": _random_forest,
+    "gaussian_process": _gaussian_process,
+    "lightgbm": _lightgbm,
+}
+
+
+# ------------------------------------------------------------------------------ the surrogate
+class SklearnSurrogate(RegressorMixin, BaseEstimator):
+    """A study baseline: encoded features -> scaled scikit-learn/LightGBM model -> RoM (deg).
+
+    Parameters
+    ----------
+    space : ParameterSpace
+        Parameter names and bounds; the parameters are mapped to the unit box by these bounds.
+    estimator_name : str, optional
+        One of :data:`BASELINE_NAMES`. Defaults to the registered name of the (sub)class, so
+        ``make_surrogate("lightgbm", space=space)`` needs no name.
+    n_jobs : int
+        Threads for the estimator and for BLAS during ``fit``/``predict`` (-1: no limit).
+    seed : int
+        The only source of randomness (forest bootstrap and features, boosting; the GP and the
+        linear models are deterministic).
+    hyper : mapping, optional
+        Overrides of the study's hyperparameters, passed to the final estimator (e.g.
+        ``{"alpha": 0.5}`` for ``poly4``, ``{"n_estimators": 20}`` for ``lightgbm``,
+        ``{"alpha": 1e-6}`` for ``gaussian_process``).
+
+    Attributes
+    ----------
+    model_ : TransformedTargetRegressor
+        The fitted pipeline on the design matrix of ``encode_features``, shape (n, 4 + 1 + d).
+    fit_seconds_ : float
+        Wall time of the last ``fit``.
+
+    Examples
+    --------
+    >>> from femcal.surrogates import make_surrogate
+    >>> model = make_surrogate("lightgbm", space=space).fit(X_train, y_train)  # doctest: +SKIP
+    >>> model.predict(X_test).shape  # doctest: +SKIP
+    (1280,)
+    """
+
+    registry_name: str | None = None
+
+    def __init__(
+        self,
+        space: ParameterSpace,
+        *,
+        estimator_name: str | None = None,
+        n_jobs: int = 1,
+        seed: int = 0,
+        hyper: Mapping[str, Any] | None = None,
+    ) -> None:
+        self.space = space
+        self.estimator_name = estimator_name
+        self.n_jobs = n_jobs
+        self.seed = seed
+        self.hyper = hyper
+
+    # ----------------------------------------------------------------------- helpers
+    def _name(self) -> str:
+        name = self.estimator_name or type(self).registry_name
+        if name not in _FACTORIES:
+            raise ConfigError(
+                f"Unknown baseline '{name}'; choose one of {', '.join(BASELINE_NAMES)}."
+            )
+        return name
+
+    def _threads(self) -> contextlib.AbstractContextManager:
+        if self.n_jobs in (None, -1):
+            return contextlib.nullcontext()
+        return _threadpools().limit(limits=self.n_jobs)
+
+    def _build(self) -> TransformedTargetRegressor:
+        name = self._name()
+        try:
+            model = _FACTORIES[name](self.seed, self.n_jobs, **dict(self.hyper or {}))
+        except TypeError as exc:
+            raise ConfigError(f"Invalid hyperparameters for baseline '{name}': {exc}") from None
+        d = self.space.dim
+        scale = ColumnTransformer(
+            [
+                ("load_case", "passthrough", list(range(_N_CASES))),
+                ("moment", MinMaxScaler(), [_N_CASES]),
+                ("params", "passthrough", list(range(_N_CASES + 1, _N_CASES + 1 + d))),
+            ]
+        )
+        return TransformedTargetRegressor(
+            regressor=Pipeline([("scale", scale), ("model", model)]),
+            transformer=MinMaxScaler(),
+        )
+
+    # -------------------------------------------------------------------------- API
+    def fit(self, X: pd.DataFrame, y: np.ndarray | pd.Series) -> SklearnSurrogate:
+        """Fit on physical inputs and RoM targets.
+
+        Parameters
+        ----------
+        X : DataFrame, n rows
+            Columns ``load_case``, ``moment_nm`` and the parameter names, physical units.
+        y : array_like, shape (n,)
+            RoM in degrees.
+
+        Returns
+        -------
+        SklearnSurrogate
+            ``self``, fitted.
+        """
+        Z = encode_features(X, self.space)
+        y = np.asarray(y, dtype=float).reshape(-1)
+        if y.shape[0] != Z.shape[0]:
+            raise InputDataError(f"X has {Z.shape[0]} rows but y has {y.shape[0]} values.")
+        if not np.all(np.isfinite(y)):
+            raise InputDataError("y holds NaN or inf; drop failed simulations before fitting.")
+        model = self._build()
+        start = time.perf_counter()
+        with self._threads():
+            model.fit(Z, y)
+        self.fit_seconds_ = time.perf_counter() - start
+        self.model_ = model
+        return self
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray:
+        """Predict RoM in degrees.
+
+        Parameters
+        ----------
+        X : DataFrame, n rows
+            Columns ``load_case``, ``moment_nm`` and the parameter names, physical units.
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            Predicted RoM in degrees.
+        """
+        if not hasattr(self, "model_"):
+            raise SurrogateNotFittedError(
+                f"This {type(self).__name__} is not fitted yet; call fit(X, y) before predict."
+            )
+        Z = encode_features(X, self.space)
+        with self._threads():
+            return np.asarray(self.model_.predict(Z), dtype=float).reshape(-1)
+
+    def __sklearn_is_fitted__(self) -> bool:
+        return hasattr(self, "model_")
+
+
+# --------------------------------------------------------------------- registered baselines
+@register_surrogate("linear")
+class LinearSurrogate(SklearnSurrogate):
+    """Linear regression (study: LR, default settings)."""
+
+
+@register_surrogate("svr")
+class SVRSurrogate(SklearnSurrogate):
+    """Support vector regression, RBF kernel, C=2.479, gamma="auto" (study: SVR)."""
+
+
+@register_surrogate("poly2")
+class Poly2Surrogate(SklearnSurrogate):
+    """Degree-2 polynomial + ridge (alpha=1.0), per load case (study: PR degree 2)."""
+
+
+@register_surrogate("poly3")
+class Poly3Surrogate(SklearnSurrogate):
+    """Degree-3 polynomial + ridge (alpha=1.0), per load case (study: PR degree 3)."""
+
+
+@register_surrogate("poly4")
+class Poly4Surrogate(SklearnSurrogate):
+    """Degree-4 polynomial + ridge (alpha=0.1169), per load case (study: PR degree 4)."""
+
+
+@register_surrogate("poly5")
+class Poly5Surrogate(SklearnSurrogate):
+    """Degree-5 polynomial + ridge (alpha=0.7742), per load case (study: PR degree 5)."""
+
+
+@register_surrogate("random_forest")
+class RandomForestSurrogate(SklearnSurrogate):
+    """Random forest, 51 trees, max_depth=31 (study: RF)."""
+
+
+@register_surrogate("gaussian_process")
+class GaussianProcessSurrogate(SklearnSurrogate):
+    """Per-load-case GP, C*RBF kernel tuned on a subset (study: GP); see the module notes."""
+
+
+@register_surrogate("lightgbm")
+class LightGBMSurrogate(SklearnSurrogate):
+    """LightGBM, 71 leaves, max_depth=24, lr=0.0959, 183 trees (study: LightGBM)."""
