@@ -23,3 +23,13 @@ class ConfigError(FemcalError, ValueError):
 
 class ModelRegistryError(FemcalError, LookupError):
     """A model could not be found in, or loaded from, the MLflow registry."""
+
+
+try:
+    from sklearn.exceptions import NotFittedError as _NotFittedError
+except ImportError:  # pragma: no cover - scikit-learn is a dependency
+    _NotFittedError = AttributeError
+
+
+class SurrogateNotFittedError(FemcalError, _NotFittedError):
+    """``predict`` was called before ``fit`` (also scikit-learn's ``NotFittedError``)."""

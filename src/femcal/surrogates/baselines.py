@@ -63,7 +63,6 @@ from scipy.linalg import solve
 from sklearn.base import BaseEstimator, RegressorMixin, clone
 from sklearn.compose import ColumnTransformer, TransformedTargetRegressor
 from sklearn.ensemble import RandomForestRegressor
-from sklearn.exceptions import NotFittedError
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 from sklearn.linear_model import LinearRegression
@@ -72,7 +71,7 @@ from sklearn.preprocessing import MinMaxScaler
 from sklearn.svm import SVR
 from threadpoolctl import ThreadpoolController
 
-from femcal.errors import ConfigError, FemcalError, InputDataError
+from femcal.errors import ConfigError, InputDataError, SurrogateNotFittedError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates.base import encode_features, register_surrogate
@@ -112,10 +111,6 @@ _N_CASES = len(LOAD_CASES)  # one-hot columns 0..3 of encode_features; column 4 
 def _threadpools() -> ThreadpoolController:
     # Built once (~20 ms); limiting through it then costs ~0.05 ms per fit/predict call.
     return ThreadpoolController()
-
-
-class SurrogateNotFittedError(FemcalError, NotFittedError):
-    """``predict`` was called before ``fit`` (also an sklearn ``NotFittedError``)."""
 
 
 # --------------------------------------------------------------------------- building blocks
