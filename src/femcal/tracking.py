@@ -151,7 +151,7 @@ def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model")
         )
         info = mlflow.pyfunc.log_model(
             name=name,
-            python_model=SurrogatePyfunc(),
+            python_model=str(Path(__file__).with_name("pyfunc_model.py")),
             artifacts={"surrogate": str(root)},
             signature=signature,
             input_example=example,

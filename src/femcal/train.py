@@ -12,6 +12,7 @@ import hashlib
 import json
 import logging
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -263,12 +264,16 @@ def train_surrogate(
         best_params: dict[str, Any] = dict(fixed)
         n_complete = 0
         if n_trials > 0:
-            rdb = optuna.storages.RDBStorage(
-                storage,
-                heartbeat_interval=30,
-                grace_period=90,
-                failed_trial_callback=optuna.storages.RetryFailedTrialCallback(max_retry=2),
-            )
+            with warnings.catch_warnings():  # heartbeats are 'experimental' in Optuna
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                rdb = optuna.storages.RDBStorage(
+                    storage,
+                    heartbeat_interval=30,
+                    grace_period=90,
+                    heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(
+                        max_retry=2
+                    ),
+                )
             study = optuna.create_study(
                 study_name=full_name,
                 storage=rdb,

@@ -1,0 +1,140 @@
+"""`dvc repro` for real, in a temporary copy of the repository, on a few dozen configurations.
+
+Needs the study's data through FEMCAL_DATA_MIRROR (CI sets it); skipped otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+pytestmark = pytest.mark.skipif(
+    not os.environ.get("FEMCAL_DATA_MIRROR"),
+    reason="set FEMCAL_DATA_MIRROR to the study's data to run the pipeline",
+)
+
+
+def _run(args, cwd, env, check=True):
+    proc = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True)
+    if check and proc.returncode != 0:
+        raise AssertionError(
+            f"{' '.join(map(str, args))} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+        )
+    return proc
+
+
+def tiny_params(path: Path) -> None:
+    params = yaml.safe_load(path.read_text())
+    params["data"]["limit_configs"] = 24
+    tiny = {"width": 16, "depth": 2, "max_epochs": 3, "patience": 3, "batch_size": 256}
+    for split in ("large", "small"):
+        params["train"][split]["fixed"].update(tiny)
+        params["train"][split]["final_members"] = 1
+    params["train"]["large"]["n_trials"] = 1
+    params["train"]["large"]["search_space"] = {
+        "learning_rate": {"type": "float", "low": 0.001, "high": 0.01, "log": True}
+    }
+    params["baselines"]["models"] = ["linear", "lightgbm"]
+    params["interpolation"]["final_members"] = 1
+    params["interpolation"]["baselines"] = ["linear"]
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    root = tmp_path_factory.mktemp("femcal") / "repo"
+    files = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split("\0")
+    for rel in filter(None, files):
+        src = REPO / rel
+        if src.is_file():
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, root / rel)
+    tiny_params(root / "params.yaml")
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
+    env["FEMCAL_OPTUNA_STORAGE"] = ""
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    _run(["git", "init", "-q"], root, env)
+    _run([*git, "add", "-A"], root, env)
+    _run([*git, "commit", "-qm", "copy"], root, env)
+    first = _run([BIN / "dvc", "repro"], root, env)
+    return root, env, git, first
+
+
+def test_repro_produces_the_reports_and_the_registered_model(project):
+    root, env, _, first = project
+    for stage in (
+        "fetch",
+        "prepare",
+        "train@large",
+        "train@small",
+        "baselines@large",
+        "interpolate",
+        "evaluate",
+    ):
+        assert f"Running stage '{stage}'" in first.stdout
+    report = json.loads((root / "reports/surrogates.json").read_text())
+    rows = report["trained_on_large"]
+    assert {"nn@large", "linear@large", "lightgbm@large"} <= set(rows)
+    assert all(r["n_rows"] == 24 * 20 for r in rows.values())
+    # nn trained on Large, on Small, and in the interpolation check
+    assert (root / "reports/surrogates.md").read_text().count("| nn |") == 3
+    # The registered champion answers through MLflow's pyfunc interface.
+    code = (
+        "import mlflow, pandas as pd; from femcal.tracking import input_example;"
+        "from femcal.space import ParameterSpace;"
+        f"mlflow.set_tracking_uri('sqlite:///{root}/mlruns/mlflow.db');"
+        "m = mlflow.pyfunc.load_model('models:/ivd-rom-surrogate@champion');"
+        f"s = ParameterSpace.from_json('{root}/data/prepared/parameter_space.json');"
+        "p = m.predict(input_example(s)); assert len(p) == 4 and (p > 0).all(), p; print('ok')"
+    )
+    assert _run([sys.executable, "-c", code], root, env).stdout.strip().endswith("ok")
+
+
+def test_second_repro_runs_nothing_and_a_change_reruns_only_downstream(project):
+    root, env, _, _ = project
+    again = _run([BIN / "dvc", "repro"], root, env)
+    assert "Running stage" not in again.stdout, again.stdout
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["train"]["small"]["fixed"]["max_epochs"] = 4
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    changed = _run([BIN / "dvc", "repro"], root, env)
+    ran = {
+        line.split("'")[1]
+        for line in changed.stdout.splitlines()
+        if line.startswith("Running stage")
+    }
+    assert ran == {"train@small", "evaluate"}, changed.stdout
+
+
+def test_teammate_pulls_data_and_models_and_has_nothing_to_run(project, tmp_path):
+    root, env, git, _ = project
+    remote = tmp_path / "remote"
+    _run([BIN / "dvc", "remote", "add", "-d", "team", str(remote)], root, env)
+    _run([BIN / "dvc", "push"], root, env)
+    _run([*git, "add", "-A"], root, env)
+    _run([*git, "commit", "-qm", "results"], root, env)
+    clone = tmp_path / "clone"
+    _run(["git", "clone", "-q", str(root), str(clone)], tmp_path, env)
+    clone_env = {**env, "FEMCAL_DATA_MIRROR": ""}
+    _run([BIN / "dvc", "pull"], clone, clone_env)
+    assert (clone / "models/surrogate-large").is_dir()
+    assert (clone / "data/prepared/test.csv").is_file()
+    status = _run([BIN / "dvc", "repro"], clone, clone_env)
+    assert "Running stage" not in status.stdout, status.stdout

@@ -1,0 +1,136 @@
+"""Training under a real Optuna RDB study with a real (temporary) MLflow store."""
+
+import mlflow
+import numpy as np
+import optuna
+import pytest
+from mlflow import MlflowClient
+
+from femcal.errors import ConfigError
+from femcal.train import suggest, surrogate_kwargs, train_surrogate, validation_split
+
+from synth import study_space, tidy_table
+
+TINY = {
+    "width": 16,
+    "depth": 2,
+    "max_epochs": 4,
+    "patience": 4,
+    "batch_size": 256,
+    "learning_rate": 3e-3,
+}
+SPACE = {"learning_rate": {"type": "float", "low": 1e-3, "high": 1e-2, "log": True}}
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    from femcal.tracking import configure_tracking, ensure_experiment
+
+    configure_tracking(store_dir=tmp_path / "mlruns")
+    ensure_experiment("test", store_dir=tmp_path / "mlruns")
+    yield tmp_path
+    mlflow.set_tracking_uri(None)
+
+
+def _train(table, store, **kw):
+    args = dict(
+        search_space=SPACE,
+        fixed=TINY,
+        n_trials=2,
+        final_members=1,
+        storage=f"sqlite:///{store / 'optuna.db'}",
+        study_name="t",
+        seed=0,
+        register_as="ivd-rom-surrogate",
+    )
+    args.update(kw)
+    return train_surrogate(table, study_space(), **args)
+
+
+def test_search_logs_trials_registers_and_resumes(store):
+    table = tidy_table(24, seed=1)
+    res = _train(table, store)
+    assert res.n_trials == 2
+    assert res.version == "1" and res.promoted
+    client = MlflowClient()
+    children = client.search_runs(
+        [mlflow.get_experiment_by_name("test").experiment_id],
+        filter_string=f"tags.mlflow.parentRunId = '{res.run_id}'",
+    )
+    assert len(children) == 2
+    for child in children:
+        history = client.get_metric_history(child.info.run_id, "val_mae_deg")
+        assert len(history) >= 2, "per-epoch validation MAE must be logged"
+        assert "learning_rate" in child.data.params
+    champion = client.get_model_version_by_alias("ivd-rom-surrogate", "champion")
+    assert str(champion.version) == "1"
+
+    # Resume: the study already holds 2 complete trials, asking for 3 runs only one more.
+    res2 = _train(table, store, n_trials=3)
+    assert res2.n_trials == 3
+    children2 = client.search_runs(
+        [mlflow.get_experiment_by_name("test").experiment_id],
+        filter_string=f"tags.mlflow.parentRunId = '{res2.run_id}'",
+    )
+    assert len(children2) == 1
+
+
+def test_champion_moves_only_on_better_validation(store):
+    table = tidy_table(24, seed=1)
+    good = _train(table, store, n_trials=0, fixed={**TINY, "max_epochs": 30, "patience": 30})
+    bad = _train(table, store, n_trials=0, fixed={**TINY, "max_epochs": 1, "learning_rate": 1e-5})
+    assert bad.val_mae_deg > good.val_mae_deg
+    assert good.promoted and not bad.promoted
+    champion = MlflowClient().get_model_version_by_alias("ivd-rom-surrogate", "champion")
+    assert str(champion.version) == good.version
+
+
+def test_same_seed_same_metrics(store):
+    table = tidy_table(20, seed=2)
+    a = _train(table, store, n_trials=0, register_as=None)
+    b = _train(table, store, n_trials=0, register_as=None)
+    assert a.val_mae_deg == b.val_mae_deg
+    c = _train(table, store, n_trials=0, register_as=None, seed=1)
+    assert c.val_mae_deg != a.val_mae_deg
+
+
+def test_validation_split_is_by_configuration():
+    table = tidy_table(20, seed=0)
+    tr, va = validation_split(table, fraction=0.25, seed=0)
+    assert set(tr["config_id"]).isdisjoint(va["config_id"])
+    assert va["config_id"].nunique() == 5
+    assert len(tr) + len(va) == len(table)
+
+
+def test_validation_fraction_error():
+    with pytest.raises(ConfigError, match=r"Validation fraction must lie in \(0, 1\); got 1.5"):
+        validation_split(tidy_table(4, seed=0), fraction=1.5, seed=0)
+
+
+def test_suggest_errors():
+    trial = optuna.create_study().ask()
+    with pytest.raises(ConfigError, match="search_space.lr.type is 'floaty'"):
+        suggest(trial, {"lr": {"type": "floaty"}})
+    with pytest.raises(ConfigError, match="search_space.lr \\(float\\) lacks 'high'"):
+        suggest(trial, {"lr": {"type": "float", "low": 0.1}})
+
+
+def test_surrogate_kwargs_width_depth():
+    assert surrogate_kwargs({"width": 8, "depth": 3, "loss": "l1"}) == {
+        "hidden": (8, 8, 8),
+        "loss": "l1",
+    }
+
+
+def test_negative_trials_error(store):
+    with pytest.raises(ConfigError, match="n_trials must be >= 0"):
+        _train(tidy_table(4, seed=0), store, n_trials=-1)
+
+
+def test_failed_rows_are_not_trained_on(store):
+    table = tidy_table(20, seed=3)
+    table.loc[:9, "status"] = "failed"
+    table.loc[:9, "rom_deg"] = np.nan
+    res = _train(table, store, n_trials=0, register_as=None)
+    assert np.isfinite(res.val_mae_deg)
