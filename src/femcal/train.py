@@ -307,6 +307,10 @@ def train_surrogate(
                     mlflow.set_tag("optuna.state", "COMPLETE")
                 return value
 
+            if not study.trials:
+                start = _fixed_as_trial(fixed, search_space)
+                if start:
+                    study.enqueue_trial(start)  # the known recipe is trial 0
             done = _n_complete(study)
             if done < n_trials:
                 logger.info("Optuna study %s: %d of %d trials done", full_name, done, n_trials)
@@ -360,6 +364,23 @@ def train_surrogate(
             promoted=promoted,
             seconds=seconds,
         )
+
+
+def _fixed_as_trial(
+    fixed: Mapping[str, Any], search_space: Mapping[str, Mapping[str, Any]]
+) -> dict[str, Any]:
+    """The fixed settings that lie inside the search space, as an Optuna trial to enqueue."""
+    start = {}
+    for name, spec in search_space.items():
+        if name not in fixed:
+            continue
+        value = fixed[name]
+        if spec.get("type") == "categorical":
+            if value in list(spec.get("choices", [])):
+                start[name] = value
+        elif "low" in spec and "high" in spec and spec["low"] <= value <= spec["high"]:
+            start[name] = value
+    return start
 
 
 def _n_complete(study: Any) -> int:
