@@ -134,3 +134,82 @@ def test_failed_rows_are_not_trained_on(store):
     table.loc[:9, "rom_deg"] = np.nan
     res = _train(table, store, n_trials=0, register_as=None)
     assert np.isfinite(res.val_mae_deg)
+
+
+KILL_SCRIPT = """
+import sys, time, mlflow
+sys.path.insert(0, {tests!r})
+from synth import study_space, tidy_table
+from femcal.tracking import configure_tracking, ensure_experiment
+from femcal.train import train_surrogate
+configure_tracking(store_dir={store!r})
+ensure_experiment("test", store_dir={store!r})
+train_surrogate(
+    tidy_table(24, seed=1), study_space(), search_space={space!r},
+    fixed={fixed!r}, n_trials=50, final_members=1, storage={storage!r}, study_name="t",
+    seed=0, heartbeat_seconds=1,
+)
+"""
+
+
+def test_killed_search_resumes(store):
+    """SIGKILL a worker mid-search; the next run keeps its finished trials and retries the
+    one it was running."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    storage = f"sqlite:///{store / 'optuna.db'}"
+    fixed = {**TINY, "max_epochs": 40, "patience": 40}
+    script = KILL_SCRIPT.format(
+        tests=str(Path(__file__).parent),
+        store=str(store / "mlruns"),
+        space=SPACE,
+        fixed=fixed,
+        storage=storage,
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script])
+    name = None
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            time.sleep(0.5)
+            summaries = (
+                optuna.get_all_study_summaries(storage) if (store / "optuna.db").exists() else []
+            )
+            if summaries:
+                name = summaries[0].study_name
+                states = [
+                    t.state for t in optuna.load_study(study_name=name, storage=storage).trials
+                ]
+                if (
+                    states.count(optuna.trial.TrialState.COMPLETE) >= 2
+                    and states[-1] == optuna.trial.TrialState.RUNNING
+                ):
+                    break
+        else:
+            pytest.fail("the worker did not reach two complete trials in time")
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    before = optuna.load_study(study_name=name, storage=storage).trials
+    n_done = sum(t.state == optuna.trial.TrialState.COMPLETE for t in before)
+    assert before[-1].state == optuna.trial.TrialState.RUNNING  # orphaned by the kill
+    time.sleep(3.5)  # let its heartbeat go stale (3 periods)
+    res = _train(
+        tidy_table(24, seed=1),
+        store,
+        fixed=fixed,
+        n_trials=n_done + 1,
+        heartbeat_seconds=1,
+        register_as=None,
+    )
+    after = optuna.load_study(study_name=name, storage=storage).trials
+    assert after[len(before) - 1].state == optuna.trial.TrialState.FAIL
+    assert res.n_trials == n_done + 1
+    # Finished trials were kept, not recomputed: their values are unchanged.
+    for t_before, t_after in zip(before[:-1], after):
+        assert t_before.state != optuna.trial.TrialState.COMPLETE or t_before.value == t_after.value

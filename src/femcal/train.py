@@ -196,6 +196,7 @@ def train_surrogate(
     register_as: str | None = None,
     run_name: str = "train",
     progress: bool = False,
+    heartbeat_seconds: int = 30,
 ) -> TrainResult:
     """Search hyper-parameters with Optuna, fit the final ensemble, log and register it.
 
@@ -222,6 +223,9 @@ def train_surrogate(
         Seeds the sampler, the validation split and every member.
     register_as : str or None
         Registered model name; the champion alias moves only on a better validation MAE.
+    heartbeat_seconds : int
+        Trials send a heartbeat this often; a trial silent for three periods (its worker was
+        killed) is marked failed and retried by the next worker.
 
     Returns
     -------
@@ -268,8 +272,8 @@ def train_surrogate(
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                 rdb = optuna.storages.RDBStorage(
                     storage,
-                    heartbeat_interval=30,
-                    grace_period=90,
+                    heartbeat_interval=heartbeat_seconds,
+                    grace_period=3 * heartbeat_seconds,
                     heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(
                         max_retry=2
                     ),
