@@ -232,12 +232,13 @@ def run_interpolation(
         )
         nn = NeuralSurrogate(space, **surrogate_kwargs(fixed), n_members=final_members, seed=seed)
         nn.fit(tr, tr["rom_deg"].to_numpy(), X_val=va, y_val=va["rom_deg"].to_numpy())
-        scores.append(score_model(nn, test, name="nn", train_split="large", moments=test_moments))
+        label = "large, " + ",".join(f"{m:g}" for m in train_moments) + " Nm"
+        scores.append(score_model(nn, test, name="nn", train_split=label, moments=test_moments))
         for name in baselines:
             model = make_surrogate(name, space=space, seed=seed, n_jobs=n_jobs)
             model.fit(data, data["rom_deg"].to_numpy())
             scores.append(
-                score_model(model, test, name=name, train_split="large", moments=test_moments)
+                score_model(model, test, name=name, train_split=label, moments=test_moments)
             )
         for s in scores:
             mlflow.log_metrics(

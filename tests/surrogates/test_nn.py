@@ -210,3 +210,16 @@ def test_input_errors(fitted: NeuralSurrogate, data: tuple[pd.DataFrame, np.ndar
         NeuralSurrogate(SPACE, **FAST).fit(X, np.where(np.arange(len(y)) == 0, 0.0, y))
     with pytest.raises(InputDataError, match="values for"):
         NeuralSurrogate(SPACE, **FAST).fit(X, y[:-1])
+
+
+def test_polynomial_degree_follows_the_training_moments():
+    """Three training moments determine a quadratic in log-moment, not a cubic."""
+    from synth import study_space, tidy_table
+
+    table = tidy_table(12, seed=0, moments=(1, 3, 5))
+    model = NeuralSurrogate(study_space(), hidden=(8,), max_epochs=2, patience=2, seed=0)
+    model.fit(table, table["rom_deg"].to_numpy())
+    assert model.net_.architecture()["moment_degree"] == 2
+    full = tidy_table(12, seed=0)
+    model.fit(full, full["rom_deg"].to_numpy())
+    assert model.net_.architecture()["moment_degree"] == 3

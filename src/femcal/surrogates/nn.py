@@ -675,6 +675,20 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         val_groups = rng.permutation(n_groups)[:n_val]
         return np.isin(groups, val_groups)
 
+    @staticmethod
+    def _moment_degree(moment: np.ndarray, most: int = 3) -> int:
+        """Degree of the log-moment polynomial: cubic, or lower when the training data has too
+        few distinct moments to determine it (3 moments -> quadratic)."""
+        distinct = int(np.unique(np.round(moment, 9)).size)
+        degree = max(0, min(most, distinct - 1))
+        if degree < most:
+            log.info(
+                "Only %d distinct training moments: using a degree-%d polynomial in log-moment.",
+                distinct,
+                degree,
+            )
+        return degree
+
     def _check_fitted(self) -> None:
         if not hasattr(self, "net_"):
             raise SurrogateNotFittedError(
@@ -750,7 +764,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
             "dropout": float(self.dropout),
             "log_target": bool(self.log_target),
             "log_params": bool(self.log_params),
-            "moment_degree": 3,
+            "moment_degree": self._moment_degree(moment),
         }
 
         def scaled(values: np.ndarray) -> np.ndarray:
