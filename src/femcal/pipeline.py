@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -69,8 +70,6 @@ def run_train(
     )
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     if tmp.exists():
-        import shutil
-
         shutil.rmtree(tmp)
     result.surrogate.save(tmp)
     (tmp / "mlflow.json").write_text(
@@ -88,8 +87,6 @@ def run_train(
         + "\n"
     )
     copy_tree(tmp, out_dir)
-    import shutil
-
     shutil.rmtree(tmp)
     write_summary(result, metrics_path)
     return result
