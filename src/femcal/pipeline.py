@@ -49,7 +49,6 @@ def run_train(
     """Train (search + final ensemble) on one split; save the model dir and the summary."""
     import mlflow
 
-    from femcal.tracking import copy_tree
     from femcal.train import train_surrogate, write_summary
 
     table, space = load_split(prepared_dir, split)
@@ -86,8 +85,9 @@ def run_train(
         )
         + "\n"
     )
-    copy_tree(tmp, out_dir)
-    shutil.rmtree(tmp)
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)  # the model directory appears complete or not at all
     write_summary(result, metrics_path)
     return result
 

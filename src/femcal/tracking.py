@@ -11,7 +11,6 @@ import importlib
 import json
 import logging
 import os
-import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -273,10 +272,3 @@ def load_surrogate(uri: str = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}") 
     root = candidates[0].parent
     spec = json.loads(candidates[0].read_text())["loader"]
     return _import_loader(spec).load(root)
-
-
-def copy_tree(src: Path, dst: Path) -> None:
-    """Replace ``dst`` with a copy of ``src`` (for DVC outputs)."""
-    if dst.exists():
-        shutil.rmtree(dst)
-    shutil.copytree(src, dst)
