@@ -6,6 +6,7 @@ Every DVC stage is one sub-command, e.g. ``femcal train --split large``.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -49,6 +50,7 @@ def cmd_train(args: argparse.Namespace, params: dict) -> None:
 
     _tracking(params)
     split = args.split
+    settings = section(params, "train", split)
     storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or section(params, "train", "storage")
     if storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
         Path(storage[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
@@ -57,13 +59,14 @@ def cmd_train(args: argparse.Namespace, params: dict) -> None:
         split=split,
         out_dir=Path(f"models/surrogate-{split}"),
         metrics_path=Path(f"reports/train-{split}.json"),
-        settings=section(params, "train", split),
+        settings=settings,
         storage=storage,
         study_name=section(params, "train", "study_name"),
-        seed=int(section(params, "train", "seed")),
+        seed=int(settings.get("seed", section(params, "train", "seed"))),
         val_fraction=float(section(params, "train", "val_fraction")),
-        model_name=section(params, "mlflow", "model_name"),
+        model_name=settings.get("model_name") or section(params, "mlflow", "model_name"),
         progress=sys.stderr.isatty(),
+        data_split=settings.get("split", split),
     )
     reg = (
         f"; registered as version {result.version} ("
@@ -137,6 +140,56 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
     print("report: reports/surrogates.md")
 
 
+def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_calibrate
+
+    _tracking(params)
+    cfg = section(params, "calibrate")
+    method = args.method or section(params, "calibrate", "method")
+    model_uri = args.model_uri or section(params, "calibrate", "model_uri")
+    if args.model_version or args.model_alias:
+        name = section(params, "mlflow", "model_name")
+        ref = f"/{args.model_version}" if args.model_version else f"@{args.model_alias}"
+        model_uri = f"models:/{name}{ref}"
+    holdout_uri = None if args.no_holdout else (args.holdout_uri or cfg.get("holdout_uri"))
+    options = dict((cfg.get("options") or {}).get(method) or {})
+    bank = cfg.get("start_bank")
+    max_plots = cfg.get("max_plots")
+    result, figures = run_calibrate(
+        measurements=Path(args.measurements or section(params, "calibrate", "measurements")),
+        out_dir=Path(args.out or section(params, "calibrate", "out_dir")),
+        method=method,
+        model_uri=model_uri,
+        holdout_uri=holdout_uri,
+        start_bank=Path(bank) if bank else None,
+        options=options,
+        seed=int(args.seed if args.seed is not None else cfg.get("seed", 0)),
+        max_extrapolation=float(section(params, "calibrate", "max_extrapolation")),
+        chunk_size=cfg.get("chunk_size"),
+        plots=bool(cfg.get("plots", True)),
+        max_plots=None if max_plots is None else int(max_plots),
+        progress=sys.stderr.isatty(),
+    )
+    held = (
+        f", held-out surrogate MAE {figures['holdout_mae_deg']:.4f} deg"
+        if "holdout_mae_deg" in figures
+        else ""
+    )
+    print(
+        f"calibrated {figures['n_specimens']} specimens with {method} against {model_uri} in "
+        f"{figures['seconds']:.2f} s: MAE {figures['mae_deg']:.4f} deg, mean R² "
+        f"{figures['r2_mean']:.4f}, {figures['n_outside_bounds']} outside the bounds{held}"
+    )
+    if figures["n_plotted"] < figures["n_specimens"]:
+        print(f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)")
+    metrics_file = cfg.get("metrics_file")
+    if metrics_file:
+        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
+        Path(metrics_file).write_text(json.dumps(figures, indent=2) + "\n")
+    out = args.out or section(params, "calibrate", "out_dir")
+    print(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="femcal", description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml", help="settings file (params.yaml)")
@@ -151,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
         ("baselines", cmd_baselines, "fit the study's model zoo"),
     ):
         p = sub.add_parser(name, help=helptext)
-        p.add_argument("--split", required=True, choices=("large", "small"))
+        p.add_argument("--split", required=True, help="a section of train: large, small, ...")
         p.set_defaults(func=func)
     sub.add_parser("interpolate", help="train on 1,3,5 Nm, test at 2,4 Nm").set_defaults(
         func=cmd_interpolate
@@ -159,6 +212,17 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("evaluate", help="Test-set table for every surrogate").set_defaults(
         func=cmd_evaluate
     )
+    p = sub.add_parser("calibrate", help="calibrate measured specimens (registered surrogate)")
+    p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
+    p.add_argument("--out", help="output folder (default: calibrate.out_dir)")
+    p.add_argument("--method", help="pgd (default), pgd-study, ga, inverse")
+    p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
+    p.add_argument("--model-version", help="version of the registered surrogate")
+    p.add_argument("--model-alias", help="alias of the registered surrogate")
+    p.add_argument("--holdout-uri", help="held-out surrogate URI (default: calibrate.holdout_uri)")
+    p.add_argument("--no-holdout", action="store_true", help="skip the held-out re-evaluation")
+    p.add_argument("--seed", type=int, help="seed (default: calibrate.seed)")
+    p.set_defaults(func=cmd_calibrate)
     return parser
 
 

@@ -15,6 +15,7 @@ from typing import Any
 
 import joblib
 import numpy as np
+import pandas as pd
 
 from femcal.evaluate import Score, score_model, write_reports
 from femcal.space import ParameterSpace
@@ -45,13 +46,18 @@ def run_train(
     val_fraction: float,
     model_name: str | None,
     progress: bool = False,
+    data_split: str | None = None,
 ):
-    """Train (search + final ensemble) on one split; save the model dir and the summary."""
+    """Train (search + final ensemble) on one split; save the model dir and the summary.
+
+    ``split`` names the run (Optuna study, MLflow run); ``data_split`` is the prepared table
+    trained on (default: ``split``), so that e.g. a held-out surrogate trains on "large" too.
+    """
     import mlflow
 
     from femcal.train import train_surrogate, write_summary
 
-    table, space = load_split(prepared_dir, split)
+    table, space = load_split(prepared_dir, data_split or split)
     result = train_surrogate(
         table,
         space,
@@ -258,3 +264,111 @@ def run_interpolation(
         + "\n"
     )
     return scores
+
+
+def training_configurations(path: Path) -> np.ndarray:
+    """Distinct converged configurations (physical units) of a prepared split, shape (N, d)."""
+    from femcal.prepare import load_tidy
+    from femcal.train import ok_rows
+
+    space = ParameterSpace.from_json(path.parent / SPACE_FILE)
+    table = ok_rows(load_tidy(path, space))
+    return table.drop_duplicates("config_id")[list(space.names)].to_numpy(dtype=float)
+
+
+def run_calibrate(
+    *,
+    measurements: Path,
+    out_dir: Path,
+    method: str,
+    model_uri: str,
+    holdout_uri: str | None,
+    start_bank: Path | None,
+    options: Mapping[str, Any],
+    seed: int,
+    max_extrapolation: float,
+    chunk_size: int | None = None,
+    plots: bool = True,
+    max_plots: int | None = None,
+    progress: bool = False,
+):
+    """Calibrate every specimen of a measurement file against the registered surrogate.
+
+    Reads the measurements, loads the surrogate (and the held-out surrogate) from the MLflow
+    registry, checks the moment range, calibrates the batch, writes ``out_dir`` (see
+    :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
+    per-specimen tables and every output file as artifacts.
+
+    Returns
+    -------
+    result : CalibrationResult
+    figures : dict
+        The summary figures (also in ``out_dir/summary.json``).
+    """
+    import mlflow
+
+    from femcal.calibration import CurveModel, calibrate
+    from femcal.calibration.report import write_outputs
+    from femcal.measurements import check_moment_range, read_measurements
+    from femcal.tracking import load_surrogate, resolve_model_version
+
+    meas = read_measurements(measurements)
+    surrogate = load_surrogate(model_uri)
+    check_moment_range(
+        meas, trained_range=tuple(surrogate.moment_range_), max_extrapolation=max_extrapolation
+    )
+    model = CurveModel(surrogate, meas.moments)
+    opts = dict(options)
+    if method == "pgd":
+        if start_bank is not None and "start_bank" not in opts:
+            opts["start_bank"] = training_configurations(start_bank)
+        if "noise_deg" not in opts and np.isfinite(surrogate.best_val_mae_deg_):
+            # The surrogate's own error is part of the noise (Gaussian: sd = MAE * sqrt(pi/2)).
+            opts["noise_deg"] = float(surrogate.best_val_mae_deg_) * float(np.sqrt(np.pi / 2))
+    holdout = None
+    if holdout_uri:
+        holdout = CurveModel(load_surrogate(holdout_uri), meas.moments)
+    result = calibrate(
+        model,
+        meas.rom_deg,
+        specimens=meas.specimens,
+        weight=meas.weight,
+        method=method,
+        seed=seed,
+        chunk_size=chunk_size,
+        progress=progress,
+        options=opts,
+    )
+    figures = write_outputs(result, out_dir, holdout=holdout, plots=plots, max_plots=max_plots)
+    missing = meas.missing_load_cases()
+    with mlflow.start_run(run_name=f"calibrate-{method}"):
+        mlflow.set_tag("femcal.stage", "calibrate")
+        logged = {
+            "method": method,
+            "measurements": str(measurements),
+            "n_specimens": meas.n_specimens,
+            "moments": ",".join(f"{m:g}" for m in meas.moments),
+            "model_uri": model_uri,
+            "holdout_uri": holdout_uri or "",
+            "seed": seed,
+            "chunk_size": chunk_size or 0,
+        }
+        for key, value in opts.items():
+            if key != "start_bank" and not hasattr(value, "predict"):
+                logged[f"option.{key}"] = value
+        if "start_bank" in opts:
+            logged["option.start_bank"] = f"{start_bank} ({len(opts['start_bank'])} configs)"
+        for tag, uri in (("model", model_uri), ("holdout", holdout_uri)):
+            info = resolve_model_version(uri) if uri else None
+            if info:
+                logged[f"{tag}_version"] = f"{info['name']}/{info['version']}"
+        mlflow.log_params(logged)
+        mlflow.log_metrics({k: float(v) for k, v in figures.items() if isinstance(v, (int, float))})
+        if missing:
+            mlflow.set_tag("femcal.missing_load_cases", json.dumps(missing)[:5000])
+        metrics_df = pd.read_csv(out_dir / "metrics.csv")
+        metrics_df["missing_load_cases"] = metrics_df["missing_load_cases"].fillna("")
+        mlflow.log_table(metrics_df, artifact_file="tables/metrics.json")
+        mlflow.log_table(result.parameters_frame(), artifact_file="tables/parameters.json")
+        mlflow.log_artifacts(str(out_dir), artifact_path="calibration")
+    return result, figures

@@ -272,3 +272,31 @@ def load_surrogate(uri: str = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}") 
     root = candidates[0].parent
     spec = json.loads(candidates[0].read_text())["loader"]
     return _import_loader(spec).load(root)
+
+
+def resolve_model_version(uri: str) -> dict[str, str] | None:
+    """Name and version behind a ``models:/NAME@ALIAS`` or ``models:/NAME/VERSION`` URI.
+
+    Returns
+    -------
+    dict or None
+        ``{"name", "version", "uri"}``; None for other URIs (``runs:/...``) or when the alias
+        or version does not exist.
+    """
+    from mlflow import MlflowClient
+    from mlflow.exceptions import MlflowException
+
+    if not uri.startswith("models:/"):
+        return None
+    ref = uri[len("models:/") :]
+    client = MlflowClient()
+    try:
+        if "@" in ref:
+            name, alias = ref.split("@", 1)
+            mv = client.get_model_version_by_alias(name, alias)
+        else:
+            name, version = ref.rsplit("/", 1)
+            mv = client.get_model_version(name, version)
+    except (MlflowException, ValueError):
+        return None
+    return {"name": mv.name, "version": str(mv.version), "uri": uri}

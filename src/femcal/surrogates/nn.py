@@ -65,6 +65,8 @@ LOSSES: tuple[str, ...] = ("l1", "l2")
 _FORMAT = "femcal-nn"
 _FORMAT_VERSION = 1
 _PREDICT_BATCH = 65_536
+_SQRT_HALF = math.sqrt(0.5)
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
 # ----------------------------------------------------------------------------- the torch model
@@ -281,6 +283,120 @@ class RomNet(nn.Module):
             RoM in degrees.
         """
         return self.members_degrees(load_case_index, moment_nm, params).mean(0)
+
+    # ------------------------------------------------- curves on a grid, for calibration
+    def params_from_unit(self, v: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`unit`: network inputs, shape (n, d) -> physical parameters."""
+        linear = self.lower + v * (self.upper - self.lower)
+        if not bool(self.log_mask.any()):
+            return linear
+        logged = torch.exp(self.log_lower + v * (self.log_upper - self.log_lower))
+        return torch.where(self.log_mask, logged, linear)
+
+    def curves(self, v: torch.Tensor, moment_nm: torch.Tensor) -> torch.Tensor:
+        """RoM curves of every load case on a moment grid, from network inputs.
+
+        Parameters
+        ----------
+        v : Tensor, shape (n, d)
+            Parameters in the network's unit coordinates (:meth:`unit`); the box is [0, 1]^d.
+        moment_nm : Tensor, shape (m,)
+            Moments in Nm, > 0.
+
+        Returns
+        -------
+        Tensor, shape (n, 4, m)
+            RoM in degrees, mean of the members.
+        """
+        basis = self.moment_basis(moment_nm)  # (m, p)
+        shape = (v.shape[0], self.n_load_cases, self.moment_degree + 1)
+        out = v.new_zeros((v.shape[0], self.n_load_cases, moment_nm.shape[0]))
+        for member in self.members:
+            out = out + self.to_degrees(member(v).reshape(shape) @ basis.T)
+        return out / self.n_members
+
+    def curves_jacobian(
+        self, v: torch.Tensor, moment_nm: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`curves` and its Jacobian in ``v`` by forward-mode differentiation.
+
+        The ``d`` tangents travel through each member as one extra batch dimension, so the
+        cost is about ``d + 1`` forward passes of large matrix products (no autograd graph).
+
+        Parameters
+        ----------
+        v : Tensor, shape (n, d)
+            Network inputs (see :meth:`curves`).
+        moment_nm : Tensor, shape (m,)
+            Moments in Nm.
+
+        Returns
+        -------
+        values : Tensor, shape (n, 4, m)
+            RoM in degrees.
+        jacobian : Tensor, shape (n, 4, m, d)
+            d RoM / d v.
+        """
+        basis = self.moment_basis(moment_nm)  # (m, p)
+        n, d = v.shape
+        n_lc, p = self.n_load_cases, self.moment_degree + 1
+        values = v.new_zeros((n, n_lc, moment_nm.shape[0]))
+        jac = v.new_zeros((n, d, n_lc, moment_nm.shape[0]))
+        with torch.no_grad():
+            for member in self.members:
+                h, tangent = _forward_tangents(member, v)
+                scaled = h.reshape(n, n_lc, p) @ basis.T  # (n, 4, m)
+                dscaled = tangent.reshape(n, d, n_lc, p) @ basis.T  # (n, d, 4, m)
+                deg = self.to_degrees(scaled)
+                if self.log_target:
+                    ddeg = dscaled * (deg * self.y_scale)[:, None]
+                else:
+                    ddeg = dscaled * self.y_scale
+                values += deg
+                jac += ddeg
+        return values / self.n_members, (jac / self.n_members).permute(0, 2, 3, 1)
+
+
+def _activation_derivative(module: nn.Module, z: torch.Tensor) -> torch.Tensor:
+    """Elementwise derivative of a hidden activation at its input ``z``."""
+    if isinstance(module, nn.GELU) and module.approximate == "none":
+        return 0.5 * (1.0 + torch.erf(z * _SQRT_HALF)) + z * torch.exp(-0.5 * z * z) * _INV_SQRT_2PI
+    if isinstance(module, nn.SiLU):
+        sig = torch.sigmoid(z)
+        return sig * (1.0 + z * (1.0 - sig))
+    if isinstance(module, nn.ReLU):
+        return (z > 0).to(z.dtype)
+    if isinstance(module, nn.Tanh):
+        return 1.0 - torch.tanh(z) ** 2
+    if isinstance(module, nn.Softplus) and module.beta == 1:
+        return torch.sigmoid(z)
+    raise ConfigError(f"No forward-mode rule for activation {module!r}.")
+
+
+def _forward_tangents(member: nn.Sequential, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Output of an MLP member and its Jacobian, shapes (n, out) and (n, d, out).
+
+    Dropout is the identity here (eval mode is assumed).
+    """
+    h = v
+    tangent: torch.Tensor | None = None  # (n, d, width); None = identity
+    z: torch.Tensor | None = None
+    for layer in member:
+        if isinstance(layer, nn.Linear):
+            z = layer(h)
+            if tangent is None:
+                tangent = layer.weight.T.expand(v.shape[0], *layer.weight.T.shape)
+            else:
+                tangent = tangent @ layer.weight.T
+            h = z
+        elif isinstance(layer, nn.Dropout):
+            continue
+        else:
+            assert z is not None and tangent is not None
+            tangent = tangent * _activation_derivative(layer, z)[:, None, :]
+            h = layer(z)
+    assert tangent is not None
+    return h, tangent
 
 
 # ------------------------------------------------------------------------ Lightning wrapper
@@ -566,6 +682,8 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         MAE in degrees of the ensemble on the validation rows (NaN without validation).
     n_features_in_ : int
         2 + d: load_case, moment_nm and the d parameters.
+    moment_range_ : tuple of float
+        Smallest and largest training moment in Nm (the range the surrogate interpolates in).
     """
 
     def __init__(
@@ -832,6 +950,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         self.net_ = self._freeze(ens)
         self.history_ = history
         self.n_features_in_ = 2 + self.space.dim
+        self.moment_range_ = (float(np.min(moment)), float(np.max(moment)))
         if has_val:
             pred = self._predict_rows(vlc, vmom, vpar)
             self.best_val_mae_deg_ = float(np.mean(np.abs(pred - vy)))
@@ -913,6 +1032,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
             "fitted": {
                 "best_val_mae_deg": clean(self.best_val_mae_deg_),
                 "n_features_in": self.n_features_in_,
+                "moment_range": list(self.moment_range_),
                 "history": [{k: clean(v) for k, v in row.items()} for row in self.history_],
             },
         }
@@ -958,6 +1078,8 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         model.net_ = cls._freeze(net)
         model.best_val_mae_deg_ = math.nan if bv is None else float(bv)
         model.n_features_in_ = int(fitted.get("n_features_in", 2 + space.dim))
+        # Models saved before moment_range was recorded were all trained on 1..5 Nm.
+        model.moment_range_ = tuple(float(v) for v in fitted.get("moment_range", (1.0, 5.0)))
         model.history_ = [
             {k: (math.nan if v is None else v) for k, v in row.items()}
             for row in fitted.get("history", [])

@@ -1,0 +1,23 @@
+"""Calibration of FE parameters through a frozen surrogate: registry, problem, calibrators."""
+
+from femcal.calibration.base import (
+    CalibrationProblem,
+    CalibrationResult,
+    Solution,
+    available_calibrators,
+    calibrate,
+    get_calibrator,
+    register_calibrator,
+)
+from femcal.calibration.model import CurveModel
+
+__all__ = [
+    "CalibrationProblem",
+    "CalibrationResult",
+    "CurveModel",
+    "Solution",
+    "available_calibrators",
+    "calibrate",
+    "get_calibrator",
+    "register_calibrator",
+]

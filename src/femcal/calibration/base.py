@@ -1,0 +1,432 @@
+"""Calibrator registry, the shared problem and result objects, and :func:`calibrate`.
+
+A calibrator is one function registered under a name::
+
+    @register_calibrator("pgd")
+    def pgd(problem: CalibrationProblem, *, rng: np.random.Generator, **options) -> Solution
+
+It receives every specimen of a batch at once and returns a :class:`Solution`; the front
+function :func:`calibrate` times the batch, evaluates the solution through the surrogate and
+returns a :class:`CalibrationResult` (SciPy style: ``x``, ``fun``, ``success``, ``message``,
+``nit`` plus named fields). A new calibrator is a new module that registers itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from femcal.calibration.model import CurveModel
+from femcal.errors import ConfigError, InputDataError
+from femcal.metrics import curve_metrics
+from femcal.schema import LOAD_CASES
+
+logger = logging.getLogger(__name__)
+
+_CALIBRATORS: dict[str, Callable[..., Solution]] = {}
+
+
+def register_calibrator(name: str) -> Callable[[Callable[..., Solution]], Callable[..., Solution]]:
+    """Decorator registering a calibrator function under ``name``."""
+
+    def decorate(fn: Callable[..., Solution]) -> Callable[..., Solution]:
+        if name in _CALIBRATORS and _CALIBRATORS[name] is not fn:
+            raise ConfigError(f"A calibrator named '{name}' is already registered.")
+        _CALIBRATORS[name] = fn
+        return fn
+
+    return decorate
+
+
+def available_calibrators() -> list[str]:
+    """Registered calibrator names, sorted."""
+    _load_builtin()
+    return sorted(_CALIBRATORS)
+
+
+def get_calibrator(name: str) -> Callable[..., Solution]:
+    """The calibrator registered under ``name`` (ConfigError listing the names otherwise)."""
+    _load_builtin()
+    try:
+        return _CALIBRATORS[name]
+    except KeyError:
+        raise ConfigError(
+            f"Unknown calibration method '{name}'; choose one of {', '.join(sorted(_CALIBRATORS))}."
+        ) from None
+
+
+def _load_builtin() -> None:
+    # Importing the modules registers them.
+    from femcal.calibration import ga, inverse, pgd, pgd_study  # noqa: F401
+
+
+@dataclass
+class CalibrationProblem:
+    """Targets of a batch of specimens on one moment grid, and the model to fit.
+
+    Attributes
+    ----------
+    model : CurveModel
+        The surrogate on the moment grid.
+    target : Tensor, shape (n, 4, m)
+        Measured RoM in degrees, 0 where not measured.
+    weight : Tensor, shape (n, 4, m)
+        Weight of each point (0 where not measured); each specimen's weights sum to its
+        number of measured points.
+    mask : Tensor of bool, shape (n, 4, m)
+        Measured points.
+    measured : ndarray, shape (n, 4, m)
+        The targets as given, float64, NaN where not measured.
+    """
+
+    model: CurveModel
+    target: torch.Tensor
+    weight: torch.Tensor
+    mask: torch.Tensor
+    measured: np.ndarray
+
+    @property
+    def n_specimens(self) -> int:
+        return int(self.target.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return self.model.dim
+
+    @classmethod
+    def from_arrays(
+        cls, model: CurveModel, rom_deg: np.ndarray, weight: np.ndarray | None = None
+    ) -> CalibrationProblem:
+        """Build from measured curves (n, 4, m) with NaN = not measured."""
+        rom = np.asarray(rom_deg, dtype=float)
+        if rom.ndim != 3 or rom.shape[1:] != (len(LOAD_CASES), len(model.moments)):
+            raise InputDataError(
+                f"Targets must have shape (n, {len(LOAD_CASES)}, {len(model.moments)}) for the "
+                f"moment grid {model.moments.tolist()}; got {rom.shape}."
+            )
+        mask = np.isfinite(rom)
+        w = np.ones_like(rom) if weight is None else np.asarray(weight, dtype=float)
+        w = np.where(mask, w, 0.0)
+        total = w.sum(axis=(1, 2), keepdims=True)
+        if np.any(total <= 0):
+            bad = np.flatnonzero(total.reshape(-1) <= 0).tolist()
+            raise InputDataError(
+                f"Specimens at positions {bad} have no measured point with a positive weight; "
+                "give at least one RoM value per specimen."
+            )
+        w = w * mask.sum(axis=(1, 2), keepdims=True) / total
+        return cls(
+            model=model,
+            target=torch.tensor(np.where(mask, rom, 0.0), dtype=torch.float32),
+            weight=torch.tensor(w, dtype=torch.float32),
+            mask=torch.tensor(mask),
+            measured=np.where(mask, rom, np.nan),
+        )
+
+    def subset(self, index: np.ndarray | slice) -> CalibrationProblem:
+        """The problem restricted to some specimens."""
+        return dataclasses.replace(
+            self,
+            target=self.target[index],
+            weight=self.weight[index],
+            mask=self.mask[index],
+            measured=self.measured[index],
+        )
+
+    def scores(
+        self, pred: torch.Tensor, rows: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Weighted MAE and mean R² over load cases of predicted curves.
+
+        Parameters
+        ----------
+        pred : Tensor, shape (r, 4, m)
+            Predicted curves of ``r`` candidate rows.
+        rows : LongTensor, shape (r,), optional
+            Specimen of each row (default: row i is specimen i).
+
+        Returns
+        -------
+        dict
+            ``mae`` (r,) in degrees (weighted mean of absolute errors) and ``r2`` (r,) (the
+            study's mean R² over the measured load cases; unweighted).
+        """
+        if rows is None:
+            rows = torch.arange(pred.shape[0])
+        y, w, mask = self.target[rows], self.weight[rows], self.mask[rows]
+        err = (pred - y) * mask
+        mae = (err.abs() * w).sum((1, 2)) / mask.sum((1, 2))
+        count = mask.sum(2)
+        mean_y = (y * mask).sum(2, keepdim=True) / count.clamp_min(1)[..., None]
+        ss_tot = (((y - mean_y) * mask) ** 2).sum(2)
+        ss_res = (err**2).sum(2)
+        r2 = torch.where(ss_tot > 0, 1 - ss_res / ss_tot.clamp_min(1e-30), (ss_res == 0).float())
+        has = count > 0
+        r2 = (r2 * has).sum(1) / has.sum(1).clamp_min(1)
+        return {"mae": mae, "r2": r2}
+
+
+@dataclass
+class Solution:
+    """What a calibrator returns for a batch of n specimens.
+
+    Attributes
+    ----------
+    x : ndarray, shape (n, d)
+        Calibrated parameters, physical units (inside the box unless the calibrator is an
+        unprojected ablation).
+    nit : int
+        Iterations (optimiser steps or generations) of the batch.
+    success : ndarray of bool, shape (n,)
+        Whether the calibrator's own convergence test passed for each specimen.
+    message : str
+        What happened, in words.
+    x_low, x_high : ndarray, shape (n, d), optional
+        Per-parameter range of the near-optimal solutions (identifiability), physical units.
+    info : dict
+        Anything else worth logging (settings, counts).
+    """
+
+    x: np.ndarray
+    nit: int
+    success: np.ndarray
+    message: str
+    x_low: np.ndarray | None = None
+    x_high: np.ndarray | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class CalibrationResult:
+    """Calibrated parameters of a batch of specimens, with their fit through the surrogate.
+
+    Attributes
+    ----------
+    x : ndarray, shape (n, d)
+        Calibrated parameters in physical units.
+    fun : ndarray, shape (n,)
+        Surrogate-evaluated MAE in degrees (the same as ``mae_deg``).
+    success : ndarray of bool, shape (n,)
+    message : str
+    nit : int
+    method : str
+    specimens : tuple of str, length n
+    parameter_names : tuple of str, length d
+    moments : ndarray, shape (m,)
+    measured, prediction : ndarray, shape (n, 4, m)
+        Measured RoM (NaN = not measured) and the surrogate's RoM at ``x``.
+    mae_deg, r2_mean : ndarray, shape (n,)
+    mae_per_load_case, r2_per_load_case : ndarray, shape (n, 4)
+        NaN for a load case without measurements.
+    exceedance : ndarray, shape (n,)
+        The study's sum of values beyond the bounds in normalised units (0 = feasible).
+    seconds : float
+        Wall time of the whole batch (model loading excluded).
+    x_low, x_high : ndarray, shape (n, d), optional
+        Identifiability ranges of the near-optimal solutions.
+    info : dict
+    """
+
+    x: np.ndarray
+    fun: np.ndarray
+    success: np.ndarray
+    message: str
+    nit: int
+    method: str
+    specimens: tuple[str, ...]
+    parameter_names: tuple[str, ...]
+    moments: np.ndarray
+    measured: np.ndarray
+    prediction: np.ndarray
+    mae_deg: np.ndarray
+    r2_mean: np.ndarray
+    mae_per_load_case: np.ndarray
+    r2_per_load_case: np.ndarray
+    exceedance: np.ndarray
+    seconds: float
+    x_low: np.ndarray | None = None
+    x_high: np.ndarray | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def parameters_frame(self) -> pd.DataFrame:
+        """``specimen`` + the d parameters in physical units, one row per specimen."""
+        df = pd.DataFrame(self.x, columns=list(self.parameter_names))
+        df.insert(0, "specimen", list(self.specimens))
+        return df
+
+    def metrics_frame(self) -> pd.DataFrame:
+        """Per-specimen metrics: specimen, method, mae_deg, r2_mean, per load case, exceedance,
+        seconds, success, missing_load_cases."""
+        df = pd.DataFrame(
+            {
+                "specimen": list(self.specimens),
+                "method": self.method,
+                "mae_deg": self.mae_deg,
+                "r2_mean": self.r2_mean,
+            }
+        )
+        for j, lc in enumerate(LOAD_CASES):
+            df[f"mae_{lc}"] = self.mae_per_load_case[:, j]
+            df[f"r2_{lc}"] = self.r2_per_load_case[:, j]
+        df["exceedance"] = self.exceedance
+        df["seconds"] = self.seconds
+        df["success"] = self.success
+        measured = np.isfinite(self.measured).any(axis=2)
+        df["missing_load_cases"] = [
+            ";".join(lc for j, lc in enumerate(LOAD_CASES) if not measured[i, j])
+            for i in range(len(self.specimens))
+        ]
+        return df
+
+    def ranges_frame(self) -> pd.DataFrame | None:
+        """Identifiability ranges, long format: specimen, parameter, value, low, high, and the
+        range width in normalised units; None when the calibrator gives no ranges."""
+        if self.x_low is None or self.x_high is None:
+            return None
+        n, d = self.x.shape
+        width = np.asarray(self.info.get("space_width", np.ones(d)), dtype=float)
+        return pd.DataFrame(
+            {
+                "specimen": np.repeat(list(self.specimens), d),
+                "parameter": np.tile(list(self.parameter_names), n),
+                "value": self.x.reshape(-1),
+                "low": self.x_low.reshape(-1),
+                "high": self.x_high.reshape(-1),
+                "width_normalised": ((self.x_high - self.x_low) / width).reshape(-1),
+            }
+        )
+
+
+def calibrate(
+    model: CurveModel,
+    rom_deg: np.ndarray,
+    *,
+    specimens: Sequence[str] | None = None,
+    weight: np.ndarray | None = None,
+    method: str = "pgd",
+    seed: int | np.random.Generator = 0,
+    chunk_size: int | None = None,
+    progress: bool = False,
+    options: Mapping[str, Any] | None = None,
+) -> CalibrationResult:
+    """Calibrate a batch of specimens against the surrogate.
+
+    Parameters
+    ----------
+    model : CurveModel
+        The surrogate on the measurement's moment grid.
+    rom_deg : ndarray, shape (n, 4, m)
+        Measured RoM in degrees, NaN where not measured.
+    specimens : sequence of str, length n, optional
+        Names (default "0", "1", ...).
+    weight : ndarray, shape (n, 4, m), optional
+        Weights of the points (default 1).
+    method : str
+        A registered calibrator (:func:`available_calibrators`).
+    seed : int or numpy.random.Generator
+        Seeds every random draw; the same seed gives the same result.
+    chunk_size : int, optional
+        Specimens per call of the calibrator (bounds memory; the progress bar advances per
+        chunk). Default: the whole batch.
+    progress : bool
+        Show a progress bar over chunks.
+    options : mapping, optional
+        Keyword options of the calibrator.
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    fn = get_calibrator(method)
+    problem = CalibrationProblem.from_arrays(model, rom_deg, weight)
+    n = problem.n_specimens
+    names = tuple(str(i) for i in range(n)) if specimens is None else tuple(map(str, specimens))
+    if len(names) != n:
+        raise InputDataError(f"Got {len(names)} specimen names for {n} specimens.")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    chunk = n if not chunk_size else max(1, int(chunk_size))
+    bounds = range(0, n, chunk)
+    if progress and len(bounds) > 1:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, desc=f"calibrate ({method})", unit="specimen")
+    else:
+        bar = None
+    model.n_evaluations = 0
+    start = time.perf_counter()
+    parts: list[Solution] = []
+    for lo in bounds:
+        parts.append(fn(problem.subset(slice(lo, lo + chunk)), rng=rng, **dict(options or {})))
+        if bar is not None:
+            bar.update(min(chunk, n - lo))
+    seconds = time.perf_counter() - start
+    if bar is not None:
+        bar.close()
+    sol = _concat(parts)
+    return evaluate_solution(model, problem, sol, names, method=method, seconds=seconds)
+
+
+def _concat(parts: list[Solution]) -> Solution:
+    if len(parts) == 1:
+        return parts[0]
+    ranges = all(p.x_low is not None for p in parts)
+    return Solution(
+        x=np.concatenate([p.x for p in parts]),
+        nit=max(p.nit for p in parts),
+        success=np.concatenate([p.success for p in parts]),
+        message=parts[0].message,
+        x_low=np.concatenate([p.x_low for p in parts]) if ranges else None,
+        x_high=np.concatenate([p.x_high for p in parts]) if ranges else None,
+        info={**parts[0].info, "n_chunks": len(parts)},
+    )
+
+
+def evaluate_solution(
+    model: CurveModel,
+    problem: CalibrationProblem,
+    sol: Solution,
+    specimens: tuple[str, ...],
+    *,
+    method: str,
+    seconds: float,
+) -> CalibrationResult:
+    """Evaluate calibrated parameters through the surrogate into a :class:`CalibrationResult`."""
+    space = model.space
+    x = np.asarray(sol.x, dtype=float)
+    # An unprojected ablation may leave the box: it is evaluated where it stands.
+    pred = model.predict(x, clip=False)
+    measured = problem.measured
+    m = curve_metrics(measured, pred)
+    info = dict(sol.info)
+    info["space_width"] = space.width.tolist()
+    info["n_evaluations"] = int(model.n_evaluations)
+    return CalibrationResult(
+        x=x,
+        fun=m["mae"],
+        success=np.asarray(sol.success, dtype=bool),
+        message=sol.message,
+        nit=int(sol.nit),
+        method=method,
+        specimens=specimens,
+        parameter_names=tuple(space.names),
+        moments=model.moments.double().numpy(),
+        measured=measured,
+        prediction=pred,
+        mae_deg=m["mae"],
+        r2_mean=m["r2_mean"],
+        mae_per_load_case=m["mae_per_load_case"],
+        r2_per_load_case=m["r2_per_load_case"],
+        exceedance=space.exceedance(x),
+        seconds=float(seconds),
+        x_low=sol.x_low,
+        x_high=sol.x_high,
+        info=info,
+    )

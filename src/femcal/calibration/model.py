@@ -1,0 +1,147 @@
+"""The surrogate as a function of the parameters on a fixed moment grid.
+
+:class:`CurveModel` is what every calibrator optimises: for a batch of parameter vectors it
+returns the RoM curves of the four load cases at the measured moments, shape (n, 4, m). It
+works in the surrogate network's own unit coordinates ``v`` (the box is exactly [0, 1]^d;
+parameters with positive bounds are log-scaled there, which conditions the problem), and
+converts to physical units at the edges, clipping onto the bounds in float64 so that a
+returned configuration is never outside the box, not even by rounding.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from femcal.errors import ConfigError
+from femcal.space import ParameterSpace
+
+logger = logging.getLogger(__name__)
+
+_EVAL_BATCH = 16_384
+
+
+class CurveModel:
+    """A differentiable surrogate evaluated on a moment grid.
+
+    Parameters
+    ----------
+    surrogate : object
+        A fitted femcal surrogate with ``torch_module()`` returning a
+        :class:`~femcal.surrogates.nn.RomNet` (the registered neural surrogate).
+    moments : array_like, shape (m,)
+        The moment grid in Nm (> 0).
+    space : ParameterSpace, optional
+        The calibration bounds; the surrogate's own space by default.
+
+    Attributes
+    ----------
+    net : RomNet
+        The frozen network.
+    moments : Tensor, shape (m,)
+    space : ParameterSpace
+    dim : int
+        Number of parameters d.
+    """
+
+    def __init__(
+        self,
+        surrogate: object,
+        moments: Sequence[float] | np.ndarray,
+        *,
+        space: ParameterSpace | None = None,
+    ) -> None:
+        module = getattr(surrogate, "torch_module", None)
+        if module is None:
+            raise ConfigError(
+                f"Calibration needs a differentiable surrogate with torch_module(); got "
+                f"{type(surrogate).__name__}. Register a neural surrogate ('nn')."
+            )
+        self.net = module()
+        if not hasattr(self.net, "curves_jacobian"):
+            raise ConfigError(
+                f"The surrogate's torch module {type(self.net).__name__} has no curves_jacobian; "
+                "calibration supports femcal's RomNet."
+            )
+        self.surrogate = surrogate
+        self.space = space if space is not None else surrogate.space  # type: ignore[attr-defined]
+        if tuple(self.space.names) != tuple(surrogate.space.names):  # type: ignore[attr-defined]
+            raise ConfigError(
+                "The calibration space and the surrogate's space name different parameters: "
+                f"{list(self.space.names)} vs {list(surrogate.space.names)}."  # type: ignore
+            )
+        m = np.asarray(moments, dtype=float).reshape(-1)
+        if m.size == 0 or np.any(~np.isfinite(m)) or np.any(m <= 0):
+            raise ConfigError(f"The moment grid must be finite and > 0; got {m.tolist()}.")
+        self.moments = torch.tensor(m, dtype=torch.float32)
+        self.dim = self.space.dim
+        self.n_evaluations = 0
+
+    # ----------------------------------------------------------------- coordinates
+    def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
+        """Network coordinates (n, d) -> physical parameters (n, d), float64, inside the box."""
+        v64 = torch.as_tensor(np.asarray(v, dtype=float)).clamp(0.0, 1.0)
+        net = self.net
+        lo = net.lower.double()
+        hi = net.upper.double()
+        linear = lo + v64 * (hi - lo)
+        logged = torch.exp(net.log_lower.double() + v64 * (net.log_upper - net.log_lower).double())
+        x = torch.where(net.log_mask, logged, linear).numpy()
+        return self.space.clip(x)
+
+    def from_physical(self, x: np.ndarray, *, clip: bool = True) -> torch.Tensor:
+        """Physical parameters (n, d) -> network coordinates (n, d), float32.
+
+        With ``clip=False`` points outside the box stay outside (positive parameters are
+        floored at 1e-12 so that their logarithm exists); used to evaluate unprojected
+        ablations where they stand.
+        """
+        x = np.asarray(x, dtype=float)
+        if not clip:
+            x = np.where(self.net.log_mask.numpy(), np.maximum(x, 1e-12), x)
+        v = self.net.unit(torch.as_tensor(x, dtype=torch.float32))
+        return v.clamp(0.0, 1.0) if clip else v
+
+    def from_linear_unit(self, u: torch.Tensor) -> torch.Tensor:
+        """The study's min-max unit box (n, d) -> network coordinates (differentiable).
+
+        Values outside [0, 1] map outside the box too (used by the ablations without
+        projection); positive parameters pushed below zero are floored at 1e-12 physical.
+        """
+        lo = torch.tensor(np.array(self.space.lower), dtype=u.dtype)
+        width = torch.tensor(np.array(self.space.width), dtype=u.dtype)
+        x = lo + u * width
+        x = torch.where(self.net.log_mask, x.clamp_min(1e-12), x)
+        return self.net.unit(x)
+
+    def linear_unit_to_physical(self, u: np.ndarray) -> np.ndarray:
+        """The study's unit box -> physical, float64, not clipped (ablations report exceedance)."""
+        return self.space.lower + np.asarray(u, dtype=float) * self.space.width
+
+    # ----------------------------------------------------------------- evaluation
+    def curves(self, v: torch.Tensor) -> torch.Tensor:
+        """RoM curves, shape (n, d) -> (n, 4, m); differentiable in ``v``."""
+        self.n_evaluations += int(v.shape[0])
+        return self.net.curves(v, self.moments)
+
+    def curves_jacobian(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, d) in network coordinates."""
+        self.n_evaluations += int(v.shape[0]) * (1 + self.dim)
+        return self.net.curves_jacobian(v, self.moments)
+
+    def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
+        """RoM curves of physical configurations, shape (n, d) -> (n, 4, m), float64.
+
+        ``clip=False`` evaluates points outside the box where they are (extrapolation).
+        """
+        v = self.from_physical(np.asarray(x, dtype=float).reshape(-1, self.dim), clip=clip)
+        out = []
+        with torch.no_grad():
+            for start in range(0, v.shape[0], _EVAL_BATCH):
+                out.append(self.net.curves(v[start : start + _EVAL_BATCH], self.moments))
+        if not out:
+            return np.zeros((0, 4, len(self.moments)))
+        return torch.cat(out).double().numpy()

@@ -1,0 +1,367 @@
+"""``pgd``: batched projected Gauss-Newton (Levenberg-Marquardt) on the frozen surrogate.
+
+Every specimen and every start of a batch is one row of one tensor. Each iteration computes the
+curves and their exact Jacobian in the network's unit coordinates (forward mode, see
+:meth:`~femcal.surrogates.nn.RomNet.curves_jacobian`), solves the damped normal equations with
+the variables held at an active bound frozen, and projects the step onto the box exactly
+(``clamp`` to [0, 1], the study's ClipBounds in these coordinates). A step is kept only if it
+lowers the loss; converged rows leave the batch. The iterate is therefore inside the bounds
+at every step, and the returned parameters are clipped in float64.
+
+Starts: the training configurations (``start_bank``) and ``n_bank_uniform`` uniform draws are
+evaluated once; each specimen starts from its ``n_starts`` nearest of them (weighted squared
+distance of the curves), plus ``n_random_starts`` uniform draws of its own.
+
+Identifiability: around every start that ends near-optimal (MAE within ``noise_deg`` of the
+best), the linearised posterior ``(J^T J / noise^2 + I / prior^2)^-1`` gives a z-sigma
+interval per parameter; their union, cut to the box, is the parameter's range. A parameter the
+curves do not determine gets (nearly) the whole box.
+
+``optimizer="adam"`` and ``optimizer="lbfgsb"`` run the same starts with projected Adam or
+SciPy's L-BFGS-B instead, for the measured comparison in ``reports/bench_calibration.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from femcal.calibration.base import CalibrationProblem, Solution, register_calibrator
+from femcal.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+OPTIMIZERS = ("gauss-newton", "adam", "lbfgsb")
+LOSSES = ("l2", "l1")
+SELECT = ("mae", "r2")
+_BANK_BATCH = 8192
+
+
+def _bank(problem: CalibrationProblem, start_bank: np.ndarray | None, n_uniform: int, rng):
+    model = problem.model
+    parts = []
+    if start_bank is not None and len(start_bank):
+        bank = np.asarray(start_bank, dtype=float)
+        if bank.ndim != 2 or bank.shape[1] != model.dim:
+            raise ConfigError(
+                f"start_bank must have shape (N, {model.dim}) in physical units; got {bank.shape}."
+            )
+        parts.append(model.from_physical(bank))
+    if n_uniform > 0:
+        parts.append(torch.tensor(rng.random((n_uniform, model.dim)), dtype=torch.float32))
+    if not parts:
+        return torch.zeros((0, model.dim)), torch.zeros((0, 4, len(model.moments)))
+    v = torch.cat(parts)
+    with torch.no_grad():
+        pred = torch.cat(
+            [model.curves(v[i : i + _BANK_BATCH]) for i in range(0, v.shape[0], _BANK_BATCH)]
+        )
+    return v, pred
+
+
+def nearest_starts(
+    problem: CalibrationProblem, bank_v: torch.Tensor, bank_pred: torch.Tensor, k: int
+) -> torch.Tensor:
+    """Indices (n, k) of the bank entries whose curves are nearest each specimen's targets."""
+    k = min(k, bank_v.shape[0])
+    if k == 0:
+        return torch.zeros((problem.n_specimens, 0), dtype=torch.long)
+    y = problem.target.reshape(problem.n_specimens, -1)
+    w = problem.weight.reshape(problem.n_specimens, -1)
+    p = bank_pred.reshape(bank_pred.shape[0], -1)
+    # sum_k w (p - y)^2 = sum w y^2 - 2 (w y) . p + w . p^2
+    dist = (w * y**2).sum(1, keepdim=True) - 2 * (w * y) @ p.T + w @ (p**2).T
+    return dist.topk(k, dim=1, largest=False).indices
+
+
+def _residual(problem, rows, pred):
+    return ((pred - problem.target[rows]) * problem.mask[rows]).reshape(len(rows), -1)
+
+
+def _cost(r, w, loss):
+    return (w * r.abs()).sum(1) if loss == "l1" else (w * r**2).sum(1)
+
+
+def gauss_newton(
+    problem: CalibrationProblem,
+    v: torch.Tensor,
+    rows: torch.Tensor,
+    *,
+    max_iter: int,
+    loss: str,
+    tol: float,
+    atol_deg: float = 1e-4,
+    l1_delta: float = 1e-3,
+) -> tuple[torch.Tensor, int, torch.Tensor]:
+    """Projected Levenberg-Marquardt from starts ``v`` (B, d) for specimens ``rows`` (B,).
+
+    A row has converged when a kept step lowers the loss by less than ``tol`` (relative), when
+    its RMS residual falls below ``atol_deg``, when the step is below 1e-6 in unit coordinates,
+    or when the damping has grown past 1e6 (no step lowers the loss).
+
+    Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
+    """
+    model = problem.model
+    v = v.clone()
+    b, d = v.shape
+    w = problem.weight[rows].reshape(b, -1)
+    lam = torch.full((b,), 1e-3)
+    converged = torch.zeros(b, dtype=torch.bool)
+    need_jac = torch.ones(b, dtype=torch.bool)
+    jac = torch.zeros((b, w.shape[1], d))
+    res = torch.zeros_like(w)
+    active = torch.arange(b)
+    eye = torch.eye(d)
+    nit = 0
+    for nit in range(1, max_iter + 1):
+        if active.numel() == 0:
+            nit -= 1
+            break
+        fresh = active[need_jac[active]]
+        if fresh.numel():
+            f, jf = model.curves_jacobian(v[fresh])
+            res[fresh] = _residual(problem, rows[fresh], f)
+            mask = problem.mask[rows[fresh]].reshape(fresh.numel(), -1, 1)
+            jac[fresh] = jf.reshape(fresh.numel(), -1, d) * mask
+            need_jac[fresh] = False
+        a_idx = active
+        r, jj, wa = res[a_idx], jac[a_idx], w[a_idx]
+        cost = _cost(r, wa, loss)
+        wk = wa / r.abs().clamp_min(l1_delta) if loss == "l1" else wa
+        jtw = jj.transpose(1, 2) * wk[:, None, :]
+        hess = jtw @ jj
+        grad = (jtw @ r[..., None])[..., 0]
+        va = v[a_idx]
+        # Variables at a bound whose gradient points outward are frozen (projected Newton).
+        blocked = ((va <= 0) & (grad > 0)) | ((va >= 1) & (grad < 0))
+        free = (~blocked).float()
+        hf = hess * free[:, :, None] * free[:, None, :]
+        diag = torch.diagonal(hf, dim1=1, dim2=2)
+        damp = lam[a_idx, None] * (diag + 1e-6) + 1e-9
+        system = hf + torch.diag_embed(damp) + eye * (1 - free)[:, None, :] * eye
+        step = torch.linalg.solve(system, -(grad * free)[..., None])[..., 0]
+        v_new = (va + step).clamp(0.0, 1.0)
+        with torch.no_grad():
+            r_new = _residual(problem, rows[a_idx], model.curves(v_new))
+        cost_new = _cost(r_new, wa, loss)
+        ok = cost_new < cost
+        gain = (cost - cost_new) / cost.clamp_min(1e-30)
+        v[a_idx[ok]] = v_new[ok]
+        need_jac[a_idx[ok]] = True
+        lam[a_idx] = torch.where(ok, lam[a_idx] / 3, lam[a_idx] * 4)
+        tiny_step = step.abs().amax(1) < 1e-6
+        fitted = cost_new < atol_deg**2 * wa.sum(1)  # RMS residual below atol_deg
+        done = (ok & ((gain < tol) | fitted)) | tiny_step | (lam[a_idx] > 1e6)
+        converged[a_idx[done]] = True
+        active = a_idx[~done]
+    return v, nit, converged
+
+
+def adam(
+    problem: CalibrationProblem,
+    v: torch.Tensor,
+    rows: torch.Tensor,
+    *,
+    steps: int,
+    lr: float,
+    loss: str,
+) -> torch.Tensor:
+    """Projected Adam (clamp to the box after every step) from starts ``v`` (B, d)."""
+    v = v.clone().requires_grad_(True)
+    opt = torch.optim.Adam([v], lr=lr)
+    w = problem.weight[rows].reshape(len(rows), -1)
+    for _ in range(steps):
+        opt.zero_grad()
+        r = _residual(problem, rows, problem.model.curves(v))
+        _cost(r, w, loss).sum().backward()
+        opt.step()
+        with torch.no_grad():
+            v.clamp_(0.0, 1.0)
+    return v.detach()
+
+
+def lbfgsb(
+    problem: CalibrationProblem,
+    v: torch.Tensor,
+    rows: torch.Tensor,
+    *,
+    max_iter: int,
+    loss: str,
+) -> torch.Tensor:
+    """SciPy's L-BFGS-B (bounds built in) on the sum of the rows' losses."""
+    from scipy.optimize import minimize
+
+    shape = v.shape
+    w = problem.weight[rows].reshape(len(rows), -1)
+
+    def fun(flat: np.ndarray):
+        vt = torch.tensor(flat.reshape(shape), dtype=torch.float32, requires_grad=True)
+        total = _cost(_residual(problem, rows, problem.model.curves(vt)), w, loss).sum()
+        total.backward()
+        return float(total.detach()), vt.grad.double().numpy().reshape(-1)
+
+    out = minimize(
+        fun,
+        v.double().numpy().reshape(-1),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(0.0, 1.0)] * v.numel(),
+        options={"maxiter": max_iter},
+    )
+    return torch.tensor(out.x.reshape(shape), dtype=torch.float32)
+
+
+def local_ranges(
+    problem: CalibrationProblem,
+    v: torch.Tensor,
+    rows: torch.Tensor,
+    *,
+    noise_deg: float,
+    z: float,
+    prior_sd: float = 0.5,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """z-sigma intervals (B, d) of the linearised posterior around ``v``, cut to [0, 1]."""
+    _, jf = problem.model.curves_jacobian(v)
+    b, d = v.shape
+    mask = problem.mask[rows].reshape(b, -1, 1)
+    jj = jf.reshape(b, -1, d) * mask
+    w = problem.weight[rows].reshape(b, -1, 1)
+    precision = (jj * w).transpose(1, 2) @ jj / noise_deg**2 + torch.eye(d) / prior_sd**2
+    cov = torch.linalg.inv(precision)
+    half = z * torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0).sqrt()
+    return (v - half).clamp(0, 1), (v + half).clamp(0, 1)
+
+
+@register_calibrator("pgd")
+def pgd(
+    problem: CalibrationProblem,
+    *,
+    rng: np.random.Generator,
+    optimizer: str = "gauss-newton",
+    n_starts: int = 4,
+    n_random_starts: int = 0,
+    start_bank: np.ndarray | None = None,
+    n_bank_uniform: int = 1024,
+    max_iter: int = 10,
+    tol: float = 1e-4,
+    loss: str = "l2",
+    select: str = "mae",
+    steps: int = 300,
+    lr: float = 0.02,
+    noise_deg: float = 0.03,
+    range_z: float = 2.0,
+    ranges: bool = True,
+) -> Solution:
+    """Projected gradient-based calibration of a batch (see the module docstring).
+
+    Parameters
+    ----------
+    problem : CalibrationProblem
+        Targets of n specimens and the surrogate.
+    rng : numpy.random.Generator
+        Source of the uniform draws.
+    optimizer : {"gauss-newton", "adam", "lbfgsb"}
+        Projected Levenberg-Marquardt (default, chosen by measurement), projected Adam, or
+        SciPy's L-BFGS-B.
+    n_starts : int
+        Starts per specimen from the nearest bank entries.
+    n_random_starts : int
+        Additional uniform random starts per specimen.
+    start_bank : ndarray, shape (N, d), optional
+        Candidate starts in physical units (the surrogate's training configurations).
+    n_bank_uniform : int
+        Uniform draws added to the bank.
+    max_iter : int
+        Gauss-Newton iterations (also L-BFGS-B's iteration cap).
+    tol : float
+        Relative decrease of the loss below which a Gauss-Newton row has converged.
+    loss : {"l2", "l1"}
+        Weighted squared or absolute error (L1 by iteratively reweighted Gauss-Newton).
+    select : {"mae", "r2"}
+        How the best start of a specimen is chosen: lowest MAE, or the study's highest mean R²
+        over load cases.
+    steps, lr : int, float
+        Adam's steps and learning rate (unit coordinates).
+    noise_deg : float
+        Error scale of one RoM value in degrees (surrogate error and measurement noise): the
+        tolerance for near-optimal starts and the noise of the identifiability ranges.
+    range_z : float
+        Half-width of the ranges in standard deviations.
+    ranges : bool
+        Compute the identifiability ranges.
+
+    Returns
+    -------
+    Solution
+    """
+    for name, value, choices in (
+        ("optimizer", optimizer, OPTIMIZERS),
+        ("loss", loss, LOSSES),
+        ("select", select, SELECT),
+    ):
+        if value not in choices:
+            raise ConfigError(f"pgd: unknown {name} '{value}'; choose one of {', '.join(choices)}.")
+    if n_starts + n_random_starts < 1:
+        raise ConfigError("pgd needs n_starts + n_random_starts >= 1.")
+    if noise_deg <= 0:
+        raise ConfigError(f"pgd: noise_deg must be > 0; got {noise_deg}.")
+    n, d = problem.n_specimens, problem.dim
+    bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
+    idx = nearest_starts(problem, bank_v, bank_pred, n_starts)
+    k_bank = idx.shape[1]
+    starts = [bank_v[idx]] if k_bank else []
+    if n_random_starts:
+        starts.append(torch.tensor(rng.random((n, n_random_starts, d)), dtype=torch.float32))
+    v0 = torch.cat(starts, dim=1)  # (n, k, d)
+    k = v0.shape[1]
+    rows = torch.arange(n).repeat_interleave(k)
+    v0 = v0.reshape(n * k, d)
+    converged = torch.ones(n * k, dtype=torch.bool)
+    if optimizer == "gauss-newton":
+        v, nit, converged = gauss_newton(problem, v0, rows, max_iter=max_iter, loss=loss, tol=tol)
+    elif optimizer == "adam":
+        v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
+    else:
+        v, nit = lbfgsb(problem, v0, rows, max_iter=max_iter, loss=loss), max_iter
+    with torch.no_grad():
+        scores = problem.scores(problem.model.curves(v), rows)
+    mae = scores["mae"].reshape(n, k)
+    key = mae if select == "mae" else -scores["r2"].reshape(n, k)
+    best = key.argmin(1)
+    flat_best = torch.arange(n) * k + best
+    x = problem.model.to_physical(v[flat_best].double().numpy())
+    x_low = x_high = None
+    if ranges:
+        near = mae <= mae.gather(1, best[:, None]) + noise_deg  # (n, k)
+        near_flat = torch.nonzero(near.reshape(-1)).reshape(-1)
+        lo, hi = local_ranges(
+            problem, v[near_flat], rows[near_flat], noise_deg=noise_deg, z=range_z
+        )
+        v_low = torch.ones((n, d))
+        v_high = torch.zeros((n, d))
+        v_low = v_low.scatter_reduce(0, rows[near_flat, None].expand(-1, d), lo, reduce="amin")
+        v_high = v_high.scatter_reduce(0, rows[near_flat, None].expand(-1, d), hi, reduce="amax")
+        x_low = problem.model.to_physical(v_low.double().numpy())
+        x_high = problem.model.to_physical(v_high.double().numpy())
+    conv = converged.reshape(n, k).gather(1, best[:, None])[:, 0].numpy()
+    return Solution(
+        x=x,
+        nit=int(nit),
+        success=conv,
+        message=(
+            f"pgd ({optimizer}, {loss} loss): {k} starts per specimen "
+            f"({k_bank} nearest, {n_random_starts} random), {nit} iterations, "
+            f"{int(conv.sum())}/{n} converged"
+        ),
+        x_low=x_low,
+        x_high=x_high,
+        info={
+            "optimizer": optimizer,
+            "loss": loss,
+            "select": select,
+            "starts_per_specimen": k,
+            "nit": int(nit),
+        },
+    )

@@ -1,0 +1,319 @@
+"""Calibration outputs: tables, per-specimen figures, a summary page, an MLflow run.
+
+:func:`write_outputs` writes into one directory
+
+* ``parameters.csv``: ``specimen`` + the d parameters in physical units;
+* ``metrics.csv``: specimen, method, mae_deg, r2_mean, MAE and R² per load case, exceedance,
+  seconds (of the whole batch), success, missing load cases, and ``holdout_mae_deg`` when a
+  held-out surrogate re-evaluated the parameters;
+* ``ranges.csv``: the identifiability range of every parameter of every specimen;
+* ``curves.csv``: measured and calibrated RoM of every point (long format);
+* ``plots/<specimen>.png``: measured vs calibrated RoM per load case (the study's figure 4);
+* ``summary.png`` and ``summary.md``, ``summary.json`` (aggregate figures, DVC metrics).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from femcal.calibration.base import CalibrationResult
+from femcal.calibration.model import CurveModel
+from femcal.metrics import curve_metrics
+from femcal.schema import LOAD_CASES
+
+logger = logging.getLogger(__name__)
+
+#: A parameter counts as determined by the data for a specimen when its identifiability range
+#: spans less than this fraction of its bounds.
+DETERMINED_WIDTH = 0.5
+
+
+def holdout_scores(result: CalibrationResult, holdout: CurveModel) -> dict[str, np.ndarray]:
+    """Re-evaluate calibrated parameters with an independently trained surrogate.
+
+    Returns
+    -------
+    dict
+        ``mae`` (n,), ``r2_mean`` (n,) of the held-out surrogate's curves at ``result.x``
+        against the measurements, and ``prediction`` (n, 4, m).
+    """
+    pred = holdout.predict(result.x, clip=False)
+    m = curve_metrics(result.measured, pred)
+    return {"mae": m["mae"], "r2_mean": m["r2_mean"], "prediction": pred}
+
+
+def identifiability(result: CalibrationResult) -> pd.DataFrame | None:
+    """Per parameter: mean normalised range width and the fraction of specimens it is
+    determined for (width < :data:`DETERMINED_WIDTH`); None without ranges."""
+    ranges = result.ranges_frame()
+    if ranges is None:
+        return None
+    ranges["determined"] = ranges["width_normalised"] < DETERMINED_WIDTH
+    out = ranges.groupby("parameter", sort=False).agg(
+        mean_width=("width_normalised", "mean"), determined=("determined", "mean")
+    )
+    return out.reset_index()
+
+
+def coverage(result: CalibrationResult, x_true: np.ndarray, *, atol: float = 1e-9) -> np.ndarray:
+    """Per parameter, the fraction of specimens whose true value lies in its range, shape (d,)."""
+    if result.x_low is None or result.x_high is None:
+        return np.full(len(result.parameter_names), np.nan)
+    inside = (x_true >= result.x_low - atol) & (x_true <= result.x_high + atol)
+    return inside.mean(axis=0)
+
+
+def curves_frame(result: CalibrationResult, holdout_pred: np.ndarray | None = None) -> pd.DataFrame:
+    """Measured and calibrated RoM of every measured point, long format."""
+    n, n_lc, m = result.measured.shape
+    spec, lc, mom = np.meshgrid(np.arange(n), np.arange(n_lc), np.arange(m), indexing="ij")
+    df = pd.DataFrame(
+        {
+            "specimen": np.asarray(result.specimens, dtype=object)[spec.reshape(-1)],
+            "load_case": np.asarray(LOAD_CASES, dtype=object)[lc.reshape(-1)],
+            "moment_nm": result.moments[mom.reshape(-1)],
+            "measured_rom_deg": result.measured.reshape(-1),
+            "calibrated_rom_deg": result.prediction.reshape(-1),
+        }
+    )
+    if holdout_pred is not None:
+        df["holdout_rom_deg"] = holdout_pred.reshape(-1)
+    return df[np.isfinite(df["measured_rom_deg"])].reset_index(drop=True)
+
+
+def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None = None) -> dict:
+    """Aggregate figures of a batch (what the DVC metrics file and MLflow record)."""
+    out: dict[str, Any] = {
+        "method": result.method,
+        "n_specimens": len(result.specimens),
+        "mae_deg": float(np.nanmean(result.mae_deg)),
+        "mae_deg_median": float(np.nanmedian(result.mae_deg)),
+        "mae_deg_max": float(np.nanmax(result.mae_deg)),
+        "r2_mean": float(np.nanmean(result.r2_mean)),
+        "exceedance_max": float(np.max(result.exceedance)),
+        "n_outside_bounds": int(np.sum(result.exceedance > 0)),
+        "seconds": float(result.seconds),
+        "n_success": int(np.sum(result.success)),
+        "nit": int(result.nit),
+    }
+    if holdout is not None:
+        out["holdout_mae_deg"] = float(np.nanmean(holdout["mae"]))
+        out["holdout_r2_mean"] = float(np.nanmean(holdout["r2_mean"]))
+    ident = identifiability(result)
+    if ident is not None:
+        out["range_width_mean"] = float(ident["mean_width"].mean())
+        out["determined"] = {
+            row.parameter: round(float(row.determined), 4) for row in ident.itertuples()
+        }
+    return out
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "specimen"
+
+
+def plot_specimen(result: CalibrationResult, i: int, path: Path, holdout_pred=None) -> None:
+    """Measured vs calibrated RoM per load case of specimen ``i`` (one PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(LOAD_CASES), figsize=(12, 3.0), sharex=True)
+    fine = np.linspace(result.moments.min(), result.moments.max(), 50)
+    for j, (ax, lc) in enumerate(zip(axes, LOAD_CASES)):
+        y = result.measured[i, j]
+        ok = np.isfinite(y)
+        if ok.any():
+            ax.plot(result.moments[ok], y[ok], "o", color="black", label="measured")
+        else:
+            ax.text(0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes)
+        ax.plot(result.moments, result.prediction[i, j], "-", color="C0", label=result.method)
+        if holdout_pred is not None:
+            ax.plot(result.moments, holdout_pred[i, j], ":", color="C3", label="held-out model")
+        r2 = result.r2_per_load_case[i, j]
+        mae = result.mae_per_load_case[i, j]
+        title = lc if not np.isfinite(mae) else f"{lc}\nMAE {mae:.3f}°, R² {r2:.3f}"
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("moment (Nm)")
+        ax.set_xlim(0, max(fine.max(), 1) * 1.05)
+    axes[0].set_ylabel("RoM (deg)")
+    axes[0].legend(fontsize=7, loc="upper left")
+    fig.suptitle(
+        f"specimen {result.specimens[i]}: MAE {result.mae_deg[i]:.3f}°, "
+        f"mean R² {result.r2_mean[i]:.4f}",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def plot_summary(result: CalibrationResult, path: Path, holdout=None) -> None:
+    """One page: MAE and R² histograms, measured vs calibrated, per-parameter ranges."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    ax = axes[0, 0]
+    ax.hist(
+        result.mae_deg[np.isfinite(result.mae_deg)],
+        bins=30,
+        color="C0",
+        alpha=0.8,
+        label=result.method,
+    )
+    if holdout is not None:
+        ax.hist(
+            holdout["mae"][np.isfinite(holdout["mae"])],
+            bins=30,
+            color="C3",
+            alpha=0.5,
+            label="held-out model",
+        )
+    ax.set_xlabel("MAE per specimen (deg)")
+    ax.set_ylabel("specimens")
+    ax.legend(fontsize=8)
+    ax = axes[0, 1]
+    ax.hist(result.r2_mean[np.isfinite(result.r2_mean)], bins=30, color="C1")
+    ax.set_xlabel("mean R² over load cases")
+    ax = axes[1, 0]
+    for j, lc in enumerate(LOAD_CASES):
+        y = result.measured[:, j].reshape(-1)
+        ok = np.isfinite(y)
+        ax.plot(y[ok], result.prediction[:, j].reshape(-1)[ok], ".", ms=3, label=lc)
+    lim = np.nanmax(result.measured) * 1.05
+    ax.plot([0, lim], [0, lim], "k-", lw=0.5)
+    ax.set_xlabel("measured RoM (deg)")
+    ax.set_ylabel("calibrated RoM (deg)")
+    ax.legend(fontsize=8)
+    ax = axes[1, 1]
+    ident = identifiability(result)
+    if ident is not None:
+        ax.barh(ident["parameter"], ident["mean_width"], color="C2")
+        ax.axvline(DETERMINED_WIDTH, color="k", lw=0.5)
+        ax.set_xlabel("mean identifiability range (fraction of the bounds)")
+        ax.set_xlim(0, 1)
+    else:
+        ax.text(0.5, 0.5, f"{result.method} gives no ranges", ha="center", va="center")
+        ax.set_axis_off()
+    fig.suptitle(
+        f"{result.method}: {len(result.specimens)} specimens in {result.seconds:.2f} s, "
+        f"MAE {np.nanmean(result.mae_deg):.4f}°, mean R² {np.nanmean(result.r2_mean):.4f}, "
+        f"max exceedance {np.max(result.exceedance):g}"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _markdown(result: CalibrationResult, figures: dict, ident: pd.DataFrame | None) -> str:
+    lines = [
+        f"# Calibration: {result.method}",
+        "",
+        f"{result.message}.",
+        "",
+        "| figure | value |",
+        "|---|---|",
+    ]
+    for key, value in figures.items():
+        if isinstance(value, dict):
+            continue
+        lines.append(
+            f"| {key} | {value:.6g} |" if isinstance(value, float) else f"| {key} | {value} |"
+        )
+    missing = result.metrics_frame()["missing_load_cases"]
+    if (missing != "").any():
+        lines += ["", "Specimens calibrated without some load cases:", ""]
+        for spec, miss in zip(result.specimens, missing):
+            if miss:
+                lines.append(f"- {spec}: no {miss.replace(';', ', ')}")
+    if ident is not None:
+        lines += [
+            "",
+            "## Identifiability",
+            "",
+            "Range of the near-optimal solutions per parameter (fraction of its bounds); "
+            f"'determined' = share of specimens whose range is narrower than {DETERMINED_WIDTH}.",
+            "",
+            "| parameter | mean range | determined |",
+            "|---|---|---|",
+        ]
+        for row in ident.itertuples():
+            lines.append(f"| {row.parameter} | {row.mean_width:.3f} | {row.determined:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_outputs(
+    result: CalibrationResult,
+    out_dir: Path,
+    *,
+    holdout: CurveModel | None = None,
+    plots: bool = True,
+    max_plots: int | None = None,
+) -> dict:
+    """Write the tables, figures and summary of a calibration; returns the summary figures.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    out_dir : Path
+        Created if needed; existing files of the same names are replaced.
+    holdout : CurveModel, optional
+        An independently trained surrogate on the same moment grid: its MAE at the calibrated
+        parameters is reported as ``holdout_mae_deg``.
+    plots : bool
+        Write the per-specimen PNGs and the summary page.
+    max_plots : int, optional
+        Write per-specimen PNGs for the first ``max_plots`` specimens only (the tables always
+        hold every specimen; the summary says how many were plotted).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    held = holdout_scores(result, holdout) if holdout is not None else None
+    metrics = result.metrics_frame()
+    if held is not None:
+        metrics["holdout_mae_deg"] = held["mae"]
+        metrics["holdout_r2_mean"] = held["r2_mean"]
+    result.parameters_frame().to_csv(out_dir / "parameters.csv", index=False)
+    metrics.to_csv(out_dir / "metrics.csv", index=False)
+    ranges = result.ranges_frame()
+    if ranges is not None:
+        ranges.to_csv(out_dir / "ranges.csv", index=False)
+    curves_frame(result, None if held is None else held["prediction"]).to_csv(
+        out_dir / "curves.csv", index=False
+    )
+    figures = summary(result, held)
+    n = len(result.specimens)
+    n_plot = n if max_plots is None else min(n, int(max_plots))
+    figures["n_plotted"] = n_plot if plots else 0
+    if plots:
+        plot_dir = out_dir / "plots"
+        plot_dir.mkdir(exist_ok=True)
+        used: set[str] = set()
+        for i in range(n_plot):
+            name = _safe(result.specimens[i])
+            while name in used:
+                name += "_"
+            used.add(name)
+            plot_specimen(
+                result, i, plot_dir / f"{name}.png", None if held is None else held["prediction"][i]
+            )
+        plot_summary(result, out_dir / "summary.png", held)
+        if n_plot < n:
+            logger.warning(
+                "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
+            )
+    (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
+    (out_dir / "summary.md").write_text(_markdown(result, figures, identifiability(result)))
+    return figures

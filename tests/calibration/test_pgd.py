@@ -1,0 +1,182 @@
+"""pgd (projected Gauss-Newton) and pgd-study (the study's projected Adam) on a real surrogate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from femcal.calibration import CalibrationProblem, CurveModel, available_calibrators, calibrate
+from femcal.calibration.pgd_study import _BETA1, _BETA2, _EPS
+from femcal.errors import ConfigError, InputDataError
+
+
+def test_registry_lists_the_calibrators():
+    assert {"pgd", "pgd-study", "ga", "inverse"} <= set(available_calibrators())
+
+
+def test_unknown_method_lists_the_choices(curve_model, truth):
+    with pytest.raises(
+        ConfigError, match=r"Unknown calibration method 'nope'; choose one of .*pgd"
+    ):
+        calibrate(curve_model, truth[1], method="nope")
+
+
+def test_pgd_fits_reachable_targets_inside_the_bounds(curve_model, truth):
+    x_true, targets = truth
+    bank = curve_model.space.sample_lhs(256, np.random.default_rng(0))
+    res = calibrate(curve_model, targets, method="pgd", options={"start_bank": bank})
+    # Targets are the surrogate's own curves, so an exact fit exists; 1e-3 deg is far below
+    # the 0.01-0.1 deg spread of the curves' values across the box.
+    assert res.mae_deg.max() < 1e-3
+    assert res.r2_mean.min() > 0.9999
+    assert np.all(res.exceedance == 0)
+    assert curve_model.space.contains(res.x).all()
+    assert res.x.shape == x_true.shape and res.success.all()
+    assert res.parameters_frame().columns.tolist() == ["specimen", *curve_model.space.names]
+    # The identifiability ranges hold the calibrated point; most hold the truth.
+    assert np.all((res.x_low <= res.x) & (res.x <= res.x_high))
+    inside = (res.x_low <= x_true) & (x_true <= res.x_high)
+    assert inside.mean() > 0.8
+
+
+def test_pgd_never_leaves_the_box_for_unreachable_targets(curve_model, truth):
+    # Twice the RoM of a reachable curve is far outside what the box can produce.
+    res = calibrate(curve_model, 2.5 * truth[1], method="pgd", options={"n_bank_uniform": 64})
+    assert np.all(res.exceedance == 0)
+    assert curve_model.space.contains(res.x).all()
+    at_bound = np.isclose(res.x, curve_model.space.lower) | np.isclose(
+        res.x, curve_model.space.upper
+    )
+    assert at_bound.any()  # the optimum sits on the boundary and was stopped there
+
+
+def test_same_seed_same_result_other_seed_differs(curve_model, truth):
+    opts = {"n_starts": 0, "n_random_starts": 2, "n_bank_uniform": 0, "max_iter": 2}
+    a = calibrate(curve_model, truth[1], method="pgd", seed=5, options=opts)
+    b = calibrate(curve_model, truth[1], method="pgd", seed=5, options=opts)
+    c = calibrate(curve_model, truth[1], method="pgd", seed=6, options=opts)
+    np.testing.assert_array_equal(a.x, b.x)
+    assert not np.array_equal(a.x, c.x)
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "lbfgsb"])
+def test_other_optimizers_stay_inside(curve_model, truth, optimizer):
+    res = calibrate(
+        curve_model,
+        truth[1],
+        method="pgd",
+        options={"optimizer": optimizer, "steps": 30, "max_iter": 30, "n_bank_uniform": 128},
+    )
+    assert np.all(res.exceedance == 0)
+    start = calibrate(
+        curve_model, truth[1], method="pgd", options={"max_iter": 0, "n_bank_uniform": 128}
+    )
+    assert res.mae_deg.mean() < start.mae_deg.mean()
+
+
+def test_missing_load_case_is_calibrated_and_reported(curve_model, truth):
+    targets = truth[1].copy()
+    targets[0, 2] = np.nan  # specimen 0: no lateral bending
+    res = calibrate(curve_model, targets, method="pgd", options={"n_bank_uniform": 256})
+    assert np.isfinite(res.mae_deg).all() and res.mae_deg.max() < 1e-2
+    assert np.isnan(res.r2_per_load_case[0, 2])
+    frame = res.metrics_frame()
+    assert frame.loc[0, "missing_load_cases"] == "LateralBending"
+    assert (frame.loc[1:, "missing_load_cases"] == "").all()
+
+
+def test_bad_targets_and_options(curve_model, truth):
+    with pytest.raises(InputDataError, match=r"Targets must have shape \(n, 4, 5\)"):
+        calibrate(curve_model, truth[1][:, :, :3], method="pgd")
+    empty = truth[1].copy()
+    empty[1] = np.nan
+    with pytest.raises(InputDataError, match=r"Specimens at positions \[1\] have no measured"):
+        calibrate(curve_model, empty, method="pgd")
+    with pytest.raises(ConfigError, match="pgd: unknown optimizer 'sgd'; choose one of"):
+        calibrate(curve_model, truth[1], method="pgd", options={"optimizer": "sgd"})
+    with pytest.raises(ConfigError, match="pgd-study: unknown projection 'x'"):
+        calibrate(curve_model, truth[1], method="pgd-study", options={"projection": "x"})
+    with pytest.raises(ConfigError, match="start_bank must have shape"):
+        calibrate(curve_model, truth[1], method="pgd", options={"start_bank": np.ones((3, 2))})
+
+
+def test_jacobian_matches_finite_differences(small_surrogate):
+    net = small_surrogate.torch_module()
+    import copy
+
+    net64 = copy.deepcopy(net).double()
+    moments = torch.tensor([1.0, 2.5, 5.0], dtype=torch.float64)
+    v = torch.rand(4, net.n_params, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    values, jac = net64.curves_jacobian(v, moments)
+    eps = 1e-6
+    for i in range(net.n_params):
+        dv = torch.zeros_like(v)
+        dv[:, i] = eps
+        fd = (net64.curves(v + dv, moments) - net64.curves(v - dv, moments)) / (2 * eps)
+        torch.testing.assert_close(jac[..., i], fd, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(values, net64.curves(v, moments))
+
+
+def _study_reference(problem: CalibrationProblem, u0: torch.Tensor, steps: int, lr: float):
+    """The study's Algorithm 1 written literally: one parameter copy per row, autograd on each
+    row's own copy, Adam on the search matrix, projection = mean over rows then clip."""
+    model = problem.model
+    n_rows = problem.mask[0].sum()
+    lc_idx, m_idx = torch.nonzero(problem.mask[0], as_tuple=True)
+    y = problem.target[0][lc_idx, m_idx]
+    search = u0.repeat(int(n_rows), 1).clone().requires_grad_(True)  # (k, d)
+    opt = torch.optim.Adam([search], lr=lr, betas=(_BETA1, _BETA2), eps=_EPS)
+    for _ in range(steps):
+        opt.zero_grad()
+        curves = model.curves(model.from_linear_unit(search))  # (k, 4, m)
+        pred = curves[torch.arange(int(n_rows)), lc_idx, m_idx]
+        (pred - y).abs().mean().backward()
+        opt.step()
+        with torch.no_grad():
+            search[:] = search.mean(0).clamp(0, 1)
+    return search[0].detach()
+
+
+def test_pgd_study_matches_the_literal_algorithm(curve_model, truth):
+    targets = truth[1][:1]
+    problem = CalibrationProblem.from_arrays(curve_model, targets)
+    rng = np.random.default_rng(0)
+    u0 = torch.tensor(rng.random((1, curve_model.dim)), dtype=torch.float32)
+    ref = _study_reference(problem, u0[0], steps=25, lr=0.0971)
+    res = calibrate(
+        curve_model,
+        targets,
+        method="pgd-study",
+        seed=np.random.default_rng(0),
+        options={"n_starts": 1, "steps": 25},
+    )
+    ours = curve_model.space.to_unit(res.x)[0]
+    np.testing.assert_allclose(ours, ref.numpy(), atol=2e-5)
+
+
+def test_pgd_study_ablations(curve_model, truth):
+    far = 2.5 * truth[1][:2]
+    common = {"n_starts": 4, "steps": 60}
+    projected = calibrate(curve_model, far, method="pgd-study", options=common)
+    unprojected = calibrate(
+        curve_model, far, method="pgd-study", options={**common, "projection": "average"}
+    )
+    penalised = calibrate(
+        curve_model,
+        far,
+        method="pgd-study",
+        options={**common, "projection": "average", "bounds_penalty": 0.05},
+    )
+    assert np.all(projected.exceedance == 0)
+    assert np.all(unprojected.exceedance > 0)  # the study's "no projection" leaves the box
+    assert penalised.exceedance.sum() < unprojected.exceedance.sum()
+    lbfgs = calibrate(
+        curve_model, far, method="pgd-study", options={**common, "optimizer": "lbfgs"}
+    )
+    assert np.all(lbfgs.exceedance == 0)
+
+
+def test_curve_model_rejects_non_differentiable_surrogates():
+    with pytest.raises(ConfigError, match="needs a differentiable surrogate with torch_module"):
+        CurveModel(object(), [1.0])
