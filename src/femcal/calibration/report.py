@@ -138,7 +138,7 @@ def plot_specimen(result: CalibrationResult, i: int, path: Path, holdout_pred=No
             ax.text(0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes)
         ax.plot(result.moments, result.prediction[i, j], "-", color="C0", label=result.method)
         if holdout_pred is not None:
-            ax.plot(result.moments, holdout_pred[i, j], ":", color="C3", label="held-out model")
+            ax.plot(result.moments, holdout_pred[j], ":", color="C3", label="held-out model")
         r2 = result.r2_per_load_case[i, j]
         mae = result.mae_per_load_case[i, j]
         title = lc if not np.isfinite(mae) else f"{lc}\nMAE {mae:.3f}°, R² {r2:.3f}"
