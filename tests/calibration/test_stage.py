@@ -1,0 +1,154 @@
+"""The calibrate stage end to end: registry -> measurements file -> outputs + one MLflow run."""
+
+from __future__ import annotations
+
+import json
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from femcal.cli import main
+from femcal.errors import InputDataError, ModelRegistryError
+from femcal.pipeline import run_calibrate
+from femcal.schema import LOAD_CASES
+from femcal.tracking import (
+    configure_tracking,
+    ensure_experiment,
+    log_surrogate,
+    register_and_promote,
+)
+
+
+@pytest.fixture
+def registry(tmp_path, monkeypatch, small_surrogate):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    configure_tracking(store_dir=tmp_path / "mlruns")
+    ensure_experiment("test", store_dir=tmp_path / "mlruns")
+    for name in ("ivd-rom-surrogate", "ivd-rom-surrogate-holdout"):
+        with mlflow.start_run():
+            info = log_surrogate(small_surrogate, small_surrogate.space)
+        register_and_promote(info.model_uri, name=name, val_metric=0.1)
+    yield tmp_path
+    mlflow.set_tracking_uri(None)
+
+
+def _long_csv(path, curves, moments=(1, 2, 3, 4, 5)):
+    rows = []
+    for i, spec in enumerate(curves):
+        for j, lc in enumerate(LOAD_CASES):
+            for k, m in enumerate(moments):
+                if np.isfinite(spec[j, k]):
+                    rows.append((f"spec-{i}", lc, m, spec[j, k]))
+    pd.DataFrame(rows, columns=["specimen", "load_case", "moment_nm", "rom_deg"]).to_csv(
+        path, index=False
+    )
+    return path
+
+
+def test_run_calibrate_logs_one_run_with_tables(registry, truth):
+    tmp = registry
+    curves = truth[1].copy()
+    curves[1, 0] = np.nan  # spec-1 has no flexion
+    meas = _long_csv(tmp / "meas.csv", curves)
+    result, figures = run_calibrate(
+        measurements=meas,
+        out_dir=tmp / "out",
+        method="pgd",
+        model_uri="models:/ivd-rom-surrogate@champion",
+        holdout_uri="models:/ivd-rom-surrogate-holdout@champion",
+        start_bank=None,
+        options={"n_bank_uniform": 256},
+        seed=0,
+        max_extrapolation=0.5,
+    )
+    assert result.specimens == tuple(f"spec-{i}" for i in range(6))
+    assert figures["mae_deg"] < 1e-2 and figures["n_outside_bounds"] == 0
+    assert figures["holdout_mae_deg"] == pytest.approx(figures["mae_deg"], abs=1e-9)
+    runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'")
+    assert len(runs) == 1
+    run = runs.iloc[0]
+    assert run["params.model_version"] == "ivd-rom-surrogate/1"
+    assert run["metrics.mae_deg"] == pytest.approx(figures["mae_deg"])
+    assert "Flexion" in run["tags.femcal.missing_load_cases"]
+    client = mlflow.MlflowClient()
+    arts = {a.path for a in client.list_artifacts(run["run_id"], "calibration")}
+    assert {"calibration/parameters.csv", "calibration/metrics.csv"} <= arts
+    table = mlflow.load_table("tables/metrics.json", run_ids=[run["run_id"]])
+    assert len(table) == 6 and set(table["specimen"]) == set(result.specimens)
+
+
+def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
+    meas = _long_csv(registry / "m.csv", truth[1][:1], moments=(1, 2, 3, 4, 9))
+    with pytest.raises(InputDataError, match=r"too far outside the trained moment range \[1, 5\]"):
+        run_calibrate(
+            measurements=meas,
+            out_dir=registry / "out",
+            method="pgd",
+            model_uri="models:/ivd-rom-surrogate@champion",
+            holdout_uri=None,
+            start_bank=None,
+            options={},
+            seed=0,
+            max_extrapolation=0.5,
+        )
+
+
+def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypatch):
+    tmp = registry
+    meas = _long_csv(tmp / "meas.csv", truth[1][:2])
+    params = {
+        "mlflow": {
+            "store_dir": str(tmp / "mlruns"),
+            "experiment": "test",
+            "model_name": "ivd-rom-surrogate",
+        },
+        "calibrate": {
+            "measurements": str(meas),
+            "out_dir": str(tmp / "cal"),
+            "metrics_file": str(tmp / "cal.json"),
+            "method": "pgd",
+            "model_uri": "models:/ivd-rom-surrogate@champion",
+            "holdout_uri": None,
+            "start_bank": None,
+            "seed": 0,
+            "max_extrapolation": 0.5,
+            "plots": False,
+            "options": {"pgd": {"n_bank_uniform": 128}},
+        },
+    }
+    (tmp / "params.yaml").write_text(yaml.safe_dump(params))
+    assert main(["--params", str(tmp / "params.yaml"), "calibrate", "--model-version", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "calibrated 2 specimens with pgd against models:/ivd-rom-surrogate/1" in out
+    assert json.loads((tmp / "cal.json").read_text())["n_specimens"] == 2
+    assert (tmp / "cal" / "parameters.csv").exists() and not (tmp / "cal" / "plots").exists()
+    # A version that does not exist: exit code 2 and a message naming the URI.
+    code = main(["--params", str(tmp / "params.yaml"), "calibrate", "--model-version", "7"])
+    assert code == 2
+    assert "models:/ivd-rom-surrogate/7" in capsys.readouterr().err
+    bad = tmp / "bad.csv"
+    bad.write_text("specimen,load_case,moment_nm,rom_deg\nA,twist,1,2.0\n")
+    code = main(["--params", str(tmp / "params.yaml"), "calibrate", "--measurements", str(bad)])
+    assert code == 2
+    assert "unknown load case 'twist'" in capsys.readouterr().err
+
+
+def test_missing_registered_model(registry, truth):
+    meas = _long_csv(registry / "m.csv", truth[1][:1])
+    with pytest.raises(
+        ModelRegistryError, match="Could not load the model 'models:/nope@champion'"
+    ):
+        run_calibrate(
+            measurements=meas,
+            out_dir=registry / "out",
+            method="pgd",
+            model_uri="models:/nope@champion",
+            holdout_uri=None,
+            start_bank=None,
+            options={},
+            seed=0,
+            max_extrapolation=0.5,
+        )
