@@ -1,6 +1,7 @@
 """The command line: settings errors are clear, and exit with status 2."""
 
 import pytest
+import yaml
 
 from femcal.cli import build_parser, main
 from femcal.config import load_params, section
@@ -52,10 +53,29 @@ def test_subcommands_exist():
         ["baselines", "--split", "small"],
         ["interpolate"],
         ["evaluate"],
+        ["train-inverse"],
+        ["calibrate", "--measurements", "m.csv", "--method", "ga", "--model-version", "2"],
     ):
         assert parser.parse_args(cmd).command == cmd[0]
     with pytest.raises(SystemExit):
-        parser.parse_args(["train", "--split", "medium"])
+        parser.parse_args(["train"])  # --split is required
+
+
+def test_unknown_training_section_names_the_setting(tmp_path, capsys, monkeypatch):
+    import mlflow
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    params = {
+        "mlflow": {"store_dir": str(tmp_path / "mlruns"), "experiment": "t"},
+        "train": {"storage": f"sqlite:///{tmp_path}/o.db"},
+    }
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(params))
+    try:
+        code = main(["--params", str(tmp_path / "p.yaml"), "train", "--split", "medium"])
+    finally:
+        mlflow.set_tracking_uri(None)  # the command pointed MLflow at the temporary store
+    assert code == 2
+    assert "missing setting 'train.medium'" in capsys.readouterr().err
 
 
 def test_fetch_and_prepare_from_a_mirror(tmp_path, monkeypatch, capsys, synthetic_raw_root):

@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -44,6 +46,11 @@ def tiny_params(path: Path) -> None:
     params["train"]["large"]["search_space"] = {
         "learning_rate": {"type": "float", "low": 0.001, "high": 0.01, "log": True}
     }
+    params["train"]["holdout"]["final_members"] = 1
+    params["inverse"].update({"n_samples": 500, "n_trials": 1})
+    params["inverse"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 2, "patience": 2})
+    params["calibrate"]["max_plots"] = 3
+    params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
     params["baselines"]["models"] = ["linear", "lightgbm"]
     params["interpolation"]["final_members"] = 1
     params["interpolation"]["baselines"] = ["linear"]
@@ -87,6 +94,9 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
         "baselines@large",
         "interpolate",
         "evaluate",
+        "train@holdout",
+        "train-inverse",
+        "calibrate",
     ):
         assert f"Running stage '{stage}'" in first.stdout
     report = json.loads((root / "reports/surrogates.json").read_text())
@@ -105,6 +115,13 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
         "p = m.predict(input_example(s)); assert len(p) == 4 and (p > 0).all(), p; print('ok')"
     )
     assert _run([sys.executable, "-c", code], root, env).stdout.strip().endswith("ok")
+    # calibrate: the 64 Test specimens through the registered champion, inside the bounds.
+    cal = json.loads((root / "reports/calibrate.json").read_text())
+    assert cal["n_specimens"] == 64 and cal["n_outside_bounds"] == 0
+    assert np.isfinite(cal["holdout_mae_deg"]) and cal["n_plotted"] == 3
+    metrics = pd.read_csv(root / "reports/calibration/metrics.csv")
+    assert len(metrics) == 64 and (metrics["exceedance"] == 0).all()
+    assert len(list((root / "reports/calibration/plots").glob("*.png"))) == 3
 
 
 def test_second_repro_runs_nothing_and_a_change_reruns_only_downstream(project):

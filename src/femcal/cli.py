@@ -51,9 +51,7 @@ def cmd_train(args: argparse.Namespace, params: dict) -> None:
     _tracking(params)
     split = args.split
     settings = section(params, "train", split)
-    storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or section(params, "train", "storage")
-    if storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
-        Path(storage[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+    storage = _optuna_storage(params)
     result = run_train(
         prepared_dir=Path(section(params, "data", "prepared_dir")),
         split=split,
@@ -140,6 +138,38 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
     print("report: reports/surrogates.md")
 
 
+def _optuna_storage(params: dict) -> str:
+    storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or section(params, "train", "storage")
+    if storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
+        Path(storage[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+    return storage
+
+
+def cmd_train_inverse(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_train_inverse
+
+    _tracking(params)
+    cfg = section(params, "inverse")
+    result = run_train_inverse(
+        surrogate_uri=section(params, "inverse", "surrogate_uri"),
+        moments=[float(m) for m in section(params, "inverse", "moments")],
+        out_dir=Path("models/inverse"),
+        metrics_path=Path("reports/train-inverse.json"),
+        settings=cfg,
+        storage=_optuna_storage(params),
+        study_name=str(cfg.get("study_name", "ivd-inverse")),
+        seed=int(cfg.get("seed", 0)),
+        register_as=cfg.get("register_as"),
+        progress=sys.stderr.isatty(),
+    )
+    reg = f"; registered as version {result.version}" if result.version else ""
+    print(
+        f"inverse model: validation MAE {result.val_mae:.4f} (unit box), "
+        f"{result.val_rom_mae_deg:.4f} deg through the surrogate, {result.n_trials} trials in "
+        f"{result.seconds:.0f} s{reg}"
+    )
+
+
 def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     from femcal.pipeline import run_calibrate
 
@@ -212,6 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("evaluate", help="Test-set table for every surrogate").set_defaults(
         func=cmd_evaluate
     )
+    sub.add_parser(
+        "train-inverse", help="the study's inverse network on surrogate samples (Optuna, MLflow)"
+    ).set_defaults(func=cmd_train_inverse)
     p = sub.add_parser("calibrate", help="calibrate measured specimens (registered surrogate)")
     p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
     p.add_argument("--out", help="output folder (default: calibrate.out_dir)")

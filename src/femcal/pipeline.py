@@ -276,6 +276,25 @@ def training_configurations(path: Path) -> np.ndarray:
     return table.drop_duplicates("config_id")[list(space.names)].to_numpy(dtype=float)
 
 
+def calibration_options(
+    method: str, options: Mapping[str, Any], *, surrogate: Any, start_bank: Path | None
+) -> dict[str, Any]:
+    """A calibrator's options completed from the data and the surrogate.
+
+    For ``pgd``: the training configurations of ``start_bank`` (a prepared split) as starts,
+    and ``noise_deg`` from the surrogate's validation error (the surrogate's own error is part
+    of the noise of every RoM value; for Gaussian errors sd = MAE * sqrt(pi / 2)).
+    """
+    opts = dict(options)
+    if method == "pgd":
+        if start_bank is not None and "start_bank" not in opts:
+            opts["start_bank"] = training_configurations(start_bank)
+        val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
+        if "noise_deg" not in opts and np.isfinite(val):
+            opts["noise_deg"] = val * float(np.sqrt(np.pi / 2))
+    return opts
+
+
 def run_calibrate(
     *,
     measurements: Path,
@@ -318,13 +337,7 @@ def run_calibrate(
         meas, trained_range=tuple(surrogate.moment_range_), max_extrapolation=max_extrapolation
     )
     model = CurveModel(surrogate, meas.moments)
-    opts = dict(options)
-    if method == "pgd":
-        if start_bank is not None and "start_bank" not in opts:
-            opts["start_bank"] = training_configurations(start_bank)
-        if "noise_deg" not in opts and np.isfinite(surrogate.best_val_mae_deg_):
-            # The surrogate's own error is part of the noise (Gaussian: sd = MAE * sqrt(pi/2)).
-            opts["noise_deg"] = float(surrogate.best_val_mae_deg_) * float(np.sqrt(np.pi / 2))
+    opts = calibration_options(method, options, surrogate=surrogate, start_bank=start_bank)
     holdout = None
     if holdout_uri:
         holdout = CurveModel(load_surrogate(holdout_uri), meas.moments)
@@ -372,3 +385,64 @@ def run_calibrate(
         mlflow.log_table(result.parameters_frame(), artifact_file="tables/parameters.json")
         mlflow.log_artifacts(str(out_dir), artifact_path="calibration")
     return result, figures
+
+
+def run_train_inverse(
+    *,
+    surrogate_uri: str,
+    moments: Sequence[float],
+    out_dir: Path,
+    metrics_path: Path,
+    settings: Mapping[str, Any],
+    storage: str,
+    study_name: str,
+    seed: int,
+    register_as: str | None,
+    progress: bool = False,
+):
+    """Train the study's inverse network on samples of the registered surrogate; register it."""
+    from femcal.calibration import CurveModel
+    from femcal.calibration.inverse import train_inverse
+    from femcal.tracking import load_surrogate
+
+    surrogate = load_surrogate(surrogate_uri)
+    result = train_inverse(
+        CurveModel(surrogate, moments),
+        n_samples=int(settings.get("n_samples", 50_000)),
+        search_space=settings.get("search_space") or {},
+        fixed=settings.get("fixed") or {},
+        n_trials=int(settings.get("n_trials", 0)),
+        storage=storage,
+        study_name=study_name,
+        seed=seed,
+        register_as=register_as,
+        run_name="train-inverse",
+        progress=progress,
+    )
+    tmp = out_dir.with_name(out_dir.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    result.model.save(tmp)
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
+    metrics_path.parent.mkdir(parents=True, exist_ok=True)
+    metrics_path.write_text(
+        json.dumps(
+            {
+                "val_mae_unit": result.val_mae,
+                "val_rom_mae_deg": result.val_rom_mae_deg,
+                "n_trials": result.n_trials,
+                "seconds": round(result.seconds, 1),
+                "mlflow_run_id": result.run_id,
+                "registered_version": result.version,
+                "promoted": result.promoted,
+                "surrogate_uri": surrogate_uri,
+                "best_params": result.best_params,
+            },
+            indent=2,
+            default=str,
+        )
+        + "\n"
+    )
+    return result

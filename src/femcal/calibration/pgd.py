@@ -94,12 +94,17 @@ def gauss_newton(
     tol: float,
     atol_deg: float = 1e-4,
     l1_delta: float = 1e-3,
+    keep_after: int = 0,
+    keep: int = 0,
 ) -> tuple[torch.Tensor, int, torch.Tensor]:
     """Projected Levenberg-Marquardt from starts ``v`` (B, d) for specimens ``rows`` (B,).
 
     A row has converged when a kept step lowers the loss by less than ``tol`` (relative), when
     its RMS residual falls below ``atol_deg``, when the step is below 1e-6 in unit coordinates,
     or when the damping has grown past 1e6 (no step lowers the loss).
+
+    With ``keep_after > 0`` and ``keep > 0``, after ``keep_after`` iterations only the ``keep``
+    best starts of each specimen go on (successive halving: the others stop where they are).
 
     Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
     """
@@ -116,6 +121,8 @@ def gauss_newton(
     eye = torch.eye(d)
     nit = 0
     for nit in range(1, max_iter + 1):
+        if keep_after and keep and nit == keep_after + 1:
+            active = _keep_best(problem, v, rows, active, keep, w, loss)
         if active.numel() == 0:
             nit -= 1
             break
@@ -157,6 +164,20 @@ def gauss_newton(
         converged[a_idx[done]] = True
         active = a_idx[~done]
     return v, nit, converged
+
+
+def _keep_best(problem, v, rows, active, keep, w, loss) -> torch.Tensor:
+    """The active rows among the ``keep`` lowest-loss starts of each specimen."""
+    with torch.no_grad():
+        cost = _cost(_residual(problem, rows, problem.model.curves(v)), w, loss)
+    n = problem.n_specimens
+    k = len(rows) // n
+    if k <= keep:
+        return active
+    ranked = cost.reshape(n, k).argsort(1)[:, :keep]
+    chosen = torch.zeros(len(rows), dtype=torch.bool)
+    chosen[(torch.arange(n)[:, None] * k + ranked).reshape(-1)] = True
+    return active[chosen[active]]
 
 
 def adam(
@@ -245,6 +266,8 @@ def pgd(
     start_bank: np.ndarray | None = None,
     n_bank_uniform: int = 1024,
     max_iter: int = 10,
+    keep_after: int = 0,
+    keep: int = 0,
     tol: float = 1e-4,
     loss: str = "l2",
     select: str = "mae",
@@ -275,6 +298,9 @@ def pgd(
         Uniform draws added to the bank.
     max_iter : int
         Gauss-Newton iterations (also L-BFGS-B's iteration cap).
+    keep_after, keep : int
+        Successive halving: after ``keep_after`` iterations only the ``keep`` best starts of
+        each specimen continue (0 = all starts run to the end).
     tol : float
         Relative decrease of the loss below which a Gauss-Newton row has converged.
     loss : {"l2", "l1"}
@@ -320,7 +346,16 @@ def pgd(
     v0 = v0.reshape(n * k, d)
     converged = torch.ones(n * k, dtype=torch.bool)
     if optimizer == "gauss-newton":
-        v, nit, converged = gauss_newton(problem, v0, rows, max_iter=max_iter, loss=loss, tol=tol)
+        v, nit, converged = gauss_newton(
+            problem,
+            v0,
+            rows,
+            max_iter=max_iter,
+            loss=loss,
+            tol=tol,
+            keep_after=keep_after,
+            keep=keep,
+        )
     elif optimizer == "adam":
         v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
     else:
