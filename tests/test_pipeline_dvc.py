@@ -48,7 +48,7 @@ def tiny_params(path: Path) -> None:
     }
     params["train"]["holdout"]["final_members"] = 1
     params["inverse"].update({"n_samples": 500, "n_trials": 1})
-    params["inverse"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 2, "patience": 2})
+    params["inverse"]["fixed"] = {"width": 16, "depth": 2, "max_epochs": 2, "patience": 2}
     params["calibrate"]["max_plots"] = 3
     params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
     params["baselines"]["models"] = ["linear", "lightgbm"]
