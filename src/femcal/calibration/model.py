@@ -127,10 +127,16 @@ class CurveModel:
         self.n_evaluations += int(v.shape[0])
         return self.net.curves(v, self.moments)
 
-    def curves_jacobian(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Curves (n, 4, m) and their Jacobian (n, 4, m, d) in network coordinates."""
+    def curves_jacobian(
+        self, v: torch.Tensor, *, jacobian_members: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, d) in network coordinates.
+
+        ``jacobian_members`` differentiates only the first k ensemble members (approximate,
+        cheaper); see :meth:`~femcal.surrogates.nn.RomNet.curves_jacobian`.
+        """
         self.n_evaluations += int(v.shape[0]) * (1 + self.dim)
-        return self.net.curves_jacobian(v, self.moments)
+        return self.net.curves_jacobian(v, self.moments, jacobian_members=jacobian_members)
 
     def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
         """RoM curves of physical configurations, shape (n, d) -> (n, 4, m), float64.

@@ -96,6 +96,8 @@ def gauss_newton(
     l1_delta: float = 1e-3,
     keep_after: int = 0,
     keep: int = 0,
+    jacobian_members: int = 0,
+    exact_final: int = 2,
 ) -> tuple[torch.Tensor, int, torch.Tensor]:
     """Projected Levenberg-Marquardt from starts ``v`` (B, d) for specimens ``rows`` (B,).
 
@@ -103,7 +105,10 @@ def gauss_newton(
     its RMS residual falls below ``atol_deg``, when the step is below 1e-6 in unit coordinates,
     or when the damping has grown past 1e6 (no step lowers the loss).
 
-    With ``keep_after > 0`` and ``keep > 0``, after ``keep_after`` iterations only the ``keep``
+    With ``jacobian_members > 0`` the Jacobian of the first iterations comes from that many
+    ensemble members only (cheaper; steps are still accepted on the exact loss); the last
+    ``exact_final`` iterations use the exact Jacobian. With ``keep_after > 0`` and
+    ``keep > 0``, after ``keep_after`` iterations only the ``keep``
     best starts of each specimen go on (successive halving: the others stop where they are).
 
     Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
@@ -126,9 +131,12 @@ def gauss_newton(
         if active.numel() == 0:
             nit -= 1
             break
+        if jacobian_members and nit == max_iter - exact_final + 1:
+            need_jac[:] = True  # switch to the exact Jacobian for the final iterations
+        cheap = jacobian_members if nit <= max_iter - exact_final else None
         fresh = active[need_jac[active]]
         if fresh.numel():
-            f, jf = model.curves_jacobian(v[fresh])
+            f, jf = model.curves_jacobian(v[fresh], jacobian_members=cheap)
             res[fresh] = _residual(problem, rows[fresh], f)
             mask = problem.mask[rows[fresh]].reshape(fresh.numel(), -1, 1)
             jac[fresh] = jf.reshape(fresh.numel(), -1, d) * mask
@@ -261,13 +269,15 @@ def pgd(
     *,
     rng: np.random.Generator,
     optimizer: str = "gauss-newton",
-    n_starts: int = 4,
+    n_starts: int = 8,
     n_random_starts: int = 0,
     start_bank: np.ndarray | None = None,
     n_bank_uniform: int = 1024,
-    max_iter: int = 10,
-    keep_after: int = 0,
-    keep: int = 0,
+    max_iter: int = 12,
+    keep_after: int = 2,
+    keep: int = 1,
+    jacobian_members: int = 1,
+    exact_final: int = 2,
     tol: float = 1e-4,
     loss: str = "l2",
     select: str = "mae",
@@ -301,6 +311,9 @@ def pgd(
     keep_after, keep : int
         Successive halving: after ``keep_after`` iterations only the ``keep`` best starts of
         each specimen continue (0 = all starts run to the end).
+    jacobian_members, exact_final : int
+        Approximate the Jacobian by that many ensemble members (0 = exact throughout) except
+        in the last ``exact_final`` iterations.
     tol : float
         Relative decrease of the loss below which a Gauss-Newton row has converged.
     loss : {"l2", "l1"}
@@ -355,6 +368,8 @@ def pgd(
             tol=tol,
             keep_after=keep_after,
             keep=keep,
+            jacobian_members=jacobian_members,
+            exact_final=exact_final,
         )
     elif optimizer == "adam":
         v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
