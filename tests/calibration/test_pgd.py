@@ -182,3 +182,31 @@ def test_pgd_study_ablations(curve_model, truth):
 def test_curve_model_rejects_non_differentiable_surrogates():
     with pytest.raises(ConfigError, match="needs a differentiable surrogate with torch_module"):
         CurveModel(object(), [1.0])
+
+
+def test_member_subset_jacobian(small_surrogate):
+    """With every member it is the exact Jacobian; with fewer, the members' mean Jacobian
+    (checked against the members' own exact Jacobians) and the ensemble's values."""
+    import copy
+
+    ens = copy.deepcopy(small_surrogate.torch_module())
+    # Two members: the fitted one and a perturbed copy, so they differ.
+    second = copy.deepcopy(ens.members[0])
+    with torch.no_grad():
+        for p in second.parameters():
+            p.mul_(1.1)
+    ens.members.append(second)
+    ens.n_members = 2
+    sur = copy.copy(small_surrogate)
+    sur.net_ = ens
+    model = CurveModel(sur, [1.0, 3.0, 5.0])
+    v = torch.rand(5, ens.n_params, generator=torch.Generator().manual_seed(1))
+    exact_values, exact = model.curves_jacobian(v)
+    values, approx = model.curves_jacobian(v, jacobian_members=1)
+    torch.testing.assert_close(values, exact_values)
+    first_only = copy.deepcopy(ens)
+    first_only.members = first_only.members[:1]
+    first_only.n_members = 1
+    _, member0 = first_only.curves_jacobian(v, model.moments)
+    torch.testing.assert_close(approx, member0)
+    assert not torch.allclose(approx, exact)

@@ -316,7 +316,7 @@ class RomNet(nn.Module):
         return out / self.n_members
 
     def curves_jacobian(
-        self, v: torch.Tensor, moment_nm: torch.Tensor, *, jacobian_members: int | None = None
+        self, v: torch.Tensor, moment_nm: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`curves` and its Jacobian in ``v`` by forward-mode differentiation.
 
@@ -329,10 +329,6 @@ class RomNet(nn.Module):
             Network inputs (see :meth:`curves`).
         moment_nm : Tensor, shape (m,)
             Moments in Nm.
-        jacobian_members : int, optional
-            Differentiate only the first k members and use the mean of their Jacobians as
-            the ensemble's (an approximation, k times cheaper to differentiate); the values
-            are always the full ensemble's. Default: all members (exact).
 
         Returns
         -------
@@ -346,12 +342,8 @@ class RomNet(nn.Module):
         n_lc, p = self.n_load_cases, self.moment_degree + 1
         values = v.new_zeros((n, n_lc, moment_nm.shape[0]))
         jac = v.new_zeros((n, d, n_lc, moment_nm.shape[0]))
-        k_jac = self.n_members if not jacobian_members else min(jacobian_members, self.n_members)
         with torch.no_grad():
-            for k, member in enumerate(self.members):
-                if k >= k_jac:
-                    values += self.to_degrees(member(v).reshape(n, n_lc, p) @ basis.T)
-                    continue
+            for member in self.members:
                 h, tangent = _forward_tangents(member, v)
                 scaled = h.reshape(n, n_lc, p) @ basis.T  # (n, 4, m)
                 dscaled = tangent.reshape(n, d, n_lc, p) @ basis.T  # (n, d, 4, m)
@@ -362,7 +354,7 @@ class RomNet(nn.Module):
                     ddeg = dscaled * self.y_scale
                 values += deg
                 jac += ddeg
-        return values / self.n_members, (jac / k_jac).permute(0, 2, 3, 1)
+        return values / self.n_members, (jac / self.n_members).permute(0, 2, 3, 1)
 
 
 def _activation_derivative(module: nn.Module, z: torch.Tensor) -> torch.Tensor:
