@@ -85,7 +85,7 @@ def row(result, *, holdout, x_true, space, label, note=""):
     return out
 
 
-def fmt(v, digits=4):
+def fmt(v, digits=5):
     if isinstance(v, float):
         return f"{v:.{digits}f}" if abs(v) < 1e4 else f"{v:.3g}"
     return str(v)
@@ -173,7 +173,10 @@ def main() -> None:
         ("Gauss-Newton, L1 loss (IRLS)", {"loss": "l1"}),
         ("Gauss-Newton, best start by R²", {"select": "r2"}),
         ("Gauss-Newton, 1 start", {"n_starts": 1}),
-        ("Gauss-Newton, 8 starts", {"n_starts": 8}),
+        ("Gauss-Newton, 4 starts", {"n_starts": 4}),
+        ("Gauss-Newton, 16 starts", {"n_starts": 16}),
+        ("Gauss-Newton, no fit tolerance (fit to the end)", {"fit_tolerance": 0.0}),
+        ("Gauss-Newton, exact Jacobian, no halving", {"jacobian_members": 0, "keep_after": 0}),
         ("Gauss-Newton, 20 iterations", {"max_iter": 20}),
         (
             "Gauss-Newton, uniform starts only",

@@ -25,7 +25,9 @@ def test_unknown_method_lists_the_choices(curve_model, truth):
 def test_pgd_fits_reachable_targets_inside_the_bounds(curve_model, truth):
     x_true, targets = truth
     bank = curve_model.space.sample_lhs(256, np.random.default_rng(0))
-    res = calibrate(curve_model, targets, method="pgd", options={"start_bank": bank})
+    res = calibrate(
+        curve_model, targets, method="pgd", options={"start_bank": bank, "fit_tolerance": 0.0}
+    )
     # Targets are the surrogate's own curves, so an exact fit exists; 1e-3 deg is far below
     # the 0.01-0.1 deg spread of the curves' values across the box.
     assert res.mae_deg.max() < 1e-3
@@ -35,11 +37,21 @@ def test_pgd_fits_reachable_targets_inside_the_bounds(curve_model, truth):
     assert res.x.shape == x_true.shape
     # success = the optimiser's own convergence test (relative decrease, step or RMS < 1e-4 deg)
     assert res.success.sum() >= 3 and f"{res.success.sum()}/6 converged" in res.message
+
     assert res.parameters_frame().columns.tolist() == ["specimen", *curve_model.space.names]
     # The identifiability ranges hold the calibrated point; most hold the truth.
     assert np.all((res.x_low <= res.x) & (res.x <= res.x_high))
     inside = (res.x_low <= x_true) & (x_true <= res.x_high)
     assert inside.mean() > 0.8
+
+
+def test_fit_tolerance_stops_at_the_noise_floor(curve_model, truth):
+    noise = 0.02
+    res = calibrate(curve_model, truth[1], method="pgd", options={"noise_deg": noise})
+    rms = np.sqrt(np.nanmean((res.prediction - res.measured) ** 2, axis=(1, 2)))
+    # Every specimen reached RMS < 0.25 x noise and stopped there (not far below it).
+    assert res.success.all() and np.all(rms < 0.25 * noise)
+    assert rms.max() > 0.25 * noise / 50
 
 
 def test_pgd_never_leaves_the_box_for_unreachable_targets(curve_model, truth):

@@ -167,7 +167,8 @@ def gauss_newton(
         need_jac[a_idx[ok]] = True
         lam[a_idx] = torch.where(ok, lam[a_idx] / 3, lam[a_idx] * 4)
         tiny_step = step.abs().amax(1) < 1e-6
-        fitted = cost_new < atol_deg**2 * wa.sum(1)  # RMS residual below atol_deg
+        rms2 = (wa * r_new**2).sum(1) / wa.sum(1)
+        fitted = rms2 < atol_deg**2  # RMS residual below atol_deg
         done = (ok & ((gain < tol) | fitted)) | tiny_step | (lam[a_idx] > 1e6)
         converged[a_idx[done]] = True
         active = a_idx[~done]
@@ -284,6 +285,7 @@ def pgd(
     steps: int = 300,
     lr: float = 0.02,
     noise_deg: float = 0.03,
+    fit_tolerance: float = 0.25,
     range_z: float = 2.0,
     ranges: bool = True,
 ) -> Solution:
@@ -326,6 +328,11 @@ def pgd(
     noise_deg : float
         Error scale of one RoM value in degrees (surrogate error and measurement noise): the
         tolerance for near-optimal starts and the noise of the identifiability ranges.
+    fit_tolerance : float
+        A start stops (and counts as converged) once its RMS residual is below
+        ``fit_tolerance * noise_deg``: fitting further would fit the surrogate's own error.
+        0 leaves the floor of 1e-4 deg (then practically only the relative-decrease, step and
+        damping tests stop a start).
     range_z : float
         Half-width of the ranges in standard deviations.
     ranges : bool
@@ -370,6 +377,7 @@ def pgd(
             keep=keep,
             jacobian_members=jacobian_members,
             exact_final=exact_final,
+            atol_deg=max(fit_tolerance * noise_deg, 1e-4),
         )
     elif optimizer == "adam":
         v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
@@ -403,7 +411,8 @@ def pgd(
         message=(
             f"pgd ({optimizer}, {loss} loss): {k} starts per specimen "
             f"({k_bank} nearest, {n_random_starts} random), {nit} iterations, "
-            f"{int(conv.sum())}/{n} converged"
+            f"{int(conv.sum())}/{n} converged or fitted within {fit_tolerance:g} x noise "
+            f"({fit_tolerance * noise_deg:.4f} deg RMS)"
         ),
         x_low=x_low,
         x_high=x_high,
