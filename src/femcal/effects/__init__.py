@@ -1,0 +1,11 @@
+"""Registry of physical effects and their composition with the disc surrogate."""
+
+from femcal.effects.base import (
+    Effect,
+    EffectParameter,
+    available_effects,
+    get_effect,
+    register_effect,
+)
+
+__all__ = ["Effect", "EffectParameter", "available_effects", "get_effect", "register_effect"]

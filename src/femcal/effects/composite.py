@@ -1,0 +1,185 @@
+"""The disc surrogate composed with physical effects: a drop-in :class:`CurveModel`.
+
+:class:`EffectModel` has the interface the calibrators use (``curves``, ``curves_jacobian``,
+``to_physical``, ``from_physical``, ``predict``, ``space``, ``moments``, ``dim``), over the
+joint parameters ``[13 disc parameters, effect parameters...]`` in unit coordinates: the disc
+part in the surrogate network's coordinates, each effect parameter in its own unit box (log
+scale where declared). So ``pgd`` calibrates material and effect parameters jointly, inside all
+bounds, unchanged.
+
+Parallel elements: for each load case they act on, ``M = M_d + sum_e M_e(phi_disc(M_d))`` is
+solved for the disc's share ``M_d`` by bisection in ``log M_d`` (no graph), then one Newton
+step with the graph attached gives the implicit-function gradient exactly at the solution.
+Series elements add ``phi_e(M)`` to the rotation.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from femcal.calibration.model import CurveModel
+from femcal.effects.base import Effect, get_effect
+from femcal.space import ParameterSpace
+
+logger = logging.getLogger(__name__)
+
+_BISECTIONS = 40
+_MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
+
+
+class EffectModel:
+    """A :class:`~femcal.calibration.model.CurveModel` with physical effects added.
+
+    Parameters
+    ----------
+    base : CurveModel
+        The disc surrogate on the moment grid.
+    effects : sequence of str
+        Registered effect names (:func:`~femcal.effects.available_effects`); empty = the disc.
+    """
+
+    def __init__(self, base: CurveModel, effects: Sequence[str]) -> None:
+        self.base = base
+        self.effects: list[Effect] = [get_effect(name)() for name in effects]
+        self.effect_names = [e.name for e in self.effects]
+        self.moments = base.moments
+        self.net = base.net
+        self.n_disc = base.dim
+        self._slices = []
+        start = self.n_disc
+        for e in self.effects:
+            self._slices.append(slice(start, start + len(e.parameters)))
+            start += len(e.parameters)
+        self.dim = start
+        names = list(base.space.names)
+        lower, upper = list(base.space.lower), list(base.space.upper)
+        units = list(base.space.units) if base.space.units else None
+        for e in self.effects:
+            names += e.names()
+            lower += list(e.lower())
+            upper += list(e.upper())
+            if units is not None:
+                units += [q.unit for q in e.parameters]
+        self.space = ParameterSpace(names, lower, upper, units)
+        self.n_evaluations = 0
+
+    # ------------------------------------------------------------ coordinates
+    def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
+        v = np.clip(np.asarray(v, dtype=float), 0.0, 1.0)
+        parts = [self.base.to_physical(v[:, : self.n_disc])]
+        for e, sl in zip(self.effects, self._slices):
+            vals = e.from_unit(torch.as_tensor(v[:, sl], dtype=torch.float64))
+            parts.append(np.stack([vals[q].numpy() for q in e.names()], axis=1))
+        return self.space.clip(np.concatenate(parts, axis=1))
+
+    def from_physical(self, x: np.ndarray, *, clip: bool = True) -> torch.Tensor:
+        """Physical (n, 13) or (n, dim) -> unit coordinates (n, dim); effect parameters that
+        are not given start at the middle of their boxes."""
+        x = np.asarray(x, dtype=float)
+        disc = self.base.from_physical(x[:, : self.n_disc], clip=clip)
+        parts = [disc]
+        for e, sl in zip(self.effects, self._slices):
+            if x.shape[1] >= sl.stop:
+                u = e.to_unit(x[:, sl])
+                parts.append(torch.tensor(np.clip(u, 0, 1) if clip else u, dtype=torch.float32))
+            else:
+                parts.append(torch.full((len(x), len(e.parameters)), 0.5))
+        return torch.cat(parts, dim=1)
+
+    # ------------------------------------------------------------ evaluation
+    def _disc(self, v_disc: torch.Tensor):
+        """Per-member coefficients (K, B, 4, p) and a function M (B, 4, m) -> (phi, dphi/dM)."""
+        net = self.net
+        b = v_disc.shape[0]
+        shape = (b, net.n_load_cases, net.moment_degree + 1)
+        coef = torch.stack([m(v_disc).reshape(shape) for m in net.members])
+        powers = torch.arange(net.moment_degree + 1, dtype=v_disc.dtype)
+
+        def phi(moment: torch.Tensor, with_slope: bool = False):
+            z = (torch.log(moment) - net.moment_loc) / net.moment_scale  # (B, 4, m)
+            basis = z[..., None] ** powers  # (B, 4, m, p)
+            scaled = (coef[:, :, :, None, :] * basis).sum(-1)  # (K, B, 4, m)
+            deg = net.to_degrees(scaled)
+            if not with_slope:
+                return deg.mean(0), None
+            # d z^j / dz = j z^(j-1): the basis shifted by one power.
+            dbasis = torch.cat([torch.zeros_like(basis[..., :1]), basis[..., :-1]], -1) * powers
+            dz = (coef[:, :, :, None, :] * dbasis).sum(-1) / (net.moment_scale * moment)
+            slope = deg * net.y_scale * dz if net.log_target else net.y_scale * dz
+            return deg.mean(0), slope.mean(0)
+
+        return phi
+
+    def curves(self, v: torch.Tensor) -> torch.Tensor:
+        """Composite RoM curves, shape (n, dim) -> (n, 4, m); differentiable in ``v``."""
+        self.n_evaluations += int(v.shape[0])
+        b = v.shape[0]
+        phi_disc = self._disc(v[:, : self.n_disc])
+        applied = self.moments.to(v.dtype).expand(b, 4, -1)
+        params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
+        parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
+        if parallel:
+            lc_mask = torch.zeros(4, dtype=torch.bool)
+            for e, _ in parallel:
+                lc_mask |= e.load_case_mask()
+
+            def extra(phi: torch.Tensor, p_detach: bool) -> torch.Tensor:
+                total = torch.zeros_like(phi)
+                for e, p in parallel:
+                    pp = {k: t.detach() for k, t in p.items()} if p_detach else p
+                    total = total + e.moment(phi, pp) * e.load_case_mask()[None, :, None]
+                return total
+
+            with torch.no_grad():  # bisection for the disc's share of the moment
+                lo = torch.log(applied * _MIN_SHARE)
+                hi = torch.log(applied).clone()
+                for _ in range(_BISECTIONS):
+                    mid = 0.5 * (lo + hi)
+                    md = torch.exp(mid)
+                    g = md + extra(phi_disc(md)[0], True) - applied
+                    hi = torch.where(g > 0, mid, hi)
+                    lo = torch.where(g > 0, lo, mid)
+                md0 = torch.exp(0.5 * (lo + hi))
+                md0 = torch.where(lc_mask[None, :, None], md0, applied)
+            # One Newton step with the graph: exact implicit gradient at the solution.
+            phi0, slope = phi_disc(md0, with_slope=True)
+            phi_req = phi0.detach().requires_grad_(True)
+            with torch.enable_grad():
+                (dme,) = torch.autograd.grad(extra(phi_req, True).sum(), phi_req)
+            g = md0 + extra(phi0, False) - applied
+            gprime = 1.0 + dme * slope.detach()
+            md = md0 - g / gprime
+            md = torch.where(lc_mask[None, :, None], md, applied)
+            phi, _ = phi_disc(md)
+        else:
+            phi, _ = phi_disc(applied)
+        for e, p in zip(self.effects, params):
+            if e.kind == "series":
+                phi = phi + e.rotation(applied, p) * e.load_case_mask()[None, :, None]
+        return phi
+
+    def curves_jacobian(
+        self, v: torch.Tensor, *, jacobian_members: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim) by reverse mode, one backward
+        pass per output (``jacobian_members`` is accepted and ignored: always exact)."""
+        self.n_evaluations += int(v.shape[0]) * 4 * len(self.moments)
+        with torch.enable_grad():
+            vv = v.detach().clone().requires_grad_(True)
+            out = self.curves(vv)
+            flat = out.reshape(len(vv), -1)
+            rows = []
+            for r in range(flat.shape[1]):
+                (g,) = torch.autograd.grad(flat[:, r].sum(), vv, retain_graph=True)
+                rows.append(g)
+        jac = torch.stack(rows, dim=1).reshape(*out.shape, self.dim)
+        return out.detach(), jac
+
+    def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
+        v = self.from_physical(np.asarray(x, dtype=float).reshape(len(x), -1), clip=clip)
+        with torch.no_grad():
+            return self.curves(v).double().numpy()
