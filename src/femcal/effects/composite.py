@@ -66,6 +66,8 @@ class EffectModel:
                 units += [q.unit for q in e.parameters]
         self.space = ParameterSpace(names, lower, upper, units)
         self.n_evaluations = 0
+        #: Lowest trained moment: below it the disc curve is continued as a power law.
+        self.m_low = float(getattr(base.surrogate, "moment_range_", (1.0, 5.0))[0])
 
     # ------------------------------------------------------------ coordinates
     def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
@@ -99,18 +101,26 @@ class EffectModel:
         coef = torch.stack([m(v_disc).reshape(shape) for m in net.members])
         powers = torch.arange(net.moment_degree + 1, dtype=v_disc.dtype)
 
-        def phi(moment: torch.Tensor, with_slope: bool = False):
-            z = (torch.log(moment) - net.moment_loc) / net.moment_scale  # (B, 4, m)
+        m_low = self.m_low
+
+        def phi(moment: torch.Tensor):
+            # The cubic in log-moment holds in the trained range; below its lowest moment the
+            # curve continues as the power law through the origin with the log-log slope there
+            # (a cubic extrapolated far down can blow up). Returns (phi, dphi/dM).
+            mc = moment.clamp_min(m_low)
+            z = (torch.log(mc) - net.moment_loc) / net.moment_scale  # (B, 4, m)
             basis = z[..., None] ** powers  # (B, 4, m, p)
             scaled = (coef[:, :, :, None, :] * basis).sum(-1)  # (K, B, 4, m)
             deg = net.to_degrees(scaled)
-            if not with_slope:
-                return deg.mean(0), None
             # d z^j / dz = j z^(j-1): the basis shifted by one power.
             dbasis = torch.cat([torch.zeros_like(basis[..., :1]), basis[..., :-1]], -1) * powers
-            dz = (coef[:, :, :, None, :] * dbasis).sum(-1) / (net.moment_scale * moment)
+            dz = (coef[:, :, :, None, :] * dbasis).sum(-1) / (net.moment_scale * mc)
             slope = deg * net.y_scale * dz if net.log_target else net.y_scale * dz
-            return deg.mean(0), slope.mean(0)
+            deg, slope = deg.mean(0), slope.mean(0)
+            low = moment < m_low
+            b = (slope * mc / deg).clamp(0.05, 3.0)
+            out = deg * (moment / mc) ** torch.where(low, b, torch.ones_like(b))
+            return out, torch.where(low, out * b / moment, slope)
 
         return phi
 
@@ -146,7 +156,7 @@ class EffectModel:
                 md0 = torch.exp(0.5 * (lo + hi))
                 md0 = torch.where(lc_mask[None, :, None], md0, applied)
             # One Newton step with the graph: exact implicit gradient at the solution.
-            phi0, slope = phi_disc(md0, with_slope=True)
+            phi0, slope = phi_disc(md0)
             phi_req = phi0.detach().requires_grad_(True)
             with torch.enable_grad():
                 (dme,) = torch.autograd.grad(extra(phi_req, True).sum(), phi_req)

@@ -1,0 +1,145 @@
+"""Physical effects: registry, composition with the disc (gradients), planted cohorts."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from femcal.calibration import CurveModel, calibrate
+from femcal.effects import Effect, EffectParameter, available_effects, get_effect, register_effect
+from femcal.effects.composite import EffectModel
+from femcal.effects.planted import fe_rotation, make_cohort, plant
+from femcal.errors import ConfigError
+from femcal.surrogates.nn import NeuralSurrogate
+
+from synth import study_space, tidy_table
+
+MOMENTS = [1.0, 2.0, 3.0, 4.0, 5.0]
+
+
+@pytest.fixture(scope="module")
+def surrogate() -> NeuralSurrogate:
+    table = tidy_table(40, seed=5)
+    model = NeuralSurrogate(study_space(), hidden=(24, 24), max_epochs=30, batch_size=16, seed=0)
+    return model.fit(table, table["rom_deg"].to_numpy())
+
+
+def test_registry_has_the_three_effects_and_names_unknown_ones():
+    assert {"facet_contact", "ligament_tension", "neutral_zone"} <= set(available_effects())
+    with pytest.raises(ConfigError, match="Unknown physical effect 'x'; choose one of facet"):
+        get_effect("x")
+
+
+def test_a_user_effect_is_one_class():
+    @register_effect
+    class Twist(Effect):
+        name = "test_twist"
+        kind = "series"
+        load_cases = ("AxialRotation",)
+        parameters = (EffectParameter("twist_deg", "deg", 0.0, 1.0),)
+
+        def rotation(self, moment_nm, p):
+            return p["twist_deg"].reshape(-1, 1, 1) * torch.tanh(moment_nm)
+
+    assert get_effect("test_twist") is Twist
+    with pytest.raises(ConfigError, match="load_cases must be a non-empty subset"):
+
+        @register_effect
+        class Bad(Effect):
+            name = "bad"
+            kind = "series"
+            load_cases = ("Twisting",)
+
+
+def test_disc_alone_equals_the_surrogate(surrogate):
+    base = CurveModel(surrogate, MOMENTS)
+    v = torch.rand(4, 13, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(EffectModel(base, []).curves(v), base.curves(v))
+
+
+def test_effects_act_where_they_should(surrogate):
+    base = CurveModel(surrogate, MOMENTS)
+    v = torch.rand(3, 13, generator=torch.Generator().manual_seed(1))
+    disc = base.curves(v)
+    for name, lcs in (("facet_contact", [1, 3]), ("ligament_tension", [0, 2])):
+        model = EffectModel(base, [name])
+        out = model.curves(torch.cat([v, torch.full((3, 2), 0.3)], 1))
+        others = [j for j in range(4) if j not in lcs]
+        torch.testing.assert_close(out[:, others], disc[:, others])
+        assert torch.all(out[:, lcs] <= disc[:, lcs] + 1e-6)  # a parallel element stiffens
+    nz = EffectModel(base, ["neutral_zone"]).curves(torch.cat([v, torch.full((3, 2), 0.5)], 1))
+    assert torch.all(nz > disc)
+
+
+def test_composite_jacobian_matches_finite_differences(surrogate):
+    base = CurveModel(surrogate, MOMENTS)
+    model = EffectModel(base, ["facet_contact", "ligament_tension", "neutral_zone"])
+    model.net = copy.deepcopy(model.net).double()
+    model.moments = model.moments.double()
+    v = torch.rand(3, model.dim, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    _, jac = model.curves_jacobian(v)
+    eps = 1e-6
+    for i in range(model.dim):
+        dv = torch.zeros_like(v)
+        dv[:, i] = eps
+        fd = (model.curves(v + dv) - model.curves(v - dv)) / (2 * eps)
+        torch.testing.assert_close(jac[..., i], fd, rtol=1e-5, atol=1e-7)
+
+
+def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate):
+    base = CurveModel(surrogate, MOMENTS)
+    model = EffectModel(base, ["facet_contact"])
+    rng = np.random.default_rng(3)
+    x = np.concatenate([study_space().sample_uniform(4, rng), [[1.0, 1.0]] * 4], axis=1)
+    targets = model.predict(x)
+    res = calibrate(
+        model, targets, method="pgd", options={"n_bank_uniform": 512, "fit_tolerance": 0.0}
+    )
+    assert np.all(res.exceedance == 0) and res.mae_deg.max() < 0.02
+    assert res.parameter_names[-2:] == ("facet_gap_deg", "facet_stiffness")
+
+
+def test_fe_rotation_interpolates_and_extends_as_a_power_law():
+    m = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    rom = 2.0 * m**0.5
+    np.testing.assert_allclose(fe_rotation(m, rom, m), rom)
+    np.testing.assert_allclose(
+        fe_rotation(m, rom, np.array([0.5, 2.5, 6.0])),
+        2.0 * np.array([0.5, 2.5, 6.0]) ** 0.5,
+        rtol=1e-12,
+    )
+
+
+def test_planted_parallel_effect_balances_the_moment():
+    m = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    fe = np.tile(3.0 * m**0.6, (4, 1))
+    p = {"facet_gap_deg": 2.0, "facet_stiffness": 1.0}
+    q = np.array([1.0, 3.0, 5.0])
+    phi = plant("facet_contact", p, m, fe, q)
+    eff = get_effect("facet_contact")()
+    carried = eff.moment(torch.tensor(phi[None]), {k: torch.tensor([v]) for k, v in p.items()})
+    disc_moment = (phi / 3.0) ** (1 / 0.6)  # inverse of the FE curve
+    total = disc_moment + carried[0].numpy()
+    np.testing.assert_allclose(total[[1, 3]], np.tile(q, (2, 1)), rtol=1e-6)
+    np.testing.assert_allclose(phi[[0, 2]], 3.0 * np.tile(q, (2, 1)) ** 0.6)  # untouched cases
+
+
+def test_make_cohort_is_seeded_and_balanced():
+    m = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    fe = np.stack([np.tile((2 + i % 3) * m**0.6, (4, 1)) for i in range(20)])
+    a = make_cohort(m, fe, n_per_class=4, noise_deg=0.05, rng=np.random.default_rng(0))
+    b = make_cohort(m, fe, n_per_class=4, noise_deg=0.05, rng=np.random.default_rng(0))
+    np.testing.assert_array_equal(a.rom_deg, b.rom_deg)
+    assert a.truth["effect"].value_counts().to_dict() == {
+        "none": 4,
+        "facet_contact": 4,
+        "ligament_tension": 4,
+        "neutral_zone": 4,
+    }
+    noise = a.rom_deg - a.clean_deg
+    assert 0.03 < noise.std() < 0.07
+    with pytest.raises(ConfigError, match="needs 24 FE configurations; got 20"):
+        make_cohort(m, fe, n_per_class=6, rng=np.random.default_rng(0))
