@@ -199,6 +199,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         plots=bool(cfg.get("plots", True)),
         max_plots=None if max_plots is None else int(max_plots),
         progress=sys.stderr.isatty(),
+        effects=list(cfg.get("effects") or []),
     )
     held = (
         f", held-out surrogate MAE {figures['holdout_mae_deg']:.4f} deg"
@@ -218,6 +219,53 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         Path(metrics_file).write_text(json.dumps(figures, indent=2) + "\n")
     out = args.out or section(params, "calibrate", "out_dir")
     print(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
+
+
+def cmd_plant(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_plant
+
+    cfg = section(params, "plant")
+    path = run_plant(
+        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        out_dir=Path(section(params, "plant", "out_dir")),
+        n_per_class=int(section(params, "plant", "n_per_class")),
+        moments=[float(m) for m in section(params, "plant", "moments")],
+        noise_deg=float(section(params, "plant", "noise_deg")),
+        seed=int(cfg.get("seed", 0)),
+    )
+    print(f"planted cohort: {path} (truth beside it)")
+
+
+def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_diagnose
+
+    _tracking(params)
+    cfg = section(params, "diagnose")
+    noise = args.noise_deg if args.noise_deg is not None else cfg.get("noise_deg")
+    bank = section(params, "calibrate").get("start_bank")
+    diag, summary = run_diagnose(
+        measurements=Path(args.measurements or section(params, "diagnose", "measurements")),
+        out_dir=Path(args.out or section(params, "diagnose", "out_dir")),
+        model_uri=args.model_uri or section(params, "calibrate", "model_uri"),
+        noise_deg=None if noise is None else float(noise),
+        candidates=cfg.get("candidates"),
+        start_bank=Path(bank) if bank else None,
+        min_delta=float(cfg.get("min_delta", 10.0)),
+        seed=int(cfg.get("seed", 0)),
+        plots=bool(cfg.get("plots", True)),
+        max_plots=cfg.get("max_plots"),
+    )
+    metrics_file = cfg.get("metrics_file")
+    if metrics_file:
+        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
+        Path(metrics_file).write_text(json.dumps(summary, indent=2) + "\n")
+    print(
+        f"diagnosed {summary['n_specimens']} specimens in {diag.seconds:.1f} s (noise sigma "
+        f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "
+        f"{diag.cohort_verdict()}"
+    )
+    if diag.cohort_verdict() != "none":
+        print(f"to add it: list {diag.cohort_verdict()} under calibrate.effects and `dvc repro`")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -256,6 +304,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-holdout", action="store_true", help="skip the held-out re-evaluation")
     p.add_argument("--seed", type=int, help="seed (default: calibrate.seed)")
     p.set_defaults(func=cmd_calibrate)
+    sub.add_parser("plant", help="a cohort with hidden effects from FE curves").set_defaults(
+        func=cmd_plant
+    )
+    p = sub.add_parser("diagnose", help="where the model fails; which effect is missing")
+    p.add_argument("--measurements", help="measurement file (default: diagnose.measurements)")
+    p.add_argument("--out", help="output folder (default: diagnose.out_dir)")
+    p.add_argument("--noise-deg", type=float, help="measurement noise sd (default: estimated)")
+    p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
+    p.set_defaults(func=cmd_diagnose)
     return parser
 
 

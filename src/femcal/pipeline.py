@@ -310,8 +310,12 @@ def run_calibrate(
     plots: bool = True,
     max_plots: int | None = None,
     progress: bool = False,
+    effects: Sequence[str] = (),
 ):
     """Calibrate every specimen of a measurement file against the registered surrogate.
+
+    ``effects`` lists physical effects (:mod:`femcal.effects`) added to the disc: their
+    parameters are calibrated jointly with the material parameters.
 
     Reads the measurements, loads the surrogate (and the held-out surrogate) from the MLflow
     registry, checks the moment range, calibrates the batch, writes ``out_dir`` (see
@@ -336,11 +340,17 @@ def run_calibrate(
     check_moment_range(
         meas, trained_range=tuple(surrogate.moment_range_), max_extrapolation=max_extrapolation
     )
+    from femcal.effects.composite import EffectModel
+
     model = CurveModel(surrogate, meas.moments)
+    if effects:
+        model = EffectModel(model, list(effects))
     opts = calibration_options(method, options, surrogate=surrogate, start_bank=start_bank)
     holdout = None
     if holdout_uri:
         holdout = CurveModel(load_surrogate(holdout_uri), meas.moments)
+        if effects:
+            holdout = EffectModel(holdout, list(effects))
     result = calibrate(
         model,
         meas.rom_deg,
@@ -354,10 +364,12 @@ def run_calibrate(
     )
     figures = write_outputs(result, out_dir, holdout=holdout, plots=plots, max_plots=max_plots)
     missing = meas.missing_load_cases()
-    with mlflow.start_run(run_name=f"calibrate-{method}"):
+    label = "+".join([method, *effects])
+    with mlflow.start_run(run_name=f"calibrate-{label}"):
         mlflow.set_tag("femcal.stage", "calibrate")
         logged = {
             "method": method,
+            "effects": ",".join(effects) or "none",
             "measurements": str(measurements),
             "n_specimens": meas.n_specimens,
             "moments": ",".join(f"{m:g}" for m in meas.moments),
@@ -446,3 +458,94 @@ def run_train_inverse(
         + "\n"
     )
     return result
+
+
+def run_plant(
+    *,
+    prepared_dir: Path,
+    out_dir: Path,
+    n_per_class: int,
+    moments: Sequence[float],
+    noise_deg: float,
+    seed: int,
+) -> Path:
+    """A planted cohort from the FE curves of the Test set: measurements.csv + truth.csv."""
+    from femcal.effects.planted import make_cohort
+    from femcal.prepare import wide_rom
+
+    test, _ = load_split(prepared_dir, "test")
+    _, fe_moments, fe_rom = wide_rom(test)
+    cohort = make_cohort(
+        fe_moments,
+        fe_rom,
+        n_per_class=n_per_class,
+        moments=moments,
+        noise_deg=noise_deg,
+        rng=np.random.default_rng(seed),
+    )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cohort.to_long().to_csv(out_dir / "measurements.csv", index=False)
+    cohort.truth.to_csv(out_dir / "truth.csv", index=False)
+    return out_dir / "measurements.csv"
+
+
+def run_diagnose(
+    *,
+    measurements: Path,
+    out_dir: Path,
+    model_uri: str,
+    noise_deg: float | None,
+    candidates: Sequence[str] | None,
+    start_bank: Path | None,
+    min_delta: float,
+    seed: int,
+    plots: bool = True,
+    max_plots: int | None = None,
+):
+    """Diagnose every specimen of a measurement file; write DIR; log one MLflow run."""
+    import mlflow
+
+    from femcal.calibration import CurveModel
+    from femcal.diagnose import diagnose
+    from femcal.diagnose_report import write_diagnosis
+    from femcal.measurements import read_measurements
+    from femcal.tracking import load_surrogate
+
+    meas = read_measurements(measurements)
+    surrogate = load_surrogate(model_uri)
+    val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
+    sur_err = val * float(np.sqrt(np.pi / 2)) if np.isfinite(val) else 0.0
+    diag = diagnose(
+        CurveModel(surrogate, meas.moments),
+        meas.rom_deg,
+        specimens=meas.specimens,
+        noise_deg=noise_deg,
+        surrogate_error_deg=sur_err,
+        candidates=candidates,
+        start_bank=training_configurations(start_bank) if start_bank else None,
+        min_delta=min_delta,
+        seed=seed,
+    )
+    summary = write_diagnosis(diag, meas.rom_deg, out_dir, plots=plots, max_plots=max_plots)
+    with mlflow.start_run(run_name="diagnose"):
+        mlflow.set_tag("femcal.stage", "diagnose")
+        mlflow.log_params(
+            {
+                "measurements": str(measurements),
+                "model_uri": model_uri,
+                "noise_deg": "estimated" if noise_deg is None else noise_deg,
+                "candidates": ",".join(candidates or []) or "all",
+                "min_delta": min_delta,
+                "cohort_verdict": diag.cohort_verdict(),
+            }
+        )
+        mlflow.log_metrics(
+            {
+                "sigma_deg": diag.sigma_deg,
+                "noise_deg": diag.noise_deg,
+                "seconds": diag.seconds,
+                **{f"n_{k}": float(v) for k, v in diag.verdicts().items()},
+            }
+        )
+        mlflow.log_artifacts(str(out_dir), artifact_path="diagnosis")
+    return diag, summary

@@ -104,6 +104,10 @@ def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None 
         "n_success": int(np.sum(result.success)),
         "nit": int(result.nit),
     }
+    for j, lc in enumerate(LOAD_CASES):
+        col = result.mae_per_load_case[:, j]
+        if np.isfinite(col).any():
+            out[f"mae_deg_{lc}"] = float(np.nanmean(col))
     if holdout is not None:
         out["holdout_mae_deg"] = float(np.nanmean(holdout["mae"]))
         out["holdout_r2_mean"] = float(np.nanmean(holdout["r2_mean"]))
