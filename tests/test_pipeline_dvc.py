@@ -50,6 +50,8 @@ def tiny_params(path: Path) -> None:
     params["inverse"].update({"n_samples": 500, "n_trials": 1})
     params["inverse"]["fixed"] = {"width": 16, "depth": 2, "max_epochs": 2, "patience": 2}
     params["calibrate"]["max_plots"] = 3
+    params["plant"]["n_per_class"] = 2
+    params["diagnose"]["max_plots"] = 2
     params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
     params["baselines"]["models"] = ["linear", "lightgbm"]
     params["interpolation"]["final_members"] = 1
@@ -96,7 +98,10 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
         "evaluate",
         "train@holdout",
         "train-inverse",
-        "calibrate",
+        "calibrate@test",
+        "calibrate@planted",
+        "plant",
+        "diagnose",
     ):
         assert f"Running stage '{stage}'" in first.stdout
     report = json.loads((root / "reports/surrogates.json").read_text())
@@ -116,12 +121,17 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
     )
     assert _run([sys.executable, "-c", code], root, env).stdout.strip().endswith("ok")
     # calibrate: the 64 Test specimens through the registered champion, inside the bounds.
-    cal = json.loads((root / "reports/calibrate.json").read_text())
+    cal = json.loads((root / "reports/calibrate-test.json").read_text())
     assert cal["n_specimens"] == 64 and cal["n_outside_bounds"] == 0
     assert np.isfinite(cal["holdout_mae_deg"]) and cal["n_plotted"] == 3
-    metrics = pd.read_csv(root / "reports/calibration/metrics.csv")
+    metrics = pd.read_csv(root / "reports/calibration/test/metrics.csv")
     assert len(metrics) == 64 and (metrics["exceedance"] == 0).all()
-    assert len(list((root / "reports/calibration/plots").glob("*.png"))) == 3
+    assert len(list((root / "reports/calibration/test/plots").glob("*.png"))) == 3
+    # diagnose: a verdict per planted specimen, named as the issue requires.
+    diagnosis = json.loads((root / "reports/diagnosis/diagnosis.json").read_text())
+    assert len(diagnosis) == 8
+    names = {"none", "facet_contact", "ligament_tension", "neutral_zone"}
+    assert all(d["verdict"] in names and d["ranking"] for d in diagnosis)
 
 
 def test_second_repro_runs_nothing_and_a_change_reruns_only_downstream(project):

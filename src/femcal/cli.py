@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from femcal.config import load_params, section
-from femcal.errors import FemcalError
+from femcal.errors import ConfigError, FemcalError
 
 
 def _tracking(params: dict) -> None:
@@ -185,9 +185,20 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     options = dict((cfg.get("options") or {}).get(method) or {})
     bank = cfg.get("start_bank")
     max_plots = cfg.get("max_plots")
+    datasets = cfg.get("datasets") or {}
+    if args.dataset and args.dataset not in datasets:
+        raise ConfigError(
+            f"Unknown dataset '{args.dataset}'; calibrate.datasets in {args.params} has "
+            f"{sorted(datasets)}."
+        )
+    name = args.dataset or (None if args.measurements else next(iter(datasets), None))
+    if not args.measurements and name is None:
+        raise ConfigError("Give --measurements FILE, or list calibrate.datasets in params.yaml.")
+    measurements = Path(args.measurements or datasets[name])
+    out = args.out or str(Path(section(params, "calibrate", "out_dir")) / (name or "custom"))
     result, figures = run_calibrate(
-        measurements=Path(args.measurements or section(params, "calibrate", "measurements")),
-        out_dir=Path(args.out or section(params, "calibrate", "out_dir")),
+        measurements=measurements,
+        out_dir=Path(out),
         method=method,
         model_uri=model_uri,
         holdout_uri=holdout_uri,
@@ -213,11 +224,10 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     )
     if figures["n_plotted"] < figures["n_specimens"]:
         print(f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)")
-    metrics_file = cfg.get("metrics_file")
-    if metrics_file:
-        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
-        Path(metrics_file).write_text(json.dumps(figures, indent=2) + "\n")
-    out = args.out or section(params, "calibrate", "out_dir")
+    if name and not args.out and not args.measurements:
+        metrics_file = Path(f"reports/calibrate-{name}.json")
+        metrics_file.parent.mkdir(parents=True, exist_ok=True)
+        metrics_file.write_text(json.dumps(figures, indent=2) + "\n")
     print(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
 
 
@@ -294,8 +304,9 @@ def build_parser() -> argparse.ArgumentParser:
         "train-inverse", help="the study's inverse network on surrogate samples (Optuna, MLflow)"
     ).set_defaults(func=cmd_train_inverse)
     p = sub.add_parser("calibrate", help="calibrate measured specimens (registered surrogate)")
+    p.add_argument("--dataset", help="a name under calibrate.datasets (default: the first)")
     p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
-    p.add_argument("--out", help="output folder (default: calibrate.out_dir)")
+    p.add_argument("--out", help="output folder (default: calibrate.out_dir/<dataset>)")
     p.add_argument("--method", help="pgd (default), pgd-study, ga, inverse")
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
     p.add_argument("--model-version", help="version of the registered surrogate")

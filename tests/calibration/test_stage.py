@@ -99,6 +99,7 @@ def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
 
 def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypatch):
     tmp = registry
+    monkeypatch.chdir(tmp)
     meas = _long_csv(tmp / "meas.csv", truth[1][:2])
     params = {
         "mlflow": {
@@ -107,9 +108,8 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
             "model_name": "ivd-rom-surrogate",
         },
         "calibrate": {
-            "measurements": str(meas),
+            "datasets": {"mine": str(meas)},
             "out_dir": str(tmp / "cal"),
-            "metrics_file": str(tmp / "cal.json"),
             "method": "pgd",
             "model_uri": "models:/ivd-rom-surrogate@champion",
             "holdout_uri": None,
@@ -121,19 +121,20 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
         },
     }
     (tmp / "params.yaml").write_text(yaml.safe_dump(params))
-    assert main(["--params", str(tmp / "params.yaml"), "calibrate", "--model-version", "1"]) == 0
+    args = ["--params", str(tmp / "params.yaml"), "calibrate"]
+    assert main([*args, "--dataset", "mine", "--model-version", "1"]) == 0
     out = capsys.readouterr().out
     assert "calibrated 2 specimens with pgd against models:/ivd-rom-surrogate/1" in out
-    assert json.loads((tmp / "cal.json").read_text())["n_specimens"] == 2
-    assert (tmp / "cal" / "parameters.csv").exists() and not (tmp / "cal" / "plots").exists()
+    assert json.loads((tmp / "reports/calibrate-mine.json").read_text())["n_specimens"] == 2
+    assert (tmp / "cal/mine/parameters.csv").exists() and not (tmp / "cal/mine/plots").exists()
     # A version that does not exist: exit code 2 and a message naming the URI.
-    code = main(["--params", str(tmp / "params.yaml"), "calibrate", "--model-version", "7"])
-    assert code == 2
+    assert main([*args, "--model-version", "7"]) == 2
     assert "models:/ivd-rom-surrogate/7" in capsys.readouterr().err
+    assert main([*args, "--dataset", "theirs"]) == 2
+    assert "Unknown dataset 'theirs'" in capsys.readouterr().err
     bad = tmp / "bad.csv"
     bad.write_text("specimen,load_case,moment_nm,rom_deg\nA,twist,1,2.0\n")
-    code = main(["--params", str(tmp / "params.yaml"), "calibrate", "--measurements", str(bad)])
-    assert code == 2
+    assert main([*args, "--measurements", str(bad)]) == 2
     assert "unknown load case 'twist'" in capsys.readouterr().err
 
 
