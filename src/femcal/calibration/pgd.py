@@ -44,7 +44,8 @@ def _bank(problem: CalibrationProblem, start_bank: np.ndarray | None, n_uniform:
     parts = []
     if start_bank is not None and len(start_bank):
         bank = np.asarray(start_bank, dtype=float)
-        if bank.ndim != 2 or bank.shape[1] != model.dim:
+        # An effect model also takes disc-only starts (its effect parameters start mid-box).
+        if bank.ndim != 2 or bank.shape[1] not in (model.dim, getattr(model, "n_disc", -1)):
             raise ConfigError(
                 f"start_bank must have shape (N, {model.dim}) in physical units; got {bank.shape}."
             )

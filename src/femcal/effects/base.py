@@ -49,6 +49,7 @@ class EffectParameter:
     lower: float
     upper: float
     log: bool = False  # sampled and optimised on a log scale (bounds must be > 0)
+    start: float = 0.5  # unit-box value a calibration starts from (0 = the weak end)
 
 
 class Effect:

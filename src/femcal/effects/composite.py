@@ -80,7 +80,7 @@ class EffectModel:
 
     def from_physical(self, x: np.ndarray, *, clip: bool = True) -> torch.Tensor:
         """Physical (n, 13) or (n, dim) -> unit coordinates (n, dim); effect parameters that
-        are not given start at the middle of their boxes."""
+        are not given take their ``start`` values (the weak end: the disc alone first)."""
         x = np.asarray(x, dtype=float)
         disc = self.base.from_physical(x[:, : self.n_disc], clip=clip)
         parts = [disc]
@@ -89,7 +89,8 @@ class EffectModel:
                 u = e.to_unit(x[:, sl])
                 parts.append(torch.tensor(np.clip(u, 0, 1) if clip else u, dtype=torch.float32))
             else:
-                parts.append(torch.full((len(x), len(e.parameters)), 0.5))
+                start = torch.tensor([q.start for q in e.parameters], dtype=torch.float32)
+                parts.append(start.expand(len(x), -1).clone())
         return torch.cat(parts, dim=1)
 
     # ------------------------------------------------------------ evaluation
