@@ -107,7 +107,8 @@ def _fit(problem: CalibrationProblem, v0: torch.Tensor, rows: torch.Tensor, max_
         pred = problem.model.curves(v)
     r = ((pred - problem.target[rows]) * problem.mask[rows]).reshape(len(rows), -1)
     rss = (problem.weight[rows].reshape(len(rows), -1) * r**2).sum(1)
-    return v, pred, rss
+    # A fit that left the surrogate's valid range (non-finite curves) cannot win.
+    return v, pred, torch.nan_to_num(rss, nan=float("inf"), posinf=float("inf"))
 
 
 def _effect_grid(n_params: int, levels: Sequence[float]) -> torch.Tensor:
@@ -266,12 +267,14 @@ def diagnose(
             x = model.to_physical(vi.double().numpy())[0]
             _, jac = model.curves_jacobian(vi)
             jj = (jac.reshape(1, -1, k) * mask.reshape(1, -1, 1))[0].double()
+            finite = bool(torch.isfinite(jj).all())
+            jj = torch.nan_to_num(jj, nan=0.0, posinf=0.0, neginf=0.0)
             cov_u = torch.linalg.pinv(jj.T @ jj / sigma**2 + torch.eye(k, dtype=torch.float64))
             params = {}
             eff = model.effects[0]
             for j, par in enumerate(eff.parameters):
                 col = base.dim + j
-                sd_u = float(cov_u[col, col].clamp_min(0).sqrt())
+                sd_u = float(cov_u[col, col].clamp_min(0).sqrt()) if finite else float("nan")
                 # d physical / d unit at the estimate (log or linear scale)
                 if par.log:
                     scale = x[col] * np.log(par.upper / par.lower)
