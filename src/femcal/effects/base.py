@@ -168,4 +168,11 @@ def get_effect(name: str) -> type[Effect]:
 
 
 def _load_builtin() -> None:
-    from femcal.effects import builtin  # noqa: F401  (registers the built-in effects)
+    """Import every module of the femcal.effects package: a new file registers itself."""
+    import importlib
+    import pkgutil
+
+    import femcal.effects as package
+
+    for info in pkgutil.iter_modules(package.__path__):
+        importlib.import_module(f"femcal.effects.{info.name}")
