@@ -75,7 +75,9 @@ def project(tmp_path_factory):
             (root / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, root / rel)
     tiny_params(root / "params.yaml")
-    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    # No MLflow settings from the test process: mlflow.set_registry_uri (called by other
+    # tests in this process) exports MLFLOW_REGISTRY_URI, which would leak into the copy.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
     env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
     env["FEMCAL_OPTUNA_STORAGE"] = ""
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
