@@ -3,18 +3,14 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from femcal.calibration.report import safe_file_name
 from femcal.diagnose import Diagnosis
 from femcal.schema import LOAD_CASES
-
-
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "specimen"
 
 
 def residuals_frame(diag: Diagnosis) -> pd.DataFrame:
@@ -137,6 +133,8 @@ def write_diagnosis(
         pdir.mkdir(exist_ok=True)
         n = len(diag.specimens) if max_plots is None else min(len(diag.specimens), max_plots)
         for i in range(n):
-            plot_specimen(diag, i, measured[i], pdir / f"{_safe(diag.specimens[i].specimen)}.png")
+            plot_specimen(
+                diag, i, measured[i], pdir / f"{safe_file_name(diag.specimens[i].specimen)}.png"
+            )
         plot_heatmap(diag, out_dir / "heatmap.png")
     return summary

@@ -63,6 +63,18 @@ def get_calibrator(name: str) -> Callable[..., Solution]:
         ) from None
 
 
+def check_choices(method: str, **options: tuple[str, tuple[str, ...]]) -> None:
+    """Raise ConfigError naming the method, the option and the choices for an unknown value.
+
+    ``options`` maps an option name to ``(value, choices)``.
+    """
+    for name, (value, choices) in options.items():
+        if value not in choices:
+            raise ConfigError(
+                f"{method}: unknown {name} '{value}'; choose one of {', '.join(choices)}."
+            )
+
+
 def _load_builtin() -> None:
     # Importing the modules registers them.
     from femcal.calibration import ga, inverse, pgd, pgd_study  # noqa: F401

@@ -28,7 +28,12 @@ import logging
 import numpy as np
 import torch
 
-from femcal.calibration.base import CalibrationProblem, Solution, register_calibrator
+from femcal.calibration.base import (
+    CalibrationProblem,
+    Solution,
+    check_choices,
+    register_calibrator,
+)
 from femcal.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -343,13 +348,9 @@ def pgd(
     -------
     Solution
     """
-    for name, value, choices in (
-        ("optimizer", optimizer, OPTIMIZERS),
-        ("loss", loss, LOSSES),
-        ("select", select, SELECT),
-    ):
-        if value not in choices:
-            raise ConfigError(f"pgd: unknown {name} '{value}'; choose one of {', '.join(choices)}.")
+    check_choices(
+        "pgd", optimizer=(optimizer, OPTIMIZERS), loss=(loss, LOSSES), select=(select, SELECT)
+    )
     if n_starts + n_random_starts < 1:
         raise ConfigError("pgd needs n_starts + n_random_starts >= 1.")
     if noise_deg <= 0:

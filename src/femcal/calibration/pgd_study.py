@@ -26,7 +26,12 @@ import logging
 import numpy as np
 import torch
 
-from femcal.calibration.base import CalibrationProblem, Solution, register_calibrator
+from femcal.calibration.base import (
+    CalibrationProblem,
+    Solution,
+    check_choices,
+    register_calibrator,
+)
 from femcal.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -98,16 +103,13 @@ def pgd_study(
     Solution
         ``x`` in physical units, outside the box only for the unprojected ablations.
     """
-    for name, value, choices in (
-        ("loss", loss, LOSSES),
-        ("projection", projection, PROJECTIONS),
-        ("optimizer", optimizer, OPTIMIZERS),
-        ("select", select, ("r2", "mae")),
-    ):
-        if value not in choices:
-            raise ConfigError(
-                f"pgd-study: unknown {name} '{value}'; choose one of {', '.join(choices)}."
-            )
+    check_choices(
+        "pgd-study",
+        loss=(loss, LOSSES),
+        projection=(projection, PROJECTIONS),
+        optimizer=(optimizer, OPTIMIZERS),
+        select=(select, ("r2", "mae")),
+    )
     if n_starts < 1 or steps < 0 or lr <= 0 or bounds_penalty < 0:
         raise ConfigError(
             "pgd-study needs n_starts >= 1, steps >= 0, lr > 0 and bounds_penalty >= 0; got "

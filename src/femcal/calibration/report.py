@@ -120,7 +120,8 @@ def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None 
     return out
 
 
-def _safe(name: str) -> str:
+def safe_file_name(name: str) -> str:
+    """A specimen name made safe as a file name (other characters become "_")."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "specimen"
 
 
@@ -306,7 +307,7 @@ def write_outputs(
         plot_dir.mkdir(exist_ok=True)
         used: set[str] = set()
         for i in range(n_plot):
-            name = _safe(result.specimens[i])
+            name = safe_file_name(result.specimens[i])
             while name in used:
                 name += "_"
             used.add(name)
