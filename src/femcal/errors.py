@@ -33,3 +33,7 @@ except ImportError:  # pragma: no cover - scikit-learn is a dependency
 
 class SurrogateNotFittedError(FemcalError, _NotFittedError):
     """``predict`` was called before ``fit`` (also scikit-learn's ``NotFittedError``)."""
+
+
+class SolverError(FemcalError, RuntimeError):
+    """An FE solver is missing or cannot start (failed simulations are data, not errors)."""

@@ -1,0 +1,27 @@
+"""Finite-element models on open solvers: adapters (prepare, run, parse) and campaigns."""
+
+from femcal.fe.base import (
+    COMPRESSION,
+    FEJob,
+    FEResult,
+    PreparedRun,
+    RunOutcome,
+    SolverAdapter,
+    available_solvers,
+    get_solver,
+    register_solver,
+    simulate,
+)
+
+__all__ = [
+    "COMPRESSION",
+    "FEJob",
+    "FEResult",
+    "PreparedRun",
+    "RunOutcome",
+    "SolverAdapter",
+    "available_solvers",
+    "get_solver",
+    "register_solver",
+    "simulate",
+]
