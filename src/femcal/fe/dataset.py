@@ -1,0 +1,288 @@
+"""A campaign's results as a dataset in the study's own file layout.
+
+:func:`write_dataset` writes one folder per split (``Large/``, ``Small/``, ``Test/``) with the
+study's file names (:data:`femcal.prepare.SPLITS`: the names are the study's, e.g.
+``MaterialConfigurations_Small_128.csv`` whatever the number of configurations), so
+:func:`femcal.prepare.read_split` and ``femcal prepare`` read it unchanged:
+
+* ``MaterialConfigurations*.csv``: row i = configuration i of the split, 13 columns;
+* ``ParameterBounds.csv``: the sampling box (row 1 minimum, row 2 maximum);
+* ``ROM_Results_<LC>_<sfx>wMoment.csv`` and ``IDP_Results_...``: header ``0.0,1.0,...`` (the
+  applied moments in Nm, with the unloaded 0 Nm column, value 0.0), row i = configuration i.
+  A failed run keeps the values of the levels it reached and leaves the rest of its row
+  empty: ``prepare`` marks those rows ``failed`` with NaN outputs. Nothing is written as zero.
+
+Beside the splits: ``design.csv`` (config_id, split, row in the split, parameters),
+``runs.csv`` (one row per job: status, reason, solver version, deck hash, attempts, CPU
+seconds, worker) and ``campaign.json`` (counts, failure rate, every failure's reason, CPU
+seconds per configuration, solver versions, settings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from femcal.errors import InputDataError
+from femcal.prepare import BOUNDS_FILE, SPLITS
+from femcal.schema import LOAD_CASES, STATUS_FAILED, STATUS_OK
+from femcal.space import ParameterSpace
+
+logger = logging.getLogger(__name__)
+
+RUNS_FILE = "runs.csv"
+SUMMARY_FILE = "campaign.json"
+DESIGN_FILE = "design.csv"
+
+
+def _num(value: float) -> str:
+    """A float as text that reads back exactly."""
+    return repr(float(value))
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[str]]) -> None:
+    lines = [",".join(header)] + [",".join(row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _reached(rom: Sequence[Any]) -> tuple[int, str]:
+    """Levels reached: the leading run of positive finite RoM values, and why it stops."""
+    for j, v in enumerate(rom):
+        if v is None or not math.isfinite(float(v)):
+            return j, ""
+        if float(v) <= 0.0:
+            return j, f"non-positive RoM {float(v)!r} at level {j + 1}"
+    return len(rom), ""
+
+
+def _curve_cells(values: Sequence[Any], n_reached: int, m: int) -> list[str]:
+    """``0.0`` for the unloaded state, the reached values, then empty cells (not reached)."""
+    cells = ["0.0"]
+    for j in range(m):
+        v = values[j] if j < len(values) else None
+        ok = j < n_reached and v is not None and math.isfinite(float(v))
+        cells.append(_num(v) if ok else "")
+        if not ok:
+            n_reached = j  # a gap ends the curve: later cells stay empty
+    return cells
+
+
+def write_dataset(
+    design_df: pd.DataFrame,
+    records: Sequence[Mapping[str, Any]],
+    out_dir: str | Path,
+    *,
+    space: ParameterSpace,
+    moments: Sequence[float],
+    campaign_info: Mapping[str, Any] | None = None,
+    allow_missing: bool = False,
+) -> dict[str, Any]:
+    """Write a campaign as a dataset in the study's layout (see the module docstring).
+
+    Parameters
+    ----------
+    design_df : pandas.DataFrame, shape (n, 1 + d) or (n, 2 + d)
+        ``config_id``, optional ``split`` (``large``/``small``/``test``; default ``large``)
+        and the parameters ``space.names``.
+    records : sequence of mapping
+        Store records (:mod:`femcal.fe.campaign`) of the design's jobs under the four
+        pure-moment load cases at ``moments``.
+    out_dir : str or Path
+        The dataset folder; replaced as a whole (written beside it, then moved into place).
+    space : ParameterSpace
+        The sampling box (``ParameterBounds.csv``).
+    moments : sequence of float, length m
+        Levels (Nm) of the jobs.
+    campaign_info : mapping, optional
+        Extra entries for ``campaign.json`` (seed, wall seconds, workers, settings ...).
+    allow_missing : bool, optional
+        Write jobs that are not in the store as empty rows (status ``missing`` in
+        ``runs.csv``) instead of raising.
+
+    Returns
+    -------
+    dict
+        The content of ``campaign.json``.
+
+    Raises
+    ------
+    InputDataError
+        A job of the design has no record (and not ``allow_missing``), or a record's levels
+        differ from ``moments``.
+    """
+    out_dir = Path(out_dir)
+    moments = [float(m) for m in moments]
+    m = len(moments)
+    df = design_df.copy()
+    if "split" not in df.columns:
+        df["split"] = "large"
+    unknown = sorted(set(df["split"]) - set(SPLITS))
+    if unknown:
+        raise InputDataError(f"The design names unknown splits {unknown}; use {sorted(SPLITS)}.")
+    by_job = {(int(r["config_id"]), str(r["load_case"])): r for r in records}
+    tmp = out_dir.with_name(f".{out_dir.name}.{uuid.uuid4().hex[:8]}.tmp")
+    tmp.mkdir(parents=True)
+    runs: list[dict[str, Any]] = []
+    design_rows = []
+    try:
+        for split, layout in SPLITS.items():
+            part = df[df["split"] == split].sort_values("config_id").reset_index(drop=True)
+            if part.empty:
+                continue
+            folder = tmp / layout.folder
+            folder.mkdir()
+            _write_csv(
+                folder / BOUNDS_FILE,
+                list(space.names),
+                [[_num(v) for v in space.lower], [_num(v) for v in space.upper]],
+            )
+            x = part[list(space.names)].to_numpy(dtype=float)
+            _write_csv(
+                folder / layout.configurations,
+                list(space.names),
+                [[_num(v) for v in row] for row in x],
+            )
+            for i, cid in enumerate(part["config_id"].astype(int)):
+                design_rows.append({"config_id": cid, "split": split, "row": i})
+            for lc in LOAD_CASES:
+                rom_rows, idp_rows = [], []
+                for i, cid in enumerate(part["config_id"].astype(int)):
+                    rec = by_job.get((cid, lc))
+                    run = {"config_id": cid, "split": split, "row": i, "load_case": lc}
+                    if rec is None:
+                        if not allow_missing:
+                            raise InputDataError(
+                                f"Configuration {cid} ({split} row {i}), load case {lc}: no "
+                                "result in the campaign store. Rerun the campaign (`femcal "
+                                "simulate` resumes) before writing the dataset."
+                            )
+                        rom_rows.append(["0.0"] + [""] * m)
+                        idp_rows.append(["0.0"] + [""] * m)
+                        runs.append({**run, "status": "missing", "levels_reached": 0})
+                        continue
+                    levels = [float(v) for v in rec.get("levels", [])]
+                    if not np.allclose(levels, moments):
+                        raise InputDataError(
+                            f"Configuration {cid}, load case {lc}: the stored run has levels "
+                            f"{levels}, the dataset asks for {moments}. Use the moments of "
+                            "the campaign (fe.moments), or rerun it."
+                        )
+                    rom = list(rec.get("rom_deg") or [])
+                    n_reached, why = _reached(rom)
+                    status, reason = str(rec.get("status")), str(rec.get("reason") or "")
+                    if n_reached < m and status == STATUS_OK:
+                        status = STATUS_FAILED
+                        reason = why or f"no RoM from level {n_reached + 1} on"
+                        logger.warning("Configuration %d, %s: %s.", cid, lc, reason)
+                    rom_rows.append(_curve_cells(rom, n_reached, m))
+                    idp_rows.append(_curve_cells(list(rec.get("idp_mpa") or []), n_reached, m))
+                    runs.append(
+                        {
+                            **run,
+                            "status": status,
+                            "reason": reason,
+                            "levels_reached": n_reached,
+                            "solver": rec.get("solver", ""),
+                            "solver_version": rec.get("solver_version", ""),
+                            "deck_hash": rec.get("deck_hash", ""),
+                            "attempts": rec.get("attempts"),
+                            "cpu_seconds": rec.get("cpu_seconds"),
+                            "wall_seconds": rec.get("wall_seconds"),
+                            "worker": rec.get("worker", ""),
+                            "host": rec.get("host", ""),
+                        }
+                    )
+                header = ["0.0"] + [_num(v) for v in moments]
+                _write_csv(folder / layout.results("ROM", lc), header, rom_rows)
+                _write_csv(folder / layout.results("IDP", lc), header, idp_rows)
+        design_out = df.merge(pd.DataFrame(design_rows), on=["config_id", "split"], how="left")
+        design_out = design_out[["config_id", "split", "row", *space.names]]
+        design_out.to_csv(tmp / DESIGN_FILE, index=False)
+        runs_df = pd.DataFrame(runs)
+        for col in ("reason", "solver", "solver_version", "deck_hash", "worker", "host"):
+            if col not in runs_df.columns:
+                runs_df[col] = ""
+        runs_df = runs_df.sort_values(["config_id", "load_case"]).reset_index(drop=True)
+        runs_df.to_csv(tmp / RUNS_FILE, index=False)
+        summary = summarize_runs(runs_df, moments=moments, extra=campaign_info)
+        (tmp / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n")
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    logger.info(
+        "FE dataset %s: %d configurations, %d jobs, %d failed.",
+        out_dir,
+        summary["n_configurations"],
+        summary["n_jobs"],
+        summary["n_failed"],
+    )
+    return summary
+
+
+def summarize_runs(
+    runs: pd.DataFrame, *, moments: Sequence[float], extra: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """Campaign figures from a ``runs.csv`` table.
+
+    Returns
+    -------
+    dict
+        ``n_configurations`` (total and per split), ``n_jobs``, ``n_ok``, ``n_failed``,
+        ``n_missing``, ``failure_rate`` (failed / stored jobs), ``failures`` (config, split,
+        row, load case, reason), ``failure_reasons`` (reason -> count), CPU seconds per
+        configuration (mean, median, min, max, total), solver versions, moments, ``extra``.
+    """
+    status = runs["status"].astype(str)
+    stored = runs[status != "missing"]
+    failed = runs[status == STATUS_FAILED]
+    cpu = pd.to_numeric(stored["cpu_seconds"], errors="coerce").groupby(stored["config_id"]).sum()
+    reasons = failed["reason"].fillna("").astype(str).value_counts()
+    out: dict[str, Any] = {
+        "n_configurations": int(runs["config_id"].nunique()),
+        "n_configurations_per_split": {
+            str(k): int(v) for k, v in runs.groupby("split")["config_id"].nunique().items()
+        },
+        "n_jobs": int(len(runs)),
+        "n_ok": int((status == STATUS_OK).sum()),
+        "n_failed": int(len(failed)),
+        "n_missing": int((status == "missing").sum()),
+        "failure_rate": float(len(failed) / len(stored)) if len(stored) else float("nan"),
+        "failures": [
+            {
+                "config_id": int(r.config_id),
+                "split": str(r.split),
+                "row": int(r.row),
+                "load_case": str(r.load_case),
+                "levels_reached": int(r.levels_reached),
+                "reason": str(r.reason),
+            }
+            for r in failed.itertuples()
+        ],
+        "failure_reasons": {str(k): int(v) for k, v in reasons.items()},
+        "cpu_seconds_per_configuration": {
+            "mean": float(cpu.mean()) if len(cpu) else float("nan"),
+            "median": float(cpu.median()) if len(cpu) else float("nan"),
+            "min": float(cpu.min()) if len(cpu) else float("nan"),
+            "max": float(cpu.max()) if len(cpu) else float("nan"),
+        },
+        "cpu_seconds_total": float(cpu.sum()),
+        "solver_versions": sorted(
+            {str(v) for v in stored.get("solver_version", pd.Series(dtype=str)).dropna()}
+        ),
+        "moments_nm": [float(v) for v in moments],
+    }
+    if extra:
+        out.update({str(k): v for k, v in extra.items()})
+    return out
