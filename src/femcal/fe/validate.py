@@ -1,0 +1,345 @@
+"""The study's step 4: FE re-simulation of calibrated parameters.
+
+A calibration fits the surrogate, so its error is the error *through the surrogate*. Here the
+calibrated parameters of every specimen go back into the FE model:
+
+* the four pure-moment load cases at the measured moments give the honest, FE-evaluated
+  calibration error against the measurement (per specimen and per load case), reported
+  beside the surrogate-evaluated error of the calibration and the FE-vs-surrogate gap;
+* axial compression at the validation forces (300, 1000, 2000 N) gives the intradiscal
+  pressure, compared with the literature range at each force (a quantity the calibration
+  never saw).
+
+The FE runs go through :func:`femcal.fe.campaign.run_campaign` (Dask, durable store, resume).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from femcal.errors import ConfigError, InputDataError
+from femcal.fe.base import COMPRESSION
+from femcal.fe.campaign import CampaignResult, run_campaign
+from femcal.schema import LOAD_CASES, PARAMETER_NAMES, STATUS_OK
+
+logger = logging.getLogger(__name__)
+
+VALIDATION_CSV = "validation.csv"
+VALIDATION_JSON = "validation.json"
+CURVES_CSV = "fe_curves.csv"
+IDP_CSV = "idp.csv"
+
+
+@dataclass(frozen=True)
+class LiteratureRange:
+    """IDP measured in vitro under one axial compressive force.
+
+    Attributes
+    ----------
+    force_n : float
+    low_mpa, mean_mpa, high_mpa : float
+        Minimum, mean and maximum of the reported measurements.
+    """
+
+    force_n: float
+    low_mpa: float
+    mean_mpa: float
+    high_mpa: float
+
+    def contains(self, idp_mpa: np.ndarray) -> np.ndarray:
+        """Whether each value lies in ``[low_mpa, high_mpa]``, shape (...) -> (...)."""
+        v = np.asarray(idp_mpa, dtype=float)
+        return (v >= self.low_mpa) & (v <= self.high_mpa)
+
+
+def literature_ranges(settings: Mapping[Any, Any]) -> list[LiteratureRange]:
+    """Parse ``validate.idp_literature`` (force in N -> {low, mean, high} in MPa).
+
+    Raises
+    ------
+    ConfigError
+        A force or a bound is not a number, or low <= mean <= high is violated.
+    """
+    out = []
+    for force, entry in settings.items():
+        try:
+            f = float(force)
+            low, mean, high = (float(entry[k]) for k in ("low", "mean", "high"))
+        except (TypeError, ValueError, KeyError):
+            raise ConfigError(
+                f"validate.idp_literature: entry {force!r}: {entry!r} must be a force in N "
+                "mapping to {low, mean, high} in MPa, e.g. 1000: {low: 0.5, mean: 0.8, "
+                "high: 1.2}."
+            ) from None
+        if not (f > 0 and low <= mean <= high):
+            raise ConfigError(
+                f"validate.idp_literature: at {force} N need force > 0 and low <= mean <= high; "
+                f"got low={low}, mean={mean}, high={high}."
+            )
+        out.append(LiteratureRange(f, low, mean, high))
+    return sorted(out, key=lambda r: r.force_n)
+
+
+@dataclass
+class ValidationResult:
+    """Per-specimen table, aggregate figures, and the campaign that ran the FE jobs."""
+
+    table: pd.DataFrame
+    summary: dict[str, Any]
+    curves: pd.DataFrame
+    idp: pd.DataFrame
+    campaign: CampaignResult
+
+
+def _read_parameters(path: Path) -> pd.DataFrame:
+    if not path.is_file():
+        raise InputDataError(
+            f"Calibrated parameters {path} do not exist; run the calibrate stage first (it "
+            "writes parameters.csv) or give the right --calibration folder."
+        )
+    df = pd.read_csv(path, dtype={"specimen": str})
+    lacking = [c for c in ("specimen", *PARAMETER_NAMES) if c not in df.columns]
+    if lacking:
+        raise InputDataError(
+            f"{path}: missing columns {lacking}; a calibration's parameters.csv holds "
+            "'specimen' and the 13 material parameters."
+        )
+    return df
+
+
+def _surrogate_curves(path: Path, specimens: Sequence[str], moments: np.ndarray) -> np.ndarray:
+    """``calibrated_rom_deg`` of a calibration's curves.csv as (n, 4, m); NaN where absent."""
+    out = np.full((len(specimens), len(LOAD_CASES), moments.size), np.nan)
+    if not path.is_file():
+        logger.warning("%s not found: the surrogate-evaluated error is not reported.", path)
+        return out
+    df = pd.read_csv(path, dtype={"specimen": str})
+    index = {s: i for i, s in enumerate(specimens)}
+    lci = {lc: k for k, lc in enumerate(LOAD_CASES)}
+    for row in df.itertuples(index=False):
+        i = index.get(str(row.specimen))
+        k = lci.get(str(row.load_case))
+        j = np.flatnonzero(np.isclose(moments, float(row.moment_nm)))
+        if i is not None and k is not None and j.size:
+            out[i, k, j[0]] = float(row.calibrated_rom_deg)
+    return out
+
+
+def _mae(a: np.ndarray, b: np.ndarray, axis: Any) -> np.ndarray:
+    diff = np.abs(a - b)
+    count = np.sum(np.isfinite(diff), axis=axis)
+    total = np.nansum(diff, axis=axis)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
+def validate_calibration(
+    *,
+    calibration_dir: str | Path,
+    measurements: str | Path,
+    solver: str,
+    settings: Mapping[str, Any],
+    forces: Sequence[float],
+    literature: Sequence[LiteratureRange],
+    store: str | Path,
+    out_dir: str | Path,
+    scheduler_address: str | None = None,
+    n_workers: int = 2,
+    progress: bool = False,
+) -> ValidationResult:
+    """Re-simulate a calibration's parameters with the FE model; write the validation tables.
+
+    Parameters
+    ----------
+    calibration_dir : str or Path
+        Output folder of ``femcal calibrate`` (``parameters.csv``, ``curves.csv``).
+    measurements : str or Path
+        The measurements it was calibrated to (any layout of ``femcal calibrate``).
+    solver, settings
+        FE adapter name and settings (as for ``femcal simulate``).
+    forces : sequence of float
+        Axial compressive forces in N for the IDP check, e.g. (300, 1000, 2000).
+    literature : sequence of LiteratureRange
+        IDP ranges to compare with (forces without a range are reported without a verdict).
+    store : str or Path
+        Campaign store of the validation runs (resumable).
+    out_dir : str or Path
+        Receives ``validation.csv``, ``validation.json``, ``fe_curves.csv``, ``idp.csv``.
+    scheduler_address, n_workers, progress
+        As for :func:`~femcal.fe.campaign.run_campaign`.
+
+    Returns
+    -------
+    ValidationResult
+        ``table``: one row per specimen (``specimen``, ``fe_mae_deg``,
+        ``surrogate_mae_deg``, ``fe_vs_surrogate_mae_deg``, per-load-case columns,
+        ``idp_mpa_<F>N`` and ``idp_in_range_<F>N``, ``fe_failed``).
+    """
+    from femcal.measurements import read_measurements
+
+    calibration_dir, out_dir = Path(calibration_dir), Path(out_dir)
+    params = _read_parameters(calibration_dir / "parameters.csv")
+    meas = read_measurements(measurements)
+    index = {s: i for i, s in enumerate(meas.specimens)}
+    unknown = [s for s in params["specimen"] if s not in index]
+    if unknown:
+        raise InputDataError(
+            f"{calibration_dir / 'parameters.csv'}: specimens {unknown[:5]} are not in the "
+            f"measurements {measurements}; give the measurements this calibration was run on."
+        )
+    specimens = list(params["specimen"])
+    n, m = len(specimens), meas.moments.size
+    measured = meas.rom_deg[[index[s] for s in specimens]]  # (n, 4, m)
+    surrogate = _surrogate_curves(calibration_dir / "curves.csv", specimens, meas.moments)
+    forces = sorted(float(f) for f in forces)
+
+    design_df = params[list(PARAMETER_NAMES)].copy()
+    design_df.insert(0, "config_id", np.arange(n, dtype=np.int64))
+    campaign = run_campaign(
+        solver,
+        settings,
+        design_df,
+        store=store,
+        load_cases=(*LOAD_CASES, COMPRESSION) if forces else LOAD_CASES,
+        moments=meas.moments.tolist(),
+        forces=forces,
+        scheduler_address=scheduler_address,
+        n_workers=n_workers,
+        progress=progress,
+    )
+    fe = np.full((n, len(LOAD_CASES), m), np.nan)
+    idp = np.full((n, len(forces)), np.nan)
+    failed: list[list[str]] = [[] for _ in range(n)]
+    for rec in campaign.records.itertuples(index=False):
+        i = int(rec.config_id)
+        values = np.array([np.nan if v is None else float(v) for v in rec.rom_deg])
+        if rec.status != STATUS_OK:
+            failed[i].append(f"{rec.load_case}: {rec.reason}")
+        if rec.load_case == COMPRESSION:
+            idp[i] = [np.nan if v is None else float(v) for v in rec.idp_mpa]
+        else:
+            fe[i, LOAD_CASES.index(rec.load_case)] = values
+
+    common = np.isfinite(measured) & np.isfinite(fe)
+    meas_c = np.where(common, measured, np.nan)
+    table = pd.DataFrame({"specimen": specimens})
+    table["fe_mae_deg"] = _mae(fe, meas_c, axis=(1, 2))
+    table["surrogate_mae_deg"] = _mae(surrogate, meas_c, axis=(1, 2))
+    table["surrogate_mae_deg_all_points"] = _mae(surrogate, measured, axis=(1, 2))
+    table["fe_vs_surrogate_mae_deg"] = _mae(fe, np.where(common, surrogate, np.nan), axis=(1, 2))
+    for k, lc in enumerate(LOAD_CASES):
+        table[f"fe_mae_deg_{lc}"] = _mae(fe[:, k], meas_c[:, k], axis=1)
+        table[f"surrogate_mae_deg_{lc}"] = _mae(surrogate[:, k], meas_c[:, k], axis=1)
+    table["n_points"] = np.isfinite(measured).sum(axis=(1, 2))
+    table["n_points_fe"] = common.sum(axis=(1, 2))
+    ranges = {r.force_n: r for r in literature}
+    for j, f in enumerate(forces):
+        table[f"idp_mpa_{f:g}N"] = idp[:, j]
+        if f in ranges:
+            inside = ranges[f].contains(idp[:, j])
+            table[f"idp_in_range_{f:g}N"] = np.where(np.isfinite(idp[:, j]), inside, False)
+    table["fe_failed"] = ["; ".join(x) for x in failed]
+
+    spec, lc_i, mom = np.meshgrid(
+        np.arange(n), np.arange(len(LOAD_CASES)), np.arange(m), indexing="ij"
+    )
+    curves = pd.DataFrame(
+        {
+            "specimen": np.asarray(specimens, dtype=object)[spec.reshape(-1)],
+            "load_case": np.asarray(LOAD_CASES, dtype=object)[lc_i.reshape(-1)],
+            "moment_nm": meas.moments[mom.reshape(-1)],
+            "measured_rom_deg": measured.reshape(-1),
+            "surrogate_rom_deg": surrogate.reshape(-1),
+            "fe_rom_deg": fe.reshape(-1),
+        }
+    )
+    curves = curves[np.isfinite(curves["measured_rom_deg"])].reset_index(drop=True)
+    idp_rows = []
+    for j, f in enumerate(forces):
+        r = ranges.get(f)
+        for i, s in enumerate(specimens):
+            idp_rows.append(
+                {
+                    "specimen": s,
+                    "force_n": f,
+                    "idp_mpa": idp[i, j],
+                    "literature_low_mpa": r.low_mpa if r else np.nan,
+                    "literature_mean_mpa": r.mean_mpa if r else np.nan,
+                    "literature_high_mpa": r.high_mpa if r else np.nan,
+                    "in_range": bool(r.contains(idp[i, j])) if r else None,
+                }
+            )
+    idp_df = pd.DataFrame(idp_rows)
+
+    def mean(col: str) -> float:
+        v = table[col].to_numpy(dtype=float)
+        return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+
+    summary: dict[str, Any] = {
+        "n_specimens": n,
+        "fe_mae_deg": mean("fe_mae_deg"),
+        "surrogate_mae_deg": mean("surrogate_mae_deg"),
+        "fe_vs_surrogate_mae_deg": mean("fe_vs_surrogate_mae_deg"),
+        "fe_mae_deg_per_load_case": {lc: mean(f"fe_mae_deg_{lc}") for lc in LOAD_CASES},
+        "surrogate_mae_deg_per_load_case": {
+            lc: mean(f"surrogate_mae_deg_{lc}") for lc in LOAD_CASES
+        },
+        "n_points": int(table["n_points"].sum()),
+        "n_points_fe": int(table["n_points_fe"].sum()),
+        "idp": [
+            {
+                "force_n": f,
+                "idp_mpa_mean": float(np.nanmean(idp[:, j])) if np.isfinite(idp[:, j]).any()
+                else float("nan"),
+                "idp_mpa_min": float(np.nanmin(idp[:, j])) if np.isfinite(idp[:, j]).any()
+                else float("nan"),
+                "idp_mpa_max": float(np.nanmax(idp[:, j])) if np.isfinite(idp[:, j]).any()
+                else float("nan"),
+                "literature": None
+                if f not in ranges
+                else {
+                    "low_mpa": ranges[f].low_mpa,
+                    "mean_mpa": ranges[f].mean_mpa,
+                    "high_mpa": ranges[f].high_mpa,
+                },
+                "n_in_range": None
+                if f not in ranges
+                else int(np.sum(ranges[f].contains(idp[:, j]))),
+            }
+            for j, f in enumerate(forces)
+        ],
+        "n_fe_failed_jobs": int((campaign.records["status"] != STATUS_OK).sum()),
+        "fe_failures": campaign.failures().to_dict(orient="records"),
+        "fe_cpu_seconds_total": float(campaign.records["cpu_seconds"].sum()),
+        "solver": solver,
+        "solver_versions": sorted(set(campaign.records["solver_version"].astype(str))),
+        "settings": dict(settings),
+        "calibration_dir": str(calibration_dir),
+        "measurements": str(measurements),
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out_dir / VALIDATION_CSV, index=False)
+    curves.to_csv(out_dir / CURVES_CSV, index=False)
+    idp_df.to_csv(out_dir / IDP_CSV, index=False)
+    (out_dir / VALIDATION_JSON).write_text(
+        json.dumps(_json_safe(summary), indent=2, default=str) + "\n"
+    )
+    return ValidationResult(table, summary, curves, idp_df, campaign)
+
+
+def _json_safe(value: Any) -> Any:
+    """NaN and inf as null (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
