@@ -3,7 +3,9 @@ VENV ?= .venv
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 
 .PHONY: repro test lint install
-install: $(VENV)/.installed
+install: $(VENV)/.installed  ## also installs CalculiX (ccx, the open FE solver) when missing
+	command -v ccx >/dev/null || { sudo=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
+	  $$sudo apt-get update -qq && $$sudo apt-get install -y -qq calculix-ccx; }
 
 $(VENV)/.installed: pyproject.toml
 	python3 -m venv $(VENV)
