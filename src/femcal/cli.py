@@ -278,6 +278,130 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         print(f"to add it: list {diag.cohort_verdict()} under calibrate.effects and `dvc repro`")
 
 
+def _fe_runtime(params: dict) -> tuple[str | None, int]:
+    """Scheduler address (fe.scheduler_address, else FEMCAL_DASK_ADDRESS) and worker count."""
+    from femcal.fe.campaign import scheduler_address_from_env
+
+    cfg = section(params, "fe")
+    address = cfg.get("scheduler_address") or scheduler_address_from_env()
+    return address, int(cfg.get("n_workers", 2))
+
+
+def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_simulate
+
+    cfg = section(params, "fe")
+    address, n_workers = _fe_runtime(params)
+    out = Path(args.out or section(params, "fe", "out_dir"))
+    scratch = cfg.get("scratch_dir")
+    result, summary = run_simulate(
+        solver=section(params, "fe", "solver"),
+        settings=dict(cfg.get("settings") or {}),
+        bounds=section(params, "fe", "bounds"),
+        splits=section(params, "fe", "splits"),
+        seed=int(section(params, "fe", "seed")),
+        load_cases=list(section(params, "fe", "load_cases")),
+        moments=[float(m) for m in section(params, "fe", "moments")],
+        store=Path(args.store or section(params, "fe", "store")),
+        out_dir=out,
+        scheduler_address=address,
+        n_workers=n_workers,
+        scratch_dir=Path(scratch) if scratch else None,
+        progress=sys.stderr.isatty(),
+    )
+    cpu = summary["cpu_seconds_per_configuration"]
+    print(
+        f"FE campaign: {result.n_jobs} jobs ({summary['n_configurations']} configurations x 4 "
+        f"load cases), {result.n_skipped} already in {result.store}, {result.n_run} run now on "
+        f"{result.n_workers or 0} workers in {result.wall_seconds:.1f} s"
+    )
+    print(
+        f"failure rate {summary['failure_rate']:.3f} ({summary['n_failed']} failed); CPU "
+        f"seconds per configuration: mean {cpu['mean']:.2f}, max {cpu['max']:.2f}; solver "
+        f"{', '.join(summary['solver_versions'])}"
+    )
+    for f in summary["failures"]:
+        print(
+            f"  failed: config {f['config_id']} ({f['split']} row {f['row']}) {f['load_case']}: "
+            f"{f['reason']}"
+        )
+    metrics_file = cfg.get("metrics_file")
+    if metrics_file and not args.out:
+        keys = (
+            "n_configurations",
+            "n_jobs",
+            "n_ok",
+            "n_failed",
+            "failure_rate",
+            "cpu_seconds_per_configuration",
+            "cpu_seconds_total",
+            "failure_reasons",
+        )
+        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
+        Path(metrics_file).write_text(json.dumps({k: summary[k] for k in keys}, indent=2) + "\n")
+    print(f"dataset: {out} (the study's layout; runs.csv, campaign.json)")
+
+
+def cmd_validate(args: argparse.Namespace, params: dict) -> None:
+    from femcal.pipeline import run_validate
+
+    _tracking(params)
+    cfg = section(params, "validate")
+    fe = section(params, "fe")
+    address, n_workers = _fe_runtime(params)
+    out = Path(args.out or section(params, "validate", "out_dir"))
+    result = run_validate(
+        calibration_dir=Path(args.calibration or section(params, "validate", "calibration_dir")),
+        measurements=Path(args.measurements or section(params, "validate", "measurements")),
+        solver=section(params, "fe", "solver"),
+        settings=dict(fe.get("settings") or {}),
+        forces=[float(f) for f in cfg.get("forces") or []],
+        literature=cfg.get("idp_literature") or {},
+        store=Path(args.store or section(params, "validate", "store")),
+        out_dir=out,
+        scheduler_address=address,
+        n_workers=n_workers,
+        progress=sys.stderr.isatty(),
+    )
+    s = result.summary
+    print(
+        f"validated {s['n_specimens']} calibrated specimens with the FE model: MAE vs the "
+        f"measurement {s['fe_mae_deg']:.4f} deg through FE, {s['surrogate_mae_deg']:.4f} deg "
+        f"through the surrogate (FE vs surrogate {s['fe_vs_surrogate_mae_deg']:.4f} deg); "
+        f"{s['n_fe_failed_jobs']} FE jobs failed"
+    )
+    for row in s["idp"]:
+        lit = row["literature"]
+        verdict = (
+            f", {row['n_in_range']}/{s['n_specimens']} in the literature range "
+            f"[{lit['low_mpa']:g}, {lit['high_mpa']:g}] MPa"
+            if lit
+            else ""
+        )
+        print(
+            f"  IDP at {row['force_n']:g} N: {row['idp_mpa_min']:.3f}-{row['idp_mpa_max']:.3f} "
+            f"MPa{verdict}"
+        )
+    metrics_file = cfg.get("metrics_file")
+    if metrics_file and not args.out:
+        from femcal.fe.validate import _json_safe
+
+        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
+        keys = (
+            "n_specimens",
+            "fe_mae_deg",
+            "surrogate_mae_deg",
+            "fe_vs_surrogate_mae_deg",
+            "fe_mae_deg_per_load_case",
+            "idp",
+            "n_fe_failed_jobs",
+        )
+        Path(metrics_file).write_text(
+            json.dumps(_json_safe({k: s[k] for k in keys}), indent=2) + "\n"
+        )
+    print(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="femcal", description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml", help="settings file (params.yaml)")
@@ -324,6 +448,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise-deg", type=float, help="measurement noise sd (default: estimated)")
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
     p.set_defaults(func=cmd_diagnose)
+    p = sub.add_parser("simulate", help="FE campaign on Dask -> dataset in the study's layout")
+    p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
+    p.add_argument("--store", help="campaign store, JSON lines (default: fe.store)")
+    p.set_defaults(func=cmd_simulate)
+    p = sub.add_parser("validate", help="FE re-simulation of calibrated parameters; IDP check")
+    p.add_argument("--calibration", help="calibration folder (default: validate.calibration_dir)")
+    p.add_argument("--measurements", help="measurements calibrated to (validate.measurements)")
+    p.add_argument("--out", help="output folder (default: validate.out_dir)")
+    p.add_argument("--store", help="campaign store of the FE runs (default: validate.store)")
+    p.set_defaults(func=cmd_validate)
     return parser
 
 

@@ -549,3 +549,175 @@ def run_diagnose(
         )
         mlflow.log_artifacts(str(out_dir), artifact_path="diagnosis")
     return diag, summary
+
+
+def fe_space(bounds: Any) -> ParameterSpace:
+    """The sampling box of an FE campaign from ``fe.bounds``.
+
+    Parameters
+    ----------
+    bounds : str, Path or mapping
+        A ParameterBounds.csv file (the study's layout), or a mapping ``name -> [lower,
+        upper]`` in physical units (the study's 13 parameters, in the study's order).
+    """
+    from femcal.errors import ConfigError
+
+    if isinstance(bounds, (str, Path)):
+        return ParameterSpace.from_bounds_csv(Path(bounds))
+    if not isinstance(bounds, Mapping) or not bounds:
+        raise ConfigError(
+            "fe.bounds must be a ParameterBounds.csv path or a mapping name -> [lower, upper]; "
+            f"got {bounds!r}."
+        )
+    try:
+        lower = [float(v[0]) for v in bounds.values()]
+        upper = [float(v[1]) for v in bounds.values()]
+    except (TypeError, ValueError, IndexError, KeyError):
+        raise ConfigError(
+            "fe.bounds: every entry must be [lower, upper] (two numbers); fix the bounds."
+        ) from None
+    return ParameterSpace(list(bounds), lower, upper)
+
+
+def run_simulate(
+    *,
+    solver: str,
+    settings: Mapping[str, Any],
+    bounds: Any,
+    splits: Mapping[str, int],
+    seed: int,
+    load_cases: Sequence[str],
+    moments: Sequence[float],
+    store: Path,
+    out_dir: Path,
+    scheduler_address: str | None = None,
+    n_workers: int = 2,
+    scratch_dir: Path | None = None,
+    progress: bool = False,
+):
+    """The FE campaign (Dask, durable store, resume) and its dataset in the study's layout.
+
+    Returns
+    -------
+    result : CampaignResult
+    summary : dict
+        The dataset's ``campaign.json`` (counts, failure rate and reasons, CPU seconds per
+        configuration, solver version, wall seconds, workers).
+    """
+    from femcal.errors import ConfigError
+    from femcal.fe.campaign import run_campaign, settings_hash, split_design
+    from femcal.fe.dataset import write_dataset
+    from femcal.schema import LOAD_CASES
+
+    if sorted(load_cases) != sorted(LOAD_CASES):
+        raise ConfigError(
+            f"fe.load_cases is {list(load_cases)}; a dataset in the study's layout needs all "
+            f"four load cases {list(LOAD_CASES)}."
+        )
+    space = fe_space(bounds)
+    design_df = split_design(space, splits, seed)
+    result = run_campaign(
+        solver,
+        settings,
+        design_df,
+        store=store,
+        names=space.names,
+        load_cases=LOAD_CASES,
+        moments=moments,
+        scheduler_address=scheduler_address,
+        n_workers=n_workers,
+        scratch_dir=scratch_dir,
+        progress=progress,
+    )
+    summary = write_dataset(
+        design_df,
+        result.records.to_dict(orient="records"),
+        out_dir,
+        space=space,
+        moments=moments,
+        campaign_info={
+            "solver": solver,
+            "settings": dict(settings),
+            "settings_hash": settings_hash(solver, settings),
+            "seed": int(seed),
+            "splits": {k: int(v) for k, v in splits.items()},
+            "store": str(store),
+            "jobs_run_now": result.n_run,
+            "jobs_resumed_from_store": result.n_skipped,
+            "wall_seconds_this_run": round(result.wall_seconds, 2),
+            "n_workers": result.n_workers,
+        },
+    )
+    return result, summary
+
+
+def run_validate(
+    *,
+    calibration_dir: Path,
+    measurements: Path,
+    solver: str,
+    settings: Mapping[str, Any],
+    forces: Sequence[float],
+    literature: Mapping[Any, Any],
+    store: Path,
+    out_dir: Path,
+    scheduler_address: str | None = None,
+    n_workers: int = 2,
+    progress: bool = False,
+):
+    """FE re-simulation of a calibration (the study's step 4); tables in ``out_dir``; MLflow.
+
+    Returns
+    -------
+    ValidationResult
+        See :func:`femcal.fe.validate.validate_calibration`.
+    """
+    import mlflow
+
+    from femcal.fe.validate import literature_ranges, validate_calibration
+
+    ranges = literature_ranges(literature)
+    result = validate_calibration(
+        calibration_dir=calibration_dir,
+        measurements=measurements,
+        solver=solver,
+        settings=settings,
+        forces=forces,
+        literature=ranges,
+        store=store,
+        out_dir=out_dir,
+        scheduler_address=scheduler_address,
+        n_workers=n_workers,
+        progress=progress,
+    )
+    s = result.summary
+    with mlflow.start_run(run_name="validate"):
+        mlflow.set_tag("femcal.stage", "validate")
+        mlflow.log_params(
+            {
+                "calibration_dir": str(calibration_dir),
+                "measurements": str(measurements),
+                "solver": solver,
+                "settings": json.dumps(dict(settings), sort_keys=True)[:500],
+                "forces_n": ",".join(f"{f:g}" for f in forces),
+                "solver_versions": ",".join(s["solver_versions"]),
+                "n_specimens": s["n_specimens"],
+            }
+        )
+        metrics = {
+            "fe_mae_deg": s["fe_mae_deg"],
+            "surrogate_mae_deg": s["surrogate_mae_deg"],
+            "fe_vs_surrogate_mae_deg": s["fe_vs_surrogate_mae_deg"],
+            "n_fe_failed_jobs": s["n_fe_failed_jobs"],
+            "fe_cpu_seconds_total": s["fe_cpu_seconds_total"],
+        }
+        for lc, v in s["fe_mae_deg_per_load_case"].items():
+            metrics[f"fe_mae_deg_{lc}"] = v
+        for row in s["idp"]:
+            metrics[f"idp_mpa_mean_{row['force_n']:g}N"] = row["idp_mpa_mean"]
+            if row["n_in_range"] is not None:
+                metrics[f"idp_n_in_range_{row['force_n']:g}N"] = row["n_in_range"]
+        mlflow.log_metrics({k: float(v) for k, v in metrics.items() if np.isfinite(float(v))})
+        mlflow.log_table(result.table, artifact_file="tables/validation.json")
+        mlflow.log_artifacts(str(out_dir), artifact_path="validation")
+    return result

@@ -129,9 +129,7 @@ def split_design(space: ParameterSpace, counts: Mapping[str, int], seed: int) ->
             raise ConfigError(f"fe.splits.{name} must be a number of configurations >= 0.")
         if n == 0:
             continue
-        part = design(
-            space, n, np.random.default_rng([int(seed), k]), method=SPLIT_SAMPLING[name]
-        )
+        part = design(space, n, np.random.default_rng([int(seed), k]), method=SPLIT_SAMPLING[name])
         part.insert(1, "split", name)
         frames.append(part)
     if not frames:
@@ -399,9 +397,7 @@ def _adapter(name: str, settings: Mapping[str, Any], digest: str) -> Any:
 def _log_tail(folder: Path) -> str:
     """The last characters of the newest solver log in ``folder`` (recursive), or ''."""
     try:
-        files = [
-            p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in _LOG_SUFFIXES
-        ]
+        files = [p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in _LOG_SUFFIXES]
     except OSError:
         return ""
     if not files:

@@ -296,11 +296,14 @@ def validate_calibration(
         "idp": [
             {
                 "force_n": f,
-                "idp_mpa_mean": float(np.nanmean(idp[:, j])) if np.isfinite(idp[:, j]).any()
+                "idp_mpa_mean": float(np.nanmean(idp[:, j]))
+                if np.isfinite(idp[:, j]).any()
                 else float("nan"),
-                "idp_mpa_min": float(np.nanmin(idp[:, j])) if np.isfinite(idp[:, j]).any()
+                "idp_mpa_min": float(np.nanmin(idp[:, j]))
+                if np.isfinite(idp[:, j]).any()
                 else float("nan"),
-                "idp_mpa_max": float(np.nanmax(idp[:, j])) if np.isfinite(idp[:, j]).any()
+                "idp_mpa_max": float(np.nanmax(idp[:, j]))
+                if np.isfinite(idp[:, j]).any()
                 else float("nan"),
                 "literature": None
                 if f not in ranges
