@@ -18,6 +18,8 @@ from femcal.surrogates.nn import NeuralSurrogate
 from synth import study_space, tidy_table
 
 MOMENTS = [1.0, 2.0, 3.0, 4.0, 5.0]
+#: The built-in effects (a test below registers a user effect too).
+BUILTIN = ["facet_contact", "ligament_tension", "neutral_zone"]
 
 
 @pytest.fixture(scope="module")
@@ -143,3 +145,47 @@ def test_make_cohort_is_seeded_and_balanced():
     assert 0.03 < noise.std() < 0.07
     with pytest.raises(ConfigError, match="needs 24 FE configurations; got 20"):
         make_cohort(m, fe, n_per_class=6, rng=np.random.default_rng(0))
+
+
+def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
+    from femcal.calibration.pgd import effect_starts
+
+    model = EffectModel(CurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
+    starts = effect_starts(model, (0.2, 0.8))
+    weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
+    assert starts.shape == (1 + 4 + 4, 4)
+    torch.testing.assert_close(starts[0], weak)
+    # The facet grid leaves the neutral zone at its weak end, and the other way round.
+    torch.testing.assert_close(starts[1:5, 2:], weak[2:].expand(4, -1))
+    torch.testing.assert_close(starts[5:, :2], weak[:2].expand(4, -1))
+    grid = torch.tensor([[a, b] for a in (0.2, 0.8) for b in (0.2, 0.8)])
+    torch.testing.assert_close(starts[1:5, :2], grid)
+
+
+def test_the_weak_end_of_every_effect_leaves_the_disc_curves_unchanged(surrogate):
+    # Effects the data do not need must be able to switch off, even at large rotations.
+    base = CurveModel(surrogate, MOMENTS)
+    model = EffectModel(base, BUILTIN)
+    v_disc = torch.rand((16, base.dim), generator=torch.Generator().manual_seed(0))
+    weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
+    with torch.no_grad():
+        disc = base.curves(v_disc)
+        both = model.curves(torch.cat([v_disc, weak.expand(16, -1)], 1))
+    # 0.025 deg: half the measurement noise of the planted cohorts (0.05 deg), at rotations up
+    # to those of this synthetic surrogate (AR beyond 20 deg, where a weak facet still touches).
+    assert float((both - disc).abs().max()) < 0.025
+
+
+def test_adding_an_unneeded_effect_does_not_worsen_the_fit(surrogate):
+    # Targets without any effect: the disc with all effects must fit them as well as the disc.
+    base = CurveModel(surrogate, MOMENTS)
+    rng = np.random.default_rng(11)
+    targets = base.predict(study_space().sample_uniform(6, rng))
+    targets = targets + rng.normal(0, 0.05, targets.shape)
+    opts = {"n_bank_uniform": 512}
+    disc = calibrate(base, targets, method="pgd", options=opts, seed=0)
+    full = calibrate(EffectModel(base, BUILTIN), targets, method="pgd", options=opts)
+    assert np.all(full.exceedance == 0)
+    # Staged starts begin at the disc-alone solution with every effect off, and Gauss-Newton only
+    # accepts steps that lower the loss: no specimen may end worse (1e-4 deg: float32 rounding).
+    assert np.all(full.mae_deg <= disc.mae_deg + 1e-4)

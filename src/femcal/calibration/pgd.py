@@ -12,6 +12,12 @@ Starts: the training configurations (``start_bank``) and ``n_bank_uniform`` unif
 evaluated once; each specimen starts from its ``n_starts`` nearest of them (weighted squared
 distance of the curves), plus ``n_random_starts`` uniform draws of its own.
 
+Models with physical effects (:class:`~femcal.effects.composite.EffectModel`) are calibrated in
+two stages, so that an effect the data do not need stays off: the disc alone first (as above),
+then material and effect parameters jointly from that disc solution combined with every
+effect at its weak end, and with a grid (``effect_levels``) over each effect's own box while
+the other effects stay at their weak end.
+
 Identifiability: around every start that ends near-optimal (MAE within ``noise_deg`` of the
 best), the linearised posterior ``(J^T J / noise^2 + I / prior^2)^-1`` gives a z-sigma
 interval per parameter; their union, cut to the box, is the parameter's range. A parameter the
@@ -65,6 +71,41 @@ def _bank(problem: CalibrationProblem, start_bank: np.ndarray | None, n_uniform:
             [model.curves(v[i : i + _BANK_BATCH]) for i in range(0, v.shape[0], _BANK_BATCH)]
         )
     return v, pred
+
+
+def _has_effects(model) -> bool:
+    return hasattr(model, "effects") and model.dim > getattr(model, "n_disc", model.dim)
+
+
+def effect_starts(model, levels: tuple[float, ...]) -> torch.Tensor:
+    """Start points of the effect parameters of an effect model, in unit coordinates.
+
+    Parameters
+    ----------
+    model : EffectModel
+    levels : tuple of float
+        Unit-box levels of each effect's grid.
+
+    Returns
+    -------
+    Tensor, shape (g, model.dim - model.n_disc)
+        Row 0: every effect at its weak end (its parameters' ``start``). Then, per effect, the
+        grid ``levels ** n_params`` over its parameters, the other effects at their weak end.
+    """
+    weak = torch.cat(
+        [torch.tensor([q.start for q in e.parameters], dtype=torch.float32) for e in model.effects]
+    )
+    rows = [weak[None, :]]
+    offset = 0
+    for e in model.effects:
+        p = len(e.parameters)
+        mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * p, indexing="ij")
+        g = torch.tensor(np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32)
+        block = weak.repeat(len(g), 1)
+        block[:, offset : offset + p] = g
+        rows.append(block)
+        offset += p
+    return torch.cat(rows)
 
 
 def nearest_starts(
@@ -294,6 +335,7 @@ def pgd(
     fit_tolerance: float = 0.25,
     range_z: float = 2.0,
     ranges: bool = True,
+    effect_levels: tuple[float, ...] = (0.15, 0.5, 0.85),
 ) -> Solution:
     """Projected gradient-based calibration of a batch (see the module docstring).
 
@@ -343,6 +385,8 @@ def pgd(
         Half-width of the ranges in standard deviations.
     ranges : bool
         Compute the identifiability ranges.
+    effect_levels : tuple of float
+        Unit-box levels of the start grid over each effect's parameters (effect models only).
 
     Returns
     -------
@@ -356,10 +400,45 @@ def pgd(
     if noise_deg <= 0:
         raise ConfigError(f"pgd: noise_deg must be > 0; got {noise_deg}.")
     n, d = problem.n_specimens, problem.dim
-    bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
-    idx = nearest_starts(problem, bank_v, bank_pred, n_starts)
-    k_bank = idx.shape[1]
-    starts = [bank_v[idx]] if k_bank else []
+    model = problem.model
+    if _has_effects(model):
+        disc = pgd(
+            CalibrationProblem(
+                model.base, problem.target, problem.weight, problem.mask, problem.measured
+            ),
+            rng=rng,
+            optimizer=optimizer,
+            n_starts=n_starts,
+            n_random_starts=n_random_starts,
+            start_bank=None if start_bank is None else np.asarray(start_bank)[:, : model.n_disc],
+            n_bank_uniform=n_bank_uniform,
+            max_iter=max_iter,
+            keep_after=keep_after,
+            keep=keep,
+            jacobian_members=jacobian_members,
+            exact_final=exact_final,
+            tol=tol,
+            loss=loss,
+            select=select,
+            steps=steps,
+            lr=lr,
+            noise_deg=noise_deg,
+            fit_tolerance=fit_tolerance,
+            ranges=False,
+        )
+        grid = effect_starts(model, effect_levels)  # (g, d - n_disc)
+        v_disc = model.base.from_physical(disc.x)  # (n, n_disc)
+        starts = [
+            torch.cat([v_disc[:, None, :].expand(-1, len(grid), -1), grid.expand(n, -1, -1)], dim=2)
+        ]
+        k_bank = 0
+        # Every staged start must survive the pruning: it is the only one with its effect on.
+        keep_after, keep = max_iter, len(grid)
+    else:
+        bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
+        idx = nearest_starts(problem, bank_v, bank_pred, n_starts)
+        k_bank = idx.shape[1]
+        starts = [bank_v[idx]] if k_bank else []
     if n_random_starts:
         starts.append(torch.tensor(rng.random((n, n_random_starts, d)), dtype=torch.float32))
     v0 = torch.cat(starts, dim=1)  # (n, k, d)
@@ -412,7 +491,12 @@ def pgd(
         success=conv,
         message=(
             f"pgd ({optimizer}, {loss} loss): {k} starts per specimen "
-            f"({k_bank} nearest, {n_random_starts} random), {nit} iterations, "
+            + (
+                f"(the disc-alone solution with {k - n_random_starts} effect starts, "
+                if _has_effects(model)
+                else f"({k_bank} nearest, "
+            )
+            + f"{n_random_starts} random), {nit} iterations, "
             f"{int(conv.sum())}/{n} converged or fitted within {fit_tolerance:g} x noise "
             f"({fit_tolerance * noise_deg:.4f} deg RMS)"
         ),

@@ -25,7 +25,7 @@ class FacetContact(Effect):
     load_cases = ("Extension", "AxialRotation")
     parameters = (
         EffectParameter("facet_gap_deg", "deg", 0.0, 6.0, start=1.0),
-        EffectParameter("facet_stiffness", "Nm/deg^2", 0.02, 5.0, log=True, start=0.0),
+        EffectParameter("facet_stiffness", "Nm/deg^2", 1e-4, 5.0, log=True, start=0.0),
     )
 
     def moment(self, rotation_deg: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
@@ -43,8 +43,8 @@ class LigamentTension(Effect):
     kind = "parallel"
     load_cases = ("Flexion", "LateralBending")
     parameters = (
-        EffectParameter("ligament_slack_deg", "deg", 0.0, 8.0, start=1.0),
-        EffectParameter("ligament_stiffness", "Nm", 0.02, 3.0, log=True, start=0.0),
+        EffectParameter("ligament_slack_deg", "deg", 0.0, 12.0, start=1.0),
+        EffectParameter("ligament_stiffness", "Nm", 1e-4, 3.0, log=True, start=0.0),
     )
     scale_deg = 1.5
 
