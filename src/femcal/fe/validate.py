@@ -105,7 +105,7 @@ def _read_parameters(path: Path) -> pd.DataFrame:
             f"Calibrated parameters {path} do not exist; run the calibrate stage first (it "
             "writes parameters.csv) or give the right --calibration folder."
         )
-    df = pd.read_csv(path, dtype={"specimen": str})
+    df = pd.read_csv(path, dtype={"specimen": str}, float_precision="round_trip")
     lacking = [c for c in ("specimen", *PARAMETER_NAMES) if c not in df.columns]
     if lacking:
         raise InputDataError(

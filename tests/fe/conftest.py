@@ -1,0 +1,38 @@
+"""A small real CalculiX campaign (coarse mesh, two Dask workers), shared by the FE tests.
+
+Every FE test runs the real solver (``ccx`` on PATH; ``make install`` installs it); none
+fakes it. The session campaign holds three configurations (one per split: Large, Small,
+Test) x four load cases = 12 jobs.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+from fe_helpers import COARSE, MOMENTS, SPLITS
+
+from femcal.fe.campaign import CampaignResult, run_campaign, split_design
+
+from synth import study_space
+
+
+@pytest.fixture(scope="session")
+def coarse_campaign(tmp_path_factory) -> tuple[Path, object, CampaignResult]:
+    """(folder, design, result) of the session campaign; the store is ``folder/runs.jsonl``."""
+    if shutil.which("ccx") is None:
+        pytest.skip("CalculiX (ccx) is not installed; `make install`")
+    folder = tmp_path_factory.mktemp("campaign")
+    design_df = split_design(study_space(), SPLITS, seed=0)
+    result = run_campaign(
+        "calculix",
+        COARSE,
+        design_df,
+        store=folder / "runs.jsonl",
+        moments=MOMENTS,
+        n_workers=2,
+        scratch_dir=folder / "scratch",
+        progress=False,
+    )
+    return folder, design_df, result

@@ -1,0 +1,124 @@
+"""FE re-simulation of calibrated parameters (the study's step 4), on the real solver."""
+
+from __future__ import annotations
+
+import json
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from fe_helpers import COARSE, MOMENTS, requires_ccx
+
+from femcal.cli import main
+from femcal.errors import ConfigError, InputDataError
+from femcal.fe.dataset import write_dataset
+from femcal.fe.validate import literature_ranges
+from femcal.schema import LOAD_CASES, PARAMETER_NAMES
+
+from synth import study_space
+
+LITERATURE = {
+    300: {"low": 0.0, "mean": 0.3, "high": 10.0},
+    1000: {"low": 0.0, "mean": 1.0, "high": 10.0},
+    2000: {"low": 50.0, "mean": 60.0, "high": 70.0},  # out of reach: nobody is in range
+}
+
+
+def test_literature_ranges_are_checked():
+    ranges = literature_ranges(LITERATURE)
+    assert [r.force_n for r in ranges] == [300.0, 1000.0, 2000.0]
+    assert ranges[0].contains(np.array([0.2, 11.0])).tolist() == [True, False]
+    with pytest.raises(ConfigError, match=r"at 300 N need force > 0 and low <= mean <= high"):
+        literature_ranges({300: {"low": 0.5, "mean": 0.3, "high": 1.0}})
+    with pytest.raises(ConfigError, match="must be a force in N mapping to"):
+        literature_ranges({300: [0.1, 0.2]})
+
+
+@requires_ccx
+def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, monkeypatch):
+    _, design_df, result = coarse_campaign
+    write_dataset(
+        design_df,
+        result.records.to_dict(orient="records"),
+        tmp_path / "ds",
+        space=study_space(),
+        moments=MOMENTS,
+    )
+    measurements = tmp_path / "ds" / "Test"  # the held-out FE curves: specimen "0"
+    truth = design_df[design_df["split"] == "test"]
+    # A perfect calibration (the true parameters) whose surrogate is 0.01 deg off everywhere.
+    cal = tmp_path / "cal"
+    cal.mkdir()
+    params = truth[list(PARAMETER_NAMES)].assign(specimen="0")
+    params[["specimen", *PARAMETER_NAMES]].to_csv(cal / "parameters.csv", index=False)
+    fe_rows = result.records[result.records["config_id"] == int(truth["config_id"].iloc[0])]
+    curves = [
+        ("0", r.load_case, m, v, v + 0.01)
+        for r in fe_rows.itertuples()
+        for m, v in zip(MOMENTS, r.rom_deg)
+        if v is not None
+    ]
+    pd.DataFrame(
+        curves,
+        columns=["specimen", "load_case", "moment_nm", "measured_rom_deg", "calibrated_rom_deg"],
+    ).to_csv(cal / "curves.csv", index=False)
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    settings = {
+        "mlflow": {"store_dir": str(tmp_path / "mlruns"), "experiment": "fe-test"},
+        "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
+        "validate": {
+            "calibration_dir": str(cal),
+            "measurements": str(measurements),
+            "out_dir": str(tmp_path / "val"),
+            "metrics_file": str(tmp_path / "validate.json"),
+            "store": str(tmp_path / "val-runs.jsonl"),
+            "forces": [300, 1000, 2000],
+            "idp_literature": LITERATURE,
+        },
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
+    try:
+        assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
+        runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
+        assert len(runs) == 1 and runs["metrics.fe_mae_deg"].iloc[0] < 1e-6
+    finally:
+        mlflow.set_tracking_uri(None)
+    table = pd.read_csv(tmp_path / "val" / "validation.csv", dtype={"specimen": str})
+    row = table.iloc[0]
+    assert row["specimen"] == "0"
+    assert row["fe_mae_deg"] < 1e-6  # the FE model reproduces its own curves
+    assert row["surrogate_mae_deg"] == pytest.approx(0.01, abs=1e-9)
+    assert row["fe_vs_surrogate_mae_deg"] == pytest.approx(0.01, abs=1e-6)
+    idp = [row[f"idp_mpa_{f}N"] for f in (300, 1000, 2000)]
+    assert np.all(np.isfinite(idp)) and idp[0] > 0 and np.all(np.diff(idp) > 0)
+    assert bool(row["idp_in_range_300N"]) and not bool(row["idp_in_range_2000N"])
+    summary = json.loads((tmp_path / "val" / "validation.json").read_text())
+    assert summary["idp"][2]["n_in_range"] == 0 and summary["idp"][0]["n_in_range"] == 1
+    assert set(summary["fe_mae_deg_per_load_case"]) == set(LOAD_CASES)
+    assert summary["solver_versions"] and summary["n_specimens"] == 1
+    assert json.loads((tmp_path / "validate.json").read_text())["n_specimens"] == 1
+    # Five FE jobs: four moment load cases and one compression; a rerun recomputes nothing.
+    assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 5
+    assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
+    assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 5
+    mlflow.set_tracking_uri(None)
+
+
+def test_validate_names_a_missing_calibration(tmp_path):
+    from femcal.fe.validate import validate_calibration
+
+    with pytest.raises(InputDataError, match=r"parameters.csv do not exist; run the calibrate"):
+        validate_calibration(
+            calibration_dir=tmp_path,
+            measurements=tmp_path,
+            solver="calculix",
+            settings=COARSE,
+            forces=[300],
+            literature=[],
+            store=tmp_path / "runs.jsonl",
+            out_dir=tmp_path / "out",
+        )
