@@ -506,7 +506,7 @@ class CalculixDisc:
     def _step_block(self, job: FEJob, attempt: int) -> tuple[str, dict]:
         levels = np.asarray(job.levels, dtype=float)
         times = levels / levels[-1]
-        first = min(self.initial_increment * self.retry_factor**attempt, float(times[0]))
+        first = min(self.initial_increment, float(times[0])) * self.retry_factor**attempt
         max_inc = self.max_increments * 2**attempt
         lines = [
             "*TIME POINTS, NAME=LEVELS",
