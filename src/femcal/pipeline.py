@@ -395,8 +395,43 @@ def run_calibrate(
         metrics_df["missing_load_cases"] = metrics_df["missing_load_cases"].fillna("")
         mlflow.log_table(metrics_df, artifact_file="tables/metrics.json")
         mlflow.log_table(result.parameters_frame(), artifact_file="tables/parameters.json")
+        _compare_with_previous(measurements, logged, figures, out_dir)
         mlflow.log_artifacts(str(out_dir), artifact_path="calibration")
     return result, figures
+
+
+def _compare_with_previous(
+    measurements: Path, logged: Mapping[str, Any], figures: Mapping[str, Any], out_dir: Path
+) -> None:
+    """Before and after: the latest earlier calibration of the same file with other effects."""
+    import mlflow
+
+    from femcal.compare import comparison_frame, previous_calibration, write_comparison
+
+    this = mlflow.active_run().info.run_id
+    prev = previous_calibration(
+        measurements=str(measurements), effects=logged["effects"], exclude_run_id=this
+    )
+    if prev is None:
+        return
+    after = {k: v for k, v in figures.items() if isinstance(v, (int, float))}
+    frame = comparison_frame(prev.data.metrics, after)
+    write_comparison(
+        frame,
+        out_dir,
+        before={
+            "run_id": prev.info.run_id,
+            "effects": prev.data.params.get("effects", ""),
+            "model": prev.data.params.get("model_version", ""),
+        },
+        after={
+            "run_id": this,
+            "effects": logged["effects"],
+            "model": logged.get("model_version", ""),
+        },
+    )
+    mlflow.set_tag("femcal.compared_to", prev.info.run_id)
+    logger.info("Compared with run %s: %s", prev.info.run_id, out_dir / "comparison.md")
 
 
 def run_train_inverse(

@@ -154,3 +154,43 @@ def test_missing_registered_model(registry, truth):
             seed=0,
             max_extrapolation=0.5,
         )
+
+
+def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
+    # Targets with a planted facet contact: the disc alone, then the disc with the effect.
+    from femcal.calibration import CurveModel
+    from femcal.effects.composite import EffectModel
+
+    tmp = registry
+    moments = (1.0, 2.0, 3.0, 4.0, 5.0)
+    model = EffectModel(CurveModel(small_surrogate, moments), ["facet_contact"])
+    x = small_surrogate.space.sample_uniform(4, np.random.default_rng(2))
+    curves = model.predict(np.concatenate([x, [[0.5, 2.0]] * 4], axis=1))
+    meas = _long_csv(tmp / "meas.csv", curves, moments)
+    common = dict(
+        measurements=meas,
+        method="pgd",
+        model_uri="models:/ivd-rom-surrogate@champion",
+        holdout_uri=None,
+        start_bank=None,
+        options={"n_bank_uniform": 256},
+        seed=0,
+        max_extrapolation=0.5,
+        plots=False,
+    )
+    _, disc = run_calibrate(out_dir=tmp / "disc", **common)
+    assert not (tmp / "disc" / "comparison.md").exists()  # nothing to compare with yet
+    _, facet = run_calibrate(out_dir=tmp / "facet", effects=["facet_contact"], **common)
+    table = json.loads((tmp / "facet" / "comparison.json").read_text())
+    rows = {r["metric"]: r for r in table["metrics"]}
+    assert table["before"]["effects"] == "none" and table["after"]["effects"] == "facet_contact"
+    assert rows["mae_deg"]["before"] == pytest.approx(disc["mae_deg"])
+    assert rows["mae_deg"]["after"] == pytest.approx(facet["mae_deg"])
+    # The planted effect acts on extension and axial rotation: there the error must fall.
+    for lc in ("Extension", "AxialRotation"):
+        assert rows[f"mae_deg_{lc}"]["after"] < rows[f"mae_deg_{lc}"]["before"]
+    runs = mlflow.search_runs(
+        filter_string="tags.`femcal.stage` = 'calibrate'", order_by=["attributes.start_time DESC"]
+    )
+    assert runs.iloc[0]["tags.femcal.compared_to"] == runs.iloc[1]["run_id"]
+    assert "| mae_deg_Extension |" in (tmp / "facet" / "comparison.md").read_text()
