@@ -77,8 +77,9 @@ A run that does not reach every level is ``"failed"`` with the solver's ``*ERROR
 the reason, and NaN outputs beyond the last level reached (earlier levels are kept). An abort
 in the fibre routine ("fiber extension is too large ...", typical when the first increment is
 too large) is retryable: attempt ``k`` uses the first increment
-``initial_increment * retry_factor**k`` and ``max_increments * 2**k`` increments. A timeout is
-not retryable.
+``min(initial_increment, first level) * retry_factor**k`` and up to ``max_increments * 4**k``
+increments (ccx does not grow small increments of these stiff-fibre models much, so a retry
+costs several times a first attempt). A timeout is not retryable.
 """
 
 from __future__ import annotations
@@ -340,7 +341,7 @@ class CalculixDisc:
     timeout_s : float or None
         Wall-clock limit per run; a run over it is killed and failed.
     max_increments : int
-        Increment limit of the first attempt (doubled on each retry).
+        Increment limit of the first attempt (times 4 on each retry).
     retry_factor : float
         The first increment is multiplied by this on each retry.
     nucleus_d1, annulus_d1 : float
@@ -507,7 +508,7 @@ class CalculixDisc:
         levels = np.asarray(job.levels, dtype=float)
         times = levels / levels[-1]
         first = min(self.initial_increment, float(times[0])) * self.retry_factor**attempt
-        max_inc = self.max_increments * 2**attempt
+        max_inc = self.max_increments * 4**attempt
         lines = [
             "*TIME POINTS, NAME=LEVELS",
             *_data_lines([_fmt(t) for t in times]),

@@ -76,9 +76,9 @@ MESH_PRESETS: dict[str, dict[str, int]] = {
         "elements_height": 2,
     },
     "fine": {
-        "elements_per_region": 2,
+        "elements_per_region": 3,
         "elements_per_ring": 1,
-        "elements_core": 2,
+        "elements_core": 1,
         "elements_height": 4,
     },
 }
