@@ -742,7 +742,7 @@ def run_campaign(
                         n_run += 1
                         bar.update(1)
                         if record["status"] != STATUS_OK:
-                            bar.write(f"failed: {job.key}: {record['reason']}")
+                            logger.warning("FE job %s failed: %s", job.key, record["reason"])
                 finally:
                     bar.close()
         else:
