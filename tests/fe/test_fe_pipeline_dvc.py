@@ -1,0 +1,88 @@
+"""`dvc repro fe/dvc.yaml` for real (CalculiX, coarse mesh), in a temporary copy of the repo.
+
+simulate -> prepare -> train@large -> calibrate@fe-test -> validate on 11 configurations;
+the root pipeline (./dvc.yaml) is not run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from fe_helpers import requires_ccx
+
+from femcal.prepare import read_split
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+
+
+def _run(args, cwd, env):
+    proc = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise AssertionError(
+            f"{' '.join(map(str, args))} failed ({proc.returncode}):\n{proc.stdout}\n{proc.stderr}"
+        )
+    return proc
+
+
+@pytest.mark.slow
+@requires_ccx
+def test_fe_pipeline_runs_and_resumes(tmp_path):
+    root = tmp_path / "repo"
+    files = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split("\0")
+    for rel in filter(None, files):
+        if (REPO / rel).is_file():
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / rel, root / rel)
+    params_path = root / "fe" / "params.yaml"
+    params = yaml.safe_load(params_path.read_text())
+    params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
+    params["train"]["large"].update({"final_members": 1})
+    params["train"]["large"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
+    params["calibrate"]["max_plots"] = 1
+    params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
+    params_path.write_text(yaml.safe_dump(params, sort_keys=False))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MLFLOW_")}
+    env["PATH"] = f"{BIN}{os.pathsep}{env.get('PATH', '')}"
+    env["FEMCAL_OPTUNA_STORAGE"] = ""
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    _run(["git", "init", "-q"], root, env)
+    _run([*git, "add", "-A"], root, env)
+    _run([*git, "commit", "-qm", "copy"], root, env)
+
+    first = _run([BIN / "dvc", "repro", "fe/dvc.yaml"], root, env)
+    for stage in ("simulate", "prepare", "train@large", "calibrate@fe-test", "validate"):
+        assert f"Running stage 'fe/dvc.yaml:{stage}'" in first.stdout
+    assert "Running stage 'fetch'" not in first.stdout  # the root pipeline is not run
+    fe = root / "fe"
+    campaign = json.loads((fe / "data/dataset/campaign.json").read_text())
+    assert campaign["n_jobs"] == 44 and campaign["n_configurations"] == 11
+    assert len(read_split(fe / "data/dataset", "large")) == 8 * 20
+    assert json.loads((fe / "reports/simulate.json").read_text())["n_jobs"] == 44
+    calibrated = pd.read_csv(fe / "reports/calibration/fe-test/parameters.csv")
+    assert len(calibrated) == 2
+    validation = pd.read_csv(fe / "reports/validation/validation.csv")
+    assert len(validation) == 2 and validation["fe_mae_deg"].notna().all()
+    assert (validation["idp_mpa_2000N"] > validation["idp_mpa_300N"]).all()
+    metrics = json.loads((fe / "reports/validate.json").read_text())
+    assert metrics["n_specimens"] == 2
+
+    # One more Test configuration: the campaign resumes (44 jobs from the store, 4 new).
+    params["fe"]["splits"]["test"] = 3
+    params_path.write_text(yaml.safe_dump(params, sort_keys=False))
+    second = _run([BIN / "dvc", "repro", "-s", "fe/dvc.yaml:simulate"], root, env)
+    assert "44 already in" in second.stdout and "4 run now" in second.stdout
