@@ -194,7 +194,23 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     name = args.dataset or (None if args.measurements else next(iter(datasets), None))
     if not args.measurements and name is None:
         raise ConfigError("Give --measurements FILE, or list calibrate.datasets in params.yaml.")
-    measurements = Path(args.measurements or datasets[name])
+    entry = datasets.get(name) if name else None
+    if isinstance(entry, dict):
+        if "measurements" not in entry:
+            raise ConfigError(
+                f"calibrate.datasets.{name} in {args.params} has no 'measurements'; give the "
+                "file or folder, e.g. {measurements: data/planted/measurements.csv, effects: []}."
+            )
+        entry_path, entry_effects = entry["measurements"], list(entry.get("effects") or [])
+    else:
+        entry_path, entry_effects = entry, []
+    if args.effects is not None:
+        effects = [e.strip() for e in args.effects.split(",") if e.strip()]
+    elif args.measurements:
+        effects = []
+    else:
+        effects = entry_effects
+    measurements = Path(args.measurements or entry_path)
     out = args.out or str(Path(section(params, "calibrate", "out_dir")) / (name or "custom"))
     result, figures = run_calibrate(
         measurements=measurements,
@@ -210,7 +226,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         plots=bool(cfg.get("plots", True)),
         max_plots=None if max_plots is None else int(max_plots),
         progress=sys.stderr.isatty(),
-        effects=list(cfg.get("effects") or []),
+        effects=effects,
     )
     held = (
         f", held-out surrogate MAE {figures['holdout_mae_deg']:.4f} deg"
@@ -274,8 +290,15 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "
         f"{diag.cohort_verdict()}"
     )
-    if diag.cohort_verdict() != "none":
-        print(f"to add it: list {diag.cohort_verdict()} under calibrate.effects and `dvc repro`")
+    counts = {k: v for k, v in diag.verdicts().items() if k != "none" and v > 0}
+    if counts:
+        found = sorted(counts, key=lambda k: -counts[k])
+        print(
+            f"effects found: {', '.join(f'{k} ({counts[k]})' for k in found)}; to add them, list "
+            f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml and run "
+            "`dvc repro` (or: femcal calibrate --measurements FILE --effects "
+            f"{','.join(found)})"
+        )
 
 
 def _fe_runtime(params: dict) -> tuple[str | None, int]:
@@ -429,6 +452,11 @@ def build_parser() -> argparse.ArgumentParser:
     ).set_defaults(func=cmd_train_inverse)
     p = sub.add_parser("calibrate", help="calibrate measured specimens (registered surrogate)")
     p.add_argument("--dataset", help="a name under calibrate.datasets (default: the first)")
+    p.add_argument(
+        "--effects",
+        help="comma-separated physical effects added to the disc (default: the dataset's "
+        "effects in params.yaml; none for --measurements); '' = the disc alone",
+    )
     p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
     p.add_argument("--out", help="output folder (default: calibrate.out_dir/<dataset>)")
     p.add_argument("--method", help="pgd (default), pgd-study, ga, inverse")

@@ -108,7 +108,11 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
             "model_name": "ivd-rom-surrogate",
         },
         "calibrate": {
-            "datasets": {"mine": str(meas)},
+            "datasets": {
+                "mine": str(meas),
+                "with_facets": {"measurements": str(meas), "effects": ["facet_contact"]},
+                "broken": {"effects": []},
+            },
             "out_dir": str(tmp / "cal"),
             "method": "pgd",
             "model_uri": "models:/ivd-rom-surrogate@champion",
@@ -120,7 +124,7 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
             "options": {"pgd": {"n_bank_uniform": 128}},
         },
     }
-    (tmp / "params.yaml").write_text(yaml.safe_dump(params))
+    (tmp / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     args = ["--params", str(tmp / "params.yaml"), "calibrate"]
     assert main([*args, "--dataset", "mine", "--model-version", "1"]) == 0
     out = capsys.readouterr().out
@@ -136,6 +140,18 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
     bad.write_text("specimen,load_case,moment_nm,rom_deg\nA,twist,1,2.0\n")
     assert main([*args, "--measurements", str(bad)]) == 2
     assert "unknown load case 'twist'" in capsys.readouterr().err
+    # A dataset's effects, and --effects overriding them.
+    assert main([*args, "--dataset", "with_facets"]) == 0
+    capsys.readouterr()
+    names = pd.read_csv(tmp / "cal/with_facets/parameters.csv").columns
+    assert "facet_gap_deg" in names
+    assert main([*args, "--dataset", "with_facets", "--effects", ""]) == 0
+    capsys.readouterr()
+    assert "facet_gap_deg" not in pd.read_csv(tmp / "cal/with_facets/parameters.csv").columns
+    assert main([*args, "--dataset", "broken"]) == 2
+    assert "calibrate.datasets.broken in" in capsys.readouterr().err
+    assert main([*args, "--measurements", str(meas), "--effects", "cartilage"]) == 2
+    assert "cartilage" in capsys.readouterr().err
 
 
 def test_missing_registered_model(registry, truth):
