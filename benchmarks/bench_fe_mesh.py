@@ -3,11 +3,14 @@
 Runs the five load cases (four pure moments at 1..5 Nm, axial compression at 300/1000/2000 N)
 at the centre of the study's parameter box on each mesh preset, one job at a time, one solver
 thread each, and writes ``reports/fe_mesh.md``: CPU and wall seconds per load case, RoM at
-5 Nm, IDP under compression, and the difference of each preset to the finest one.
+5 Nm, IDP under compression, and the difference of each preset to the finest one. With
+``--sample N`` it also runs the first N configurations of the study's Large design on the
+``default`` preset (four moment load cases each) and reports failures, retries and the RoM at
+5 Nm next to the study's.
 
 Usage (from the project root; needs ``ccx``, ``make install`` installs it)::
 
-    .venv/bin/python benchmarks/bench_fe_mesh.py [--presets coarse default fine]
+    .venv/bin/python benchmarks/bench_fe_mesh.py [--presets coarse default fine] [--sample 8]
 
 Other processes on the machine slow the wall clock; CPU seconds are the solver's own.
 """
@@ -29,16 +32,20 @@ from femcal.fe.geometry import MESH_PRESETS, DiscGeometry
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
-BOUNDS = REPO / "data" / "raw" / "Large" / "ParameterBounds.csv"
-FALLBACK_BOUNDS = Path("/work/shared/data/ivd-calibnn/Large/ParameterBounds.csv")
+LARGE = REPO / "data" / "raw" / "Large"
+FALLBACK_LARGE = Path("/work/shared/data/ivd-calibnn/Large")
 MOMENTS = (1.0, 2.0, 3.0, 4.0, 5.0)
 FORCES = (300.0, 1000.0, 2000.0)
 
 
+def large_folder() -> Path:
+    """The study's Large split (``data/raw/Large`` after ``make repro``, else the mirror)."""
+    return LARGE if (LARGE / "ParameterBounds.csv").is_file() else FALLBACK_LARGE
+
+
 def box_centre() -> dict[str, float]:
     """The centre of the study's parameter bounds (ParameterBounds.csv)."""
-    path = BOUNDS if BOUNDS.is_file() else FALLBACK_BOUNDS
-    bounds = pd.read_csv(path)
+    bounds = pd.read_csv(large_folder() / "ParameterBounds.csv")
     return {name: float(bounds[name].mean()) for name in PARAMETER_NAMES}
 
 
@@ -73,7 +80,85 @@ def run_preset(preset: str, parameters: dict[str, float], scratch: Path) -> list
     return rows
 
 
-def write_report(rows: list[dict], parameters: dict[str, float], path: Path) -> None:
+def run_sample(n: int, scratch: Path, timeout_s: float) -> list[dict]:
+    """The first ``n`` configurations of the study's Large design, default preset, 4 moments."""
+    folder = large_folder()
+    design = pd.read_csv(folder / "MaterialConfigurations.csv")
+    adapter = CalculixDisc(geometry="default", timeout_s=timeout_s)
+    rows = []
+    for i in range(min(n, len(design))):
+        parameters = {name: float(design.loc[i, name]) for name in PARAMETER_NAMES}
+        for case in LOAD_CASES:
+            study = pd.read_csv(folder / f"ROM_Results_{case}_wMoment.csv").iloc[i]
+            start = time.perf_counter()
+            result = simulate(adapter, FEJob(i, parameters, case, MOMENTS), scratch / f"{i}-{case}")
+            rows.append(
+                {
+                    "config": i,
+                    "load_case": case,
+                    "status": result.status,
+                    "attempts": result.attempts,
+                    "reason": result.reason,
+                    "cpu_s": result.cpu_seconds,
+                    "wall_s": time.perf_counter() - start,
+                    "rom5_deg": float(result.rom_deg[-1]),
+                    "levels_ok": int(np.isfinite(result.rom_deg).sum()),
+                    "study_rom5_deg": float(study.iloc[-1]),
+                }
+            )
+            print(
+                f"sample {i:3d} {case:15s} {result.status:6s} attempts {result.attempts} "
+                f"cpu {result.cpu_seconds:6.1f} s RoM5 {result.rom_deg[-1]:7.3f} "
+                f"(study {study.iloc[-1]:.3f}) {result.reason[:80]}",
+                flush=True,
+            )
+    return rows
+
+
+def sample_section(rows: list[dict]) -> list[str]:
+    df = pd.DataFrame(rows)
+    n_jobs = len(df)
+    first = ((df.status == "ok") & (df.attempts == 1)).sum()
+    retried_ok = ((df.status == "ok") & (df.attempts > 1)).sum()
+    failed = (df.status != "ok").sum()
+    ok = df[df.status == "ok"]
+    lines = [
+        "",
+        f"## Failures and retries: {df.config.nunique()} configurations of the study's design",
+        "",
+        "The first configurations of the study's Large design (MaterialConfigurations.csv), "
+        '`default` preset, four moment load cases at 1..5 Nm, `kappa="scale"`, '
+        "`max_attempts=3`. The study's RoM at 5 Nm (its own FE model) is shown for scale.",
+        "",
+        f"- {n_jobs} jobs: {first} ok at the first attempt, {retried_ok} ok after a retry "
+        f"(fibre-routine abort), {failed} failed.",
+        f"- CPU seconds per job: median {df.cpu_s.median():.1f}, mean {df.cpu_s.mean():.1f}, "
+        f"max {df.cpu_s.max():.1f} (retries included).",
+    ]
+    if len(ok):
+        ratio = ok.rom5_deg / ok.study_rom5_deg
+        lines.append(
+            f"- RoM at 5 Nm, this model / the study's: median {ratio.median():.2f} "
+            f"(range {ratio.min():.2f}-{ratio.max():.2f})."
+        )
+    lines += [
+        "",
+        "| config | load case | status | attempts | CPU s | levels reached | RoM 5 Nm (deg) "
+        "| study RoM 5 Nm (deg) | reason |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['config']} | {r['load_case']} | {r['status']} | {r['attempts']} | "
+            f"{r['cpu_s']:.1f} | {r['levels_ok']} | {r['rom5_deg']:.2f} | "
+            f"{r['study_rom5_deg']:.2f} | {r['reason'].replace('|', '/')} |"
+        )
+    return lines
+
+
+def write_report(
+    rows: list[dict], parameters: dict[str, float], path: Path, sample: list[dict]
+) -> None:
     df = pd.DataFrame(rows)
     presets = list(dict.fromkeys(df["preset"]))
     finest = presets[-1]
@@ -150,12 +235,16 @@ def write_report(rows: list[dict], parameters: dict[str, float], path: Path) -> 
             f"preset that is about {minutes:.0f} CPU minutes (about half of it in wall time on "
             "two workers), plus retries of the jobs that abort in the fibre routine.",
         ]
+    if sample:
+        lines += sample_section(sample)
     path.write_text("\n".join(lines) + "\n")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=list(MESH_PRESETS))
+    parser.add_argument("--sample", type=int, default=8, help="study configurations (0: none)")
+    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per sample run")
     parser.add_argument("--out", type=Path, default=REPO / "reports" / "fe_mesh.md")
     args = parser.parse_args()
     for preset in args.presets:
@@ -165,7 +254,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_fe_mesh_") as tmp:
         for preset in args.presets:
             rows += run_preset(preset, parameters, Path(tmp))
-    write_report(rows, parameters, args.out)
+        sample = run_sample(args.sample, Path(tmp) / "sample", args.timeout) if args.sample else []
+    write_report(rows, parameters, args.out, sample)
     print(f"wrote {args.out}")
 
 
