@@ -75,11 +75,14 @@ Failures and retries
 --------------------
 A run that does not reach every level is ``"failed"`` with the solver's ``*ERROR`` message as
 the reason, and NaN outputs beyond the last level reached (earlier levels are kept). An abort
-in the fibre routine ("fiber extension is too large ...", typical when the first increment is
-too large) is retryable: attempt ``k`` uses the first increment
+in the fibre routine ("fiber extension is too large for exponential function", exit code 201:
+a Newton trial state of a too large increment, in the first increment or, for soft annulus
+configurations, later) is retryable: attempt ``k`` uses the first increment
 ``min(initial_increment, first level) * retry_factor**k`` and up to ``max_increments * 4**k``
-increments (ccx does not grow small increments of these stiff-fibre models much, so a retry
-costs several times a first attempt). A timeout is not retryable.
+increments. CalculiX grows an increment only after fast convergence (fewer than 4 iterations
+twice in a row), which these models rarely show, so a retry keeps small increments and costs
+several times a first attempt. Any other failure (too many cutbacks, increment below the
+minimum, increment limit) and a timeout are not retryable.
 """
 
 from __future__ import annotations
@@ -119,6 +122,9 @@ JOB_NAME = "disc"
 INSTALL_HINT = "install it with `apt-get install calculix-ccx` or `make install`"
 #: Log text of the fibre routine's abort (exit code 201), which a smaller increment avoids.
 FIBRE_ABORT = "fiber extension is too large"
+
+#: Largest time increment (fraction of the step); output times cut increments further.
+MAX_INCREMENT = 0.25
 
 #: Load case -> (rotation DOF of the moment (1 = x, 2 = y, 3 = z), sign of the moment).
 MOMENT_AXES: dict[str, tuple[int, float]] = {
@@ -514,7 +520,7 @@ class CalculixDisc:
             *_data_lines([_fmt(t) for t in times]),
             f"*STEP, NLGEOM, INC={max_inc}",
             "*STATIC",
-            f"{_fmt(first)}, 1., {_fmt(min(1e-6, first))}, {_fmt(min(0.25, 1.0))}",
+            f"{_fmt(first)}, 1., {_fmt(min(1e-6, first))}, {_fmt(MAX_INCREMENT)}",
         ]
         if job.load_case == COMPRESSION:
             lines += ["*CLOAD", f"REFNODE, 3, {_fmt(-levels[-1])}"]
