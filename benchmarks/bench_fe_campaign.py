@@ -105,6 +105,9 @@ def main() -> None:
         "speedup_2_vs_1": round(one.wall_seconds / two.wall_seconds, 3),
         "subset_cpu_seconds_1_worker": round(float(one.records["cpu_seconds"].sum()), 2),
         "subset_cpu_seconds_2_workers": round(float(two.records["cpu_seconds"].sum()), 2),
+        "worker_python_cpu_seconds_per_configuration_mean": round(
+            float(total.records.groupby("config_id")["worker_cpu_seconds"].sum().mean()), 3
+        ),
         "full_wall_seconds_resumed": round(total.wall_seconds, 2),
         "full_jobs_resumed_from_store": total.n_skipped,
         "cpu_seconds_per_configuration": {
@@ -159,6 +162,10 @@ def main() -> None:
         "| solver (ccx) | {mean:.2f} | {median:.2f} | {min:.2f} | {max:.2f} |".format(
             **report["cpu_seconds_per_configuration"]
         ),
+        "",
+        "Beside the solver, each worker spends "
+        f"{report['worker_python_cpu_seconds_per_configuration_mean']:.2f} CPU s per "
+        "configuration in Python (deck writing, mesh, parsing the results).",
         "",
         f"Failure rate: **{report['failure_rate']:.3f}** ({report['n_failed']} of "
         f"{total.n_jobs} jobs).",

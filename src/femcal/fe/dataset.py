@@ -196,6 +196,7 @@ def write_dataset(
                             "deck_hash": rec.get("deck_hash", ""),
                             "attempts": rec.get("attempts"),
                             "cpu_seconds": rec.get("cpu_seconds"),
+                            "worker_cpu_seconds": rec.get("worker_cpu_seconds"),
                             "wall_seconds": rec.get("wall_seconds"),
                             "worker": rec.get("worker", ""),
                             "host": rec.get("host", ""),
