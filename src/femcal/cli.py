@@ -37,7 +37,8 @@ def cmd_fetch(args: argparse.Namespace, params: dict) -> None:
 def cmd_prepare(args: argparse.Namespace, params: dict) -> None:
     from femcal.prepare import prepare_dataset
 
-    raw = Path(section(params, "data", "raw_dir"))
+    data = section(params, "data")
+    raw = Path(data.get("source_dir") or section(params, "data", "raw_dir"))
     out = Path(section(params, "data", "prepared_dir"))
     limit = section(params, "data").get("limit_configs")
     written = prepare_dataset(raw, out, limit_configs=limit)
