@@ -198,7 +198,11 @@ def test_killed_search_resumes(store):
     before = optuna.load_study(study_name=name, storage=storage).trials
     n_done = sum(t.state == optuna.trial.TrialState.COMPLETE for t in before)
     assert before[-1].state == optuna.trial.TrialState.RUNNING  # orphaned by the kill
-    time.sleep(3.5)  # let its heartbeat go stale (3 periods)
+    # Let its heartbeat go stale (3 periods). Optuna compares wall-clock times, and the wall
+    # clock of a busy virtual machine can lag behind the monotonic one: wait on the wall clock.
+    stale_at = time.time() + 3.5
+    while time.time() < stale_at:
+        time.sleep(0.25)
     res = _train(
         tidy_table(24, seed=1),
         store,
