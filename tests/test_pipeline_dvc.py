@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,8 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from checkout import copy_working_tree
 
-REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 pytestmark = pytest.mark.skipif(
@@ -62,22 +61,9 @@ def tiny_params(path: Path) -> None:
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
     root = tmp_path_factory.mktemp("femcal") / "repo"
-    files = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.split("\0")
-    for rel in filter(None, files):
-        if rel.startswith("fe/"):
-            # The FE pipeline (fe/dvc.yaml) is tested in tests/fe; this copy is the root
-            # pipeline's, where a teammate's `dvc pull` would miss the never-run FE outputs.
-            continue
-        src = REPO / rel
-        if src.is_file():
-            (root / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(src, root / rel)
+    # The FE pipeline (fe/dvc.yaml) is tested in tests/fe; this copy is the root pipeline's,
+    # where a teammate's `dvc pull` would miss the never-run FE outputs.
+    copy_working_tree(root, skip=lambda rel: rel.startswith("fe/"))
     tiny_params(root / "params.yaml")
     # No MLflow settings from the test process: mlflow.set_registry_uri (called by other
     # tests in this process) exports MLFLOW_REGISTRY_URI, which would leak into the copy.

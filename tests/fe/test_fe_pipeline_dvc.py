@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,11 +15,11 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from checkout import copy_working_tree
 from fe_helpers import requires_ccx
 
 from femcal.prepare import read_split
 
-REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
 
@@ -37,17 +36,7 @@ def _run(args, cwd, env):
 @requires_ccx
 def test_fe_pipeline_runs_and_resumes(tmp_path):
     root = tmp_path / "repo"
-    files = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.split("\0")
-    for rel in filter(None, files):
-        if (REPO / rel).is_file():
-            (root / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(REPO / rel, root / rel)
+    copy_working_tree(root)
     params_path = root / "fe" / "params.yaml"
     params = yaml.safe_load(params_path.read_text())
     params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
