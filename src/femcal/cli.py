@@ -24,6 +24,38 @@ def _tracking(params: dict) -> None:
     ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
 
 
+def _load_user_effects(args: argparse.Namespace, params: dict) -> list[str]:
+    """Import the user's effect files before anything uses the effect registry.
+
+    ``effects.modules`` in params.yaml (paths relative to its folder, the project root), then
+    every ``--effects-module`` (relative to the working directory); returns the names loaded.
+    """
+    from femcal.effects import load_effect_modules
+
+    where = params.get("_path", "params.yaml")
+    cfg = params.get("effects") or {}
+    modules = cfg.get("modules") if isinstance(cfg, dict) else None
+    if (
+        not isinstance(cfg, dict)
+        or set(cfg) - {"modules"}
+        or not isinstance(modules or [], list)
+        or not all(isinstance(m, str) for m in modules or [])
+    ):
+        raise ConfigError(
+            f"{where}: the effects section must be {{modules: [paths]}}, each path a .py file or "
+            f"a folder of them relative to the project root; got effects: {cfg!r}. Write e.g. "
+            "`effects: {modules: [my_effects.py]}` (the effects a calibration uses are listed "
+            "under calibrate.datasets.<name>.effects)."
+        )
+    root = Path(where).parent
+    paths = [root / m for m in modules or []] + [Path(m) for m in args.effects_module or []]
+    if not paths:
+        return []
+    names = load_effect_modules(paths)
+    print(f"user effects: {', '.join(names)} (from {', '.join(str(p) for p in paths)})")
+    return names
+
+
 def cmd_fetch(args: argparse.Namespace, params: dict) -> None:
     from femcal.fetch import fetch_dataset, mirror_from_env
 
@@ -171,9 +203,26 @@ def cmd_train_inverse(args: argparse.Namespace, params: dict) -> None:
     )
 
 
+def _moment_settings(params: dict) -> dict[str, float]:
+    """params.yaml's ``moments`` section (one moment policy for every command) as keywords."""
+    out = {}
+    for key in ("error_growth", "max_log_ratio"):
+        value = section(params, "moments", key)
+        try:
+            out[key] = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"{params.get('_path', 'params.yaml')}: moments.{key} must be a number >= 0; "
+                f"got {value!r}. Use the value measured by benchmarks/bench_extrapolation.py "
+                "(reports/extrapolation.md)."
+            ) from None
+    return out
+
+
 def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     from femcal.pipeline import run_calibrate
 
+    _load_user_effects(args, params)
     _tracking(params)
     cfg = section(params, "calibrate")
     method = args.method or section(params, "calibrate", "method")
@@ -222,7 +271,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         start_bank=Path(bank) if bank else None,
         options=options,
         seed=int(args.seed if args.seed is not None else cfg.get("seed", 0)),
-        max_extrapolation=float(section(params, "calibrate", "max_extrapolation")),
+        **_moment_settings(params),
         chunk_size=cfg.get("chunk_size"),
         plots=bool(cfg.get("plots", True)),
         max_plots=None if max_plots is None else int(max_plots),
@@ -266,6 +315,7 @@ def cmd_plant(args: argparse.Namespace, params: dict) -> None:
 def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
     from femcal.pipeline import run_diagnose
 
+    _load_user_effects(args, params)
     _tracking(params)
     cfg = section(params, "diagnose")
     noise = args.noise_deg if args.noise_deg is not None else cfg.get("noise_deg")
@@ -279,6 +329,7 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         start_bank=Path(bank) if bank else None,
         min_delta=float(cfg.get("min_delta", 10.0)),
         seed=int(cfg.get("seed", 0)),
+        **_moment_settings(params),
         plots=bool(cfg.get("plots", True)),
         max_plots=cfg.get("max_plots"),
     )
@@ -291,14 +342,21 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "
         f"{diag.cohort_verdict()}"
     )
-    counts = {k: v for k, v in diag.verdicts().items() if k != "none" and v > 0}
-    if counts:
-        found = sorted(counts, key=lambda k: -counts[k])
+    counts = diag.effect_counts()
+    found = diag.found_effects()
+    if found:
         print(
             f"effects found: {', '.join(f'{k} ({counts[k]})' for k in found)}; to add them, list "
             f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml and run "
             "`dvc repro` (or: femcal calibrate --measurements FILE --effects "
             f"{','.join(found)})"
+        )
+    if counts.get("unexplained"):
+        print(
+            f"unexplained: {counts['unexplained']} specimens are not explained within the noise "
+            "by the disc and the registered effects; summary.md and plots/ describe what is "
+            "missing (load cases, laxity or stiffening, from which moment, how large). Write "
+            "it as an effect (README: 'a new effect') and pass --effects-module FILE."
         )
 
 
@@ -426,6 +484,16 @@ def cmd_validate(args: argparse.Namespace, params: dict) -> None:
     print(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv")
 
 
+def _add_effects_module(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--effects-module",
+        action="append",
+        metavar="PATH",
+        help="a .py file (or folder of them) that registers effects; repeatable (also: "
+        "effects.modules in params.yaml)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="femcal", description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml", help="settings file (params.yaml)")
@@ -467,6 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout-uri", help="held-out surrogate URI (default: calibrate.holdout_uri)")
     p.add_argument("--no-holdout", action="store_true", help="skip the held-out re-evaluation")
     p.add_argument("--seed", type=int, help="seed (default: calibrate.seed)")
+    _add_effects_module(p)
     p.set_defaults(func=cmd_calibrate)
     sub.add_parser("plant", help="a cohort with hidden effects from FE curves").set_defaults(
         func=cmd_plant
@@ -476,6 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: diagnose.out_dir)")
     p.add_argument("--noise-deg", type=float, help="measurement noise sd (default: estimated)")
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
+    _add_effects_module(p)
     p.set_defaults(func=cmd_diagnose)
     p = sub.add_parser("simulate", help="FE campaign on Dask -> dataset in the study's layout")
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")

@@ -9,84 +9,194 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.report import safe_file_name
-from femcal.diagnose import Diagnosis
+from femcal.diagnose import NONE, Diagnosis, SpecimenDiagnosis
 from femcal.schema import LOAD_CASES
+
+#: Load-case names in plots.
+LABELS = {
+    "Flexion": "flexion",
+    "Extension": "extension",
+    "LateralBending": "lateral bending",
+    "AxialRotation": "axial rotation",
+}
 
 
 def residuals_frame(diag: Diagnosis) -> pd.DataFrame:
-    """Disc-alone residuals of every measured point, in degrees and in units of sigma."""
+    """Residuals of every measured point, disc alone and final model, in degrees and sigma."""
     rows = []
+    sig = diag.sigma_by_moment if diag.sigma_by_moment is not None else None
     for s in diag.specimens:
+        final = s.final_residuals if s.final_residuals is not None else s.residuals
         for j, lc in enumerate(LOAD_CASES):
             for k, m in enumerate(diag.moments):
                 r = s.residuals[j, k]
                 if np.isfinite(r):
-                    rows.append((s.specimen, lc, m, r, r / diag.sigma_deg))
+                    sk = float(sig[k]) if sig is not None else diag.sigma_deg
+                    rows.append(
+                        (s.specimen, lc, m, r, r / sk, final[j, k], final[j, k] / sk, s.verdict)
+                    )
     return pd.DataFrame(
-        rows, columns=["specimen", "load_case", "moment_nm", "residual_deg", "residual_sigma"]
+        rows,
+        columns=[
+            "specimen",
+            "load_case",
+            "moment_nm",
+            "residual_deg",
+            "residual_sigma",
+            "final_residual_deg",
+            "final_residual_sigma",
+            "verdict",
+        ],
     )
 
 
-def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> None:
-    """Measured vs disc-alone model with a ±2 sigma band, and the residual heat map."""
+def _plt():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> None:
+    """Measured points and continuous model curves (disc alone, with the verdict's effects),
+    residuals against the ±2σ band, and the discrepancy estimate with its band."""
+    plt = _plt()
     s = diag.specimens[i]
-    model = measured - s.residuals
-    fig, axes = plt.subplots(1, 5, figsize=(15, 3.0), gridspec_kw={"width_ratios": [1] * 4 + [1.2]})
-    band = 2 * diag.sigma_deg
-    for j, (ax, lc) in enumerate(zip(axes[:4], LOAD_CASES)):
-        ok = np.isfinite(measured[j])
-        ax.fill_between(
-            diag.moments, model[j] - band, model[j] + band, color="C0", alpha=0.2, label="disc ± 2σ"
-        )
-        ax.plot(diag.moments, model[j], "-", color="C0", label="disc alone")
-        ax.plot(diag.moments[ok], measured[j][ok], "o", color="black", ms=3, label="measured")
-        ax.set_title(lc, fontsize=9)
-        ax.set_xlabel("moment (Nm)")
-    axes[0].set_ylabel("RoM (deg)")
-    axes[0].legend(fontsize=7)
-    ax = axes[4]
-    z = s.residuals / diag.sigma_deg
-    im = ax.imshow(z, cmap="RdBu_r", vmin=-4, vmax=4, aspect="auto")
-    ax.set_yticks(range(4), [lc[:4] for lc in LOAD_CASES], fontsize=8)
-    ax.set_xticks(range(len(diag.moments)), [f"{m:g}" for m in diag.moments], fontsize=7)
-    ax.set_xlabel("moment (Nm)")
-    ax.set_title("residual / σ", fontsize=9)
-    fig.colorbar(im, ax=ax)
-    best = next(r for r in s.ranking if r["effect"] == s.verdict)
-    fig.suptitle(
-        f"{s.specimen}: disc alone MAE {s.baseline_mae_deg:.3f}°, verdict "
-        f"{s.verdict} (MAE {best['mae_deg']:.3f}°)",
-        fontsize=10,
+    sig = (
+        diag.sigma_by_moment
+        if diag.sigma_by_moment is not None
+        else np.full(len(diag.moments), diag.sigma_deg)
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
+    curves = s.curves or {}
+    dense = curves.get("moments")
+    fig, axes = plt.subplots(2, 4, figsize=(15, 6.6), sharex=True, constrained_layout=True)
+    final_label = s.final_label
+    sig_dense = None if dense is None else np.interp(np.log(dense), np.log(diag.moments), sig)
+    for j, lc in enumerate(LOAD_CASES):
+        ax, rx = axes[0, j], axes[1, j]
+        ok = np.isfinite(measured[j])
+        if dense is not None:
+            disc = curves[NONE][j]
+            ax.fill_between(
+                dense,
+                disc - 2 * sig_dense,
+                disc + 2 * sig_dense,
+                color="C0",
+                alpha=0.15,
+                lw=0,
+                label="disc alone ± 2σ",
+            )
+            ax.plot(dense, disc, "-", color="C0", lw=1.6, label="disc alone")
+            if final_label != NONE:
+                ax.plot(
+                    dense,
+                    curves[final_label][j],
+                    "-",
+                    color="C3",
+                    lw=1.8,
+                    label=f"disc + {final_label}",
+                )
+        ax.plot(diag.moments[ok], measured[j][ok], "o", color="black", ms=4, label="measured")
+        ax.set_title(LABELS.get(lc, lc), fontsize=11)
+        # Residuals: disc alone and final model, with the noise band.
+        rx.fill_between(diag.moments, -2 * sig, 2 * sig, color="0.85", lw=0, label="± 2σ noise")
+        rx.axhline(0.0, color="0.5", lw=0.8)
+        rx.plot(diag.moments[ok], s.residuals[j][ok], "o", color="C0", ms=4, label="disc alone")
+        if final_label != NONE and s.final_residuals is not None:
+            rx.plot(
+                diag.moments[ok],
+                s.final_residuals[j][ok],
+                "s",
+                color="C3",
+                ms=4,
+                mfc="none",
+                label=f"disc + {final_label}",
+            )
+        if s.discrepancy is not None and dense is not None:
+            mu, sd = s.discrepancy["mean"][j], s.discrepancy["sd"][j]
+            rx.fill_between(dense, mu - 2 * sd, mu + 2 * sd, color="C2", alpha=0.25, lw=0)
+            rx.plot(
+                dense,
+                mu,
+                "-",
+                color="C2",
+                lw=1.6,
+                label=f"discrepancy of {s.discrepancy['model']} (± 2 sd)",
+            )
+        rx.set_xlabel("moment (Nm)", fontsize=10)
+    axes[0, 0].set_ylabel("RoM (deg)", fontsize=10)
+    axes[1, 0].set_ylabel("measured − model (deg)", fontsize=10)
+    axes[0, 0].legend(fontsize=8, loc="upper left")
+    axes[1, 0].legend(fontsize=8, loc="best")
+    title = (
+        f"{s.specimen}: verdict {s.verdict}; MAE disc alone {s.baseline_mae_deg:.3f}°"
+        + (f", with {final_label} {s.final_mae_deg:.3f}°" if final_label != NONE else "")
+        + (
+            f", with the discrepancy {s.discrepancy['mae_deg']:.3f}°"
+            if s.discrepancy is not None
+            else ""
+        )
+    )
+    fig.suptitle(title, fontsize=11)
+    if s.discrepancy is not None and s.discrepancy["description"]:
+        text = "\n".join(s.discrepancy["description"])
+        fig.text(0.01, -0.01, text, fontsize=8.5, va="top", family="monospace")
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
 
 
 def plot_heatmap(diag: Diagnosis, path: Path) -> None:
-    """Cohort heat map: mean |residual| / sigma per load case x moment, by verdict."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    verdicts = sorted(diag.verdicts())
-    fig, axes = plt.subplots(1, len(verdicts), figsize=(3.5 * len(verdicts), 3), squeeze=False)
-    for ax, v in zip(axes[0], verdicts):
-        z = np.stack([s.residuals for s in diag.specimens if s.verdict == v]) / diag.sigma_deg
-        im = ax.imshow(np.nanmean(z, 0), cmap="RdBu_r", vmin=-4, vmax=4, aspect="auto")
-        ax.set_title(f"verdict {v} (n={len(z)})", fontsize=9)
-        ax.set_yticks(range(4), [lc[:4] for lc in LOAD_CASES], fontsize=8)
-        ax.set_xticks(range(len(diag.moments)), [f"{m:g}" for m in diag.moments], fontsize=7)
-    fig.colorbar(im, ax=axes[0].tolist())
-    fig.suptitle("mean disc-alone residual / σ (measured − model)", fontsize=10)
-    fig.savefig(path, dpi=90)
+    """Cohort heat map: mean disc-alone residual / sigma per load case x moment, by verdict."""
+    plt = _plt()
+    verdicts = sorted(diag.verdicts(), key=lambda v: (v != NONE, v))
+    sig = diag.sigma_by_moment if diag.sigma_by_moment is not None else diag.sigma_deg
+    ncol = min(3, len(verdicts))
+    nrow = int(np.ceil(len(verdicts) / ncol))
+    width = max(4.2, 0.45 * len(diag.moments) + 2.2)
+    fig, axes = plt.subplots(
+        nrow, ncol, figsize=(width * ncol, 2.8 * nrow), squeeze=False, constrained_layout=True
+    )
+    im = None
+    for ax, v in zip(axes.flat, verdicts):
+        group: list[SpecimenDiagnosis] = [s for s in diag.specimens if s.verdict == v]
+        z = np.stack([s.residuals for s in group]) / sig
+        with np.errstate(all="ignore"):
+            mean = np.nanmean(z, 0)
+        im = ax.imshow(mean, cmap="RdBu_r", vmin=-4, vmax=4, aspect="auto")
+        ax.set_title(f"{v} (n = {len(group)})", fontsize=10)
+        ax.set_yticks(range(4), [LABELS.get(lc, lc) for lc in LOAD_CASES], fontsize=9)
+        step = max(1, int(np.ceil(len(diag.moments) / 10)))
+        ticks = list(range(0, len(diag.moments), step))
+        ax.set_xticks(ticks, [f"{diag.moments[k]:g}" for k in ticks], fontsize=8, rotation=45)
+        ax.set_xlabel("moment (Nm)", fontsize=9)
+    for ax in list(axes.flat)[len(verdicts) :]:
+        ax.axis("off")
+    if im is not None:
+        fig.colorbar(im, ax=axes.ravel().tolist(), label="mean residual / σ", shrink=0.9)
+    fig.suptitle("disc-alone residual (measured − model) by verdict", fontsize=11)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _parameters(s: SpecimenDiagnosis) -> str:
+    best = next((r for r in s.ranking if r["effects"] == list(s.effects)), None)
+    if best is None:
+        return ""
+    return ", ".join(
+        f"{k} {v['value']:.3g} ± {v['sd']:.2g} {v['unit']}" for k, v in best["parameters"].items()
+    )
+
+
+def _next(s: SpecimenDiagnosis) -> str:
+    n = s.next_measurement
+    if not n:
+        return ""
+    return (
+        f"{n['between'][0]} vs {n['between'][1]}: {n['load_case']} at {n['moment_nm']:.2g} Nm "
+        f"({n['difference_deg']:+.3f}°, {n['difference_sigma']:.1f}σ)"
+    )
 
 
 def write_diagnosis(
@@ -105,27 +215,31 @@ def write_diagnosis(
     residuals_frame(diag).to_csv(out_dir / "residuals.csv", index=False)
     summary = {k: v for k, v in data.items() if k != "specimens"}
     summary["n_specimens"] = len(diag.specimens)
+    summary["found_effects"] = diag.found_effects()
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    sig = diag.sigma_by_moment
+    sig_text = f"{diag.sigma_deg:.4f}° inside the trained moments" + (
+        f", up to {float(np.max(sig)):.4f}° beyond" if sig is not None and np.ptp(sig) else ""
+    )
     lines = [
         "# Diagnosis",
         "",
-        f"Noise σ = {diag.sigma_deg:.4f}° (measurement {diag.noise_deg:.4f} ± "
-        f"{diag.noise_sd_deg:.4f}°, surrogate {diag.surrogate_error_deg:.4f}°, in quadrature). "
-        f"Cohort verdict: **{diag.cohort_verdict()}**; verdicts {diag.verdicts()}; "
+        f"Noise σ = {sig_text} (measurement {diag.noise_deg:.4f} ± {diag.noise_sd_deg:.4f}°, "
+        f"surrogate's own error in quadrature). A model explains a specimen when its χ² and "
+        f"its sign runs are consistent with σ (p ≥ {diag.alpha:g}); otherwise the verdict says "
+        f"`unexplained`. Verdicts {diag.verdicts()}; effects named {diag.effect_counts()}; "
         f"{diag.seconds:.1f} s.",
         "",
-        "| specimen | verdict | disc-alone MAE (°) | with the verdict (°) | effect parameters |",
-        "|---|---|---|---|---|",
+        "| specimen | verdict | disc-alone MAE (°) | final MAE (°) | χ² p | effect parameters | "
+        "what is missing | to settle it, measure |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for s in diag.specimens:
-        best = next(r for r in s.ranking if r["effect"] == s.verdict)
-        pars = ", ".join(
-            f"{k} {v['value']:.3g} ± {v['sd']:.2g} {v['unit']}"
-            for k, v in best["parameters"].items()
-        )
+        missing = s.discrepancy["summary"] if s.discrepancy else ""
+        p = s.adequacy.get("final", {}).get("p_chi2", float("nan")) if s.adequacy else np.nan
         lines.append(
-            f"| {s.specimen} | {s.verdict} | {s.baseline_mae_deg:.3f} | "
-            f"{best['mae_deg']:.3f} | {pars} |"
+            f"| {s.specimen} | {s.verdict} | {s.baseline_mae_deg:.3f} | {s.final_mae_deg:.3f} | "
+            f"{p:.2g} | {_parameters(s)} | {missing} | {_next(s)} |"
         )
     (out_dir / "summary.md").write_text("\n".join(lines) + "\n")
     if plots:

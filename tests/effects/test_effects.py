@@ -68,11 +68,13 @@ def test_effects_act_where_they_should(surrogate):
     disc = base.curves(v)
     for name, lcs in (("facet_contact", [1, 3]), ("ligament_tension", [0, 2])):
         model = EffectModel(base, [name])
-        out = model.curves(torch.cat([v, torch.full((3, 2), 0.3)], 1))
+        k = len(get_effect(name).parameters)
+        out = model.curves(torch.cat([v, torch.full((3, k), 0.3)], 1))
         others = [j for j in range(4) if j not in lcs]
         torch.testing.assert_close(out[:, others], disc[:, others])
         assert torch.all(out[:, lcs] <= disc[:, lcs] + 1e-6)  # a parallel element stiffens
-    nz = EffectModel(base, ["neutral_zone"]).curves(torch.cat([v, torch.full((3, 2), 0.5)], 1))
+    k = len(get_effect("neutral_zone").parameters)
+    nz = EffectModel(base, ["neutral_zone"]).curves(torch.cat([v, torch.full((3, k), 0.5)], 1))
     assert torch.all(nz > disc)
 
 
@@ -101,7 +103,7 @@ def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate
         model, targets, method="pgd", options={"n_bank_uniform": 512, "fit_tolerance": 0.0}
     )
     assert np.all(res.exceedance == 0) and res.mae_deg.max() < 0.02
-    assert res.parameter_names[-2:] == ("facet_gap_deg", "facet_stiffness")
+    assert res.parameter_names[-3:] == ("facet_gap_deg", "facet_stiffness", "facet_exponent")
 
 
 def test_fe_rotation_interpolates_and_extends_as_a_power_law():
@@ -118,7 +120,7 @@ def test_fe_rotation_interpolates_and_extends_as_a_power_law():
 def test_planted_parallel_effect_balances_the_moment():
     m = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
     fe = np.tile(3.0 * m**0.6, (4, 1))
-    p = {"facet_gap_deg": 2.0, "facet_stiffness": 1.0}
+    p = {"facet_gap_deg": 2.0, "facet_stiffness": 1.0, "facet_exponent": 2.0}
     q = np.array([1.0, 3.0, 5.0])
     phi = plant("facet_contact", p, m, fe, q)
     eff = get_effect("facet_contact")()
@@ -153,13 +155,15 @@ def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
     model = EffectModel(CurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
     starts = effect_starts(model, (0.2, 0.8))
     weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
-    assert starts.shape == (1 + 4 + 4, 4)
+    # 3 parameters each; the shape parameter (the last of each law family) is not gridded.
+    assert starts.shape == (1 + 4 + 4, 6)
     torch.testing.assert_close(starts[0], weak)
     # The facet grid leaves the neutral zone at its weak end, and the other way round.
-    torch.testing.assert_close(starts[1:5, 2:], weak[2:].expand(4, -1))
-    torch.testing.assert_close(starts[5:, :2], weak[:2].expand(4, -1))
+    torch.testing.assert_close(starts[1:5, 3:], weak[3:].expand(4, -1))
+    torch.testing.assert_close(starts[5:, :3], weak[:3].expand(4, -1))
     grid = torch.tensor([[a, b] for a in (0.2, 0.8) for b in (0.2, 0.8)])
     torch.testing.assert_close(starts[1:5, :2], grid)
+    torch.testing.assert_close(starts[1:5, 2], weak[2].expand(4))
 
 
 def test_the_weak_end_of_every_effect_leaves_the_disc_curves_unchanged(surrogate):

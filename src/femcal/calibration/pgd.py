@@ -90,7 +90,8 @@ def effect_starts(model, levels: tuple[float, ...]) -> torch.Tensor:
     -------
     Tensor, shape (g, model.dim - model.n_disc)
         Row 0: every effect at its weak end (its parameters' ``start``). Then, per effect, the
-        grid ``levels ** n_params`` over its parameters, the other effects at their weak end.
+        grid ``levels ** n`` over its ``n`` grid parameters (shape parameters stay at their
+        start), the other effects at their weak end.
     """
     weak = torch.cat(
         [torch.tensor([q.start for q in e.parameters], dtype=torch.float32) for e in model.effects]
@@ -99,10 +100,11 @@ def effect_starts(model, levels: tuple[float, ...]) -> torch.Tensor:
     offset = 0
     for e in model.effects:
         p = len(e.parameters)
-        mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * p, indexing="ij")
+        cols = [offset + j for j, q in enumerate(e.parameters) if getattr(q, "grid", True)]
+        mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * len(cols), indexing="ij")
         g = torch.tensor(np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32)
         block = weak.repeat(len(g), 1)
-        block[:, offset : offset + p] = g
+        block[:, cols] = g
         rows.append(block)
         offset += p
     return torch.cat(rows)

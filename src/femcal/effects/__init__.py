@@ -5,7 +5,15 @@ from femcal.effects.base import (
     EffectParameter,
     available_effects,
     get_effect,
+    load_effect_modules,
     register_effect,
 )
 
-__all__ = ["Effect", "EffectParameter", "available_effects", "get_effect", "register_effect"]
+__all__ = [
+    "Effect",
+    "EffectParameter",
+    "available_effects",
+    "get_effect",
+    "load_effect_modules",
+    "register_effect",
+]

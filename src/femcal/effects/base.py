@@ -23,12 +23,31 @@ parameters. A new effect is a new module::
             return p["friction_deg"] * torch.tanh(moment_nm)
 
 and listing ``capsule_friction`` under ``effects`` in params.yaml.
+
+Where an effect module can live (every one registers its effects when imported):
+
+* in this package (``src/femcal/effects/``): imported on first use of the registry;
+* in a file of your own: :func:`load_effect_modules` (``femcal calibrate|diagnose
+  --effects-module my_effects.py``, or ``effects.modules`` in params.yaml);
+* in an installed package: an entry point in the group ``femcal.effects`` naming a module or
+  an :class:`Effect` subclass, loaded on first use of the registry::
+
+      [project.entry-points."femcal.effects"]
+      capsule_friction = "my_package.effects"
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import hashlib
+import importlib
+import importlib.util
+import sys
+import traceback
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from types import ModuleType
 from typing import ClassVar
 
 import numpy as np
@@ -38,6 +57,13 @@ from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
 
 _EFFECTS: dict[str, type[Effect]] = {}
+#: The entry-point group installed packages declare their effects in.
+ENTRY_POINT_GROUP = "femcal.effects"
+#: Entry points loaded so far (``name = value``), and whether all of them are.
+_ENTRY_POINTS_LOADED: set[str] = set()
+_PLUGINS_DONE = False
+#: Effect files loaded by path: resolved path -> the classes they registered (idempotence).
+_USER_FILES: dict[Path, list[type[Effect]]] = {}
 
 
 @dataclass(frozen=True)
@@ -50,6 +76,15 @@ class EffectParameter:
     upper: float
     log: bool = False  # sampled and optimised on a log scale (bounds must be > 0)
     start: float = 0.5  # unit-box value a calibration starts from (0 = the weak end)
+    #: Part of the start grids (calibration, diagnosis). Shape parameters of a law family are
+    #: not: they start at the family's classic member (``start``) and move from there.
+    grid: bool = True
+
+    def physical(self, u: float) -> float:
+        """The physical value at unit-box coordinate ``u``."""
+        if self.log:
+            return float(self.lower * (self.upper / self.lower) ** u)
+        return float(self.lower + u * (self.upper - self.lower))
 
 
 class Effect:
@@ -144,20 +179,25 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
                 f"on a log scale); got [{q.lower}, {q.upper}]."
             )
     if cls.name in _EFFECTS and _EFFECTS[cls.name] is not cls:
-        raise ConfigError(f"An effect named '{cls.name}' is already registered.")
+        old = _EFFECTS[cls.name]
+        raise ConfigError(
+            f"An effect named '{cls.name}' is already registered ({old.__module__}."
+            f"{old.__qualname__}); got another class {cls.__module__}.{cls.__qualname__}. "
+            "Give yours another name (its class attribute `name`)."
+        )
     _EFFECTS[cls.name] = cls
     return cls
 
 
 def available_effects() -> list[str]:
-    """Registered effect names, sorted."""
-    _load_builtin()
+    """Registered effect names, sorted (built-in, installed plugins, loaded files)."""
+    _load_registry()
     return sorted(_EFFECTS)
 
 
 def get_effect(name: str) -> type[Effect]:
     """The effect class registered under ``name`` (ConfigError listing the names otherwise)."""
-    _load_builtin()
+    _load_registry()
     try:
         return _EFFECTS[name]
     except KeyError:
@@ -167,12 +207,189 @@ def get_effect(name: str) -> type[Effect]:
         ) from None
 
 
+def _load_registry() -> None:
+    """Register the built-in effects, then those of installed plugins (entry points)."""
+    _load_builtin()
+    _load_entry_points()
+
+
 def _load_builtin() -> None:
     """Import every module of the femcal.effects package: a new file registers itself."""
-    import importlib
     import pkgutil
 
     import femcal.effects as package
 
     for info in pkgutil.iter_modules(package.__path__):
         importlib.import_module(f"femcal.effects.{info.name}")
+
+
+def _load_entry_points() -> None:
+    """Load the installed plugins: every entry point of the group ``femcal.effects``.
+
+    Each entry point is loaded once per process. A broken one raises a ConfigError naming it,
+    whenever the registry is used, until it is fixed or uninstalled.
+    """
+    global _PLUGINS_DONE
+    if _PLUGINS_DONE:
+        return
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        key = f"{ep.name} = {ep.value}"
+        if key not in _ENTRY_POINTS_LOADED:
+            _load_entry_point(ep)
+            _ENTRY_POINTS_LOADED.add(key)
+    _PLUGINS_DONE = True
+
+
+def _load_entry_point(ep: metadata.EntryPoint) -> None:
+    """Load one entry point: a module registers its effects; an Effect subclass is registered."""
+    dist = getattr(ep, "dist", None)
+    where = f"'{ep.name} = {ep.value}' (entry point group {ENTRY_POINT_GROUP}"
+    where += f", distribution {dist.name} {dist.version})" if dist is not None else ")"
+    fix = f"pip uninstall {dist.name}" if dist is not None else "uninstall it"
+    snapshot = dict(_EFFECTS)
+    try:
+        obj = ep.load()
+        if isinstance(obj, type) and issubclass(obj, Effect):
+            register_effect(obj)
+    except Exception as exc:
+        _EFFECTS.clear()
+        _EFFECTS.update(snapshot)
+        raise ConfigError(
+            f"The femcal effect plugin {where} failed to load: {type(exc).__name__}: {exc}. "
+            f"Fix the plugin, or remove it ({fix})."
+        ) from exc
+    if not isinstance(obj, ModuleType) and not (isinstance(obj, type) and issubclass(obj, Effect)):
+        raise ConfigError(
+            f"The femcal effect plugin {where} names {obj!r}, a {type(obj).__name__}; an entry "
+            "point of this group names a module ('my_package.effects') or an Effect subclass "
+            f"('my_package.effects:Creep'). Fix the plugin, or remove it ({fix})."
+        )
+
+
+def load_effect_modules(paths: Sequence[str | Path]) -> list[str]:
+    """Import effect modules from files, by path, and return the effects they registered.
+
+    Parameters
+    ----------
+    paths : sequence of str or Path
+        Each a ``.py`` file, or a folder whose ``*.py`` files are all loaded (in name order;
+        names starting with ``_`` are skipped). Relative paths are relative to the working
+        directory.
+
+    Returns
+    -------
+    list of str
+        The names of the effects the files registered, in registration order, each once.
+
+    Raises
+    ------
+    ConfigError
+        A path does not exist, is not a ``.py`` file (or a folder holds none), a module raises
+        on import, registers no effect, or registers a name another class already holds.
+        Nothing of a module that fails stays registered.
+
+    Notes
+    -----
+    The built-in and installed-plugin effects are registered first, so a clash with them is
+    reported here. Each file is imported once per process, as a module named after its
+    resolved path (``femcal_user_effects_<stem>_<hash>``): loading the same file again
+    returns the same names and changes nothing.
+
+    Examples
+    --------
+    >>> load_effect_modules(["my_effects.py"])  # doctest: +SKIP
+    ['creep']
+    """
+    _load_registry()
+    files = [file for path in paths for file in _effect_files(Path(path))]
+    names: list[str] = []
+    for file in files:
+        for cls in _load_effect_file(file):
+            if cls.name not in names:
+                names.append(cls.name)
+    return names
+
+
+def _effect_files(path: Path) -> list[Path]:
+    """The .py files a path names (a file, or a folder's files); ConfigError otherwise."""
+    if not path.exists():
+        raise ConfigError(
+            f"Effect module {path} does not exist (looked for {path.resolve()}); give the path "
+            "of a .py file, or of a folder of .py files, that registers effects."
+        )
+    if path.is_dir():
+        files = sorted(f for f in path.glob("*.py") if not f.name.startswith("_"))
+        if not files:
+            raise ConfigError(
+                f"Effect folder {path} holds no .py file (names starting with '_' are skipped); "
+                "put your effect modules there, or give the path of a .py file."
+            )
+        return files
+    if path.suffix != ".py":
+        raise ConfigError(
+            f"Effect module {path} is not a Python file (suffix {path.suffix or 'none'!r}); give "
+            "a .py file that defines and registers effects, or a folder of them."
+        )
+    return [path]
+
+
+def _load_effect_file(file: Path) -> list[type[Effect]]:
+    """Import one file under a unique module name; the effect classes it registered."""
+    resolved = file.resolve()
+    if resolved in _USER_FILES:
+        classes = _USER_FILES[resolved]
+        try:
+            for cls in classes:  # a no-op, unless the registry was reset in between
+                register_effect(cls)
+        except ConfigError as exc:
+            raise ConfigError(f"Effect module {file}: {exc}") from exc
+        return classes
+    stem = "".join(c if c.isalnum() else "_" for c in file.stem)
+    digest = hashlib.sha1(str(resolved).encode()).hexdigest()[:12]
+    module_name = f"femcal_user_effects_{stem}_{digest}"
+    spec = importlib.util.spec_from_file_location(module_name, resolved)
+    if spec is None or spec.loader is None:  # pragma: no cover - a .py file always has one
+        raise ConfigError(f"Effect module {file} cannot be imported; give a .py file.")
+    module = importlib.util.module_from_spec(spec)
+    snapshot = dict(_EFFECTS)
+    sys.modules[module_name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        sys.modules.pop(module_name, None)
+        _EFFECTS.clear()
+        _EFFECTS.update(snapshot)
+        if isinstance(exc, ConfigError):
+            raise ConfigError(f"Effect module {file}: {exc}") from exc
+        line = _error_line(exc, resolved)
+        raise ConfigError(
+            f"Effect module {file} raised {type(exc).__name__} on import"
+            f"{f' (line {line})' if line else ''}: {exc}. Fix the module; `python {file}` shows "
+            "the full traceback."
+        ) from exc
+    classes = [cls for name, cls in _EFFECTS.items() if snapshot.get(name) is not cls]
+    if not classes:
+        sys.modules.pop(module_name, None)
+        defined = [
+            obj.__name__
+            for obj in vars(module).values()
+            if isinstance(obj, type) and issubclass(obj, Effect) and obj.__module__ == module_name
+        ]
+        hint = (
+            f"it defines {', '.join(defined)} but registers none: decorate each with "
+            "@register_effect"
+            if defined
+            else "define an Effect subclass with a name, kind, load_cases and parameters, and "
+            "decorate it with @register_effect (see femcal.effects)"
+        )
+        raise ConfigError(f"Effect module {file} registers no effect; {hint}.")
+    _USER_FILES[resolved] = classes
+    return classes
+
+
+def _error_line(exc: BaseException, file: Path) -> int | None:
+    """The line of ``file`` an import error arose on (the innermost frame in it), if any."""
+    if isinstance(exc, SyntaxError) and exc.lineno and Path(exc.filename or "") == file:
+        return exc.lineno
+    lines = [f.lineno for f in traceback.extract_tb(exc.__traceback__) if Path(f.filename) == file]
+    return lines[-1] if lines else None

@@ -1,4 +1,18 @@
-"""The built-in effects: facet contact, ligament tension, neutral-zone laxity."""
+"""The built-in effects: facet contact, ligament tension, neutral-zone laxity.
+
+Each is a law family, not a single formula: a shape parameter spans its phenomenon's usual
+forms, and starts at the family's classic member (so a calibration starts from that law and
+bends it only when the data ask for it; the extra parameter pays its BIC penalty in the
+diagnosis like any other):
+
+* facet contact, ``M = k (phi - gap)_+^n`` with ``n`` in [1, 3]: a linear spring after the gap
+  (n = 1), Hertz-like contact (n = 1.5), the classic quadratic (n = 2) and stiffer;
+* ligament tension, ``M = k (exp((phi - slack)_+ / s) - 1)`` with the toe length ``s`` in
+  [0.5, 8] deg: a long toe region that is nearly linear (large ``s``) to an abrupt lock-up;
+* neutral-zone laxity, ``phi = range (1 - exp(-(M / m0)^b))`` with ``b`` in [0.5, 3]: a slow
+  saturating laxity (b < 1), the classic exponential (b = 1) to a sigmoid that flattens
+  abruptly (b > 1).
+"""
 
 from __future__ import annotations
 
@@ -14,30 +28,38 @@ def _smooth_ramp(x: torch.Tensor, width: float) -> torch.Tensor:
     return width * torch.nn.functional.softplus(x / width)
 
 
+def _like(p: Mapping[str, torch.Tensor], name: str, ref: torch.Tensor) -> torch.Tensor:
+    """Parameter ``name`` (B,) reshaped to broadcast over ``ref`` (B, ...)."""
+    return p[name].reshape(-1, *([1] * (ref.ndim - 1)))
+
+
 @register_effect
 class FacetContact(Effect):
     """Facet joints engage in extension and axial rotation: once the rotation closes a gap,
-    contact carries a moment growing with the square of the penetration,
-    ``M = k * (phi - gap)_+^2``."""
+    contact carries a moment ``M = k * (phi - gap)_+^n`` (n = 1 linear spring .. 3)."""
 
     name = "facet_contact"
     kind = "parallel"
     load_cases = ("Extension", "AxialRotation")
     parameters = (
         EffectParameter("facet_gap_deg", "deg", 0.0, 6.0, start=1.0),
-        EffectParameter("facet_stiffness", "Nm/deg^2", 1e-4, 5.0, log=True, start=0.0),
+        EffectParameter("facet_stiffness", "Nm/deg^n", 1e-4, 5.0, log=True, start=0.0),
+        EffectParameter("facet_exponent", "1", 1.0, 3.0, start=0.5, grid=False),
     )
 
     def moment(self, rotation_deg: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        gap = p["facet_gap_deg"].reshape(-1, *([1] * (rotation_deg.ndim - 1)))
-        k = p["facet_stiffness"].reshape(gap.shape)
-        return k * _smooth_ramp(rotation_deg - gap, 0.05) ** 2
+        gap = _like(p, "facet_gap_deg", rotation_deg)
+        k = _like(p, "facet_stiffness", rotation_deg)
+        n = _like(p, "facet_exponent", rotation_deg)
+        # (x)^n = exp(n log x); the ramp is > 0, so the power is smooth in x and n.
+        return k * torch.exp(n * torch.log(_smooth_ramp(rotation_deg - gap, 0.05)))
 
 
 @register_effect
 class LigamentTension(Effect):
     """Posterior ligaments tighten in flexion and lateral bending: beyond a slack angle they
-    carry an exponentially stiffening moment, ``M = k * (exp((phi - slack)_+ / 1.5 deg) - 1)``."""
+    carry ``M = k * (exp((phi - slack)_+ / s) - 1)``, a toe region of length ``s`` that stiffens
+    exponentially."""
 
     name = "ligament_tension"
     kind = "parallel"
@@ -45,20 +67,22 @@ class LigamentTension(Effect):
     parameters = (
         EffectParameter("ligament_slack_deg", "deg", 0.0, 12.0, start=1.0),
         EffectParameter("ligament_stiffness", "Nm", 1e-4, 3.0, log=True, start=0.0),
+        # start: s = 1.5 deg, the classic member (0.5 * 16 ** u = 1.5).
+        EffectParameter("ligament_toe_deg", "deg", 0.5, 8.0, log=True, start=0.3962406, grid=False),
     )
-    scale_deg = 1.5
 
     def moment(self, rotation_deg: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        slack = p["ligament_slack_deg"].reshape(-1, *([1] * (rotation_deg.ndim - 1)))
-        k = p["ligament_stiffness"].reshape(slack.shape)
-        stretch = _smooth_ramp(rotation_deg - slack, 0.05) / self.scale_deg
+        slack = _like(p, "ligament_slack_deg", rotation_deg)
+        k = _like(p, "ligament_stiffness", rotation_deg)
+        toe = _like(p, "ligament_toe_deg", rotation_deg)
+        stretch = _smooth_ramp(rotation_deg - slack, 0.05) / toe
         return k * torch.expm1(stretch.clamp(max=30.0))
 
 
 @register_effect
 class NeutralZone(Effect):
     """Neutral-zone laxity: extra rotation at low moments that saturates,
-    ``phi_nz = range * (1 - exp(-M / m0))``, in every load case."""
+    ``phi_nz = range * (1 - exp(-(M / m0)^b))``, in every load case."""
 
     name = "neutral_zone"
     kind = "series"
@@ -66,9 +90,12 @@ class NeutralZone(Effect):
     parameters = (
         EffectParameter("nz_range_deg", "deg", 0.0, 3.0, start=0.0),
         EffectParameter("nz_moment_nm", "Nm", 0.1, 1.5, log=True),
+        # start: b = 1, the classic exponential (0.5 * 6 ** u = 1).
+        EffectParameter("nz_shape", "1", 0.5, 3.0, log=True, start=0.3868528, grid=False),
     )
 
     def rotation(self, moment_nm: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        a = p["nz_range_deg"].reshape(-1, *([1] * (moment_nm.ndim - 1)))
-        m0 = p["nz_moment_nm"].reshape(a.shape)
-        return a * (1.0 - torch.exp(-moment_nm / m0))
+        a = _like(p, "nz_range_deg", moment_nm)
+        m0 = _like(p, "nz_moment_nm", moment_nm)
+        b = _like(p, "nz_shape", moment_nm)
+        return a * (1.0 - torch.exp(-((moment_nm / m0) ** b)))

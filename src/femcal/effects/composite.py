@@ -176,18 +176,28 @@ class EffectModel:
     def curves_jacobian(
         self, v: torch.Tensor, *, jacobian_members: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim) by reverse mode, one backward
-        pass per output (``jacobian_members`` is accepted and ignored: always exact)."""
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim) by reverse mode, the backward
+        passes of all outputs batched (``jacobian_members`` is accepted and ignored: always
+        exact)."""
         self.n_evaluations += int(v.shape[0]) * 4 * len(self.moments)
         with torch.enable_grad():
             vv = v.detach().clone().requires_grad_(True)
             out = self.curves(vv)
             flat = out.reshape(len(vv), -1)
-            rows = []
-            for r in range(flat.shape[1]):
-                (g,) = torch.autograd.grad(flat[:, r].sum(), vv, retain_graph=True)
-                rows.append(g)
-        jac = torch.stack(rows, dim=1).reshape(*out.shape, self.dim)
+            n_out = flat.shape[1]
+            # All outputs' backward passes at once (vmapped): row r of the Jacobian is the
+            # gradient of sum_b flat[b, r] (specimens are independent).
+            seeds = torch.eye(n_out, dtype=flat.dtype)[:, None, :].expand(n_out, len(vv), n_out)
+            try:
+                (g,) = torch.autograd.grad(flat, vv, seeds, is_grads_batched=True)
+            except RuntimeError:  # an operation without a batching rule: one pass per output
+                g = torch.stack(
+                    [
+                        torch.autograd.grad(flat[:, r].sum(), vv, retain_graph=True)[0]
+                        for r in range(n_out)
+                    ]
+                )
+        jac = g.permute(1, 0, 2).reshape(*out.shape, self.dim)
         return out.detach(), jac
 
     def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:

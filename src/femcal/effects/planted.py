@@ -85,7 +85,9 @@ def plant(
     if effect == NONE:
         return fe_rotation(fe_moments, fe_rom, applied)
     eff = get_effect(effect)()
-    p = {k: torch.tensor([float(v)], dtype=torch.float64) for k, v in params.items()}
+    # Parameters not given (a law family's shape) take their start: the classic member.
+    full = {q.name: q.physical(q.start) for q in eff.parameters} | dict(params)
+    p = {k: torch.tensor([float(v)], dtype=torch.float64) for k, v in full.items()}
     mask = np.array([lc in eff.load_cases for lc in LOAD_CASES])[:, None]
     if eff.kind == "series":
         extra = eff.rotation(torch.tensor(applied[None]), p)[0].numpy()
@@ -192,6 +194,8 @@ def make_cohort(
         if effect != NONE:
             eff = get_effect(effect)
             for par in eff.parameters:
+                if par.name not in VISIBLE_RANGES[effect]:
+                    continue  # a shape parameter: the classic member (see plant)
                 lo, hi = VISIBLE_RANGES[effect][par.name]
                 u = rng.random()
                 params[par.name] = lo * (hi / lo) ** u if par.log else lo + u * (hi - lo)

@@ -1,0 +1,383 @@
+"""Model discrepancy: what a calibrated model still misses, as a smooth curve with a band.
+
+Kennedy & O'Hagan's form: ``measured = model(v) + delta(M) + noise``, with ``delta`` a Gaussian
+process per load case, in rotation (degrees), over ``x = ln M``:
+
+    k(x, x') = s^2 exp(-(x - x')^2 / (2 l^2)),   noise ~ N(0, sigma(M)^2).
+
+The model parameters ``v`` are fitted jointly with ``delta``: ``delta`` enters linearly with a
+Gaussian prior, so it is profiled out exactly and ``v`` minimises the generalised least squares
+``r^T C^-1 r`` with ``C = K + diag(sigma^2)`` (:func:`fit_discrepancy`, a projected
+Levenberg-Marquardt in the model's unit box). The posterior of ``delta`` anywhere (the kriging
+mean, and its variance including the uncertainty of ``v``, Rasmussen & Williams eq. 2.42 with the
+model's Jacobian as the explicit basis) is :func:`discrepancy_posterior`.
+
+:func:`describe` turns the posterior into words: per load case, laxity or stiffening, from which
+moment, how large, and whether it grows with the moment; and which registered effect's signature
+it resembles.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from femcal.schema import LOAD_CASES
+
+#: Correlation length of the discrepancy in ln(moment): smooth over a factor e^0.5 = 1.6.
+LENGTH_SCALE = 0.5
+
+
+@dataclass
+class DiscrepancyFit:
+    """A model fitted jointly with a GP discrepancy, for a batch of specimens.
+
+    Attributes
+    ----------
+    v : Tensor, shape (n, d)
+        Model parameters (unit coordinates) at the joint optimum.
+    pred : Tensor, shape (n, 4, m)
+        The model's curves there.
+    jac : Tensor, shape (n, 4, m, d)
+        Their Jacobian.
+    amplitude_deg : ndarray, shape (n,)
+        The GP amplitude ``s`` used per specimen.
+    alpha : ndarray, shape (n, 4 m)
+        ``C^-1 r``: the weights of the kriging mean.
+    chol : ndarray, shape (n, 4 m, 4 m)
+        Cholesky factor of ``C`` (unmeasured points decoupled, unit variance).
+    delta_at_points : ndarray, shape (n, 4, m)
+        Posterior mean of the discrepancy at the measured points (NaN elsewhere).
+    mae_deg : ndarray, shape (n,)
+        MAE of model + discrepancy against the measurements.
+    cost : ndarray, shape (n,)
+        The profiled generalised least squares ``r^T C^-1 r`` at the optimum (the data term
+        of -2 log marginal likelihood; ``log det C`` is the same for every model fitted with
+        the same amplitude, mask and noise).
+    """
+
+    v: torch.Tensor
+    pred: torch.Tensor
+    jac: torch.Tensor
+    amplitude_deg: np.ndarray
+    alpha: np.ndarray
+    chol: np.ndarray
+    delta_at_points: np.ndarray
+    mae_deg: np.ndarray
+    cost: np.ndarray
+
+
+def _kernel(xa: np.ndarray, xb: np.ndarray, amp: np.ndarray, length: float) -> np.ndarray:
+    """Block-diagonal (over load cases) SE kernel, shape (n, 4 a, 4 b)."""
+    base = np.exp(-0.5 * ((xa[:, None] - xb[None, :]) / length) ** 2)  # (a, b)
+    block = np.kron(np.eye(len(LOAD_CASES)), base)  # (4a, 4b), load-case major
+    return (amp**2)[:, None, None] * block[None]
+
+
+def _covariance(
+    mask: np.ndarray, sigma: np.ndarray, x: np.ndarray, amp: np.ndarray, length: float
+) -> np.ndarray:
+    """``C = K + diag(sigma^2)`` on the measured points; unmeasured points decoupled (1)."""
+    n = mask.shape[0]
+    flat = mask.reshape(n, -1).astype(float)
+    k = _kernel(x, x, amp, length) * flat[:, :, None] * flat[:, None, :]
+    s2 = np.broadcast_to(sigma**2, mask.shape).reshape(n, -1)
+    diag = np.where(flat > 0, s2, 1.0)
+    return k + np.einsum("ni,ij->nij", diag, np.eye(flat.shape[1]))
+
+
+def _whiten(chol: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``L^-1 a`` for a batch of lower-triangular ``L`` (n, P, P) and ``a`` (n, P, ...)."""
+    return np.linalg.solve(chol, a)  # chol is small (P <= 4 x 20); solve is exact enough
+
+
+def fit_discrepancy(
+    model,
+    v0: torch.Tensor,
+    measured: np.ndarray,
+    sigma: np.ndarray,
+    *,
+    amplitude_deg: np.ndarray | float | None = None,
+    length_scale: float = LENGTH_SCALE,
+    max_iter: int = 8,
+) -> DiscrepancyFit:
+    """Fit the model and a GP discrepancy jointly (see the module docstring).
+
+    Parameters
+    ----------
+    model : CurveModel or EffectModel
+        Differentiable curves on the measured moment grid (``curves_jacobian``).
+    v0 : Tensor, shape (n, d)
+        Start (unit coordinates), e.g. the model's own best fit.
+    measured : ndarray, shape (n, 4, m)
+        Measured RoM (deg), NaN where not measured.
+    sigma : ndarray, shape (m,) or (n, 4, m)
+        Noise sd of each point (deg): measurement noise and the surrogate's own error.
+    amplitude_deg : float or ndarray (n,), optional
+        GP amplitude ``s``. Default: the RMS misfit the model leaves beyond the noise at
+        ``v0`` (at least the smallest sigma), so that a model that fits gets a small ``s``.
+    length_scale : float
+        Correlation length in ln(moment).
+    max_iter : int
+        Levenberg-Marquardt iterations.
+
+    Returns
+    -------
+    DiscrepancyFit
+    """
+    meas = np.asarray(measured, dtype=float)
+    n, n_lc, m = meas.shape
+    mask = np.isfinite(meas)
+    y = np.where(mask, meas, 0.0)
+    sig = np.broadcast_to(np.asarray(sigma, dtype=float), meas.shape)
+    x = np.log(model.moments.double().numpy())
+    flat_mask = mask.reshape(n, -1)
+    v = v0.detach().clone().float()
+    d = v.shape[1]
+
+    def residual(pred: torch.Tensor) -> np.ndarray:
+        return np.where(mask, y - pred.double().numpy(), 0.0).reshape(n, -1)
+
+    pred, jac = model.curves_jacobian(v)
+    r = residual(pred)
+    if amplitude_deg is None:
+        count = flat_mask.sum(1).clip(1)
+        noise2 = (np.where(mask, sig, 0.0) ** 2).reshape(n, -1).sum(1)
+        excess = ((r**2).sum(1) - noise2) / count
+        amp = np.sqrt(np.clip(excess, 0.0, None))
+        amp = np.clip(amp, float(np.min(sig)), 5.0)
+    else:
+        amp = np.broadcast_to(np.asarray(amplitude_deg, dtype=float), (n,)).copy()
+    cov = _covariance(mask, sig, x, amp, length_scale)
+    chol = np.linalg.cholesky(cov)
+
+    def cost_of(res: np.ndarray) -> np.ndarray:
+        w = _whiten(chol, res[..., None])[..., 0]
+        return (w**2).sum(1)
+
+    cost = cost_of(r)
+    lam = np.full(n, 1e-3)
+    for _ in range(max_iter):
+        jm = (jac.double().numpy().reshape(n, -1, d)) * flat_mask[..., None]
+        rw = _whiten(chol, r[..., None])[..., 0]  # (n, P)
+        jw = _whiten(chol, jm)  # (n, P, d)
+        hess = np.einsum("npi,npj->nij", jw, jw)
+        grad = np.einsum("npi,np->ni", jw, rw)  # descent direction of r = y - f: +J^T r
+        vn = v.double().numpy()
+        blocked = ((vn <= 0) & (grad < 0)) | ((vn >= 1) & (grad > 0))
+        free = (~blocked).astype(float)
+        hf = hess * free[:, :, None] * free[:, None, :]
+        damp = lam[:, None] * (np.diagonal(hf, axis1=1, axis2=2) + 1e-6) + 1e-9
+        system = hf + np.einsum("ni,ij->nij", damp + (1 - free), np.eye(d))
+        step = np.linalg.solve(system, (grad * free)[..., None])[..., 0]
+        v_new = torch.tensor(np.clip(vn + step, 0.0, 1.0), dtype=torch.float32)
+        with torch.no_grad():
+            p_new = model.curves(v_new)
+        r_new = residual(p_new)
+        c_new = np.nan_to_num(cost_of(r_new), nan=np.inf)
+        ok = c_new < cost
+        if not ok.any():
+            lam *= 4
+            if np.all(lam > 1e6):
+                break
+            continue
+        idx = torch.as_tensor(np.flatnonzero(ok))
+        v[idx] = v_new[idx]
+        pn, jn = model.curves_jacobian(v[idx])
+        pred[idx], jac[idx] = pn, jn
+        r[ok] = r_new[ok]
+        gain = (cost - c_new) / np.maximum(cost, 1e-30)
+        cost = np.where(ok, c_new, cost)
+        lam = np.where(ok, lam / 3, lam * 4)
+        if np.all(~ok | (gain < 1e-5)):
+            break
+    alpha = np.linalg.solve(np.swapaxes(chol, 1, 2), _whiten(chol, r[..., None]))[..., 0]
+    k_pts = _kernel(x, x, amp, length_scale) * flat_mask[:, :, None] * flat_mask[:, None, :]
+    delta = np.einsum("nij,nj->ni", k_pts, alpha).reshape(n, n_lc, m)
+    delta = np.where(mask, delta, np.nan)
+    err = np.abs(np.where(mask, meas - pred.double().numpy() - np.nan_to_num(delta), np.nan))
+    return DiscrepancyFit(
+        v=v,
+        pred=pred.detach(),
+        jac=jac.detach(),
+        amplitude_deg=amp,
+        alpha=alpha,
+        chol=chol,
+        delta_at_points=delta,
+        mae_deg=np.nanmean(err.reshape(n, -1), axis=1),
+        cost=cost,
+    )
+
+
+def discrepancy_posterior(
+    fit: DiscrepancyFit,
+    moments: np.ndarray,
+    at: np.ndarray,
+    mask: np.ndarray,
+    *,
+    length_scale: float = LENGTH_SCALE,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mean and sd of the discrepancy at moments ``at``.
+
+    Parameters
+    ----------
+    fit : DiscrepancyFit
+    moments : ndarray, shape (m,)
+        The measured moment grid of the fit.
+    at : ndarray, shape (q,)
+        Where to evaluate (Nm).
+    mask : ndarray of bool, shape (n, 4, m)
+        The measured points.
+
+    Returns
+    -------
+    mean, sd : ndarray, shape (n, 4, q)
+        The sd includes the uncertainty of the model parameters (their unit-box prior).
+    """
+    n = fit.alpha.shape[0]
+    x = np.log(np.asarray(moments, dtype=float))
+    xs = np.log(np.asarray(at, dtype=float))
+    q = len(xs)
+    flat = mask.reshape(n, -1).astype(float)
+    ks = _kernel(xs, x, fit.amplitude_deg, length_scale) * flat[:, None, :]  # (n, 4q, P)
+    mean = np.einsum("nqp,np->nq", ks, fit.alpha)
+    # Var = k** - k*^T C^-1 k* + G Sigma_v G^T, G = k*^T C^-1 J.
+    a = _whiten(fit.chol, np.swapaxes(ks, 1, 2))  # L^-1 k*: (n, P, 4q)
+    d = fit.v.shape[1]
+    jm = fit.jac.double().numpy().reshape(n, -1, d) * flat[..., None]
+    bj = _whiten(fit.chol, jm)  # L^-1 J: (n, P, d)
+    sigma_v = np.linalg.inv(np.einsum("npi,npj->nij", bj, bj) + np.eye(d))
+    g = np.einsum("npq,npd->nqd", a, bj)  # (n, 4q, d)
+    var = (
+        (fit.amplitude_deg**2)[:, None]
+        - (a**2).sum(1)
+        + np.einsum("nqi,nij,nqj->nq", g, sigma_v, g)
+    )
+    sd = np.sqrt(np.clip(var, 0.0, None))
+    return mean.reshape(n, len(LOAD_CASES), q), sd.reshape(n, len(LOAD_CASES), q)
+
+
+def describe(
+    moments: np.ndarray,
+    mean: np.ndarray,
+    sd: np.ndarray,
+    sigma_deg: float,
+    *,
+    z: float = 2.0,
+) -> list[str]:
+    """What is missing, in words, one sentence per load case where the band excludes zero.
+
+    Parameters
+    ----------
+    moments : ndarray, shape (q,)
+        Increasing moments (Nm) of the posterior; NaN columns are skipped.
+    mean, sd : ndarray, shape (4, q)
+        Discrepancy posterior (measured - model, deg).
+    sigma_deg : float
+        The noise sd, to say the size in sigma.
+    z : float
+        A point is significant where ``|mean| > z sd``.
+
+    Returns
+    -------
+    list of str
+    """
+    out = []
+    for j, lc in enumerate(LOAD_CASES):
+        ok = np.isfinite(mean[j]) & np.isfinite(sd[j])
+        sig = ok & (np.abs(mean[j]) > z * sd[j]) & (np.abs(mean[j]) > sigma_deg)
+        if not sig.any():
+            continue
+        idx = np.flatnonzero(sig)
+        peak = idx[np.argmax(np.abs(mean[j][idx]))]
+        value = float(mean[j][peak])
+        sign = np.sign(value)
+        same = idx[np.sign(mean[j][idx]) == sign]
+        onset = float(moments[same[0]])
+        upto = float(moments[same[-1]])
+        kind = (
+            "more rotation than the model (laxity or softening)"
+            if sign > 0
+            else "less rotation than the model (stiffening)"
+        )
+        first_ok = np.flatnonzero(ok)
+        low_end = abs(float(mean[j][first_ok[0]]))
+        high_end = abs(float(mean[j][first_ok[-1]]))
+        if high_end > 1.5 * max(low_end, 1e-9) and same[-1] == first_ok[-1]:
+            shape = "growing with the moment"
+        elif low_end >= 0.7 * high_end and same[0] == first_ok[0]:
+            shape = "already at the lowest moment, then about constant (an offset)"
+        else:
+            shape = "largest mid-range"
+        out.append(
+            f"{lc}: {kind} from {onset:.2g} to {upto:.2g} Nm, up to {abs(value):.2f} deg "
+            f"({abs(value) / sigma_deg:.0f} sigma) at {float(moments[peak]):.2g} Nm, {shape}"
+        )
+    return out
+
+
+def similarity(delta: np.ndarray, signatures: Mapping[str, np.ndarray], sigma: np.ndarray):
+    """Cosine similarity of a discrepancy with each effect's signature, in units of sigma.
+
+    Parameters
+    ----------
+    delta : ndarray, shape (4, m)
+        Discrepancy at the measured points (NaN elsewhere).
+    signatures : mapping of str to ndarray (4, m)
+        What each registered effect adds to the disc-alone fit (its fit minus the disc's).
+    sigma : ndarray, shape (m,) or (4, m)
+
+    Returns
+    -------
+    dict of str to float
+    """
+    ok = np.isfinite(delta)
+    a = np.where(ok, delta / sigma, 0.0).reshape(-1)
+    na = float(np.linalg.norm(a))
+    out = {}
+    for name, sgn in signatures.items():
+        b = np.where(ok, np.nan_to_num(sgn) / sigma, 0.0).reshape(-1)
+        nb = float(np.linalg.norm(b))
+        out[name] = float(a @ b / (na * nb)) if na > 0 and nb > 0 else 0.0
+    return out
+
+
+def runs_p_value(residuals: np.ndarray) -> float:
+    """One-sided Wald-Wolfowitz runs test pooled over load cases: too few sign runs.
+
+    Parameters
+    ----------
+    residuals : ndarray, shape (4, m)
+        Residuals ordered by moment per load case (NaN: not measured).
+
+    Returns
+    -------
+    float
+        P(runs <= observed) under random signs (normal approximation); 1 when untestable.
+    """
+    runs = expected = var = 0.0
+    for row in residuals:
+        s = np.sign(row[np.isfinite(row)])
+        s = s[s != 0]
+        n1, n2 = int((s > 0).sum()), int((s < 0).sum())
+        total = n1 + n2
+        if total < 2:
+            continue
+        runs += 1 + int(np.sum(s[1:] != s[:-1]))
+        expected += 1 + 2.0 * n1 * n2 / total
+        var += 2.0 * n1 * n2 * (2.0 * n1 * n2 - total) / (total**2 * (total - 1))
+    if var <= 0:
+        return 1.0
+    zval = (runs - expected) / math.sqrt(var)
+    return 0.5 * math.erfc(-zval / math.sqrt(2))
+
+
+def dense_grid(moments: Sequence[float], q: int = 48) -> np.ndarray:
+    """``q`` log-spaced moments spanning the measured grid (and every grid moment itself)."""
+    m = np.asarray(moments, dtype=float)
+    grid = np.geomspace(m.min(), m.max(), q)
+    return np.unique(np.concatenate([grid, m]))

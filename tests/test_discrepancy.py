@@ -1,0 +1,120 @@
+"""The GP discrepancy: joint fit, posterior against a direct computation, words, runs test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from femcal.calibration import CurveModel
+from femcal.discrepancy import (
+    _covariance,
+    _kernel,
+    describe,
+    discrepancy_posterior,
+    fit_discrepancy,
+    runs_p_value,
+    similarity,
+)
+from femcal.surrogates.nn import NeuralSurrogate
+
+from synth import study_space, tidy_table
+
+MOMENTS = np.arange(1.0, 5.01, 0.5)
+NOISE = 0.02
+
+
+@pytest.fixture(scope="module")
+def base() -> CurveModel:
+    table = tidy_table(40, seed=5)
+    model = NeuralSurrogate(study_space(), hidden=(24, 24), max_epochs=30, batch_size=16, seed=0)
+    return CurveModel(model.fit(table, table["rom_deg"].to_numpy()), MOMENTS)
+
+
+def _softened(base: CurveModel, n: int, seed: int):
+    """Surrogate curves + a softening in flexion (0.4 deg at 5 Nm, cubic) + noise."""
+    rng = np.random.default_rng(seed)
+    x = base.space.sample_uniform(n, rng)
+    clean = base.predict(x)
+    extra = np.zeros_like(clean)
+    extra[:, 0] = 0.4 * (MOMENTS / 5.0) ** 3
+    return x, clean + extra + rng.normal(0, NOISE, clean.shape), extra
+
+
+def test_posterior_matches_a_direct_gp_computation(base):
+    x, meas, _ = _softened(base, 3, seed=0)
+    meas[1, 2, 4:] = np.nan  # a specimen with missing points
+    v0 = base.from_physical(x)
+    fit = fit_discrepancy(base, v0, meas, np.full(len(MOMENTS), NOISE), max_iter=0)
+    mask = np.isfinite(meas)
+    mean, _ = discrepancy_posterior(fit, MOMENTS, MOMENTS, mask)
+    # Direct kriging of the residual at the same v: k*^T (K + s^2 I)^-1 r, measured points only.
+    lx = np.log(MOMENTS)
+    for i in range(3):
+        ok = mask[i].reshape(-1)
+        r = (meas[i] - fit.pred[i].double().numpy()).reshape(-1)[ok]
+        k = _kernel(lx, lx, fit.amplitude_deg[i : i + 1], 0.5)[0]
+        c = k[np.ix_(ok, ok)] + NOISE**2 * np.eye(ok.sum())
+        direct = k[:, ok] @ np.linalg.solve(c, r)
+        np.testing.assert_allclose(mean[i].reshape(-1), direct, atol=1e-8)
+    cov = _covariance(mask, np.full(len(MOMENTS), NOISE), lx, fit.amplitude_deg, 0.5)
+    gone = ~mask[1].reshape(-1)
+    np.testing.assert_allclose(cov[1][np.ix_(gone, gone)], np.eye(5))  # decoupled, unit
+
+
+def test_the_joint_fit_finds_the_missing_softening_inside_its_band(base):
+    x, meas, extra = _softened(base, 6, seed=1)
+    v0 = base.from_physical(x)
+    sigma = np.full(len(MOMENTS), NOISE)
+    fit = fit_discrepancy(base, v0, meas, sigma)
+    mean, sd = discrepancy_posterior(fit, MOMENTS, MOMENTS, np.isfinite(meas))
+    # The disc parameters are fitted jointly, so the disc may take up part of the softening;
+    # the truth must lie inside the band where the band is narrow, and flexion must show it.
+    inside = np.abs(mean - extra) <= 3 * sd + 1e-9
+    assert inside.mean() >= 0.9
+    assert np.all(mean[:, 0, -1] > 0.1)  # flexion at 5 Nm: more rotation than the model
+    assert np.all(fit.mae_deg < 2 * NOISE)
+    assert np.all(sd >= 0)
+
+
+def test_describe_says_where_what_and_how_large():
+    q = np.linspace(1, 7.5, 14)
+    mean = np.zeros((4, q.size))
+    sd = np.full((4, q.size), 0.02)
+    mean[3] = -0.3 * np.clip(q - 3.0, 0, None) / 4.5  # stiffening in axial rotation from 3 Nm
+    mean[0] = 0.25  # an offset in flexion
+    text = describe(q, mean, sd, 0.05)
+    assert len(text) == 2
+    assert text[0].startswith("Flexion: more rotation than the model")
+    assert "offset" in text[0]
+    # Detectable (beyond 2 sd and beyond sigma) from 4 Nm: 0.3 * 1 / 4.5 = 0.067 > 0.05 deg.
+    assert text[1].startswith(
+        "AxialRotation: less rotation than the model (stiffening) from 4 to 7.5 Nm"
+    )
+    assert "growing with the moment" in text[1] and "up to 0.30 deg (6 sigma)" in text[1]
+    assert describe(q, np.zeros((4, q.size)), sd, 0.05) == []
+
+
+def test_runs_test_flags_one_sign_runs_only():
+    alternating = np.tile([1.0, -1.0], (4, 5))
+    assert runs_p_value(alternating) > 0.99
+    blocks = np.concatenate([np.ones((4, 5)), -np.ones((4, 5))], 1)
+    assert runs_p_value(blocks) < 1e-3
+    assert runs_p_value(np.full((4, 1), np.nan)) == 1.0
+
+
+def test_similarity_is_a_cosine_in_sigma_units():
+    delta = np.zeros((4, 3))
+    delta[1] = [0.1, 0.2, 0.3]
+    sig = {"a": 2 * delta, "b": -delta, "c": np.zeros((4, 3))}
+    out = similarity(delta, sig, np.full(3, 0.05))
+    assert out == pytest.approx({"a": 1.0, "b": -1.0, "c": 0.0})
+
+
+def test_fit_is_deterministic(base):
+    x, meas, _ = _softened(base, 2, seed=3)
+    v0 = base.from_physical(x)
+    a = fit_discrepancy(base, v0, meas, np.full(len(MOMENTS), NOISE))
+    b = fit_discrepancy(base, v0, meas, np.full(len(MOMENTS), NOISE))
+    torch.testing.assert_close(a.v, b.v)
+    np.testing.assert_array_equal(a.delta_at_points, b.delta_at_points)
