@@ -3,20 +3,14 @@
 from __future__ import annotations
 
 import logging
-import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from femcal.errors import ConfigError, InputDataError
-from femcal.measurements import (
-    Measurements,
-    check_moment_range,
-    from_arrays,
-    read_measurements,
-)
+from femcal.errors import InputDataError
+from femcal.measurements import from_arrays, read_measurements
 from femcal.schema import LOAD_CASES
 
 STUDY_TEST = [
@@ -79,12 +73,6 @@ def study_folder(tmp_path: Path, tables: dict[str, list[str]]) -> Path:
         text = "\r\n".join(["0,1,2,3,4,5", *rows]) + "\r\n"
         (folder / f"ROM_Results_{lc}_TestData_3_wMoment.csv").write_text(text, newline="")
     return folder
-
-
-def some_measurements(m: int = 3) -> Measurements:
-    moments = np.arange(1.0, m + 1.0)
-    rom = np.broadcast_to(moments, (2, 4, m)).copy()
-    return from_arrays(["A", "B"], moments, rom, source="unit")
 
 
 # ------------------------------------------------------------------ long layout
@@ -495,45 +483,3 @@ def test_from_arrays_errors(kwargs: dict, match: str) -> None:
         from_arrays(
             args.pop("specimens"), args.pop("moments"), args.pop("rom_deg"), source="src", **args
         )
-
-
-# -------------------------------------------------------------- moment range
-def test_moment_range_inside_is_silent() -> None:
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        check_moment_range(some_measurements(5), trained_range=(1, 5), max_extrapolation=0.0)
-
-
-def test_moment_range_warns_when_extrapolating() -> None:
-    with pytest.warns(
-        UserWarning,
-        match=r"unit: measured moments 6 Nm lie outside the trained moment range \[1, 5\] Nm",
-    ):
-        check_moment_range(some_measurements(6), trained_range=(1, 5), max_extrapolation=0.5)
-
-
-def test_moment_range_refuses_far_moments() -> None:
-    with pytest.raises(
-        InputDataError,
-        match=r"unit: measured moments 8 Nm are too far outside the trained moment range "
-        r"\[1, 5\] Nm: with max_extrapolation = 0\.5 .* moments in \[-1, 7\] Nm are accepted.*"
-        r"raise the max_extrapolation setting",
-    ):
-        check_moment_range(some_measurements(8), trained_range=(1, 5), max_extrapolation=0.5)
-    # Moments 1..4 inside [2, 4] +- 0.5 * 2 = [1, 5]: only a warning about 1 Nm.
-    with pytest.warns(UserWarning, match=r"moments 1 Nm lie outside"):
-        check_moment_range(some_measurements(4), trained_range=(2, 4), max_extrapolation=0.5)
-
-
-@pytest.mark.parametrize(
-    ("trained", "ext", "match"),
-    [
-        ((1, 5), -0.1, r"max_extrapolation must be a fraction >= 0 .*; got -0\.1"),
-        ((1, 5), float("nan"), r"max_extrapolation must be a fraction >= 0"),
-        ((5, 1), 0.5, r"trained_range must be two finite moments in Nm with lo < hi"),
-        ((1,), 0.5, r"trained_range must be a pair \(lo, hi\)"),
-    ],
-)
-def test_moment_range_config_errors(trained: tuple, ext: float, match: str) -> None:
-    with pytest.raises(ConfigError, match=match):
-        check_moment_range(some_measurements(), trained_range=trained, max_extrapolation=ext)

@@ -32,7 +32,6 @@ import io
 import logging
 import math
 import re
-import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from femcal.errors import ConfigError, InputDataError
+from femcal.errors import InputDataError
 from femcal.schema import LOAD_CASES, canonical_load_case
 
 logger = logging.getLogger(__name__)
@@ -1051,84 +1050,3 @@ def read_measurements(path: str | Path) -> Measurements:
     )
     _warn_missing(meas)
     return meas
-
-
-# ---------------------------------------------------------------- moment range
-def check_moment_range(
-    meas: Measurements, *, trained_range: tuple[float, float], max_extrapolation: float
-) -> None:
-    """Check the measured moments against the moment range a surrogate was trained on.
-
-    With ``(lo, hi) = trained_range`` and ``span = hi - lo``, measured moments in
-    ``[lo, hi]`` pass; moments outside it but within
-    ``[lo - max_extrapolation * span, hi + max_extrapolation * span]`` are extrapolated with
-    a ``UserWarning``; moments beyond that are refused.
-
-    Parameters
-    ----------
-    meas : Measurements
-        The measurements; only moments with at least one measured point are checked.
-    trained_range : tuple of float
-        ``(lo, hi)``, the smallest and largest moment (Nm) of the training data, lo < hi.
-    max_extrapolation : float
-        Accepted extrapolation on each side, as a fraction (>= 0) of the trained span
-        (e.g. 0.5: half the span below ``lo`` and above ``hi``).
-
-    Raises
-    ------
-    ConfigError
-        ``trained_range`` or ``max_extrapolation`` is invalid.
-    InputDataError
-        A measured moment lies beyond the accepted extrapolation.
-
-    Warns
-    -----
-    UserWarning
-        A measured moment lies outside ``trained_range`` but within the accepted range.
-    """
-    try:
-        lo, hi = (float(x) for x in trained_range)
-    except (TypeError, ValueError):
-        raise ConfigError(
-            f"trained_range must be a pair (lo, hi) of moments in Nm; got {trained_range!r}."
-        ) from None
-    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-        raise ConfigError(
-            f"trained_range must be two finite moments in Nm with lo < hi; got {trained_range!r}."
-        )
-    try:
-        ext = float(max_extrapolation)
-    except (TypeError, ValueError):
-        ext = math.nan
-    if not (math.isfinite(ext) and ext >= 0):
-        raise ConfigError(
-            f"max_extrapolation must be a fraction >= 0 of the trained moment span (e.g. 0.5); "
-            f"got {max_extrapolation!r}."
-        )
-    span = hi - lo
-    tol = 1e-9 * span
-    lo_ok, hi_ok = lo - ext * span, hi + ext * span
-    used = meas.moments[meas.mask().any(axis=(0, 1))]
-
-    def fmt(values: np.ndarray) -> str:
-        return ", ".join(f"{x:g}" for x in values)
-
-    refused = used[(used < lo_ok - tol) | (used > hi_ok + tol)]
-    if refused.size:
-        raise InputDataError(
-            f"{meas.source}: measured moments {fmt(refused)} Nm are too far outside the "
-            f"trained moment range [{lo:g}, {hi:g}] Nm: with max_extrapolation = {ext:g} (a "
-            f"fraction of the trained span of {span:g} Nm) moments in [{lo_ok:g}, {hi_ok:g}] "
-            "Nm are accepted. Delete those points from the measurements, train the surrogate "
-            "on a wider moment range, or raise the max_extrapolation setting."
-        )
-    outside = used[(used < lo - tol) | (used > hi + tol)]
-    if outside.size:
-        warnings.warn(
-            f"{meas.source}: measured moments {fmt(outside)} Nm lie outside the trained moment "
-            f"range [{lo:g}, {hi:g}] Nm; the surrogate extrapolates there (accepted up to "
-            f"[{lo_ok:g}, {hi_ok:g}] Nm by max_extrapolation = {ext:g}), so treat the fit at "
-            "these moments with care.",
-            UserWarning,
-            stacklevel=2,
-        )

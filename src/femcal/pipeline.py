@@ -305,7 +305,8 @@ def run_calibrate(
     start_bank: Path | None,
     options: Mapping[str, Any],
     seed: int,
-    max_extrapolation: float,
+    error_growth: float,
+    max_log_ratio: float,
     chunk_size: int | None = None,
     plots: bool = True,
     max_plots: int | None = None,
@@ -318,7 +319,10 @@ def run_calibrate(
     parameters are calibrated jointly with the material parameters.
 
     Reads the measurements, loads the surrogate (and the held-out surrogate) from the MLflow
-    registry, checks the moment range, calibrates the batch, writes ``out_dir`` (see
+    registry, checks the moments with the moment policy (:class:`femcal.moments.MomentPolicy`
+    of ``error_growth`` and ``max_log_ratio``, params.yaml ``moments``), calibrates the batch
+    with each point weighted by ``1 / sd(M)^2`` of the surrogate's error at its moment (times
+    the measurement's own weight), writes ``out_dir`` (see
     :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
     per-specimen tables and every output file as artifacts.
 
@@ -332,14 +336,15 @@ def run_calibrate(
 
     from femcal.calibration import CurveModel, calibrate
     from femcal.calibration.report import write_outputs
-    from femcal.measurements import check_moment_range, read_measurements
+    from femcal.measurements import read_measurements
+    from femcal.moments import MomentPolicy
     from femcal.tracking import load_surrogate, resolve_model_version
 
     meas = read_measurements(measurements)
     surrogate = load_surrogate(model_uri)
-    check_moment_range(
-        meas, trained_range=tuple(surrogate.moment_range_), max_extrapolation=max_extrapolation
-    )
+    policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
+    policy.check(meas)
+    weight = meas.weight * policy.weights(meas.moments)  # (n, 4, m): 1 / sd(M)^2, relative
     from femcal.effects.composite import EffectModel
 
     model = CurveModel(surrogate, meas.moments)
@@ -355,7 +360,7 @@ def run_calibrate(
         model,
         meas.rom_deg,
         specimens=meas.specimens,
-        weight=meas.weight,
+        weight=weight,
         method=method,
         seed=seed,
         chunk_size=chunk_size,
@@ -377,6 +382,8 @@ def run_calibrate(
             "holdout_uri": holdout_uri or "",
             "seed": seed,
             "chunk_size": chunk_size or 0,
+            "moments.error_growth": error_growth,
+            "moments.max_log_ratio": max_log_ratio,
         }
         for key, value in opts.items():
             if key != "start_bank" and not hasattr(value, "predict"):
@@ -534,28 +541,36 @@ def run_diagnose(
     start_bank: Path | None,
     min_delta: float,
     seed: int,
+    error_growth: float,
+    max_log_ratio: float,
     plots: bool = True,
     max_plots: int | None = None,
 ):
-    """Diagnose every specimen of a measurement file; write DIR; log one MLflow run."""
+    """Diagnose every specimen of a measurement file; write DIR; log one MLflow run.
+
+    The moments are checked with the moment policy (:class:`femcal.moments.MomentPolicy` of
+    ``error_growth`` and ``max_log_ratio``, params.yaml ``moments``), and the surrogate's own
+    error at each moment (shape (m,), larger beyond the trained range) is part of the noise.
+    """
     import mlflow
 
     from femcal.calibration import CurveModel
     from femcal.diagnose import diagnose
     from femcal.diagnose_report import write_diagnosis
     from femcal.measurements import read_measurements
+    from femcal.moments import MomentPolicy
     from femcal.tracking import load_surrogate
 
     meas = read_measurements(measurements)
     surrogate = load_surrogate(model_uri)
-    val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
-    sur_err = val * float(np.sqrt(np.pi / 2)) if np.isfinite(val) else 0.0
+    policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
+    policy.check(meas)
     diag = diagnose(
         CurveModel(surrogate, meas.moments),
         meas.rom_deg,
         specimens=meas.specimens,
         noise_deg=noise_deg,
-        surrogate_error_deg=sur_err,
+        surrogate_error_deg=policy.sigma_surrogate(meas.moments),
         candidates=candidates,
         start_bank=training_configurations(start_bank) if start_bank else None,
         min_delta=min_delta,
@@ -572,6 +587,8 @@ def run_diagnose(
                 "candidates": ",".join(candidates or []) or "all",
                 "min_delta": min_delta,
                 "cohort_verdict": diag.cohort_verdict(),
+                "moments.error_growth": error_growth,
+                "moments.max_log_ratio": max_log_ratio,
             }
         )
         mlflow.log_metrics(
@@ -579,7 +596,13 @@ def run_diagnose(
                 "sigma_deg": diag.sigma_deg,
                 "noise_deg": diag.noise_deg,
                 "seconds": diag.seconds,
-                **{f"n_{k}": float(v) for k, v in diag.verdicts().items()},
+                # MLflow metric names take no "+": one count per effect (and "unexplained"),
+                # and one per verdict with "+" spelt "__".
+                **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
+                **{
+                    f"n_verdict_{k.replace('+', '__')}": float(v)
+                    for k, v in diag.verdicts().items()
+                },
             }
         )
         mlflow.log_artifacts(str(out_dir), artifact_path="diagnosis")

@@ -21,6 +21,9 @@ from femcal.tracking import (
     register_and_promote,
 )
 
+#: The moment policy's settings (params.yaml ``moments``).
+MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
+
 
 @pytest.fixture
 def registry(tmp_path, monkeypatch, small_surrogate):
@@ -62,7 +65,7 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
         start_bank=None,
         options={"n_bank_uniform": 256},
         seed=0,
-        max_extrapolation=0.5,
+        **MOMENTS,
     )
     assert result.specimens == tuple(f"spec-{i}" for i in range(6))
     # Reachable targets: the fit stops at a quarter of the noise (the small surrogate's error).
@@ -83,7 +86,11 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
 
 def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
     meas = _long_csv(registry / "m.csv", truth[1][:1], moments=(1, 2, 3, 4, 9))
-    with pytest.raises(InputDataError, match=r"too far outside the trained moment range \[1, 5\]"):
+    with pytest.raises(
+        InputDataError,
+        match=r"m\.csv: measured moments 9 Nm are too far outside the surrogate's trained moment "
+        r"range \[1, 5\] Nm: moments in \[0\.6, 8\.33\] Nm are accepted",
+    ):
         run_calibrate(
             measurements=meas,
             out_dir=registry / "out",
@@ -93,7 +100,7 @@ def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
             start_bank=None,
             options={},
             seed=0,
-            max_extrapolation=0.5,
+            **MOMENTS,
         )
 
 
@@ -107,6 +114,7 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
             "experiment": "test",
             "model_name": "ivd-rom-surrogate",
         },
+        "moments": MOMENTS,
         "calibrate": {
             "datasets": {
                 "mine": str(meas),
@@ -119,7 +127,6 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
             "holdout_uri": None,
             "start_bank": None,
             "seed": 0,
-            "max_extrapolation": 0.5,
             "plots": False,
             "options": {"pgd": {"n_bank_uniform": 128}},
         },
@@ -168,7 +175,7 @@ def test_missing_registered_model(registry, truth):
             start_bank=None,
             options={},
             seed=0,
-            max_extrapolation=0.5,
+            **MOMENTS,
         )
 
 
@@ -191,7 +198,7 @@ def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
         start_bank=None,
         options={"n_bank_uniform": 256},
         seed=0,
-        max_extrapolation=0.5,
+        **MOMENTS,
         plots=False,
     )
     _, disc = run_calibrate(out_dir=tmp / "disc", **common)
@@ -210,3 +217,87 @@ def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
     )
     assert runs.iloc[0]["tags.femcal.compared_to"] == runs.iloc[1]["run_id"]
     assert "| mae_deg_Extension |" in (tmp / "facet" / "comparison.md").read_text()
+
+
+def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, monkeypatch):
+    # The common in vitro protocol, 1.25 .. 7.5 Nm, against a surrogate trained on 1..5 Nm.
+    import femcal.calibration
+    from femcal.calibration import CurveModel
+
+    moments = (1.25, 2.5, 5.0, 7.5)
+    x = small_surrogate.space.sample_uniform(2, np.random.default_rng(4))
+    meas = _long_csv(
+        registry / "vitro.csv", CurveModel(small_surrogate, moments).predict(x), moments
+    )
+    seen = {}
+    real = femcal.calibration.calibrate
+
+    def spy(*args, **kwargs):
+        seen["weight"] = kwargs["weight"]
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(femcal.calibration, "calibrate", spy)
+    with pytest.warns(
+        UserWarning,
+        match=r"vitro\.csv: measured moments 7\.5 Nm lie outside the surrogate's trained moment "
+        r"range \[1, 5\] Nm .* deg at 7\.5 Nm, counted in sigma",
+    ):
+        _, figures = run_calibrate(
+            measurements=meas,
+            out_dir=registry / "out",
+            method="pgd",
+            model_uri="models:/ivd-rom-surrogate@champion",
+            holdout_uri=None,
+            start_bank=None,
+            options={"n_bank_uniform": 128},
+            seed=0,
+            plots=False,
+            **MOMENTS,
+        )
+    assert figures["n_specimens"] == 2
+    # 1 / sd(M)^2 relative to the trained range: exp(-2 g L), L = log(7.5 / 5).
+    expected = np.array([1.0, 1.0, 1.0, 1.5 ** (-2 * MOMENTS["error_growth"])])
+    np.testing.assert_allclose(seen["weight"], np.broadcast_to(expected, (2, 4, 4)))
+
+
+def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
+    registry, small_surrogate, truth, monkeypatch
+):
+    import femcal.diagnose
+    from femcal.moments import MomentPolicy
+    from femcal.pipeline import run_diagnose
+
+    class Stop(Exception):
+        pass
+
+    seen = {}
+
+    def fake_diagnose(*args, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(femcal.diagnose, "diagnose", fake_diagnose)
+    common = dict(
+        out_dir=registry / "diag",
+        model_uri="models:/ivd-rom-surrogate@champion",
+        noise_deg=0.05,
+        candidates=None,
+        start_bank=None,
+        min_delta=10.0,
+        seed=0,
+        **MOMENTS,
+    )
+    moments = (1, 2, 3, 4, 5, 6)
+    curves = np.concatenate([truth[1][:1], truth[1][:1, :, -1:]], axis=2)
+    with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"), pytest.raises(Stop):
+        run_diagnose(measurements=_long_csv(registry / "d.csv", curves, moments), **common)
+    sigma = seen["surrogate_error_deg"]
+    policy = MomentPolicy.for_surrogate(
+        small_surrogate, growth=MOMENTS["error_growth"], max_log_ratio=MOMENTS["max_log_ratio"]
+    )
+    assert isinstance(sigma, np.ndarray) and sigma.shape == (6,)
+    np.testing.assert_allclose(sigma, policy.sigma_surrogate(np.array(moments, dtype=float)))
+    assert sigma[-1] > sigma[0] == sigma[4] == pytest.approx(policy.error_deg)
+    far = _long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
+    with pytest.raises(InputDataError, match=r"far\.csv: measured moments 12 Nm are too far"):
+        run_diagnose(measurements=far, **common)
