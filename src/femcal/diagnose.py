@@ -300,6 +300,9 @@ class _Fit:
     pred: torch.Tensor  # (r, 4, m)
     chi2: np.ndarray  # (r,)
     k: int
+    trace: np.ndarray | None = None  # (r,) effective number of parameters
+    cov: np.ndarray | None = None  # (r, dim, dim) parameter covariance, unit coordinates
+    finite: np.ndarray | None = None  # (r,) the Jacobian is finite
 
 
 def _fit_from(
@@ -590,28 +593,29 @@ def diagnose(
     finals: dict[tuple[str, ...], list[int]] = {}
     for i in range(n):
         finals.setdefault(chosen[i], []).append(i)
-    jac_final: dict[int, torch.Tensor] = {}
-    for effects, members in finals.items():
-        model = base if not effects else effect_model(effects)
-        v = torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in members])
-        _, jac = model.curves_jacobian(v)
-        for pos, i in enumerate(members):
-            jac_final[i] = jac[pos]
-    _, jac0 = base.curves_jacobian(v_disc)
-    trace0, _ = _hat_trace_and_cov(jac0, mask, sigma)
+    # One Jacobian per fitted batch (all its specimens at once): effective parameters and
+    # the parameter covariance of every model in every ranking.
+    done: set[int] = set()
+    for i in range(n):
+        for f, _ in per_spec[i].values():
+            if id(f) not in done:
+                done.add(id(f))
+                _, jac = f.model.curves_jacobian(f.v)
+                f.trace, f.cov = _hat_trace_and_cov(jac, mask[f.rows], sigma)
+                f.finite = torch.isfinite(jac).reshape(len(f.rows), -1).all(1).numpy()
 
     adequacy: list[dict[str, Any]] = []
+    f0 = fits[()]
     for i in range(n):
         f, pos = per_spec[i][chosen[i]]
-        tr, _ = _hat_trace_and_cov(jac_final[i][None], mask[i : i + 1], sigma)
         res = measured[i] - f.pred[pos].double().numpy()
         adequacy.append(
             {
-                "final": _adequacy(res, sigma, float(n_points[i] - tr[0]), alpha),
+                "final": _adequacy(res, sigma, float(n_points[i] - f.trace[pos]), alpha),
                 "disc_alone": _adequacy(
                     measured[i] - pred0[i].double().numpy(),
                     sigma,
-                    float(n_points[i] - trace0[i]),
+                    float(n_points[i] - f0.trace[i]),
                     alpha,
                 ),
             }
@@ -744,7 +748,6 @@ def _ranking(
 ) -> list[dict[str, Any]]:
     """Every model fitted for specimen ``i``: MAE, BIC and effect parameters ± sd."""
     rows = []
-    mask = np.isfinite(measured[i])
     for effects, (f, pos) in fits.items():
         pred = f.pred[pos].double().numpy()
         mae = float(np.nanmean(np.abs(measured[i] - pred)))
@@ -758,9 +761,8 @@ def _ranking(
         if effects:
             model = f.model
             vi = f.v[pos : pos + 1]
-            _, jac = model.curves_jacobian(vi)
-            finite = bool(torch.isfinite(jac).all())
-            _, cov = _hat_trace_and_cov(jac, mask[None], sigma)
+            finite = bool(f.finite[pos])
+            cov = f.cov[pos : pos + 1]
             x = model.to_physical(vi.double().numpy())[0]
             col = base.dim
             for e in model.effects:

@@ -176,29 +176,28 @@ class EffectModel:
     def curves_jacobian(
         self, v: torch.Tensor, *, jacobian_members: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim) by reverse mode, the backward
-        passes of all outputs batched (``jacobian_members`` is accepted and ignored: always
-        exact)."""
-        self.n_evaluations += int(v.shape[0]) * 4 * len(self.moments)
-        with torch.enable_grad():
-            vv = v.detach().clone().requires_grad_(True)
-            out = self.curves(vv)
-            flat = out.reshape(len(vv), -1)
-            n_out = flat.shape[1]
-            # All outputs' backward passes at once (vmapped): row r of the Jacobian is the
-            # gradient of sum_b flat[b, r] (specimens are independent).
-            seeds = torch.eye(n_out, dtype=flat.dtype)[:, None, :].expand(n_out, len(vv), n_out)
-            try:
-                (g,) = torch.autograd.grad(flat, vv, seeds, is_grads_batched=True)
-            except RuntimeError:  # an operation without a batching rule: one pass per output
-                g = torch.stack(
-                    [
-                        torch.autograd.grad(flat[:, r].sum(), vv, retain_graph=True)[0]
-                        for r in range(n_out)
-                    ]
-                )
-        jac = g.permute(1, 0, 2).reshape(*out.shape, self.dim)
-        return out.detach(), jac
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim), exact, by forward-mode AD.
+
+        Each row is repeated ``dim`` times, row ``j`` of a block carrying the tangent ``e_j``,
+        so one forward pass gives every column. The bisection for the disc's share of the
+        moment carries no tangent (its iterates do not depend on ``v``), and the Newton step
+        that follows gives the implicit-function derivative exactly at the solution.
+        (``jacobian_members`` is accepted and ignored.)
+        """
+        import torch.autograd.forward_ad as fwad
+
+        b, d = v.shape
+        self.n_evaluations += b * d
+        primal = v.detach().repeat_interleave(d, 0)
+        tangent = torch.eye(d, dtype=v.dtype).repeat(b, 1)
+        with fwad.dual_level():
+            out = self.curves(fwad.make_dual(primal, tangent))
+            values, jac = fwad.unpack_dual(out)
+        shape = (b, d, *values.shape[1:])
+        if jac is None:  # no path from v to the curves
+            jac = torch.zeros_like(values)
+        values = values.reshape(shape)[:, 0]
+        return values.detach(), jac.reshape(shape).permute(0, 2, 3, 1).detach()
 
     def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
         v = self.from_physical(np.asarray(x, dtype=float).reshape(len(x), -1), clip=clip)
