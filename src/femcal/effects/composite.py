@@ -27,7 +27,8 @@ from femcal.space import ParameterSpace
 
 logger = logging.getLogger(__name__)
 
-_BISECTIONS = 40
+_BISECTIONS = 28  # bracket [1e-3 M, M]: ln(1000) / 2^28 = 3e-8 relative
+_JAC_ROWS = 8192
 _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
 
 
@@ -104,18 +105,21 @@ class EffectModel:
 
         m_low = self.m_low
 
-        def phi(moment: torch.Tensor):
+        fixed = coef.detach()  # no graph, no forward-mode tangent: for the bisection
+
+        def phi(moment: torch.Tensor, detached: bool = False):
             # The cubic in log-moment holds in the trained range; below its lowest moment the
             # curve continues as the power law through the origin with the log-log slope there
             # (a cubic extrapolated far down can blow up). Returns (phi, dphi/dM).
+            c = fixed if detached else coef
             mc = moment.clamp_min(m_low)
             z = (torch.log(mc) - net.moment_loc) / net.moment_scale  # (B, 4, m)
             basis = z[..., None] ** powers  # (B, 4, m, p)
-            scaled = (coef[:, :, :, None, :] * basis).sum(-1)  # (K, B, 4, m)
+            scaled = (c[:, :, :, None, :] * basis).sum(-1)  # (K, B, 4, m)
             deg = net.to_degrees(scaled)
             # d z^j / dz = j z^(j-1): the basis shifted by one power.
             dbasis = torch.cat([torch.zeros_like(basis[..., :1]), basis[..., :-1]], -1) * powers
-            dz = (coef[:, :, :, None, :] * dbasis).sum(-1) / (net.moment_scale * mc)
+            dz = (c[:, :, :, None, :] * dbasis).sum(-1) / (net.moment_scale * mc)
             slope = deg * net.y_scale * dz if net.log_target else net.y_scale * dz
             deg, slope = deg.mean(0), slope.mean(0)
             low = moment < m_low
@@ -151,7 +155,7 @@ class EffectModel:
                 for _ in range(_BISECTIONS):
                     mid = 0.5 * (lo + hi)
                     md = torch.exp(mid)
-                    g = md + extra(phi_disc(md)[0], True) - applied
+                    g = md + extra(phi_disc(md, detached=True)[0], True) - applied
                     hi = torch.where(g > 0, mid, hi)
                     lo = torch.where(g > 0, lo, mid)
                 md0 = torch.exp(0.5 * (lo + hi))
@@ -187,17 +191,24 @@ class EffectModel:
         import torch.autograd.forward_ad as fwad
 
         b, d = v.shape
-        self.n_evaluations += b * d
-        primal = v.detach().repeat_interleave(d, 0)
-        tangent = torch.eye(d, dtype=v.dtype).repeat(b, 1)
-        with fwad.dual_level():
-            out = self.curves(fwad.make_dual(primal, tangent))
-            values, jac = fwad.unpack_dual(out)
-        shape = (b, d, *values.shape[1:])
-        if jac is None:  # no path from v to the curves
-            jac = torch.zeros_like(values)
-        values = values.reshape(shape)[:, 0]
-        return values.detach(), jac.reshape(shape).permute(0, 2, 3, 1).detach()
+        # Chunks of at most _JAC_ROWS dual rows bound the memory of the temporaries.
+        step = max(1, _JAC_ROWS // d)
+        values, jacs = [], []
+        for start in range(0, b, step):
+            vc = v[start : start + step].detach()
+            n = vc.shape[0]
+            self.n_evaluations += n * d
+            primal = vc.repeat_interleave(d, 0)
+            tangent = torch.eye(d, dtype=v.dtype).repeat(n, 1)
+            with fwad.dual_level():
+                out = self.curves(fwad.make_dual(primal, tangent))
+                val, jac = fwad.unpack_dual(out)
+            shape = (n, d, *val.shape[1:])
+            if jac is None:  # no path from v to the curves
+                jac = torch.zeros_like(val)
+            values.append(val.reshape(shape)[:, 0].detach())
+            jacs.append(jac.reshape(shape).permute(0, 2, 3, 1).detach())
+        return torch.cat(values), torch.cat(jacs)
 
     def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
         v = self.from_physical(np.asarray(x, dtype=float).reshape(len(x), -1), clip=clip)
