@@ -328,6 +328,8 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         candidates=cfg.get("candidates"),
         start_bank=Path(bank) if bank else None,
         min_delta=float(cfg.get("min_delta", 10.0)),
+        alpha=float(cfg.get("alpha", 0.01)),
+        max_effects=int(cfg.get("max_effects", 3)),
         seed=int(cfg.get("seed", 0)),
         **_moment_settings(params),
         plots=bool(cfg.get("plots", True)),

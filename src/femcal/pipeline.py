@@ -543,6 +543,8 @@ def run_diagnose(
     seed: int,
     error_growth: float,
     max_log_ratio: float,
+    alpha: float = 0.01,
+    max_effects: int = 3,
     plots: bool = True,
     max_plots: int | None = None,
 ):
@@ -574,6 +576,8 @@ def run_diagnose(
         candidates=candidates,
         start_bank=training_configurations(start_bank) if start_bank else None,
         min_delta=min_delta,
+        alpha=alpha,
+        max_effects=max_effects,
         seed=seed,
     )
     summary = write_diagnosis(diag, meas.rom_deg, out_dir, plots=plots, max_plots=max_plots)
@@ -586,6 +590,8 @@ def run_diagnose(
                 "noise_deg": "estimated" if noise_deg is None else noise_deg,
                 "candidates": ",".join(candidates or []) or "all",
                 "min_delta": min_delta,
+                "alpha": alpha,
+                "max_effects": max_effects,
                 "cohort_verdict": diag.cohort_verdict(),
                 "moments.error_growth": error_growth,
                 "moments.max_log_ratio": max_log_ratio,

@@ -263,41 +263,34 @@ def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, mon
 def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     registry, small_surrogate, truth, monkeypatch
 ):
-    import femcal.diagnose
     from femcal.moments import MomentPolicy
     from femcal.pipeline import run_diagnose
 
-    class Stop(Exception):
-        pass
-
-    seen = {}
-
-    def fake_diagnose(*args, **kwargs):
-        seen.update(kwargs)
-        raise Stop
-
-    monkeypatch.setattr(femcal.diagnose, "diagnose", fake_diagnose)
     common = dict(
         out_dir=registry / "diag",
         model_uri="models:/ivd-rom-surrogate@champion",
         noise_deg=0.05,
-        candidates=None,
+        candidates=["neutral_zone"],
         start_bank=None,
         min_delta=10.0,
         seed=0,
+        plots=False,
         **MOMENTS,
     )
     moments = (1, 2, 3, 4, 5, 6)
     curves = np.concatenate([truth[1][:1], truth[1][:1, :, -1:]], axis=2)
-    with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"), pytest.raises(Stop):
-        run_diagnose(measurements=_long_csv(registry / "d.csv", curves, moments), **common)
-    sigma = seen["surrogate_error_deg"]
+    with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"):
+        diag, summary = run_diagnose(
+            measurements=_long_csv(registry / "d.csv", curves, moments), **common
+        )
     policy = MomentPolicy.for_surrogate(
         small_surrogate, growth=MOMENTS["error_growth"], max_log_ratio=MOMENTS["max_log_ratio"]
     )
-    assert isinstance(sigma, np.ndarray) and sigma.shape == (6,)
-    np.testing.assert_allclose(sigma, policy.sigma_surrogate(np.array(moments, dtype=float)))
-    assert sigma[-1] > sigma[0] == sigma[4] == pytest.approx(policy.error_deg)
+    sur = policy.sigma_surrogate(np.array(moments, dtype=float))
+    sigma = diag.sigma_by_moment
+    assert sigma.shape == (6,) and sur[-1] > sur[0] == sur[4] == pytest.approx(policy.error_deg)
+    np.testing.assert_allclose(sigma, np.sqrt(0.05**2 + sur**2), rtol=1e-6)
+    assert summary["n_specimens"] == 1 and (registry / "diag" / "diagnosis.json").exists()
     far = _long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
     with pytest.raises(InputDataError, match=r"far\.csv: measured moments 12 Nm are too far"):
         run_diagnose(measurements=far, **common)
