@@ -93,6 +93,18 @@ def test_composite_jacobian_matches_finite_differences(surrogate):
         torch.testing.assert_close(jac[..., i], fd, rtol=1e-5, atol=1e-7)
 
 
+def test_the_jacobian_is_finite_far_from_contact(surrogate):
+    # A gap far beyond the rotations (unit 1 = 6 deg) puts the facet ramp in softplus
+    # underflow; the derivative in the exponent must still be finite (0, not 0 * log 0).
+    base = CurveModel(surrogate, [0.02, 0.05])  # rotations well below a degree
+    model = EffectModel(base, BUILTIN)
+    v = torch.rand(4, model.dim, generator=torch.Generator().manual_seed(5))
+    v[:, base.dim] = 1.0  # facet gap at its upper bound
+    v[:, base.dim + 3] = 1.0  # ligament slack at its upper bound
+    _, jac = model.curves_jacobian(v)
+    assert torch.isfinite(jac).all()
+
+
 def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate):
     base = CurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["facet_contact"])

@@ -51,8 +51,10 @@ class FacetContact(Effect):
         gap = _like(p, "facet_gap_deg", rotation_deg)
         k = _like(p, "facet_stiffness", rotation_deg)
         n = _like(p, "facet_exponent", rotation_deg)
-        # (x)^n = exp(n log x); the ramp is > 0, so the power is smooth in x and n.
-        return k * torch.exp(n * torch.log(_smooth_ramp(rotation_deg - gap, 0.05)))
+        # x^n = exp(n log x), smooth in x and n; the ramp is floored so that far from contact
+        # (where softplus underflows to 0) the derivative in n is 0, not 0 * log 0 = NaN.
+        ramp = _smooth_ramp(rotation_deg - gap, 0.05).clamp_min(1e-12)
+        return k * torch.exp(n * torch.log(ramp))
 
 
 @register_effect
