@@ -514,11 +514,13 @@ def diagnose(
     gls: dict[tuple[int, tuple[str, ...]], tuple[float, torch.Tensor]] = {}
     reached: dict[int, torch.Tensor] = {}  # where elimination left a specimen (unit coords)
 
-    def misfit_amplitude(i: int, effects: tuple[str, ...]) -> float:
+    def misfit_amplitude(i: int, effects: tuple[str, ...]) -> np.ndarray:
+        """Per load case (4,): the RMS misfit ``effects`` leave beyond the noise."""
         f, pos = per_spec[i][effects]
         r = np.where(mask[i], measured[i] - f.pred[pos].double().numpy(), 0.0)
-        excess = ((r**2).sum() - np.where(mask[i], sigma**2, 0.0).sum()) / max(n_points[i], 1)
-        return float(np.clip(np.sqrt(max(excess, 0.0)), sigma_m.min(), 5.0))
+        noise = np.where(mask[i], sigma**2, 0.0).sum(1)
+        excess = ((r**2).sum(1) - noise) / np.maximum(mask[i].sum(1), 1)
+        return np.clip(np.sqrt(np.clip(excess, 0.0, None)), sigma_m.min(), 5.0)
 
     def gls_fit(effects: tuple[str, ...], rows: list[int], v: torch.Tensor, amp) -> None:
         todo = [(k, i) for k, i in enumerate(rows) if (i, effects) not in gls]
@@ -645,7 +647,7 @@ def diagnose(
                     "mean": mu,
                     "sd": sdev,
                     "mae_deg": float(dfit.mae_deg[pos]),
-                    "amplitude_deg": float(dfit.amplitude_deg[pos]),
+                    "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
                     "description": text,
                     "summary": _summary(text, resembles, sim),
                     "similarity": sim,

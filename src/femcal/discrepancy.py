@@ -44,8 +44,8 @@ class DiscrepancyFit:
         The model's curves there.
     jac : Tensor, shape (n, 4, m, d)
         Their Jacobian.
-    amplitude_deg : ndarray, shape (n,)
-        The GP amplitude ``s`` used per specimen.
+    amplitude_deg : ndarray, shape (n, 4)
+        The GP amplitude ``s`` used per specimen and load case.
     alpha : ndarray, shape (n, 4 m)
         ``C^-1 r``: the weights of the kriging mean.
     chol : ndarray, shape (n, 4 m, 4 m)
@@ -72,10 +72,18 @@ class DiscrepancyFit:
 
 
 def _kernel(xa: np.ndarray, xb: np.ndarray, amp: np.ndarray, length: float) -> np.ndarray:
-    """Block-diagonal (over load cases) SE kernel, shape (n, 4 a, 4 b)."""
+    """Block-diagonal (over load cases) SE kernel, shape (n, 4 a, 4 b).
+
+    ``amp`` is the amplitude per specimen (n,) or per specimen and load case (n, 4).
+    """
+    n_lc = len(LOAD_CASES)
+    amp = np.asarray(amp, dtype=float)
+    amp = np.broadcast_to(amp[:, None] if amp.ndim == 1 else amp, (amp.shape[0], n_lc))
     base = np.exp(-0.5 * ((xa[:, None] - xb[None, :]) / length) ** 2)  # (a, b)
-    block = np.kron(np.eye(len(LOAD_CASES)), base)  # (4a, 4b), load-case major
-    return (amp**2)[:, None, None] * block[None]
+    block = np.kron(np.eye(n_lc), base)  # (4a, 4b), load-case major
+    sa = np.repeat(amp, len(xa), axis=1)  # (n, 4a)
+    sb = np.repeat(amp, len(xb), axis=1)
+    return sa[:, :, None] * block[None] * sb[:, None, :]
 
 
 def _covariance(
@@ -117,9 +125,10 @@ def fit_discrepancy(
         Measured RoM (deg), NaN where not measured.
     sigma : ndarray, shape (m,) or (n, 4, m)
         Noise sd of each point (deg): measurement noise and the surrogate's own error.
-    amplitude_deg : float or ndarray (n,), optional
-        GP amplitude ``s``. Default: the RMS misfit the model leaves beyond the noise at
-        ``v0`` (at least the smallest sigma), so that a model that fits gets a small ``s``.
+    amplitude_deg : float or ndarray (n,) or (n, 4), optional
+        GP amplitude ``s`` (per specimen, or per specimen and load case). Default: per load
+        case, the RMS misfit the model leaves there beyond the noise at ``v0`` (at least the
+        smallest sigma), so that a model that fits gets a small ``s``.
     length_scale : float
         Correlation length in ln(moment).
     max_iter : int
@@ -144,14 +153,17 @@ def fit_discrepancy(
 
     pred, jac = model.curves_jacobian(v)
     r = residual(pred)
+    n_lc = len(LOAD_CASES)
     if amplitude_deg is None:
-        count = flat_mask.sum(1).clip(1)
-        noise2 = (np.where(mask, sig, 0.0) ** 2).reshape(n, -1).sum(1)
-        excess = ((r**2).sum(1) - noise2) / count
-        amp = np.sqrt(np.clip(excess, 0.0, None))
+        # Per load case: the RMS misfit the model leaves there beyond the noise.
+        count = mask.sum(2).clip(1)  # (n, 4)
+        r3 = r.reshape(n, n_lc, m)
+        noise2 = (np.where(mask, sig, 0.0) ** 2).sum(2)
+        amp = np.sqrt(np.clip(((r3**2).sum(2) - noise2) / count, 0.0, None))
         amp = np.clip(amp, float(np.min(sig)), 5.0)
     else:
-        amp = np.broadcast_to(np.asarray(amplitude_deg, dtype=float), (n,)).copy()
+        amp = np.asarray(amplitude_deg, dtype=float)
+        amp = np.broadcast_to(amp[:, None] if amp.ndim == 1 else amp, (n, n_lc)).copy()
     cov = _covariance(mask, sig, x, amp, length_scale)
     chol = np.linalg.cholesky(cov)
 
@@ -253,7 +265,7 @@ def discrepancy_posterior(
     sigma_v = np.linalg.inv(np.einsum("npi,npj->nij", bj, bj) + np.eye(d))
     g = np.einsum("npq,npd->nqd", a, bj)  # (n, 4q, d)
     var = (
-        (fit.amplitude_deg**2)[:, None]
+        np.repeat(fit.amplitude_deg**2, q, axis=1)
         - (a**2).sum(1)
         + np.einsum("nqi,nij,nqj->nq", g, sigma_v, g)
     )

@@ -100,7 +100,7 @@ def test_the_jacobian_is_finite_far_from_contact(surrogate):
     model = EffectModel(base, BUILTIN)
     v = torch.rand(4, model.dim, generator=torch.Generator().manual_seed(5))
     v[:, base.dim] = 1.0  # facet gap at its upper bound
-    v[:, base.dim + 3] = 1.0  # ligament slack at its upper bound
+    v[:, base.dim + 4] = 1.0  # ligament slack at its upper bound
     _, jac = model.curves_jacobian(v)
     assert torch.isfinite(jac).all()
 
@@ -115,7 +115,12 @@ def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate
         model, targets, method="pgd", options={"n_bank_uniform": 512, "fit_tolerance": 0.0}
     )
     assert np.all(res.exceedance == 0) and res.mae_deg.max() < 0.02
-    assert res.parameter_names[-3:] == ("facet_gap_deg", "facet_stiffness", "facet_exponent")
+    assert res.parameter_names[-4:] == (
+        "facet_gap_deg",
+        "facet_stiffness",
+        "facet_exponent",
+        "facet_onset_deg",
+    )
 
 
 def test_fe_rotation_interpolates_and_extends_as_a_power_law():
@@ -132,7 +137,12 @@ def test_fe_rotation_interpolates_and_extends_as_a_power_law():
 def test_planted_parallel_effect_balances_the_moment():
     m = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
     fe = np.tile(3.0 * m**0.6, (4, 1))
-    p = {"facet_gap_deg": 2.0, "facet_stiffness": 1.0, "facet_exponent": 2.0}
+    p = {
+        "facet_gap_deg": 2.0,
+        "facet_stiffness": 1.0,
+        "facet_exponent": 2.0,
+        "facet_onset_deg": 0.05,
+    }
     q = np.array([1.0, 3.0, 5.0])
     phi = plant("facet_contact", p, m, fe, q)
     eff = get_effect("facet_contact")()
@@ -167,15 +177,15 @@ def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
     model = EffectModel(CurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
     starts = effect_starts(model, (0.2, 0.8))
     weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
-    # 3 parameters each; the shape parameter (the last of each law family) is not gridded.
-    assert starts.shape == (1 + 4 + 4, 6)
+    # facet 4 parameters, neutral zone 3; shape parameters (after the first two) not gridded.
+    assert starts.shape == (1 + 4 + 4, 7)
     torch.testing.assert_close(starts[0], weak)
     # The facet grid leaves the neutral zone at its weak end, and the other way round.
-    torch.testing.assert_close(starts[1:5, 3:], weak[3:].expand(4, -1))
-    torch.testing.assert_close(starts[5:, :3], weak[:3].expand(4, -1))
+    torch.testing.assert_close(starts[1:5, 4:], weak[4:].expand(4, -1))
+    torch.testing.assert_close(starts[5:, :4], weak[:4].expand(4, -1))
     grid = torch.tensor([[a, b] for a in (0.2, 0.8) for b in (0.2, 0.8)])
     torch.testing.assert_close(starts[1:5, :2], grid)
-    torch.testing.assert_close(starts[1:5, 2], weak[2].expand(4))
+    torch.testing.assert_close(starts[1:5, 2:4], weak[2:4].expand(4, -1))
 
 
 def test_the_weak_end_of_every_effect_leaves_the_disc_curves_unchanged(surrogate):

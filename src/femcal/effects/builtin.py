@@ -6,7 +6,8 @@ bends it only when the data ask for it; the extra parameter pays its BIC penalty
 diagnosis like any other):
 
 * facet contact, ``M = k (phi - gap)_+^n`` with ``n`` in [1, 3]: a linear spring after the gap
-  (n = 1), Hertz-like contact (n = 1.5), the classic quadratic (n = 2) and stiffer;
+  (n = 1), Hertz-like contact (n = 1.5), the classic quadratic (n = 2) and stiffer; the corner
+  at the gap rounded over an onset width of 0.05 (sharp) to 2 deg (soft engagement);
 * ligament tension, ``M = k (exp((phi - slack)_+ / s) - 1)`` with the toe length ``s`` in
   [0.5, 8] deg: a long toe region that is nearly linear (large ``s``) to an abrupt lock-up;
 * neutral-zone laxity, ``phi = range (1 - exp(-(M / m0)^b))`` with ``b`` in [0.5, 3]: a slow
@@ -36,7 +37,8 @@ def _like(p: Mapping[str, torch.Tensor], name: str, ref: torch.Tensor) -> torch.
 @register_effect
 class FacetContact(Effect):
     """Facet joints engage in extension and axial rotation: once the rotation closes a gap,
-    contact carries a moment ``M = k * (phi - gap)_+^n`` (n = 1 linear spring .. 3)."""
+    contact carries a moment ``M = k * (phi - gap)_+^n`` (n = 1 linear spring .. 3), the
+    corner at the gap rounded over ``onset`` degrees (``w softplus(x / w)``)."""
 
     name = "facet_contact"
     kind = "parallel"
@@ -45,6 +47,9 @@ class FacetContact(Effect):
         EffectParameter("facet_gap_deg", "deg", 0.0, 6.0, start=1.0),
         EffectParameter("facet_stiffness", "Nm/deg^n", 1e-4, 5.0, log=True, start=0.0),
         EffectParameter("facet_exponent", "1", 1.0, 3.0, start=0.5, grid=False),
+        # How gradually contact engages: the width of the rounded corner at the gap (start:
+        # 0.05 deg, a sharp onset; up to 2 deg, cartilage-like soft engagement).
+        EffectParameter("facet_onset_deg", "deg", 0.05, 2.0, log=True, start=0.0, grid=False),
     )
 
     def moment(self, rotation_deg: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
@@ -53,7 +58,8 @@ class FacetContact(Effect):
         n = _like(p, "facet_exponent", rotation_deg)
         # x^n = exp(n log x), smooth in x and n; the ramp is floored so that far from contact
         # (where softplus underflows to 0) the derivative in n is 0, not 0 * log 0 = NaN.
-        ramp = _smooth_ramp(rotation_deg - gap, 0.05).clamp_min(1e-12)
+        w = _like(p, "facet_onset_deg", rotation_deg)
+        ramp = (w * torch.nn.functional.softplus((rotation_deg - gap) / w)).clamp_min(1e-12)
         return k * torch.exp(n * torch.log(ramp))
 
 
