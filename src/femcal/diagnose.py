@@ -564,6 +564,9 @@ def diagnose(
                     k_rest = k_cur - len(get_effect(drop).parameters)
                     losses[rest] = gls[(i, rest)][0] + k_rest * log_n[i] - here
                 rest = min(losses, key=losses.get)
+                logger.debug(
+                    "%s: GP-BIC loss of dropping from %s: %s", specimens[i], current, losses
+                )
                 if losses[rest] < min_delta:
                     logger.info(
                         "%s: %s does not pay beyond a smooth discrepancy (%.1f); dropped",
