@@ -533,6 +533,21 @@ def diagnose(
         for pos, i in enumerate(ids):
             gls[(int(i), effects)] = (float(fit.cost[pos]), fit.v[pos])
 
+    def ensure_fitted() -> None:
+        """Fit (without the GP) the models elimination reached that were never fitted."""
+        missing: dict[tuple[str, ...], list[int]] = {}
+        for i in range(n):
+            if chosen[i] not in per_spec[i]:
+                missing.setdefault(chosen[i], []).append(i)
+        for effects, members in missing.items():
+            rows = np.asarray(members)
+            model = effect_model(effects)
+            v0 = torch.stack([reached[i] for i in members])
+            v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, 1, max_iter)
+            fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
+            for pos, i in enumerate(rows):
+                per_spec[i][effects] = (fit, pos)
+
     for _round in range(max_effects):
         if not pending:
             break
@@ -578,20 +593,8 @@ def diagnose(
                     reached[i] = gls[(i, rest)][1]
                     if rest:
                         still.append(i)
+        ensure_fitted()
         pending = still
-    # Models reached by elimination that forward selection never fitted alone.
-    missing: dict[tuple[str, ...], list[int]] = {}
-    for i in range(n):
-        if chosen[i] not in per_spec[i]:
-            missing.setdefault(chosen[i], []).append(i)
-    for effects, members in missing.items():
-        rows = np.asarray(members)
-        model = effect_model(effects)
-        v0 = torch.stack([reached[i] for i in members])
-        v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, 1, max_iter)
-        fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
-        for pos, i in enumerate(rows):
-            per_spec[i][effects] = (fit, pos)
 
     # 3. Adequacy of the final models (and of the disc alone), with the exact Jacobian.
     out: list[SpecimenDiagnosis] = []

@@ -35,7 +35,7 @@ def test_registry_has_the_three_effects_and_names_unknown_ones():
         get_effect("x")
 
 
-def test_a_user_effect_is_one_class():
+def test_a_user_effect_is_one_class(clean_registry):
     @register_effect
     class Twist(Effect):
         name = "test_twist"
