@@ -153,6 +153,7 @@ def test_next_measurement_names_where_close_explanations_differ(world):
         if n is None:
             continue
         assert n["criterion_gap"] < 10.0
+        assert n["between"][0] == s.final_label != n["between"][1]  # the chosen vs its rival
         assert n["load_case"] in LOAD_CASES and MOMENTS.min() <= n["moment_nm"] <= MOMENTS.max()
         assert n["difference_sigma"] == pytest.approx(abs(n["difference_deg"]) / NOISE, rel=1e-3)
 

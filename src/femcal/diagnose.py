@@ -690,7 +690,7 @@ def diagnose(
         if effects:
             curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
-            ranking, per_spec[i], dense_base, dense, sigma_dense, min_delta, models
+            ranking, per_spec[i], dense_base, dense, sigma_dense, min_delta, chosen[i]
         )
         resid = measured[i] - pred0[i].double().numpy()
         out.append(
@@ -847,12 +847,14 @@ def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.n
         return model.curves(v).double().numpy()
 
 
-def _next_measurement(ranking, fits, dense_base, dense, sigma_dense, min_delta, models):
-    """Where the best model and a runner-up within ``min_delta`` differ most (in sigma)."""
+def _next_measurement(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen):
+    """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most."""
     if len(ranking) < 2 or dense_base is None:
         return None
-    best, second = ranking[0], ranking[1]
-    gap = second["criterion"] - best["criterion"]
+    best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
+    rivals = [r for r in ranking if r is not best]
+    second = min(rivals, key=lambda r: abs(r["criterion"] - best["criterion"]))
+    gap = abs(second["criterion"] - best["criterion"])
     if gap >= min_delta:
         return None
     curves = []
