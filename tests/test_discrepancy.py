@@ -118,3 +118,37 @@ def test_fit_is_deterministic(base):
     b = fit_discrepancy(base, v0, meas, np.full(len(MOMENTS), NOISE))
     torch.testing.assert_close(a.v, b.v)
     np.testing.assert_array_equal(a.delta_at_points, b.delta_at_points)
+
+
+def test_ml_amplitude_is_zero_for_noise_and_grows_with_a_smooth_misfit():
+    from femcal.discrepancy import ml_amplitude
+
+    rng = np.random.default_rng(3)
+    n, m = 200, len(MOMENTS)
+    sigma = np.full((n, 4, m), NOISE)
+    mask = np.ones((n, 4, m), dtype=bool)
+    x = np.log(MOMENTS)
+    noise = rng.normal(0.0, NOISE, (n, 4, m))
+    amp = ml_amplitude(noise, mask, sigma, x)
+    # Pure noise: no discrepancy in most load cases (a chance one at most one grid step up).
+    assert np.mean(amp == 0.0) > 0.6
+    assert np.all(amp <= 2 * NOISE + 1e-12)
+    bump = noise.copy()
+    bump[:, 0] += 0.5 * (MOMENTS / 5.0) ** 3  # a softening of 0.5 deg at 5 Nm in flexion
+    amp = ml_amplitude(bump, mask, sigma, x)
+    assert np.median(amp[:, 0]) >= 8 * NOISE  # sized to the misfit
+    assert np.mean(amp[:, 1:] == 0.0) > 0.6  # the other load cases are untouched
+
+
+def test_ml_fit_compares_models_by_their_marginal_likelihood(base):
+    x, meas, _ = _softened(base, 4, seed=2)
+    v0 = base.from_physical(x)
+    sigma = np.full(len(MOMENTS), NOISE)
+    ml = fit_discrepancy(base, v0, meas, sigma, amplitude_deg="ml")
+    assert ml.log_det is not None and ml.neg2_log_ml.shape == (4,)
+    assert np.all(ml.amplitude_deg[:, 0] > NOISE)  # the softened load case gets a GP
+    # Forcing a GP nobody needs everywhere costs marginal likelihood (log det C).
+    big = fit_discrepancy(base, ml.v, meas, sigma, amplitude_deg=np.full((4, 4), 1.0))
+    assert np.all(big.neg2_log_ml > ml.neg2_log_ml)
+    with pytest.raises(ValueError, match="'ml'"):
+        fit_discrepancy(base, v0, meas, sigma, amplitude_deg="max")

@@ -125,12 +125,26 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
     names = {"none", "facet_contact", "ligament_tension", "neutral_zone", "unexplained"}
     # A verdict names every effect found, joined by "+", possibly ending in "+unexplained".
     assert all(set(d["verdict"].split("+")) <= names and d["ranking"] for d in diagnosis)
+    # Output folders are all or nothing: each holds its run's marker, nothing staged is left.
+    for folder in ("reports/calibration/test", "reports/diagnosis", "data/planted"):
+        marker = json.loads((root / folder / ".femcal-run.json").read_text())
+        assert marker["status"] == "complete" and marker["files"], folder
+    staged = [
+        p
+        for top in ("reports", "data")
+        for p in (root / top).rglob("*")
+        if ".partial-" in p.name or ".previous-" in p.name or p.name.endswith(".femcal-lock")
+    ]
+    assert not staged, staged
 
 
 def test_second_repro_runs_nothing_and_a_change_reruns_only_downstream(project):
     root, env, _, _ = project
     again = _run([BIN / "dvc", "repro"], root, env)
     assert "Running stage" not in again.stdout, again.stdout
+    # The markers inside the output folders are part of the outputs: DVC sees nothing to do.
+    status = _run([BIN / "dvc", "status"], root, env)
+    assert "Data and pipelines are up to date" in status.stdout, status.stdout
     params = yaml.safe_load((root / "params.yaml").read_text())
     params["train"]["small"]["fixed"]["max_epochs"] = 4
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))

@@ -13,15 +13,50 @@ import sys
 from pathlib import Path
 
 from femcal.config import load_params, section
-from femcal.errors import ConfigError, FemcalError
+from femcal.errors import ConfigError, FemcalError, InputDataError
 
 
 def _tracking(params: dict) -> None:
+    """Point MLflow at the store; tag this process's runs; close runs of killed processes."""
     from femcal.tracking import configure_tracking, ensure_experiment
+    from femcal.tracking_runs import close_killed_runs, tag_runs_with_process
 
     store = section(params, "mlflow", "store_dir")
     configure_tracking(store_dir=store)
-    ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
+    experiment = ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
+    tag_runs_with_process()  # pid + host on every run this command starts
+    close_killed_runs([experiment])  # logs each run it closes as KILLED
+
+
+def _check_outputs(args: argparse.Namespace, out: str | Path, setting: str) -> Path:
+    """The output folder and ``--metrics-file``, checked before any heavy work.
+
+    ``setting`` names where the folder comes from when ``--out`` is not given.
+    """
+    from femcal.outputs import check_destination, check_file_destination
+
+    label = "--out" if getattr(args, "out", None) else f"output folder ({setting})"
+    path = check_destination(out, label=label)
+    if getattr(args, "metrics_file", None):
+        check_file_destination(args.metrics_file, label="--metrics-file")
+    return path
+
+
+def _check_measurements(path: Path) -> None:
+    """A missing measurement file or folder, reported before any heavy import."""
+    if not path.exists():
+        raise InputDataError(
+            f"Measurement file {path} does not exist; check the path (relative paths start at "
+            f"the current folder {Path.cwd()})."
+        )
+
+
+def _write_metrics(args: argparse.Namespace, figures: dict) -> None:
+    """``--metrics-file`` (the stage's DVC metrics), written whole or not at all."""
+    if getattr(args, "metrics_file", None):
+        from femcal.outputs import write_text_atomic
+
+        write_text_atomic(args.metrics_file, json.dumps(figures, indent=2) + "\n")
 
 
 def _load_user_effects(args: argparse.Namespace, params: dict) -> list[str]:
@@ -219,11 +254,24 @@ def _moment_settings(params: dict) -> dict[str, float]:
     return out
 
 
-def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
-    from femcal.pipeline import run_calibrate
+def _fit_warnings(figures: dict, out: str) -> str:
+    """The calibration line's tail for fits that are no plain success ("" for none)."""
+    n = figures["n_specimens"]
+    parts = []
+    if figures.get("n_r2_negative"):
+        parts.append(
+            f"WARNING: {figures['n_r2_negative']} of {n} specimens fit worse than their mean "
+            f"(R² < 0): see {out}/metrics.csv (column flag)"
+        )
+    if figures.get("n_outside_envelope"):
+        parts.append(
+            f"WARNING: {figures['n_outside_envelope']} of {n} specimens have points outside "
+            f"every curve the model can produce: see {out}/metrics.csv (column reachability)"
+        )
+    return "".join(f"\n{p}" for p in parts)
 
-    _load_user_effects(args, params)
-    _tracking(params)
+
+def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     cfg = section(params, "calibrate")
     method = args.method or section(params, "calibrate", "method")
     model_uri = args.model_uri or section(params, "calibrate", "model_uri")
@@ -262,6 +310,12 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         effects = entry_effects
     measurements = Path(args.measurements or entry_path)
     out = args.out or str(Path(section(params, "calibrate", "out_dir")) / (name or "custom"))
+    _check_outputs(args, out, "calibrate.out_dir")  # before anything heavy is imported
+    _check_measurements(measurements)
+    _load_user_effects(args, params)
+    _tracking(params)
+    from femcal.pipeline import run_calibrate
+
     result, figures = run_calibrate(
         measurements=measurements,
         out_dir=Path(out),
@@ -287,23 +341,22 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         f"calibrated {figures['n_specimens']} specimens with {method} against {model_uri} in "
         f"{figures['seconds']:.2f} s: MAE {figures['mae_deg']:.4f} deg, mean R² "
         f"{figures['r2_mean']:.4f}, {figures['n_outside_bounds']} outside the bounds{held}"
+        + _fit_warnings(figures, out)
     )
     if figures["n_plotted"] < figures["n_specimens"]:
         print(f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)")
-    if name and not args.out and not args.measurements:
-        metrics_file = Path(f"reports/calibrate-{name}.json")
-        metrics_file.parent.mkdir(parents=True, exist_ok=True)
-        metrics_file.write_text(json.dumps(figures, indent=2) + "\n")
+    _write_metrics(args, figures)  # only when asked (the DVC stage): never ad hoc
     print(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
 
 
 def cmd_plant(args: argparse.Namespace, params: dict) -> None:
+    cfg = section(params, "plant")
+    out = _check_outputs(args, section(params, "plant", "out_dir"), "plant.out_dir")
     from femcal.pipeline import run_plant
 
-    cfg = section(params, "plant")
     path = run_plant(
         prepared_dir=Path(section(params, "data", "prepared_dir")),
-        out_dir=Path(section(params, "plant", "out_dir")),
+        out_dir=out,
         n_per_class=int(section(params, "plant", "n_per_class")),
         moments=[float(m) for m in section(params, "plant", "moments")],
         noise_deg=float(section(params, "plant", "noise_deg")),
@@ -313,16 +366,20 @@ def cmd_plant(args: argparse.Namespace, params: dict) -> None:
 
 
 def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
-    from femcal.pipeline import run_diagnose
-
-    _load_user_effects(args, params)
-    _tracking(params)
     cfg = section(params, "diagnose")
     noise = args.noise_deg if args.noise_deg is not None else cfg.get("noise_deg")
     bank = section(params, "calibrate").get("start_bank")
+    out = args.out or section(params, "diagnose", "out_dir")
+    _check_outputs(args, out, "diagnose.out_dir")  # before anything heavy is imported
+    measurements = Path(args.measurements or section(params, "diagnose", "measurements"))
+    _check_measurements(measurements)
+    _load_user_effects(args, params)
+    _tracking(params)
+    from femcal.pipeline import run_diagnose
+
     diag, summary = run_diagnose(
-        measurements=Path(args.measurements or section(params, "diagnose", "measurements")),
-        out_dir=Path(args.out or section(params, "diagnose", "out_dir")),
+        measurements=measurements,
+        out_dir=Path(out),
         model_uri=args.model_uri or section(params, "calibrate", "model_uri"),
         noise_deg=None if noise is None else float(noise),
         candidates=cfg.get("candidates"),
@@ -335,10 +392,7 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         plots=bool(cfg.get("plots", True)),
         max_plots=cfg.get("max_plots"),
     )
-    metrics_file = cfg.get("metrics_file")
-    if metrics_file:
-        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
-        Path(metrics_file).write_text(json.dumps(summary, indent=2) + "\n")
+    _write_metrics(args, summary)  # only when asked (the DVC stage): never ad hoc
     print(
         f"diagnosed {summary['n_specimens']} specimens in {diag.seconds:.1f} s (noise sigma "
         f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "
@@ -372,11 +426,12 @@ def _fe_runtime(params: dict) -> tuple[str | None, int]:
 
 
 def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
+    cfg = section(params, "fe")
+    out = Path(args.out or section(params, "fe", "out_dir"))
+    _check_outputs(args, out, "fe.out_dir")  # before the campaign
+    address, n_workers = _fe_runtime(params)
     from femcal.pipeline import run_simulate
 
-    cfg = section(params, "fe")
-    address, n_workers = _fe_runtime(params)
-    out = Path(args.out or section(params, "fe", "out_dir"))
     scratch = cfg.get("scratch_dir")
     result, summary = run_simulate(
         solver=section(params, "fe", "solver"),
@@ -409,31 +464,29 @@ def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
             f"  failed: config {f['config_id']} ({f['split']} row {f['row']}) {f['load_case']}: "
             f"{f['reason']}"
         )
-    metrics_file = cfg.get("metrics_file")
-    if metrics_file and not args.out:
-        keys = (
-            "n_configurations",
-            "n_jobs",
-            "n_ok",
-            "n_failed",
-            "failure_rate",
-            "cpu_seconds_per_configuration",
-            "cpu_seconds_total",
-            "failure_reasons",
-        )
-        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
-        Path(metrics_file).write_text(json.dumps({k: summary[k] for k in keys}, indent=2) + "\n")
+    keys = (
+        "n_configurations",
+        "n_jobs",
+        "n_ok",
+        "n_failed",
+        "failure_rate",
+        "cpu_seconds_per_configuration",
+        "cpu_seconds_total",
+        "failure_reasons",
+    )
+    _write_metrics(args, {k: summary[k] for k in keys})  # only when asked (the DVC stage)
     print(f"dataset: {out} (the study's layout; runs.csv, campaign.json)")
 
 
 def cmd_validate(args: argparse.Namespace, params: dict) -> None:
-    from femcal.pipeline import run_validate
-
-    _tracking(params)
     cfg = section(params, "validate")
     fe = section(params, "fe")
-    address, n_workers = _fe_runtime(params)
     out = Path(args.out or section(params, "validate", "out_dir"))
+    _check_outputs(args, out, "validate.out_dir")  # before the FE campaign
+    address, n_workers = _fe_runtime(params)
+    _tracking(params)
+    from femcal.pipeline import run_validate
+
     result = run_validate(
         calibration_dir=Path(args.calibration or section(params, "validate", "calibration_dir")),
         measurements=Path(args.measurements or section(params, "validate", "measurements")),
@@ -466,24 +519,28 @@ def cmd_validate(args: argparse.Namespace, params: dict) -> None:
             f"  IDP at {row['force_n']:g} N: {row['idp_mpa_min']:.3f}-{row['idp_mpa_max']:.3f} "
             f"MPa{verdict}"
         )
-    metrics_file = cfg.get("metrics_file")
-    if metrics_file and not args.out:
-        from femcal.fe.validate import _json_safe
+    from femcal.fe.validate import _json_safe
 
-        Path(metrics_file).parent.mkdir(parents=True, exist_ok=True)
-        keys = (
-            "n_specimens",
-            "fe_mae_deg",
-            "surrogate_mae_deg",
-            "fe_vs_surrogate_mae_deg",
-            "fe_mae_deg_per_load_case",
-            "idp",
-            "n_fe_failed_jobs",
-        )
-        Path(metrics_file).write_text(
-            json.dumps(_json_safe({k: s[k] for k in keys}), indent=2) + "\n"
-        )
+    keys = (
+        "n_specimens",
+        "fe_mae_deg",
+        "surrogate_mae_deg",
+        "fe_vs_surrogate_mae_deg",
+        "fe_mae_deg_per_load_case",
+        "idp",
+        "n_fe_failed_jobs",
+    )
+    _write_metrics(args, _json_safe({k: s[k] for k in keys}))  # only when asked (DVC stage)
     print(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv")
+
+
+def _add_metrics_file(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--metrics-file",
+        metavar="PATH",
+        help="also write the summary figures to this JSON file (the DVC stage passes its "
+        "metrics file, e.g. reports/diagnose.json; an ad-hoc run leaves those untouched)",
+    )
 
 
 def _add_effects_module(p: argparse.ArgumentParser) -> None:
@@ -537,6 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout-uri", help="held-out surrogate URI (default: calibrate.holdout_uri)")
     p.add_argument("--no-holdout", action="store_true", help="skip the held-out re-evaluation")
     p.add_argument("--seed", type=int, help="seed (default: calibrate.seed)")
+    _add_metrics_file(p)
     _add_effects_module(p)
     p.set_defaults(func=cmd_calibrate)
     sub.add_parser("plant", help="a cohort with hidden effects from FE curves").set_defaults(
@@ -547,17 +605,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output folder (default: diagnose.out_dir)")
     p.add_argument("--noise-deg", type=float, help="measurement noise sd (default: estimated)")
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
+    _add_metrics_file(p)
     _add_effects_module(p)
     p.set_defaults(func=cmd_diagnose)
     p = sub.add_parser("simulate", help="FE campaign on Dask -> dataset in the study's layout")
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
     p.add_argument("--store", help="campaign store, JSON lines (default: fe.store)")
+    _add_metrics_file(p)
     p.set_defaults(func=cmd_simulate)
     p = sub.add_parser("validate", help="FE re-simulation of calibrated parameters; IDP check")
     p.add_argument("--calibration", help="calibration folder (default: validate.calibration_dir)")
     p.add_argument("--measurements", help="measurements calibrated to (validate.measurements)")
     p.add_argument("--out", help="output folder (default: validate.out_dir)")
     p.add_argument("--store", help="campaign store of the FE runs (default: validate.store)")
+    _add_metrics_file(p)
     p.set_defaults(func=cmd_validate)
     return parser
 
@@ -570,7 +631,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     logging.getLogger("femcal").setLevel(logging.INFO)
     try:
-        params = load_params(args.params)
+        params = load_params(args.params)  # validated against femcal.settings' schema
+        from femcal.settings import check_environment
+
+        check_environment(args.command)  # the variables this command reads
         args.func(args, params)
     except FemcalError as exc:
         print(f"femcal {args.command}: error: {exc}", file=sys.stderr)

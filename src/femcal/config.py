@@ -1,4 +1,10 @@
-"""Reading params.yaml at the edge: every missing or wrong key is a clear ConfigError."""
+"""Reading params.yaml at the edge: every unknown, missing or wrong key is a clear ConfigError.
+
+:func:`load_params` validates the file against the typed schema of :mod:`femcal.settings`
+(root ``params.yaml`` or ``fe/params.yaml``) and returns the plain dict the commands read
+through :func:`section`. Nothing heavy is imported here (no torch, Lightning, scikit-learn
+or MLflow), so a bad setting is reported before any model or library is loaded.
+"""
 
 from __future__ import annotations
 
@@ -11,19 +17,69 @@ import yaml
 from femcal.errors import ConfigError
 
 
-def load_params(path: str | Path = "params.yaml") -> dict[str, Any]:
-    """Load a params file as a dict."""
+def read_yaml_mapping(path: str | Path) -> tuple[dict[str, Any], str]:
+    """The mapping of sections in a YAML file, and the file's text.
+
+    Raises
+    ------
+    ConfigError
+        The file does not exist, is not valid YAML, or does not hold a mapping.
+    """
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text()
     except FileNotFoundError:
         raise ConfigError(
             f"Settings file {path} does not exist; run from the project root or pass --params."
         ) from None
+    except IsADirectoryError:
+        raise ConfigError(
+            f"Settings file {path} is a folder; pass the YAML file, e.g. --params "
+            f"{path / 'params.yaml'}."
+        ) from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path} is not a text file; pass a YAML settings file.") from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path} is not valid YAML: {exc}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path} must hold a mapping of sections; got {type(data).__name__}.")
+    return data, text
+
+
+def load_params(
+    path: str | Path = "params.yaml", *, schema: str | None = None, validate: bool = True
+) -> dict[str, Any]:
+    """Load and validate a params file; return it as a dict (with ``_path`` added).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``params.yaml`` (the root pipeline) or ``fe/params.yaml`` (the FE pipeline).
+    schema : {"root", "fe"}, optional
+        Which file it is; by default ``"fe"`` when the file has an ``fe`` or ``validate``
+        section (:func:`femcal.settings.detect_schema`).
+    validate : bool
+        Check every key the file holds (unknown, retired, mistyped or out-of-range settings
+        stop with their path, line and fix). A missing key is reported by :func:`section`
+        when a command reads it; :func:`femcal.settings.load_settings` requires them all.
+
+    Returns
+    -------
+    dict
+        The YAML mapping as loaded (values unchanged), plus ``_path``.
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, not YAML, not a mapping, or holds invalid settings.
+    """
+    data, text = read_yaml_mapping(path)
+    if validate:
+        from femcal.settings import validate_params
+
+        validate_params(data, path=path, schema=schema, text=text)
     data["_path"] = str(path)
     return data
 
@@ -35,9 +91,15 @@ def section(params: Mapping[str, Any], *keys: str) -> Any:
     for key in keys:
         trail.append(key)
         if not isinstance(node, Mapping) or key not in node:
-            raise ConfigError(
+            message = (
                 f"{params.get('_path', 'params.yaml')}: missing setting '{'.'.join(trail)}'. "
                 "Add it (see the project's params.yaml for the defaults)."
             )
+            from femcal.settings import describe_setting
+
+            doc = describe_setting(trail)
+            if doc:
+                message += f" {'.'.join(trail)}: {doc}."
+            raise ConfigError(message)
         node = node[key]
     return node

@@ -38,7 +38,7 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.model import CurveModel
-from femcal.calibration.pgd import gauss_newton, pgd
+from femcal.calibration.pgd import effect_bank, gauss_newton, nearest_starts, pgd
 from femcal.discrepancy import (
     dense_grid,
     describe,
@@ -340,6 +340,11 @@ def diagnose(
     effect_levels: Sequence[float] = (0.15, 0.5, 0.85),
     discrepancy: bool = True,
     curve_points: int = 48,
+    bank_starts: int = 4,
+    bank_samples: int = 1024,
+    gp_amplitude: str = "ml",
+    stop_when_adequate: bool = False,
+    bank_all: bool = False,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -377,6 +382,11 @@ def diagnose(
         Fit the GP discrepancy and describe what is missing.
     curve_points : int
         Points of the continuous curves (log-spaced over the measured moments).
+    bank_starts : int
+        A single effect's fit also starts from the ``bank_starts`` disc-and-effect combinations
+        (of ``bank_samples`` drawn from ``start_bank``, :func:`femcal.calibration.pgd.effect_bank`)
+        nearest each specimen's curves.
+    bank_samples : int
     seed : int
 
     Returns
@@ -439,6 +449,7 @@ def diagnose(
         (): _Fit((), base, v_disc, all_rows, pred0, _chi2(pred0, measured, sigma), base.dim)
     }
     models: dict[tuple[str, ...], EffectModel] = {}
+    banks: dict[tuple[str, ...], tuple[torch.Tensor, torch.Tensor]] = {}
 
     def effect_model(effects: tuple[str, ...]) -> EffectModel:
         if effects not in models:
@@ -474,9 +485,19 @@ def diagnose(
                 model = effect_model(effects)
                 _, grid = _grid(model, new, effect_levels)
                 v0 = _starts(model, current, v_prev, new, effect_levels)
-                v, pred, chi2 = _fit_from(
-                    model, measured, weight, sigma, rows, v0, len(grid), max_iter
-                )
+                g = len(grid)
+                if (bank_all or not current) and start_bank is not None and bank_starts > 0:
+                    # The disc fitted alone has bent towards the missing physics: also start
+                    # from the disc-and-effect combinations nearest each specimen's curves.
+                    if effects not in banks:
+                        banks[effects] = effect_bank(model, start_bank, rng, bank_samples)
+                    problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
+                    near = nearest_starts(problem, *banks[effects], bank_starts)  # (r, K)
+                    v_near = banks[effects][0][near]  # (r, K, d)
+                    v0 = torch.cat([v0.reshape(len(rows), g, -1), v_near], dim=1)
+                    g = v0.shape[1]
+                    v0 = v0.reshape(len(rows) * g, -1)
+                v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, g, max_iter)
                 fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
                 trials[effects] = fit
                 for pos, i in enumerate(rows):
@@ -490,14 +511,23 @@ def diagnose(
                     b = bic_of(f, pos, i)
                     if b < best_bic:
                         best_eff, best_bic = effects, b
+                logger.debug(
+                    "%s: forward from %s: BIC gains %s",
+                    specimens[i],
+                    current,
+                    {e: round(cur_bic - bic_of(*per_spec[i][e], i), 1) for e in trials},
+                )
                 if best_eff is not None and cur_bic - best_bic >= min_delta:
                     chosen[i] = best_eff
                     improved.append(int(i))
-        # Go on only where the chosen model still does not explain the data.
+        # Keep adding while it pays (or, with ``stop_when_adequate``, only where the chosen
+        # model still does not explain the data).
         still = []
         for i in improved:
             f, pos = per_spec[i][chosen[i]]
-            if not _adequate_quick(f, pos, i, measured, sigma, n_points, alpha):
+            if not stop_when_adequate or not _adequate_quick(
+                f, pos, i, measured, sigma, n_points, alpha
+            ):
                 still.append(i)
         active = np.asarray(still, dtype=int)
 
@@ -522,16 +552,28 @@ def diagnose(
         excess = ((r**2).sum(1) - noise) / np.maximum(mask[i].sum(1), 1)
         return np.clip(np.sqrt(np.clip(excess, 0.0, None)), sigma_m.min(), 5.0)
 
-    def gls_fit(effects: tuple[str, ...], rows: list[int], v: torch.Tensor, amp) -> None:
-        todo = [(k, i) for k, i in enumerate(rows) if (i, effects) not in gls]
+    def gls_fit(
+        effects: tuple[str, ...], rows: list[int], v: torch.Tensor, amp, again: bool = False
+    ) -> None:
+        """The GLS fit of ``effects`` with the GP from ``v`` (keeps the better with ``again``)."""
+        todo = [(k, i) for k, i in enumerate(rows) if again or (i, effects) not in gls]
         if not todo:
             return
         idx = [k for k, _ in todo]
         ids = np.asarray([i for _, i in todo])
         model = base if not effects else effect_model(effects)
-        fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg=amp[idx])
+        if gp_amplitude == "ml":
+            # Each model gets the discrepancy it needs (type-II maximum likelihood per load
+            # case) and pays for it in log det C: -2 log marginal likelihood.
+            fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg="ml")
+            score = fit.neg2_log_ml
+        else:
+            fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg=amp[idx])
+            score = fit.cost
         for pos, i in enumerate(ids):
-            gls[(int(i), effects)] = (float(fit.cost[pos]), fit.v[pos])
+            key = (int(i), effects)
+            if key not in gls or float(score[pos]) < gls[key][0]:
+                gls[key] = (float(score[pos]), fit.v[pos])
 
     def ensure_fitted() -> None:
         """Fit (without the GP) the models elimination reached that were never fitted."""
@@ -570,6 +612,12 @@ def diagnose(
                     base.dim + c for e in rest for c in range(*offsets[e])
                 ]
                 gls_fit(rest, members, v_gls[:, cols], amp)
+                # The reduced model's own fit is a second start: from the larger model's
+                # parameters the disc may stay bent towards what the dropped effect did.
+                own = [i for i in members if rest in per_spec[i]]
+                if own:
+                    v_own = torch.stack([per_spec[i][rest][0].v[per_spec[i][rest][1]] for i in own])
+                    gls_fit(rest, own, v_own, amp[[members.index(i) for i in own]], again=True)
             k_cur = base.dim + sum(len(get_effect(e).parameters) for e in current)
             for i in members:
                 here = gls[(i, current)][0] + k_cur * log_n[i]

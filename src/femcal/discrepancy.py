@@ -69,6 +69,69 @@ class DiscrepancyFit:
     delta_at_points: np.ndarray
     mae_deg: np.ndarray
     cost: np.ndarray
+    log_det: np.ndarray | None = None
+
+    @property
+    def neg2_log_ml(self) -> np.ndarray:
+        """``r^T C^-1 r + log det C`` (n,): -2 log marginal likelihood up to a constant."""
+        return self.cost + (0.0 if self.log_det is None else self.log_det)
+
+
+#: Amplitudes tried by the type-II maximum likelihood (``amplitude_deg="ml"``), in units of
+#: the smallest sigma; 0 = no discrepancy.
+ML_AMPLITUDES = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+
+
+def ml_amplitude(
+    residual: np.ndarray,
+    mask: np.ndarray,
+    sigma: np.ndarray,
+    x: np.ndarray,
+    *,
+    length_scale: float = LENGTH_SCALE,
+    grid: Sequence[float] | None = None,
+) -> np.ndarray:
+    """Type-II maximum likelihood amplitude of the discrepancy, per specimen and load case.
+
+    The kernel is block-diagonal over load cases, so each load case's amplitude maximises its
+    own marginal likelihood ``N(r | 0, s^2 K + diag(sigma^2))``, over a grid of amplitudes.
+
+    Parameters
+    ----------
+    residual : ndarray, shape (n, 4, m)
+        Measured minus model (0 where not measured).
+    mask : ndarray of bool, shape (n, 4, m)
+    sigma : ndarray, shape (n, 4, m)
+        Noise sd of every point.
+    x : ndarray, shape (m,)
+        ln(moment) of the grid.
+    grid : sequence of float, optional
+        Amplitudes to try (deg); default :data:`ML_AMPLITUDES` times the smallest sigma.
+
+    Returns
+    -------
+    ndarray, shape (n, 4)
+    """
+    s_min = float(np.min(sigma))
+    amps = np.asarray(
+        [a * s_min for a in ML_AMPLITUDES] if grid is None else list(grid), dtype=float
+    )
+    amps = np.minimum(amps, 5.0)
+    n, n_lc, m = residual.shape
+    base = np.exp(-0.5 * ((x[:, None] - x[None, :]) / length_scale) ** 2)  # (m, m)
+    mk = mask.astype(float)
+    outer = mk[..., :, None] * mk[..., None, :]  # (n, 4, m, m)
+    diag = np.where(mask, sigma**2, 1.0)  # (n, 4, m)
+    eye = np.eye(m)
+    r = np.where(mask, residual, 0.0)
+    nll = np.empty((len(amps), n, n_lc))
+    for g, a in enumerate(amps):
+        c = a**2 * base * outer + diag[..., :, None] * eye
+        chol = np.linalg.cholesky(c)
+        w = np.linalg.solve(chol, r[..., None])[..., 0]
+        logdet = 2 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
+        nll[g] = (w**2).sum(-1) + logdet
+    return amps[np.argmin(nll, axis=0)]
 
 
 def _kernel(xa: np.ndarray, xb: np.ndarray, amp: np.ndarray, length: float) -> np.ndarray:
@@ -112,6 +175,7 @@ def fit_discrepancy(
     amplitude_deg: np.ndarray | float | None = None,
     length_scale: float = LENGTH_SCALE,
     max_iter: int = 8,
+    ml_rounds: int = 2,
 ) -> DiscrepancyFit:
     """Fit the model and a GP discrepancy jointly (see the module docstring).
 
@@ -125,14 +189,19 @@ def fit_discrepancy(
         Measured RoM (deg), NaN where not measured.
     sigma : ndarray, shape (m,) or (n, 4, m)
         Noise sd of each point (deg): measurement noise and the surrogate's own error.
-    amplitude_deg : float or ndarray (n,) or (n, 4), optional
+    amplitude_deg : float or ndarray (n,) or (n, 4) or "ml", optional
         GP amplitude ``s`` (per specimen, or per specimen and load case). Default: per load
         case, the RMS misfit the model leaves there beyond the noise at ``v0`` (at least the
-        smallest sigma), so that a model that fits gets a small ``s``.
+        smallest sigma), so that a model that fits gets a small ``s``. ``"ml"``: type-II
+        maximum likelihood per load case (:func:`ml_amplitude`), alternated ``ml_rounds``
+        times with the fit of the model's parameters; then :attr:`DiscrepancyFit.neg2_log_ml`
+        compares models that each got the discrepancy they need.
     length_scale : float
         Correlation length in ln(moment).
     max_iter : int
-        Levenberg-Marquardt iterations.
+        Levenberg-Marquardt iterations (per round).
+    ml_rounds : int
+        Rounds of amplitude / parameter updates with ``amplitude_deg="ml"``.
 
     Returns
     -------
@@ -154,7 +223,12 @@ def fit_discrepancy(
     pred, jac = model.curves_jacobian(v)
     r = residual(pred)
     n_lc = len(LOAD_CASES)
-    if amplitude_deg is None:
+    ml = isinstance(amplitude_deg, str)
+    if ml and amplitude_deg != "ml":
+        raise ValueError(
+            f"amplitude_deg must be a number, an array or 'ml'; got {amplitude_deg!r}."
+        )
+    if amplitude_deg is None or ml:
         # Per load case: the RMS misfit the model leaves there beyond the noise.
         count = mask.sum(2).clip(1)  # (n, 4)
         r3 = r.reshape(n, n_lc, m)
@@ -164,54 +238,58 @@ def fit_discrepancy(
     else:
         amp = np.asarray(amplitude_deg, dtype=float)
         amp = np.broadcast_to(amp[:, None] if amp.ndim == 1 else amp, (n, n_lc)).copy()
-    cov = _covariance(mask, sig, x, amp, length_scale)
-    chol = np.linalg.cholesky(cov)
+    for _round in range(ml_rounds if ml else 1):
+        if ml:
+            amp = ml_amplitude(r.reshape(n, n_lc, m), mask, sig, x, length_scale=length_scale)
+        cov = _covariance(mask, sig, x, amp, length_scale)
+        chol = np.linalg.cholesky(cov)
 
-    def cost_of(res: np.ndarray) -> np.ndarray:
-        w = _whiten(chol, res[..., None])[..., 0]
-        return (w**2).sum(1)
+        def cost_of(res: np.ndarray, chol=chol) -> np.ndarray:
+            w = _whiten(chol, res[..., None])[..., 0]
+            return (w**2).sum(1)
 
-    cost = cost_of(r)
-    lam = np.full(n, 1e-3)
-    for _ in range(max_iter):
-        jm = (jac.double().numpy().reshape(n, -1, d)) * flat_mask[..., None]
-        rw = _whiten(chol, r[..., None])[..., 0]  # (n, P)
-        jw = _whiten(chol, jm)  # (n, P, d)
-        hess = np.einsum("npi,npj->nij", jw, jw)
-        grad = np.einsum("npi,np->ni", jw, rw)  # descent direction of r = y - f: +J^T r
-        vn = v.double().numpy()
-        blocked = ((vn <= 0) & (grad < 0)) | ((vn >= 1) & (grad > 0))
-        free = (~blocked).astype(float)
-        hf = hess * free[:, :, None] * free[:, None, :]
-        damp = lam[:, None] * (np.diagonal(hf, axis1=1, axis2=2) + 1e-6) + 1e-9
-        system = hf + np.einsum("ni,ij->nij", damp + (1 - free), np.eye(d))
-        step = np.linalg.solve(system, (grad * free)[..., None])[..., 0]
-        v_new = torch.tensor(np.clip(vn + step, 0.0, 1.0), dtype=torch.float32)
-        with torch.no_grad():
-            p_new = model.curves(v_new)
-        r_new = residual(p_new)
-        c_new = np.nan_to_num(cost_of(r_new), nan=np.inf)
-        ok = c_new < cost
-        if not ok.any():
-            lam *= 4
-            if np.all(lam > 1e6):
+        cost = cost_of(r)
+        lam = np.full(n, 1e-3)
+        for _ in range(max_iter):
+            jm = (jac.double().numpy().reshape(n, -1, d)) * flat_mask[..., None]
+            rw = _whiten(chol, r[..., None])[..., 0]  # (n, P)
+            jw = _whiten(chol, jm)  # (n, P, d)
+            hess = np.einsum("npi,npj->nij", jw, jw)
+            grad = np.einsum("npi,np->ni", jw, rw)  # descent direction of r = y - f: +J^T r
+            vn = v.double().numpy()
+            blocked = ((vn <= 0) & (grad < 0)) | ((vn >= 1) & (grad > 0))
+            free = (~blocked).astype(float)
+            hf = hess * free[:, :, None] * free[:, None, :]
+            damp = lam[:, None] * (np.diagonal(hf, axis1=1, axis2=2) + 1e-6) + 1e-9
+            system = hf + np.einsum("ni,ij->nij", damp + (1 - free), np.eye(d))
+            step = np.linalg.solve(system, (grad * free)[..., None])[..., 0]
+            v_new = torch.tensor(np.clip(vn + step, 0.0, 1.0), dtype=torch.float32)
+            with torch.no_grad():
+                p_new = model.curves(v_new)
+            r_new = residual(p_new)
+            c_new = np.nan_to_num(cost_of(r_new), nan=np.inf)
+            ok = c_new < cost
+            if not ok.any():
+                lam *= 4
+                if np.all(lam > 1e6):
+                    break
+                continue
+            idx = torch.as_tensor(np.flatnonzero(ok))
+            v[idx] = v_new[idx]
+            pn, jn = model.curves_jacobian(v[idx])
+            pred[idx], jac[idx] = pn, jn
+            r[ok] = r_new[ok]
+            gain = (cost - c_new) / np.maximum(cost, 1e-30)
+            cost = np.where(ok, c_new, cost)
+            lam = np.where(ok, lam / 3, lam * 4)
+            if np.all(~ok | (gain < 1e-5)):
                 break
-            continue
-        idx = torch.as_tensor(np.flatnonzero(ok))
-        v[idx] = v_new[idx]
-        pn, jn = model.curves_jacobian(v[idx])
-        pred[idx], jac[idx] = pn, jn
-        r[ok] = r_new[ok]
-        gain = (cost - c_new) / np.maximum(cost, 1e-30)
-        cost = np.where(ok, c_new, cost)
-        lam = np.where(ok, lam / 3, lam * 4)
-        if np.all(~ok | (gain < 1e-5)):
-            break
     alpha = np.linalg.solve(np.swapaxes(chol, 1, 2), _whiten(chol, r[..., None]))[..., 0]
     k_pts = _kernel(x, x, amp, length_scale) * flat_mask[:, :, None] * flat_mask[:, None, :]
     delta = np.einsum("nij,nj->ni", k_pts, alpha).reshape(n, n_lc, m)
     delta = np.where(mask, delta, np.nan)
     err = np.abs(np.where(mask, meas - pred.double().numpy() - np.nan_to_num(delta), np.nan))
+    log_det = 2 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum(1)
     return DiscrepancyFit(
         v=v,
         pred=pred.detach(),
@@ -222,6 +300,7 @@ def fit_discrepancy(
         delta_at_points=delta,
         mae_deg=np.nanmean(err.reshape(n, -1), axis=1),
         cost=cost,
+        log_det=log_det,
     )
 
 

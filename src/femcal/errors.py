@@ -1,5 +1,7 @@
 """Exception hierarchy: one root, mixed with the matching built-in type."""
 
+import threading
+
 
 class FemcalError(Exception):
     """Root of every error femcal raises on purpose."""
@@ -25,15 +27,42 @@ class ModelRegistryError(FemcalError, LookupError):
     """A model could not be found in, or loaded from, the MLflow registry."""
 
 
-try:
-    from sklearn.exceptions import NotFittedError as _NotFittedError
-except ImportError:  # pragma: no cover - scikit-learn is a dependency
-    _NotFittedError = AttributeError
+class UntrustedArtifactError(FemcalError, ValueError):
+    """A saved model names code or types femcal does not trust (names the file and the fix)."""
 
 
-class SurrogateNotFittedError(FemcalError, _NotFittedError):
-    """``predict`` was called before ``fit`` (also scikit-learn's ``NotFittedError``)."""
+class OutputFolderError(FemcalError, OSError):
+    """An output folder cannot take a run's outputs (a file, files femcal did not write, not
+    writable); names the folder, what is in the way and the fix."""
 
 
 class SolverError(FemcalError, RuntimeError):
     """An FE solver is missing or cannot start (failed simulations are data, not errors)."""
+
+
+_lazy_lock = threading.Lock()
+
+
+def _surrogate_not_fitted_error() -> type:
+    try:
+        from sklearn.exceptions import NotFittedError as base
+    except ImportError:  # pragma: no cover - scikit-learn is a dependency
+        base = AttributeError
+
+    class SurrogateNotFittedError(FemcalError, base):
+        """``predict`` was called before ``fit`` (also scikit-learn's ``NotFittedError``)."""
+
+    SurrogateNotFittedError.__module__ = __name__
+    SurrogateNotFittedError.__qualname__ = "SurrogateNotFittedError"
+    return SurrogateNotFittedError
+
+
+def __getattr__(name: str) -> type:
+    # SurrogateNotFittedError derives from scikit-learn's NotFittedError; scikit-learn takes
+    # seconds to import, so it is created on first use, not when any femcal error is needed.
+    if name == "SurrogateNotFittedError":
+        with _lazy_lock:
+            if name not in globals():
+                globals()[name] = _surrogate_not_fitted_error()
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -13,7 +13,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import joblib
 import numpy as np
 import pandas as pd
 
@@ -127,8 +126,7 @@ def run_baselines(
                 seconds[name] = time.perf_counter() - t0
                 mlflow.log_params({"model": name, "train_split": split, "seed": seed})
                 mlflow.log_metric("fit_seconds", seconds[name])
-                path = out_dir / f"{name}.joblib"
-                joblib.dump(model, path)
+                model.save(out_dir / name)  # skops + LightGBM text: data, not a pickle
                 logger.info("%s on %s fitted in %.1f s", name, split, seconds[name])
     (out_dir / "fit_seconds.json").write_text(json.dumps(seconds, indent=2) + "\n")
     return seconds
@@ -153,6 +151,8 @@ def run_evaluate(
     """Score every model on the Test split; write Markdown + JSON; log to MLflow."""
     import mlflow
 
+    from femcal.surrogates.baselines import load_baseline
+
     test, _ = load_split(prepared_dir, "test")
     sections: dict[str, list[Score]] = {}
     for split in surrogate_dirs:
@@ -173,8 +173,8 @@ def run_evaluate(
             )
         )
         for name in baseline_models:
-            path = baseline_dirs[split] / f"{name}.joblib"
-            rows.append(score_model(joblib.load(path), test, name=name, train_split=split))
+            model = load_baseline(baseline_dirs[split] / name)
+            rows.append(score_model(model, test, name=name, train_split=split))
         rows.sort(key=lambda s: s.scores["mae"])
         sections[f"Trained on {split.capitalize()}"] = rows
     if interpolation_path is not None and interpolation_path.exists():
@@ -326,18 +326,28 @@ def run_calibrate(
     :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
     per-specimen tables and every output file as artifacts.
 
+    ``out_dir`` is all or nothing (:mod:`femcal.outputs`): it is checked before anything
+    else, the files are written into a staging folder beside it, only those are logged to
+    MLflow, and the folder moves into place when complete (an earlier femcal output there is
+    moved aside; a folder with files femcal did not write is refused).
+
     Returns
     -------
     result : CalibrationResult
     figures : dict
         The summary figures (also in ``out_dir/summary.json``).
     """
+    from femcal.outputs import check_destination
+
+    check_destination(out_dir)  # a bad output folder is the first error, not the last
     import mlflow
 
     from femcal.calibration import CurveModel, calibrate
     from femcal.calibration.report import write_outputs
     from femcal.measurements import read_measurements
     from femcal.moments import MomentPolicy
+    from femcal.outputs import staged_output
+    from femcal.reachability import assess_reachability
     from femcal.tracking import load_surrogate, resolve_model_version
 
     meas = read_measurements(measurements)
@@ -350,6 +360,10 @@ def run_calibrate(
     model = CurveModel(surrogate, meas.moments)
     if effects:
         model = EffectModel(model, list(effects))
+    # Before the fit: can the model produce these curves at all? (raises or warns)
+    reach = assess_reachability(
+        meas, model, sigma_model=policy.sigma_surrogate(meas.moments), reference=start_bank
+    )
     opts = calibration_options(method, options, surrogate=surrogate, start_bank=start_bank)
     holdout = None
     if holdout_uri:
@@ -367,11 +381,24 @@ def run_calibrate(
         progress=progress,
         options=opts,
     )
-    figures = write_outputs(result, out_dir, holdout=holdout, plots=plots, max_plots=max_plots)
     missing = meas.missing_load_cases()
     label = "+".join([method, *effects])
-    with mlflow.start_run(run_name=f"calibrate-{label}"):
+    # Outputs staged beside out_dir (a kill leaves nothing at out_dir); the MLflow run covers
+    # writing them, gets exactly the staged files, and the move into place happens inside it.
+    with (
+        staged_output(out_dir, command="calibrate") as stage,
+        mlflow.start_run(run_name=f"calibrate-{label}") as run,
+    ):
+        stage.note(mlflow_run_id=run.info.run_id)
         mlflow.set_tag("femcal.stage", "calibrate")
+        figures = write_outputs(
+            result,
+            stage.path,
+            holdout=holdout,
+            plots=plots,
+            max_plots=max_plots,
+            reachability=reach.notes(),
+        )
         logged = {
             "method": method,
             "effects": ",".join(effects) or "none",
@@ -398,12 +425,14 @@ def run_calibrate(
         mlflow.log_metrics({k: float(v) for k, v in figures.items() if isinstance(v, (int, float))})
         if missing:
             mlflow.set_tag("femcal.missing_load_cases", json.dumps(missing)[:5000])
-        metrics_df = pd.read_csv(out_dir / "metrics.csv")
+        metrics_df = pd.read_csv(stage.path / "metrics.csv")
         metrics_df["missing_load_cases"] = metrics_df["missing_load_cases"].fillna("")
         mlflow.log_table(metrics_df, artifact_file="tables/metrics.json")
         mlflow.log_table(result.parameters_frame(), artifact_file="tables/parameters.json")
-        _compare_with_previous(measurements, logged, figures, out_dir)
-        mlflow.log_artifacts(str(out_dir), artifact_path="calibration")
+        _compare_with_previous(measurements, logged, figures, stage.path)
+        stage.finalize()
+        mlflow.log_artifacts(str(stage.path), artifact_path="calibration")  # this run's files
+        stage.commit()
     return result, figures
 
 
@@ -511,7 +540,13 @@ def run_plant(
     noise_deg: float,
     seed: int,
 ) -> Path:
-    """A planted cohort from the FE curves of the Test set: measurements.csv + truth.csv."""
+    """A planted cohort from the FE curves of the Test set: measurements.csv + truth.csv.
+
+    ``out_dir`` is all or nothing (:mod:`femcal.outputs`).
+    """
+    from femcal.outputs import check_destination, staged_output
+
+    check_destination(out_dir)
     from femcal.effects.planted import make_cohort
     from femcal.prepare import wide_rom
 
@@ -525,9 +560,9 @@ def run_plant(
         noise_deg=noise_deg,
         rng=np.random.default_rng(seed),
     )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    cohort.to_long().to_csv(out_dir / "measurements.csv", index=False)
-    cohort.truth.to_csv(out_dir / "truth.csv", index=False)
+    with staged_output(out_dir, command="plant") as stage:  # all or nothing
+        cohort.to_long().to_csv(stage.path / "measurements.csv", index=False)
+        cohort.truth.to_csv(stage.path / "truth.csv", index=False)
     return out_dir / "measurements.csv"
 
 
@@ -553,20 +588,37 @@ def run_diagnose(
     The moments are checked with the moment policy (:class:`femcal.moments.MomentPolicy` of
     ``error_growth`` and ``max_log_ratio``, params.yaml ``moments``), and the surrogate's own
     error at each moment (shape (m,), larger beyond the trained range) is part of the noise.
+
+    ``out_dir`` is all or nothing, as for :func:`run_calibrate` (:mod:`femcal.outputs`).
     """
+    from femcal.outputs import check_destination
+
+    check_destination(out_dir)  # a bad output folder is the first error, not the last
     import mlflow
 
     from femcal.calibration import CurveModel
     from femcal.diagnose import diagnose
     from femcal.diagnose_report import write_diagnosis
+    from femcal.effects import available_effects
+    from femcal.effects.composite import EffectModel
     from femcal.measurements import read_measurements
     from femcal.moments import MomentPolicy
+    from femcal.outputs import staged_output
+    from femcal.reachability import assess_reachability
     from femcal.tracking import load_surrogate
 
     meas = read_measurements(measurements)
     surrogate = load_surrogate(model_uri)
     policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
     policy.check(meas)
+    # Before the fit: can the disc, with every candidate effect, produce these curves at all?
+    assess_reachability(
+        meas,
+        EffectModel(CurveModel(surrogate, meas.moments), list(candidates or available_effects())),
+        sigma_model=policy.sigma_surrogate(meas.moments),
+        reference=start_bank,
+        noise_deg=noise_deg,
+    )
     diag = diagnose(
         CurveModel(surrogate, meas.moments),
         meas.rom_deg,
@@ -580,9 +632,13 @@ def run_diagnose(
         max_effects=max_effects,
         seed=seed,
     )
-    summary = write_diagnosis(diag, meas.rom_deg, out_dir, plots=plots, max_plots=max_plots)
-    with mlflow.start_run(run_name="diagnose"):
+    with (
+        staged_output(out_dir, command="diagnose") as stage,
+        mlflow.start_run(run_name="diagnose") as run,
+    ):
+        stage.note(mlflow_run_id=run.info.run_id)
         mlflow.set_tag("femcal.stage", "diagnose")
+        summary = write_diagnosis(diag, meas.rom_deg, stage.path, plots=plots, max_plots=max_plots)
         mlflow.log_params(
             {
                 "measurements": str(measurements),
@@ -611,7 +667,9 @@ def run_diagnose(
                 },
             }
         )
-        mlflow.log_artifacts(str(out_dir), artifact_path="diagnosis")
+        stage.finalize()
+        mlflow.log_artifacts(str(stage.path), artifact_path="diagnosis")  # this run's files
+        stage.commit()
     return diag, summary
 
 
@@ -667,7 +725,13 @@ def run_simulate(
     summary : dict
         The dataset's ``campaign.json`` (counts, failure rate and reasons, CPU seconds per
         configuration, solver version, wall seconds, workers).
+
+    ``out_dir`` is all or nothing (:func:`femcal.fe.dataset.write_dataset`), and checked
+    before the campaign runs.
     """
+    from femcal.outputs import check_destination
+
+    check_destination(out_dir)
     from femcal.errors import ConfigError
     from femcal.fe.campaign import run_campaign, settings_hash, split_design
     from femcal.fe.dataset import write_dataset
@@ -734,54 +798,64 @@ def run_validate(
     Returns
     -------
     ValidationResult
-        See :func:`femcal.fe.validate.validate_calibration`.
+        See :func:`femcal.fe.validate.validate_calibration`. ``out_dir`` is all or nothing,
+        as for :func:`run_calibrate` (:mod:`femcal.outputs`).
     """
+    from femcal.outputs import check_destination, staged_output
+
+    check_destination(out_dir)  # before the FE campaign
     import mlflow
 
     from femcal.fe.validate import literature_ranges, validate_calibration
 
     ranges = literature_ranges(literature)
-    result = validate_calibration(
-        calibration_dir=calibration_dir,
-        measurements=measurements,
-        solver=solver,
-        settings=settings,
-        forces=forces,
-        literature=ranges,
-        store=store,
-        out_dir=out_dir,
-        scheduler_address=scheduler_address,
-        n_workers=n_workers,
-        progress=progress,
-    )
-    s = result.summary
-    with mlflow.start_run(run_name="validate"):
-        mlflow.set_tag("femcal.stage", "validate")
-        mlflow.log_params(
-            {
-                "calibration_dir": str(calibration_dir),
-                "measurements": str(measurements),
-                "solver": solver,
-                "settings": json.dumps(dict(settings), sort_keys=True)[:500],
-                "forces_n": ",".join(f"{f:g}" for f in forces),
-                "solver_versions": ",".join(s["solver_versions"]),
-                "n_specimens": s["n_specimens"],
-            }
+    # The FE campaign runs before the MLflow run starts (a bad input makes no FAILED run);
+    # its tables are staged, and move into place inside the run that logs them.
+    with staged_output(out_dir, command="validate") as stage:
+        result = validate_calibration(
+            calibration_dir=calibration_dir,
+            measurements=measurements,
+            solver=solver,
+            settings=settings,
+            forces=forces,
+            literature=ranges,
+            store=store,
+            out_dir=stage.path,
+            scheduler_address=scheduler_address,
+            n_workers=n_workers,
+            progress=progress,
         )
-        metrics = {
-            "fe_mae_deg": s["fe_mae_deg"],
-            "surrogate_mae_deg": s["surrogate_mae_deg"],
-            "fe_vs_surrogate_mae_deg": s["fe_vs_surrogate_mae_deg"],
-            "n_fe_failed_jobs": s["n_fe_failed_jobs"],
-            "fe_cpu_seconds_total": s["fe_cpu_seconds_total"],
-        }
-        for lc, v in s["fe_mae_deg_per_load_case"].items():
-            metrics[f"fe_mae_deg_{lc}"] = v
-        for row in s["idp"]:
-            metrics[f"idp_mpa_mean_{row['force_n']:g}N"] = row["idp_mpa_mean"]
-            if row["n_in_range"] is not None:
-                metrics[f"idp_n_in_range_{row['force_n']:g}N"] = row["n_in_range"]
-        mlflow.log_metrics({k: float(v) for k, v in metrics.items() if np.isfinite(float(v))})
-        mlflow.log_table(result.table, artifact_file="tables/validation.json")
-        mlflow.log_artifacts(str(out_dir), artifact_path="validation")
+        s = result.summary
+        with mlflow.start_run(run_name="validate") as run:
+            stage.note(mlflow_run_id=run.info.run_id)
+            mlflow.set_tag("femcal.stage", "validate")
+            mlflow.log_params(
+                {
+                    "calibration_dir": str(calibration_dir),
+                    "measurements": str(measurements),
+                    "solver": solver,
+                    "settings": json.dumps(dict(settings), sort_keys=True)[:500],
+                    "forces_n": ",".join(f"{f:g}" for f in forces),
+                    "solver_versions": ",".join(s["solver_versions"]),
+                    "n_specimens": s["n_specimens"],
+                }
+            )
+            metrics = {
+                "fe_mae_deg": s["fe_mae_deg"],
+                "surrogate_mae_deg": s["surrogate_mae_deg"],
+                "fe_vs_surrogate_mae_deg": s["fe_vs_surrogate_mae_deg"],
+                "n_fe_failed_jobs": s["n_fe_failed_jobs"],
+                "fe_cpu_seconds_total": s["fe_cpu_seconds_total"],
+            }
+            for lc, v in s["fe_mae_deg_per_load_case"].items():
+                metrics[f"fe_mae_deg_{lc}"] = v
+            for row in s["idp"]:
+                metrics[f"idp_mpa_mean_{row['force_n']:g}N"] = row["idp_mpa_mean"]
+                if row["n_in_range"] is not None:
+                    metrics[f"idp_n_in_range_{row['force_n']:g}N"] = row["n_in_range"]
+            mlflow.log_metrics({k: float(v) for k, v in metrics.items() if np.isfinite(float(v))})
+            mlflow.log_table(result.table, artifact_file="tables/validation.json")
+            stage.finalize()
+            mlflow.log_artifacts(str(stage.path), artifact_path="validation")  # this run's files
+            stage.commit()
     return result

@@ -3,14 +3,18 @@
 The default tracking and registry store is a SQLite database inside ``mlruns/`` with artifacts
 beside it (MLflow 3 refuses a plain file store). ``MLFLOW_TRACKING_URI`` points a team at a
 shared server instead.
+
+MLflow records absolute artifact locations (experiments, runs, logged models, model versions).
+The default store follows its folder: every start resolves the locations that point into
+another folder's store (a copied or moved project) to this one (:func:`relocate_store`).
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import os
+import sqlite3
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -44,15 +48,131 @@ def configure_tracking(
     """Point MLflow at the project's store and return the URI in use.
 
     Precedence: the ``tracking_uri`` argument, then ``MLFLOW_TRACKING_URI``, then the local
-    SQLite store in ``store_dir``. The registry follows the tracking store.
+    SQLite store in ``store_dir``. The registry follows the tracking store. When the store is
+    the one in ``store_dir``, artifact locations recorded by a copy of it elsewhere are
+    resolved to ``store_dir`` first (:func:`relocate_store`).
     """
     import mlflow
 
     uri = tracking_uri or os.environ.get("MLFLOW_TRACKING_URI") or default_tracking_uri(store_dir)
+    if uri == f"sqlite:///{Path(store_dir).resolve() / 'mlflow.db'}":
+        relocate_store(store_dir)
     mlflow.set_tracking_uri(uri)
     mlflow.set_registry_uri(uri)
     logger.info("MLflow tracking store: %s", uri)
     return uri
+
+
+#: Columns of MLflow's SQL store that hold artifact locations: (table, column).
+_LOCATION_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("experiments", "artifact_location"),
+    ("runs", "artifact_uri"),
+    ("logged_models", "artifact_location"),
+    ("model_versions", "source"),
+    ("model_versions", "storage_location"),
+)
+
+
+def _local_path(location: str) -> Path | None:
+    """The local path of an artifact location (``file://`` URI or absolute path), or None."""
+    from urllib.parse import unquote, urlparse
+
+    if location.startswith("file:"):
+        return Path(unquote(urlparse(location).path))
+    if location.startswith("/"):
+        return Path(location)
+    return None
+
+
+def _foreign_roots(db: sqlite3.Connection, root: Path) -> list[Path]:
+    """Store folders other than ``root`` that this store's experiments keep artifacts in.
+
+    femcal creates experiments with the artifact root ``<store>/artifacts``; a store whose
+    experiments name ``<other>/artifacts``, with ``<other>`` a folder of the same name as
+    ``root``, was copied or moved from ``<other>``.
+    """
+    found = set()
+    for (location,) in db.execute("SELECT artifact_location FROM experiments"):
+        path = _local_path(str(location or ""))
+        if (
+            path is not None
+            and path.name == "artifacts"
+            and path.parent.name == root.name
+            and path.parent != root
+        ):
+            found.add(path.parent)
+    return sorted(found)
+
+
+def relocate_store(store_dir: str | Path = DEFAULT_STORE_DIR) -> dict[str, int]:
+    """Resolve a copied or moved default store's artifact locations to its own folder.
+
+    MLflow records absolute locations: the experiment's artifact root, every run's artifact
+    URI, every logged model's and model version's location. After ``cp -r`` or ``mv`` of a
+    project these still name the original folder, so runs would be written into it and
+    registered models read from it. This rewrites every location under another store folder
+    ``<other>`` (found from the experiments' ``<other>/artifacts`` roots) to the same place
+    under ``store_dir``, in one transaction, and does nothing when all point here already.
+
+    Parameters
+    ----------
+    store_dir : str or Path
+        The store folder holding ``mlflow.db`` and ``artifacts/``.
+
+    Returns
+    -------
+    dict of str to int
+        Rewritten values per ``"table.column"`` (empty when nothing pointed elsewhere).
+    """
+    root = Path(store_dir).resolve()
+    db_file = root / "mlflow.db"
+    if not db_file.is_file():
+        return {}
+    counts: dict[str, int] = {}
+    db = sqlite3.connect(db_file, timeout=60, isolation_level=None)
+    try:
+        try:
+            if not _foreign_roots(db, root):  # the usual case: a read, no lock taken
+                return {}
+            db.execute("BEGIN IMMEDIATE")  # one writer; re-read under the lock
+            olds = _foreign_roots(db, root)
+        except sqlite3.OperationalError:  # not (yet) an MLflow store: nothing to resolve
+            return {}
+        if not olds:  # another process resolved them while this one waited for the lock
+            return {}
+        pairs = []
+        for old in olds:
+            new = root
+            pairs += [(str(old), str(new)), (old.as_uri(), new.as_uri())]
+        for table, column in _LOCATION_COLUMNS:
+            columns = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+            if column not in columns:
+                continue
+            for old_prefix, new_prefix in pairs:
+                n = len(old_prefix)
+                cur = db.execute(
+                    f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
+                    f"WHERE {column} = ? OR substr({column}, 1, ?) = ?",
+                    (new_prefix, n + 1, old_prefix, n + 1, old_prefix + "/"),
+                )
+                if cur.rowcount:
+                    key = f"{table}.{column}"
+                    counts[key] = counts.get(key, 0) + cur.rowcount
+        db.execute("COMMIT")
+    finally:
+        if db.in_transaction:
+            db.execute("ROLLBACK")
+        db.close()
+    logger.warning(
+        "The MLflow store %s was copied or moved from %s: %d recorded artifact locations now "
+        "point into %s (%s).",
+        root,
+        ", ".join(map(str, olds)),
+        sum(counts.values()),
+        root,
+        ", ".join(f"{k} {v}" for k, v in sorted(counts.items())),
+    )
+    return counts
 
 
 def ensure_experiment(name: str, *, store_dir: str | Path = DEFAULT_STORE_DIR) -> str:
@@ -85,12 +205,36 @@ def _loader_path(obj: Any) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
-def _import_loader(spec: str) -> Any:
-    module, _, qualname = spec.partition(":")
-    obj = importlib.import_module(module)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
+def _trusted_loader(file: Path, *, uri: str | None = None) -> Any:
+    """The registered surrogate class a ``femcal_loader.json`` names (never imported from it).
+
+    Parameters
+    ----------
+    file : Path
+        The ``femcal_loader.json``.
+    uri : str, optional
+        The model URI it was downloaded from, for messages.
+
+    Raises
+    ------
+    ModelRegistryError
+        The file is not a loader record.
+    UntrustedArtifactError
+        It names a class outside femcal's surrogate registry (see
+        :func:`femcal.surrogates.base.trusted_surrogate_class`).
+    """
+    from femcal.surrogates.base import trusted_surrogate_class
+
+    source = f"{file.name} of the model '{uri}'" if uri else str(file)
+    try:
+        record = json.loads(file.read_text())
+        spec = record["loader"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ModelRegistryError(
+            f"{source}: not a femcal loader record ({type(exc).__name__}: {exc}); expected "
+            '{"loader": "module:Class"}. Log the model again with femcal.tracking.log_surrogate.'
+        ) from None
+    return trusted_surrogate_class(spec, source=source)
 
 
 try:  # pragma: no branch - mlflow is a hard dependency; the guard keeps import errors clear
@@ -110,8 +254,7 @@ class SurrogatePyfunc(_PythonModel):
 
     def load_context(self, context: Any) -> None:
         root = Path(context.artifacts["surrogate"])
-        spec = json.loads((root / "femcal_loader.json").read_text())["loader"]
-        self.surrogate = _import_loader(spec).load(root)
+        self.surrogate = _trusted_loader(root / "femcal_loader.json").load(root)
 
     def predict(self, context: Any, model_input: pd.DataFrame, params: Any = None) -> np.ndarray:
         frame = model_input.copy()
@@ -269,9 +412,7 @@ def load_surrogate(uri: str = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}") 
     candidates = list(local.rglob("femcal_loader.json"))
     if not candidates:
         raise ModelRegistryError(f"'{uri}' is not a femcal surrogate (no femcal_loader.json).")
-    root = candidates[0].parent
-    spec = json.loads(candidates[0].read_text())["loader"]
-    return _import_loader(spec).load(root)
+    return _trusted_loader(candidates[0], uri=uri).load(candidates[0].parent)
 
 
 def resolve_model_version(uri: str) -> dict[str, str] | None:

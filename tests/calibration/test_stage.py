@@ -133,7 +133,8 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
     }
     (tmp / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     args = ["--params", str(tmp / "params.yaml"), "calibrate"]
-    assert main([*args, "--dataset", "mine", "--model-version", "1"]) == 0
+    stage = ["--metrics-file", "reports/calibrate-mine.json"]  # as the DVC stage passes it
+    assert main([*args, "--dataset", "mine", "--model-version", "1", *stage]) == 0
     out = capsys.readouterr().out
     assert "calibrated 2 specimens with pgd against models:/ivd-rom-surrogate/1" in out
     assert json.loads((tmp / "reports/calibrate-mine.json").read_text())["n_specimens"] == 2

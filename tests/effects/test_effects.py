@@ -215,3 +215,21 @@ def test_adding_an_unneeded_effect_does_not_worsen_the_fit(surrogate):
     # Staged starts begin at the disc-alone solution with every effect off, and Gauss-Newton only
     # accepts steps that lower the loss: no specimen may end worse (1e-4 deg: float32 rounding).
     assert np.all(full.mae_deg <= disc.mae_deg + 1e-4)
+
+
+def test_effect_bank_is_seeded_inside_the_box_and_mixes_effects_on_and_off(surrogate):
+    from femcal.calibration.pgd import effect_bank
+
+    base = CurveModel(surrogate, np.arange(1.0, 5.01))
+    model = EffectModel(base, ["facet_contact", "neutral_zone"])
+    bank = surrogate.space.sample_uniform(32, np.random.default_rng(0))
+    v1, p1 = effect_bank(model, bank, np.random.default_rng(7), 256)
+    v2, p2 = effect_bank(model, bank, np.random.default_rng(7), 256)
+    torch.testing.assert_close(v1, v2)  # same seed, same bank
+    torch.testing.assert_close(p1, p2)
+    assert v1.shape[1] == model.dim and p1.shape[1:] == (4, 5)
+    assert float(v1.min()) >= 0.0 and float(v1.max()) <= 1.0
+    assert torch.isfinite(p1).all()
+    # nz_range_deg starts at 0 (off); about half the rows have the laxity on.
+    on = (v1[:, model.n_disc + 4] > 0).float().mean()
+    assert 0.3 < float(on) < 0.8

@@ -183,16 +183,38 @@ def test_the_parser_accepts_repeated_effects_modules():
     assert parser.parse_args(["diagnose"]).effects_module is None
 
 
+def _project_params(folder: Path, modules: list[str]) -> Path:
+    """The project's own settings, with ``effects.modules`` and a store of the test's own."""
+    params = yaml.safe_load((Path(__file__).parents[2] / "params.yaml").read_text())
+    params["effects"] = {"modules": modules}
+    params["mlflow"]["store_dir"] = str(folder / "mlruns")
+    path = folder / "params.yaml"
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    measurements = folder / "one.csv"
+    measurements.write_text(
+        "specimen,load_case,moment_nm,rom_deg\n"
+        + "".join(
+            f"s1,{lc},{m},{1.0 + m}\n"
+            for lc in ("Flexion", "Extension", "LateralBending", "AxialRotation")
+            for m in (1, 2, 3, 4, 5)
+        )
+    )
+    return path
+
+
 @pytest.mark.parametrize("command", ["calibrate", "diagnose"])
 def test_the_cli_loads_files_from_params_and_the_option(tmp_path, capsys, command):
     creep_file(tmp_path / "project", "creep_params", "params_effects.py")
     option = creep_file(tmp_path, "creep_option", "option_effects.py")
-    params = tmp_path / "project" / "params.yaml"  # paths relative to its folder
-    params.write_text(yaml.safe_dump({"effects": {"modules": ["params_effects.py"]}}))
-    code = main(["--params", str(params), command, "--effects-module", str(option)])
-    # The effects are loaded first; the command then stops on the missing mlflow section.
+    params = _project_params(tmp_path / "project", ["params_effects.py"])  # relative to it
+    argv = ["--params", str(params), command, "--effects-module", str(option)]
+    argv += ["--measurements", str(tmp_path / "project" / "one.csv")]
+    argv += ["--out", str(tmp_path / "out")]
+    code = main(argv)
+    # Settings, --out and the measurements are checked first; the effects are loaded before
+    # the model, and the command then stops: the test's store has no registered surrogate.
     assert code == 2
-    assert "missing setting 'mlflow" in capsys.readouterr().err
+    assert "ivd-rom-surrogate" in capsys.readouterr().err
     assert {"creep_params", "creep_option"} <= set(available_effects())
 
 
@@ -210,9 +232,9 @@ def test_a_wrong_effects_section_is_refused(tmp_path, capsys, effects):
 
 
 def test_the_cli_reports_a_broken_effect_file(tmp_path, capsys):
-    params = tmp_path / "params.yaml"
-    params.write_text(yaml.safe_dump({"effects": {"modules": ["missing.py"]}}))
-    assert main(["--params", str(params), "calibrate"]) == 2
+    params = _project_params(tmp_path, ["missing.py"])
+    argv = ["--params", str(params), "calibrate", "--measurements", str(tmp_path / "one.csv")]
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 2
     assert "Effect module" in capsys.readouterr().err
 
 

@@ -82,7 +82,8 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
     }
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
     try:
-        assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
+        stage = ["validate", "--metrics-file", str(tmp_path / "validate.json")]  # as dvc.yaml
+        assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
         runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
         assert len(runs) == 1 and runs["metrics.fe_mae_deg"].iloc[0] < 1e-6
     finally:

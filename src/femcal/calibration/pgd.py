@@ -73,6 +73,55 @@ def _bank(problem: CalibrationProblem, start_bank: np.ndarray | None, n_uniform:
     return v, pred
 
 
+def effect_bank(
+    model, start_bank: np.ndarray, rng: np.random.Generator, n_samples: int = 4096
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random disc-and-effect combinations of an effect model, and their curves.
+
+    A disc fitted alone has bent towards the missing physics, so that an effect started from
+    it may never reach the disc it needs. These starts do not depend on that fit: disc
+    configurations of the bank, each with every effect either off (its weak start) or on with
+    its grid parameters uniform in their box (shape parameters at their classic start); the
+    nearest of them to a specimen's curves (:func:`nearest_starts`) join its starts.
+
+    Parameters
+    ----------
+    model : EffectModel
+    start_bank : ndarray, shape (N, n_disc) or (N, dim)
+        Disc configurations in physical units (the surrogate's training configurations).
+    rng : numpy.random.Generator
+    n_samples : int
+
+    Returns
+    -------
+    v : Tensor, shape (n_samples, dim)
+        Unit coordinates.
+    pred : Tensor, shape (n_samples, 4, m)
+    """
+    n_disc = model.n_disc
+    bank = np.asarray(start_bank, dtype=float)[:, :n_disc]
+    disc = model.base.from_physical(bank)
+    v = torch.empty((n_samples, model.dim), dtype=torch.float32)
+    v[:, :n_disc] = disc[torch.as_tensor(rng.integers(len(disc), size=n_samples))]
+    offset = n_disc
+    p_on = 1.0 - 0.5 ** (1.0 / max(len(model.effects), 1))  # half the rows: no effect off
+    p_on = max(p_on, 0.5)
+    for e in model.effects:
+        start = np.array([q.start for q in e.parameters], dtype=float)
+        grid = np.array([getattr(q, "grid", True) for q in e.parameters])
+        u = np.where(grid, rng.random((n_samples, len(start))), start)
+        on = rng.random(n_samples) < p_on
+        block = np.where(on[:, None], u, start)
+        v[:, offset : offset + len(start)] = torch.tensor(block, dtype=torch.float32)
+        offset += len(start)
+    with torch.no_grad():
+        pred = torch.cat(
+            [model.curves(v[i : i + _BANK_BATCH]) for i in range(0, n_samples, _BANK_BATCH)]
+        )
+    finite = torch.isfinite(pred).reshape(n_samples, -1).all(1)
+    return v[finite], pred[finite]
+
+
 def _has_effects(model) -> bool:
     return hasattr(model, "effects") and model.dim > getattr(model, "n_disc", model.dim)
 
@@ -338,6 +387,8 @@ def pgd(
     range_z: float = 2.0,
     ranges: bool = True,
     effect_levels: tuple[float, ...] = (0.15, 0.5, 0.85),
+    effect_bank_starts: int = 4,
+    effect_bank_samples: int = 1024,
 ) -> Solution:
     """Projected gradient-based calibration of a batch (see the module docstring).
 
@@ -389,6 +440,11 @@ def pgd(
         Compute the identifiability ranges.
     effect_levels : tuple of float
         Unit-box levels of the start grid over each effect's parameters (effect models only).
+    effect_bank_starts : int
+        Effect models: also start from the ``effect_bank_starts`` disc-and-effect combinations
+        (of ``effect_bank_samples`` drawn from ``start_bank``, :func:`effect_bank`) nearest each
+        specimen's curves.
+    effect_bank_samples : int
 
     Returns
     -------
@@ -433,9 +489,13 @@ def pgd(
         starts = [
             torch.cat([v_disc[:, None, :].expand(-1, len(grid), -1), grid.expand(n, -1, -1)], dim=2)
         ]
+        if start_bank is not None and len(start_bank) and effect_bank_starts > 0:
+            # The disc fitted alone bends towards the missing physics; these starts do not.
+            bank_v, bank_pred = effect_bank(model, start_bank, rng, effect_bank_samples)
+            starts.append(bank_v[nearest_starts(problem, bank_v, bank_pred, effect_bank_starts)])
         k_bank = 0
         # Every staged start must survive the pruning: it is the only one with its effect on.
-        keep_after, keep = max_iter, len(grid)
+        keep_after, keep = max_iter, sum(s.shape[1] for s in starts)
     else:
         bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
         idx = nearest_starts(problem, bank_v, bank_pred, n_starts)

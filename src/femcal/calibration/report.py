@@ -4,8 +4,11 @@
 
 * ``parameters.csv``: ``specimen`` + the d parameters in physical units;
 * ``metrics.csv``: specimen, method, mae_deg, r2_mean, MAE and R² per load case, exceedance,
-  seconds (of the whole batch), success, missing load cases, and ``holdout_mae_deg`` when a
-  held-out surrogate re-evaluated the parameters;
+  seconds (of the whole batch), success, missing load cases, ``holdout_mae_deg`` when a
+  held-out surrogate re-evaluated the parameters, ``reachability`` (why a specimen's points lie
+  outside every curve the model can produce, :mod:`femcal.reachability`; "" when they do not)
+  and ``flag`` (:func:`fit_flags`: "R2<0" for a fit worse than the specimen's mean, "outside
+  envelope"; "" for a plain fit);
 * ``ranges.csv``: the identifiability range of every parameter of every specimen;
 * ``curves.csv``: measured and calibrated RoM of every point (long format);
 * ``plots/<specimen>.png``: measured vs calibrated RoM per load case (the study's figure 4);
@@ -17,7 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -89,8 +92,35 @@ def curves_frame(result: CalibrationResult, holdout_pred: np.ndarray | None = No
     return df[np.isfinite(df["measured_rom_deg"])].reset_index(drop=True)
 
 
+def fit_flags(metrics: pd.DataFrame) -> pd.Series:
+    """What a reader must not take for a plain success, per specimen.
+
+    Parameters
+    ----------
+    metrics : pandas.DataFrame, shape (n, k)
+        Per-specimen metrics with ``r2_mean`` and, optionally, ``reachability`` (text, "" when
+        the specimen lies within the model's envelope).
+
+    Returns
+    -------
+    pandas.Series of str, shape (n,)
+        "; "-joined flags: ``R2<0`` (the calibrated curves explain less than the specimen's
+        mean: a fit worse than a flat line), ``outside envelope``; "" when none applies.
+    """
+    r2 = pd.to_numeric(metrics["r2_mean"], errors="coerce").to_numpy(dtype=float)
+    notes = metrics["reachability"] if "reachability" in metrics else pd.Series([""] * len(r2))
+    flags = [
+        "; ".join(f for f, on in (("R2<0", r < 0), ("outside envelope", bool(note))) if on)
+        for r, note in zip(r2, notes.fillna("").astype(str))
+    ]
+    return pd.Series(flags, index=metrics.index, dtype=object)
+
+
 def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None = None) -> dict:
-    """Aggregate figures of a batch (what the DVC metrics file and MLflow record)."""
+    """Aggregate figures of a batch (what the DVC metrics file and MLflow record).
+
+    ``n_r2_negative`` counts the specimens whose fit is worse than their mean (R² < 0).
+    """
     out: dict[str, Any] = {
         "method": result.method,
         "n_specimens": len(result.specimens),
@@ -102,6 +132,7 @@ def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None 
         "n_outside_bounds": int(np.sum(result.exceedance > 0)),
         "seconds": float(result.seconds),
         "n_success": int(np.sum(result.success)),
+        "n_r2_negative": int(np.sum(np.asarray(result.r2_mean, dtype=float) < 0)),
         "nit": int(result.nit),
     }
     for j, lc in enumerate(LOAD_CASES):
@@ -228,6 +259,7 @@ def _markdown(result: CalibrationResult, figures: dict, ident: pd.DataFrame | No
         "",
         f"{result.message}.",
         "",
+        *_warnings(figures),
         "| figure | value |",
         "|---|---|",
     ]
@@ -259,6 +291,28 @@ def _markdown(result: CalibrationResult, figures: dict, ident: pd.DataFrame | No
     return "\n".join(lines) + "\n"
 
 
+def _warnings(figures: Mapping[str, Any]) -> list[str]:
+    """Markdown lines (each followed by a blank line) flagging fits that are no success."""
+    lines = []
+    n_neg, n_out = figures.get("n_r2_negative", 0), figures.get("n_outside_envelope", 0)
+    if n_neg:
+        lines += [
+            f"**Warning: {n_neg} of {figures['n_specimens']} specimens fit worse than their mean "
+            "(R² < 0): see metrics.csv (column flag).** Their calibrated curves explain less than "
+            "a flat line at the measured mean; check the units and load cases of those "
+            "specimens.",
+            "",
+        ]
+    if n_out:
+        lines += [
+            f"**Warning: {n_out} of {figures['n_specimens']} specimens have measured points "
+            "outside every curve the model can produce: see metrics.csv (columns flag, "
+            "reachability).**",
+            "",
+        ]
+    return lines
+
+
 def write_outputs(
     result: CalibrationResult,
     out_dir: Path,
@@ -266,6 +320,7 @@ def write_outputs(
     holdout: CurveModel | None = None,
     plots: bool = True,
     max_plots: int | None = None,
+    reachability: Sequence[str] | None = None,
 ) -> dict:
     """Write the tables, figures and summary of a calibration; returns the summary figures.
 
@@ -282,6 +337,10 @@ def write_outputs(
     max_plots : int, optional
         Write per-specimen PNGs for the first ``max_plots`` specimens only (the tables always
         hold every specimen; the summary says how many were plotted).
+    reachability : sequence of str, shape (n,), optional
+        Per specimen, why its points lie outside the model's envelope ("" when they do not;
+        :meth:`femcal.reachability.ReachabilityReport.notes`): the ``reachability`` column of
+        metrics.csv, flagged in ``flag`` and counted as ``n_outside_envelope``.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -290,6 +349,9 @@ def write_outputs(
     if held is not None:
         metrics["holdout_mae_deg"] = held["mae"]
         metrics["holdout_r2_mean"] = held["r2_mean"]
+    if reachability is not None:
+        metrics["reachability"] = [str(note) for note in reachability]
+    metrics["flag"] = fit_flags(metrics)
     result.parameters_frame().to_csv(out_dir / "parameters.csv", index=False)
     metrics.to_csv(out_dir / "metrics.csv", index=False)
     ranges = result.ranges_frame()
@@ -299,6 +361,15 @@ def write_outputs(
         out_dir / "curves.csv", index=False
     )
     figures = summary(result, held)
+    if reachability is not None:
+        figures["n_outside_envelope"] = int(sum(bool(note) for note in reachability))
+    if figures["n_r2_negative"]:
+        logger.warning(
+            "%d of %d specimens fit worse than their mean (R² < 0): see metrics.csv (column "
+            "flag).",
+            figures["n_r2_negative"],
+            figures["n_specimens"],
+        )
     n = len(result.specimens)
     n_plot = n if max_plots is None else min(n, int(max_plots))
     figures["n_plotted"] = n_plot if plots else 0

@@ -23,8 +23,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import shutil
-import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -33,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from femcal.errors import InputDataError
+from femcal.outputs import OutputStage
 from femcal.prepare import BOUNDS_FILE, SPLITS
 from femcal.schema import LOAD_CASES, STATUS_FAILED, STATUS_OK
 from femcal.space import ParameterSpace
@@ -97,7 +96,9 @@ def write_dataset(
         Store records (:mod:`femcal.fe.campaign`) of the design's jobs under the four
         pure-moment load cases at ``moments``.
     out_dir : str or Path
-        The dataset folder; replaced as a whole (written beside it, then moved into place).
+        The dataset folder, all or nothing (:mod:`femcal.outputs`): written beside it, then
+        moved into place; an earlier dataset femcal wrote there is moved aside, a folder
+        holding other files is refused (:class:`~femcal.errors.OutputFolderError`).
     space : ParameterSpace
         The sampling box (``ParameterBounds.csv``).
     moments : sequence of float, length m
@@ -129,8 +130,8 @@ def write_dataset(
     if unknown:
         raise InputDataError(f"The design names unknown splits {unknown}; use {sorted(SPLITS)}.")
     by_job = {(int(r["config_id"]), str(r["load_case"])): r for r in records}
-    tmp = out_dir.with_name(f".{out_dir.name}.{uuid.uuid4().hex[:8]}.tmp")
-    tmp.mkdir(parents=True)
+    stage = OutputStage(out_dir, command="simulate").open()
+    tmp = stage.path
     runs: list[dict[str, Any]] = []
     design_rows = []
     try:
@@ -216,11 +217,9 @@ def write_dataset(
         runs_df.to_csv(tmp / RUNS_FILE, index=False)
         summary = summarize_runs(runs_df, moments=moments, extra=campaign_info)
         (tmp / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n")
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
+        stage.commit()
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        stage.discard()
         raise
     logger.info(
         "FE dataset %s: %d configurations, %d jobs, %d failed.",

@@ -6,18 +6,23 @@ arguments, ``fit(X, y)`` learns and returns ``self``, fitted attributes end in `
 the surrogate's :class:`~femcal.space.ParameterSpace`, in physical units; ``y`` is the RoM in
 degrees. ``predict(X)`` returns RoM in degrees, shape (n,).
 
-A new surrogate is one file: a class decorated with :func:`register_surrogate`.
+A new surrogate is one file: a class decorated with :func:`register_surrogate`. A package
+can also provide surrogates through the entry-point group ``femcal.surrogates`` (a module
+that registers its classes on import, or a class, registered under the entry point's name).
+Only registered classes are loaded from saved models (:func:`trusted_surrogate_class`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from importlib import metadata
+from types import ModuleType
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import pandas as pd
 
-from femcal.errors import ConfigError, InputDataError
+from femcal.errors import ConfigError, InputDataError, UntrustedArtifactError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 
@@ -32,6 +37,9 @@ class Surrogate(Protocol):
 
 
 _REGISTRY: dict[str, Callable[..., Surrogate]] = {}
+#: Entry-point group of installed surrogate plugins.
+ENTRY_POINT_GROUP = "femcal.surrogates"
+_PLUGINS_DONE = False
 
 
 def register_surrogate(name: str) -> Callable[[type], type]:
@@ -69,6 +77,95 @@ def _import_builtins() -> None:
     # Importing the modules runs their @register_surrogate decorators.
     import femcal.surrogates.baselines  # noqa: F401
     import femcal.surrogates.nn  # noqa: F401
+
+
+def _load_entry_points() -> None:
+    """Load the installed surrogate plugins (group ``femcal.surrogates``), once per process.
+
+    An entry point names a module (its ``@register_surrogate`` classes register on import) or
+    a class (registered under the entry point's name).
+    """
+    global _PLUGINS_DONE
+    if _PLUGINS_DONE:
+        return
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        dist = getattr(ep, "dist", None)
+        where = f"'{ep.name} = {ep.value}' (entry point group {ENTRY_POINT_GROUP}"
+        where += f", distribution {dist.name} {dist.version})" if dist is not None else ")"
+        try:
+            obj = ep.load()
+        except Exception as exc:
+            raise ConfigError(
+                f"The femcal surrogate plugin {where} failed to load: {type(exc).__name__}: "
+                f"{exc}. Fix the plugin, or uninstall it."
+            ) from exc
+        if isinstance(obj, type):
+            if obj not in _REGISTRY.values():
+                register_surrogate(ep.name)(obj)
+        elif not isinstance(obj, ModuleType):
+            raise ConfigError(
+                f"The femcal surrogate plugin {where} names a {type(obj).__name__}; an entry "
+                "point of this group names a module or a surrogate class. Fix the plugin, or "
+                "uninstall it."
+            )
+    _PLUGINS_DONE = True
+
+
+def trusted_surrogate_classes() -> dict[str, type]:
+    """The classes a saved model may name as its loader, by ``"module:QualName"``.
+
+    Those of femcal's surrogate registry: the built-in surrogates, those installed through the
+    ``femcal.surrogates`` entry points and those registered in this process.
+    """
+    _import_builtins()
+    _load_entry_points()
+    return {
+        f"{cls.__module__}:{cls.__qualname__}": cls
+        for cls in _REGISTRY.values()
+        if isinstance(cls, type)
+    }
+
+
+def trusted_surrogate_class(spec: Any, *, source: str) -> type:
+    """The registered surrogate class ``spec`` (``"module:QualName"``) names, or an error.
+
+    Nothing is imported on the file's say-so: ``spec`` is looked up among the registered
+    classes, so a saved model cannot make femcal import or call anything else.
+
+    Parameters
+    ----------
+    spec : str
+        The loader named by a saved model (its ``femcal_loader.json``).
+    source : str
+        Where ``spec`` was read (the file), for the message.
+
+    Returns
+    -------
+    type
+        The class; its ``load(folder)`` rebuilds the surrogate from data files.
+
+    Raises
+    ------
+    UntrustedArtifactError
+        ``spec`` is not a registered surrogate class, or that class cannot ``load``.
+    """
+    classes = trusted_surrogate_classes()
+    cls = classes.get(spec) if isinstance(spec, str) else None
+    if cls is None:
+        raise UntrustedArtifactError(
+            f"{source} names the class {spec!r}, which is not a registered femcal surrogate; "
+            "femcal refuses to import it (a model could otherwise run any code it names). "
+            f"Trusted classes: {', '.join(sorted(classes))}. If the class is yours, register "
+            "it with @register_surrogate in a package installed with an entry point in the "
+            f"group '{ENTRY_POINT_GROUP}', then load again; otherwise do not load this model."
+        )
+    if not callable(getattr(cls, "load", None)):
+        raise UntrustedArtifactError(
+            f"{source} names {spec!r}, a registered surrogate without a load(folder) "
+            "classmethod, so it cannot be loaded from a saved model. Give the class save(folder) "
+            "and load(folder)."
+        )
+    return cls
 
 
 def check_features(X: pd.DataFrame, space: ParameterSpace, *, what: str = "X") -> None:

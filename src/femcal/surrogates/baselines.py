@@ -52,8 +52,11 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
+import json
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -71,7 +74,12 @@ from sklearn.preprocessing import MinMaxScaler
 from sklearn.svm import SVR
 from threadpoolctl import ThreadpoolController
 
-from femcal.errors import ConfigError, InputDataError, SurrogateNotFittedError
+from femcal.errors import (
+    ConfigError,
+    InputDataError,
+    SurrogateNotFittedError,
+    UntrustedArtifactError,
+)
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates.base import encode_features, register_surrogate
@@ -89,6 +97,8 @@ __all__ = [
     "SklearnSurrogate",
     "SurrogateNotFittedError",
     "SVRSurrogate",
+    "TRUSTED_TYPES",
+    "load_baseline",
 ]
 
 #: Registered baseline names, in the order of the study's results table.
@@ -105,6 +115,42 @@ BASELINE_NAMES: tuple[str, ...] = (
 )
 
 _N_CASES = len(LOAD_CASES)  # one-hot columns 0..3 of encode_features; column 4 is the moment
+
+#: A saved baseline is a folder: ``config.json`` (format, class, file hashes, versions),
+#: ``model.skops`` (the fitted scikit-learn objects, as data: skops never unpickles) and, for
+#: LightGBM, ``lightgbm.txt`` (the booster in LightGBM's own text format).
+BASELINE_FORMAT = "femcal-baseline"
+BASELINE_FORMAT_VERSION = 1
+_CONFIG_FILE = "config.json"
+_MODEL_FILE = "model.skops"
+_BOOSTER_FILE = "lightgbm.txt"
+
+#: Types a saved baseline may hold beyond skops's own trusted list (numpy, builtins and
+#: scikit-learn's estimators): femcal's estimators and parameter space, the fitted trees of
+#: the random forest, the GP kernels and the LightGBM wrapper (its booster is the text file).
+#: Loading constructs these from their stored attributes; no code from the file runs.
+TRUSTED_TYPES: tuple[str, ...] = (
+    "collections.OrderedDict",
+    "femcal.space.ParameterSpace",
+    "femcal.surrogates.baselines.PerLoadCaseRegressor",
+    "femcal.surrogates.baselines.PolynomialRidge",
+    "femcal.surrogates.baselines._MeanOnlyGP",
+    "femcal.surrogates.baselines.SklearnSurrogate",
+    "femcal.surrogates.baselines.LinearSurrogate",
+    "femcal.surrogates.baselines.SVRSurrogate",
+    "femcal.surrogates.baselines.Poly2Surrogate",
+    "femcal.surrogates.baselines.Poly3Surrogate",
+    "femcal.surrogates.baselines.Poly4Surrogate",
+    "femcal.surrogates.baselines.Poly5Surrogate",
+    "femcal.surrogates.baselines.RandomForestSurrogate",
+    "femcal.surrogates.baselines.GaussianProcessSurrogate",
+    "femcal.surrogates.baselines.LightGBMSurrogate",
+    "lightgbm.sklearn.LGBMRegressor",
+    "sklearn.gaussian_process.kernels.ConstantKernel",
+    "sklearn.gaussian_process.kernels.Product",
+    "sklearn.gaussian_process.kernels.RBF",
+    "sklearn.tree._tree.Tree",
+)
 
 
 @functools.cache
@@ -444,6 +490,221 @@ class SklearnSurrogate(RegressorMixin, BaseEstimator):
 
     def __sklearn_is_fitted__(self) -> bool:
         return hasattr(self, "model_")
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> None:
+        """Save the fitted baseline into the folder ``path`` as data, not code.
+
+        The scikit-learn objects go to ``model.skops`` (skops: loading never unpickles), a
+        LightGBM booster to ``lightgbm.txt`` (LightGBM's text model), and ``config.json``
+        records the format, the class, the files' SHA-256 and the library versions.
+
+        Parameters
+        ----------
+        path : str or Path
+            The folder; created if missing, its files of the same names replaced.
+
+        Raises
+        ------
+        SurrogateNotFittedError
+            The baseline is not fitted.
+        """
+        import skops.io as sio
+
+        if not hasattr(self, "model_"):
+            raise SurrogateNotFittedError(
+                f"This {type(self).__name__} is not fitted yet; call fit(X, y) before save."
+            )
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        files = [_MODEL_FILE]
+        lgbm = _lightgbm_of(self.model_)
+        booster = None
+        if lgbm is not None:
+            booster = lgbm._Booster
+            booster.save_model(str(path / _BOOSTER_FILE), num_iteration=-1)
+            files.append(_BOOSTER_FILE)
+            lgbm._Booster = None  # the booster is stored as text, not inside the skops file
+        try:
+            sio.dump(self, path / _MODEL_FILE)
+        finally:
+            if lgbm is not None:
+                lgbm._Booster = booster
+        config = {
+            "format": BASELINE_FORMAT,
+            "format_version": BASELINE_FORMAT_VERSION,
+            "class": f"{type(self).__module__}:{type(self).__qualname__}",
+            "estimator_name": self._name(),
+            "sha256": {name: _sha256(path / name) for name in files},
+            "versions": _library_versions(),
+        }
+        (path / _CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> SklearnSurrogate:
+        """Load a baseline saved by :meth:`save`, without running code from its files.
+
+        Parameters
+        ----------
+        path : str or Path
+            The folder written by :meth:`save`.
+
+        Returns
+        -------
+        SklearnSurrogate
+            The fitted baseline; its predictions equal the saved one's bit for bit.
+
+        Raises
+        ------
+        InputDataError
+            The folder is not a saved femcal baseline, or a file is missing or unreadable.
+        UntrustedArtifactError
+            ``model.skops`` holds a type outside :data:`TRUSTED_TYPES` (a file not written by
+            femcal, or altered).
+        """
+        import skops.io as sio
+
+        folder = Path(path)
+        config = _read_config(folder)
+        model_file = folder / _MODEL_FILE
+        for name, digest in dict(config.get("sha256") or {_MODEL_FILE: None}).items():
+            file = folder / str(name)
+            if not file.is_file():
+                raise InputDataError(
+                    f"{file}: missing; {folder} is an incomplete saved baseline. Refit it "
+                    "(`dvc repro baselines`)."
+                )
+            if digest is not None and _sha256(file) != digest:
+                raise InputDataError(
+                    f"{file}: its SHA-256 is not the one recorded in {folder / _CONFIG_FILE} "
+                    "when it was saved: the file was changed or corrupted. Refit the baseline "
+                    "(`dvc repro baselines`) or restore the folder (`dvc checkout`)."
+                )
+        try:
+            untrusted = sio.get_untrusted_types(file=model_file)
+        except Exception as exc:  # noqa: BLE001 - any unreadable file gets the same answer
+            raise InputDataError(
+                f"{model_file}: not a readable skops file ({type(exc).__name__}: {exc}). Refit "
+                "the baseline (`dvc repro baselines`)."
+            ) from None
+        refused = sorted(set(untrusted) - set(TRUSTED_TYPES))
+        if refused:
+            raise UntrustedArtifactError(
+                f"{model_file} holds type(s) femcal does not trust: {', '.join(refused)}. A "
+                "saved femcal baseline holds only scikit-learn, LightGBM and femcal types "
+                "(femcal.surrogates.baselines.TRUSTED_TYPES); this file was altered or not "
+                "written by femcal, and loading it could run its code. Refit the baseline "
+                "(`dvc repro baselines`), or, if you wrote the file and trust it, load it "
+                "yourself with skops.io.load(path, trusted=[...])."
+            )
+        try:
+            obj = sio.load(model_file, trusted=list(untrusted))
+        except Exception as exc:  # noqa: BLE001
+            raise InputDataError(
+                f"{model_file}: could not be loaded ({type(exc).__name__}: {exc}). Refit the "
+                "baseline (`dvc repro baselines`)."
+            ) from None
+        if not isinstance(obj, cls) or not hasattr(obj, "model_"):
+            raise InputDataError(
+                f"{model_file} holds a {type(obj).__name__}, not a fitted {cls.__name__}. "
+                "Load it with the class named in its config.json, or refit it."
+            )
+        lgbm = _lightgbm_of(obj.model_)
+        if lgbm is not None:
+            from lightgbm import Booster
+
+            booster_file = folder / _BOOSTER_FILE
+            if not booster_file.is_file():
+                raise InputDataError(
+                    f"{booster_file}: missing; a saved LightGBM baseline keeps its booster "
+                    "there. Refit the baseline (`dvc repro baselines`)."
+                )
+            try:
+                lgbm._Booster = Booster(model_file=str(booster_file))
+            except Exception as exc:  # noqa: BLE001 - LightGBMError and friends
+                raise InputDataError(
+                    f"{booster_file}: not a LightGBM text model ({type(exc).__name__}: {exc}). "
+                    "Refit the baseline (`dvc repro baselines`)."
+                ) from None
+        return obj
+
+
+def _lightgbm_of(model: Any) -> Any | None:
+    """The fitted LGBMRegressor inside a baseline's model, or None."""
+    from lightgbm import LGBMModel
+
+    pipeline = getattr(model, "regressor_", None)
+    est = pipeline.steps[-1][1] if isinstance(pipeline, Pipeline) else None
+    return est if isinstance(est, LGBMModel) else None
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _library_versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("scikit-learn", "lightgbm", "skops", "numpy"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:  # pragma: no cover - all are dependencies
+            out[pkg] = "?"
+    return out
+
+
+def _read_config(folder: Path) -> dict[str, Any]:
+    """``config.json`` of a saved baseline, checked for the format."""
+    file = folder / _CONFIG_FILE
+    if not file.is_file():
+        legacy = folder.with_name(folder.name + ".joblib")
+        hint = (
+            f" {legacy.name} beside it is a pickle of an older femcal, which femcal no longer "
+            "loads (a pickle runs code when loaded)."
+            if legacy.exists()
+            else ""
+        )
+        raise InputDataError(
+            f"{folder}: not a saved femcal baseline (no {_CONFIG_FILE}).{hint} Refit the "
+            "baselines (`dvc repro baselines`), or pass the folder SklearnSurrogate.save wrote."
+        )
+    try:
+        config = json.loads(file.read_text())
+    except ValueError as exc:
+        raise InputDataError(f"{file}: not valid JSON ({exc}); refit the baseline.") from None
+    if not isinstance(config, dict) or config.get("format") != BASELINE_FORMAT:
+        raise InputDataError(
+            f"{file}: format {config.get('format') if isinstance(config, dict) else config!r}, "
+            f"expected {BASELINE_FORMAT!r}; this is not a saved femcal baseline."
+        )
+    if config.get("format_version") != BASELINE_FORMAT_VERSION:
+        raise InputDataError(
+            f"{file}: format version {config.get('format_version')!r}; this femcal reads "
+            f"version {BASELINE_FORMAT_VERSION}. Refit the baseline (`dvc repro baselines`)."
+        )
+    return config
+
+
+def load_baseline(path: str | Path) -> SklearnSurrogate:
+    """Load a saved baseline folder (any of the registered baselines).
+
+    Parameters
+    ----------
+    path : str or Path
+        A folder written by :meth:`SklearnSurrogate.save`.
+
+    Returns
+    -------
+    SklearnSurrogate
+        The fitted baseline, of the class recorded in its ``config.json``.
+
+    Raises
+    ------
+    InputDataError, UntrustedArtifactError
+        See :meth:`SklearnSurrogate.load`.
+    """
+    return SklearnSurrogate.load(path)
 
 
 # --------------------------------------------------------------------- registered baselines

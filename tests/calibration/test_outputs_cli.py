@@ -1,0 +1,210 @@
+"""Outputs that belong to one run, through the command line (real MLflow, temporary store).
+
+A reused ``--out`` keeps nothing of the earlier run and MLflow gets only this run's files; a
+folder with the user's files is refused before any heavy import; an ad-hoc ``diagnose`` never
+writes the pipeline's ``reports/diagnose.json``; the DVC stages pass their metrics files.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from femcal.cli import main
+from femcal.outputs import read_marker
+from femcal.schema import LOAD_CASES
+from femcal.tracking import (
+    configure_tracking,
+    ensure_experiment,
+    log_surrogate,
+    register_and_promote,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
+
+
+def _long_csv(path: Path, curves: np.ndarray, moments=(1, 2, 3, 4, 5)) -> Path:
+    rows = [
+        (f"spec-{i}", lc, m, spec[j, k])
+        for i, spec in enumerate(curves)
+        for j, lc in enumerate(LOAD_CASES)
+        for k, m in enumerate(moments)
+    ]
+    pd.DataFrame(rows, columns=["specimen", "load_case", "moment_nm", "rom_deg"]).to_csv(
+        path, index=False
+    )
+    return path
+
+
+def _params(tmp: Path, *, plots: bool) -> dict:
+    return {
+        "mlflow": {
+            "store_dir": str(tmp / "mlruns"),
+            "experiment": "test",
+            "model_name": "ivd-rom-surrogate",
+        },
+        "moments": MOMENTS,
+        "calibrate": {
+            "datasets": {},
+            "out_dir": "cal",
+            "method": "pgd",
+            "model_uri": "models:/ivd-rom-surrogate@champion",
+            "holdout_uri": None,
+            "start_bank": None,
+            "seed": 0,
+            "plots": plots,
+            "max_plots": 1,
+            "options": {"pgd": {"n_bank_uniform": 128}},
+        },
+        "diagnose": {
+            "measurements": "meas.csv",
+            "out_dir": "reports/diagnosis",
+            "metrics_file": "reports/diagnose.json",
+            "noise_deg": 0.05,
+            "candidates": ["neutral_zone"],
+            "min_delta": 10.0,
+            "seed": 0,
+            "plots": False,
+            "max_plots": 1,
+        },
+    }
+
+
+@pytest.fixture
+def settings(tmp_path, monkeypatch):
+    """A project folder with params.yaml (plots) and noplots.yaml; the working directory."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.setenv("MLFLOW_RUN_CONTEXT", "{}")  # the commands tag their runs through it
+    monkeypatch.chdir(tmp_path)
+    for name, plots in (("params.yaml", True), ("noplots.yaml", False)):
+        (tmp_path / name).write_text(yaml.safe_dump(_params(tmp_path, plots=plots)))
+    return tmp_path
+
+
+@pytest.fixture
+def project(settings, small_surrogate, truth):
+    """``settings`` with the registered surrogate and two specimens in meas.csv."""
+    configure_tracking(store_dir=settings / "mlruns")
+    ensure_experiment("test", store_dir=settings / "mlruns")
+    with mlflow.start_run():
+        info = log_surrogate(small_surrogate, small_surrogate.space)
+    register_and_promote(info.model_uri, name="ivd-rom-surrogate", val_metric=0.1)
+    _long_csv(settings / "meas.csv", truth[1][:2])
+    yield settings
+    mlflow.set_tracking_uri(None)
+
+
+def _calibrate_runs() -> pd.DataFrame:
+    return mlflow.search_runs(
+        filter_string="tags.`femcal.stage` = 'calibrate'",
+        order_by=["attributes.start_time ASC"],
+    )
+
+
+def _artifacts(run_id: str, path: str) -> set[str]:
+    client = mlflow.MlflowClient()
+    out, todo = set(), [path]
+    while todo:
+        for a in client.list_artifacts(run_id, todo.pop()):
+            (todo.append(a.path) if a.is_dir else out.add(a.path))
+    return out
+
+
+def test_a_reused_out_keeps_nothing_stale_and_logs_only_this_runs_files(project, capsys):
+    res = project / "res"
+    args = ["calibrate", "--measurements", "meas.csv", "--out", "res"]
+    assert main(args) == 0
+    assert (res / "plots").is_dir() and (res / "summary.png").is_file()
+    # Again into the same folder, without plots and with an effect (a before/after page).
+    assert main(["--params", "noplots.yaml", *args, "--effects", "facet_contact"]) == 0
+    capsys.readouterr()
+    runs = _calibrate_runs()
+    first, second = runs["run_id"]
+    assert not (res / "plots").exists() and not (res / "summary.png").exists()
+    assert read_marker(res)["mlflow_run_id"] == second
+    assert json.loads((res / "comparison.json").read_text())["before"]["run_id"] == first
+    (aside,) = project.glob("res.previous-*")  # the earlier run, whole, beside it
+    assert (aside / "summary.png").is_file() and read_marker(aside)["mlflow_run_id"] == first
+    # MLflow holds exactly the files of each run.
+    logged = {p.removeprefix("calibration/") for p in _artifacts(second, "calibration")}
+    assert logged == set(read_marker(res)["files"]) | {".femcal-run.json"}
+    assert not any(p.startswith("plots/") or p == "summary.png" for p in logged)
+    # The user drops a file of their own there: refused before any work, nothing touched.
+    (res / "keep_me.txt").write_text("mine")
+    before = sorted(p.name for p in res.iterdir())
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "--out res holds the outputs of an earlier femcal run" in err
+    assert "keep_me.txt" in err and "never moves or deletes your files" in err
+    assert sorted(p.name for p in res.iterdir()) == before
+    assert len(_calibrate_runs()) == 2  # no MLflow run for a refused command
+
+
+def test_an_adhoc_diagnose_leaves_the_pipelines_metrics_alone(project, capsys):
+    tracked = project / "reports" / "diagnose.json"
+    tracked.parent.mkdir()
+    tracked.write_text('{"n_specimens": 54}\n')
+    args = ["diagnose", "--measurements", "meas.csv", "--out", "elsewhere"]
+    assert main(args) == 0
+    assert tracked.read_text() == '{"n_specimens": 54}\n'
+    assert read_marker(project / "elsewhere")["command"] == "diagnose"
+    assert (project / "elsewhere" / "diagnosis.json").is_file()
+    # The DVC stage names its metrics file (dvc.yaml: --metrics-file ${diagnose.metrics_file}).
+    assert main([*args[:-1], "elsewhere2", "--metrics-file", "reports/diagnose.json"]) == 0
+    assert json.loads(tracked.read_text())["n_specimens"] == 2
+    assert sorted(p.name for p in tracked.parent.iterdir()) == ["diagnose.json"]
+
+
+def test_the_first_error_comes_before_any_heavy_import(settings):
+    project = settings
+    (project / "meas.csv").write_text("specimen,load_case,moment_nm,rom_deg\nA,Flexion,1,2\n")
+    (project / "mine").mkdir()
+    (project / "mine" / "parameters.csv").write_text("my own")
+    (project / "afile").write_text("x")
+    code = (
+        "import sys; from femcal.cli import main; rc = main(sys.argv[1:]); "
+        "print(sorted(m for m in ('torch', 'lightning', 'pytorch_lightning', 'sklearn', "
+        "'mlflow', 'pandas') if m in sys.modules)); sys.exit(rc)"
+    )
+    for cmd, says in (
+        (["calibrate", "--measurements", "meas.csv", "--out", "mine"], "--out mine already"),
+        (["diagnose", "--out", "afile"], "--out afile is a file, not a folder"),
+        (["calibrate", "--measurements", "nope.csv", "--out", "new"], "nope.csv does not exist"),
+        (
+            ["calibrate", "--measurements", "meas.csv", "--metrics-file", "afile/m.json"],
+            "--metrics-file afile/m.json cannot be created: afile is a file",
+        ),
+    ):
+        proc = subprocess.run(
+            [sys.executable, "-c", code, *cmd], cwd=project, capture_output=True, text=True
+        )
+        assert proc.returncode == 2, proc.stderr
+        assert says in proc.stderr
+        assert proc.stdout.strip() == "[]"  # nothing heavy was imported
+    assert (project / "mine" / "parameters.csv").read_text() == "my own"
+
+
+@pytest.mark.parametrize("dvc_yaml", ["dvc.yaml", "fe/dvc.yaml"])
+def test_every_stage_with_metrics_passes_its_metrics_file(dvc_yaml):
+    """Only a DVC stage writes reports/*.json: it names the file in its command."""
+    stages = yaml.safe_load((ROOT / dvc_yaml).read_text())["stages"]
+    explicit = {"calibrate", "diagnose", "simulate", "validate"}  # commands with an ad-hoc mode
+    checked = 0
+    for name, stage in stages.items():
+        body = stage.get("do", stage)
+        command = body["cmd"].split()[1]
+        if command not in explicit:
+            continue
+        (metrics,) = [next(iter(m)) for m in body.get("metrics", [])]
+        assert f"--metrics-file {metrics}" in body["cmd"], (name, body["cmd"])
+        checked += 1
+    assert checked >= 2
