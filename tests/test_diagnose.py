@@ -169,6 +169,8 @@ def test_bad_settings_are_refused(world):
     base, rom, _, _ = world
     with pytest.raises(ConfigError, match="alpha must be in"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, alpha=1.5)
+    with pytest.raises(ConfigError, match="gp_amplitude must be 'ml' or 'misfit'"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, gp_amplitude="max")
     with pytest.raises(ConfigError, match="Unknown physical effect 'capsule'"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, candidates=["capsule"])
     with pytest.raises(ConfigError, match="noise_deg must be > 0"):

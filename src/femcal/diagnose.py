@@ -7,9 +7,16 @@ For every specimen:
    larger beyond its trained moments, otherwise its misfit reads as missing physics);
 2. **forward selection** of registered effects: fit the disc with each candidate (material and
    effect parameters jointly, inside all bounds, from the current solution and a grid over the
-   new effect's box), add the one with the lowest BIC (``chi^2 + k ln n`` with the known noise)
-   if it beats the current model by ``min_delta`` (10 = "very strong" evidence), and go on while
-   the model does not explain the data and another effect pays;
+   new effect's box; a first effect also from the disc-and-effect combinations nearest the
+   specimen's curves, because the disc fitted alone has bent towards the missing physics), add
+   the one with the lowest BIC (``chi^2 + k ln n`` with the known noise) if it beats the current
+   model by ``min_delta`` (10 = "very strong" evidence), and go on while the model does not
+   explain the data and another effect pays;
+2b. **open world**: where the chosen model still does not explain the data, each of its effects
+   must also pay beyond a smooth discrepancy: every model (with and without the effect) gets the
+   GP discrepancy it needs (type-II maximum likelihood per load case) and the models compare by
+   ``-2 log`` marginal likelihood ``+ k ln n``; an effect that only let the disc bend towards
+   physics nobody registered is dropped (backward elimination);
 3. **adequacy** of the chosen model: is its ``chi^2`` consistent with the noise (p-value with the
    effective degrees of freedom, ``n - trace(hat matrix)``), and are its residuals free of long
    runs of one sign per load case (Wald-Wolfowitz)? If not, the verdict says ``unexplained``
@@ -343,8 +350,7 @@ def diagnose(
     bank_starts: int = 4,
     bank_samples: int = 1024,
     gp_amplitude: str = "ml",
-    stop_when_adequate: bool = False,
-    bank_all: bool = False,
+    stop_when_adequate: bool = True,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -387,6 +393,14 @@ def diagnose(
         (of ``bank_samples`` drawn from ``start_bank``, :func:`femcal.calibration.pgd.effect_bank`)
         nearest each specimen's curves.
     bank_samples : int
+    gp_amplitude : {"ml", "misfit"}
+        The discrepancy of the open-world elimination: each model's own type-II maximum
+        likelihood amplitude, compared by marginal likelihood ("ml"), or one amplitude sized to
+        the larger model's misfit, compared by generalised least squares ("misfit").
+    stop_when_adequate : bool
+        Stop adding effects once the model explains the data (default; measured in
+        reports/bench_diagnose.md: going on while an effect pays ``min_delta`` doubled the time
+        and named one more combination in 16), or keep adding while an effect pays.
     seed : int
 
     Returns
@@ -399,6 +413,10 @@ def diagnose(
         get_effect(name)  # unknown names fail before any work
     if not 0 < alpha < 1:
         raise ConfigError(f"diagnose: alpha must be in (0, 1); got {alpha}.")
+    if gp_amplitude not in ("ml", "misfit"):
+        raise ConfigError(
+            f"diagnose: gp_amplitude must be 'ml' or 'misfit'; got {gp_amplitude!r}."
+        )
     rng = np.random.default_rng(seed)
     measured = np.where(np.isfinite(rom_deg), np.asarray(rom_deg, dtype=float), np.nan)
     n, _, m = measured.shape
@@ -486,7 +504,7 @@ def diagnose(
                 _, grid = _grid(model, new, effect_levels)
                 v0 = _starts(model, current, v_prev, new, effect_levels)
                 g = len(grid)
-                if (bank_all or not current) and start_bank is not None and bank_starts > 0:
+                if not current and start_bank is not None and bank_starts > 0:
                     # The disc fitted alone has bent towards the missing physics: also start
                     # from the disc-and-effect combinations nearest each specimen's curves.
                     if effects not in banks:

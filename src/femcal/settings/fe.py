@@ -1,0 +1,143 @@
+"""The sections only ``fe/params.yaml`` has: the FE campaign (``fe``) and ``validate``.
+
+The adapter's keyword arguments (``fe.settings``) depend on ``fe.solver``; they are checked
+against :data:`~femcal.settings.keywords.SOLVER_SETTINGS` once both are known (see
+:mod:`femcal.settings.params`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from femcal.schema import LOAD_CASES, PARAMETER_NAMES
+from femcal.settings._checks import Choice, Float, FnCheck, Int, KeyChoice, ListOf
+from femcal.settings._messages import BAD, Context, Invalid, got, unknown_message, yaml_repr
+from femcal.settings._validate import MapOf, Section, optional, setting
+from femcal.settings.keywords import SOLVERS, SPLITS
+from femcal.settings.values import DASK_ADDRESS, MOMENTS, PATH
+
+
+def _bounds(value: Any, path: tuple, ctx: Context) -> Any:
+    if isinstance(value, str) and value.strip():
+        return value
+    if not isinstance(value, Mapping) or not value:
+        raise Invalid(
+            "expected a ParameterBounds.csv path or a mapping name -> [lower, upper], got "
+            f"{got(value)}"
+        )
+    out, bad = {}, False
+    pair = ListOf(Float(), min_len=2)
+    for name, bounds in value.items():
+        where = (*path, name)
+        if name not in PARAMETER_NAMES:
+            ctx.report(
+                where, unknown_message(name, path, PARAMETER_NAMES, {}, (), "unknown parameter")
+            )
+            bad = True
+            continue
+        lo_hi = ctx.check(pair, bounds, where, "[lower, upper] in physical units")
+        if lo_hi is BAD:
+            bad = True
+        elif len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
+            ctx.report_at(
+                where,
+                f"expected [lower, upper] with lower < upper, got {yaml_repr(list(bounds))}",
+            )
+            bad = True
+        else:
+            out[name] = lo_hi
+    return BAD if bad else out
+
+
+def _solver_settings(value: Any, path: tuple, ctx: Context) -> Any:
+    # A mapping here; its keys are checked against fe.solver's adapter (SOLVER_SETTINGS).
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise Invalid(f"expected a mapping of the adapter's keyword arguments, got {got(value)}")
+    return dict(value)
+
+
+@dataclass(frozen=True)
+class FeSettings:
+    """``fe``: the FE campaign (fe/params.yaml)."""
+
+    solver: str = setting(Choice(SOLVERS), "FE solver adapter (femcal.fe registry)")
+    bounds: Any = setting(
+        FnCheck("a ParameterBounds.csv path or a mapping name -> [lower, upper]", _bounds),
+        "the sampling box: name -> [lower, upper], or a ParameterBounds.csv path",
+    )
+    splits: dict = setting(
+        MapOf(Int(0), KeyChoice(SPLITS, "split"), what="split -> configurations"),
+        "configurations per split (large, small, test)",
+    )
+    seed: int = setting(Int(0), "seed of the designs")
+    load_cases: tuple[str, ...] = setting(
+        ListOf(Choice(LOAD_CASES), unique=True), "load cases simulated (all four)"
+    )
+    moments: tuple[float, ...] = setting(MOMENTS, "moments simulated, Nm")
+    out_dir: str = setting(PATH, "dataset folder in the study's layout")
+    store: str = setting(PATH, "durable store of finished jobs (JSON lines)")
+    settings: dict = setting(
+        FnCheck("a mapping of the adapter's keyword arguments", _solver_settings),
+        "the adapter's keyword arguments (part of every job's hash)",
+        {},
+    )
+    scratch_dir: str | None = optional(PATH, "per-job scratch (null: temp)")
+    metrics_file: str | None = optional(PATH, "campaign figures (DVC metrics)")
+    scheduler_address: str | None = optional(
+        DASK_ADDRESS,
+        "Dask scheduler, tcp://host:port (null: a local cluster, or FEMCAL_DASK_ADDRESS)",
+    )
+    n_workers: int = setting(Int(1), "workers of the local cluster", 2)
+
+    @staticmethod
+    def _cross(v: dict) -> Iterable[tuple[str, str]]:
+        if v["load_cases"] is not None and sorted(v["load_cases"]) != sorted(LOAD_CASES):
+            yield (
+                "load_cases",
+                (
+                    "a dataset in the study's layout needs all four load cases "
+                    f"{list(LOAD_CASES)}; got {list(v['load_cases'])}"
+                ),
+            )
+
+
+@dataclass(frozen=True)
+class IdpRange:
+    """A literature range of the intradiscal pressure at one force, MPa."""
+
+    _complete: ClassVar[bool] = True
+
+    low: float = setting(Float(0), "lowest value, MPa")
+    mean: float = setting(Float(0), "mean value, MPa")
+    high: float = setting(Float(0), "highest value, MPa")
+
+    @staticmethod
+    def _cross(v: dict) -> Iterable[tuple[str, str]]:
+        if not v["low"] <= v["mean"] <= v["high"]:
+            yield (
+                "mean",
+                (f"need low <= mean <= high; got {v['low']:g}, {v['mean']:g}, {v['high']:g}"),
+            )
+
+
+@dataclass(frozen=True)
+class ValidateSettings:
+    """``validate``: FE re-simulation of the calibrated parameters and the IDP check."""
+
+    calibration_dir: str = setting(PATH, "calibration folder validated")
+    measurements: str = setting(PATH, "the measurements that were calibrated to")
+    out_dir: str = setting(PATH, "output folder")
+    store: str = setting(PATH, "campaign store of the FE runs")
+    metrics_file: str | None = optional(PATH, "figures (DVC metrics)")
+    forces: tuple[float, ...] = setting(
+        ListOf(Float(0, lo_open=True), unique=True), "axial compression forces, N", []
+    )
+    idp_literature: dict = setting(
+        MapOf(Section(IdpRange), Float(0, lo_open=True), what="force in N -> {low, mean, high}"),
+        "literature IDP range per force: force in N -> {low, mean, high} in MPa",
+        {},
+    )
