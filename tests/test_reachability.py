@@ -39,8 +39,36 @@ from femcal.schema import LOAD_CASES
 from synth import study_space, tidy_table
 
 ROOT = Path(__file__).resolve().parents[1]
-PREPARED = ROOT / "data" / "prepared"
-RAW_TEST = ROOT / "data" / "raw" / "Test"
+
+
+def _study_data() -> tuple[Path, Path]:
+    """The prepared study data and its Test folder: the project's, or prepared from the mirror.
+
+    A fresh clone (CI) has no ``data/``; with FEMCAL_DATA_MIRROR set, the study's files are
+    prepared once into a folder of the system's temporary directory (written, then renamed).
+    """
+    import os
+    import tempfile
+
+    prepared, raw_test = ROOT / "data" / "prepared", ROOT / "data" / "raw" / "Test"
+    if (prepared / "large.csv").is_file() and raw_test.is_dir():
+        return prepared, raw_test
+    from femcal.fetch import mirror_from_env
+
+    mirror = mirror_from_env(os.environ)
+    if mirror is None:
+        return prepared, raw_test
+    cache = Path(tempfile.gettempdir()) / f"femcal-tests-prepared-{os.getuid()}"
+    if not (cache / "large.csv").is_file():
+        from femcal.prepare import prepare_dataset
+
+        staging = cache.with_name(f"{cache.name}.partial-{os.getpid()}")
+        prepare_dataset(mirror, staging)
+        os.replace(staging, cache)
+    return cache, Path(mirror) / "Test"
+
+
+PREPARED, RAW_TEST = _study_data()
 EFFECTS = ("neutral_zone", "facet_contact", "ligament_tension")
 #: The moment policy's settings (params.yaml ``moments``).
 GROWTH, MAX_LOG_RATIO = 2.99, 0.51
