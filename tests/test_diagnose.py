@@ -136,7 +136,10 @@ def test_outputs_carry_curves_over_each_specimens_own_range(world):
 
 
 def test_same_seed_same_diagnosis(world):
-    base, rom, _, diag = world
+    base, rom, _, _ = world
+    # The same batch twice: a different batch (the whole cohort) changes the floating-point
+    # reductions of the batched fits in the last digits, and with 2 threads beyond 1e-6.
+    diag = diagnose(base, rom[:3], specimens=["a", "b", "c"], noise_deg=NOISE, seed=0)
     again = diagnose(base, rom[:3], specimens=["a", "b", "c"], noise_deg=NOISE, seed=0)
     assert [s.verdict for s in again.specimens] == [s.verdict for s in diag.specimens[:3]]
     np.testing.assert_allclose(
