@@ -2,15 +2,15 @@
 VENV ?= .venv
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 
-.PHONY: repro test lint install
+.PHONY: repro test lint install lock
 install: $(VENV)/.installed  ## also installs CalculiX (ccx, the open FE solver) when missing
 	command -v ccx >/dev/null || { sudo=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
 	  $$sudo apt-get update -qq && $$sudo apt-get install -y -qq calculix-ccx; }
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml constraints.txt  ## the versions pinned in constraints.txt
 	python3 -m venv $(VENV)
 	$(VENV)/bin/pip install --quiet --upgrade pip
-	$(VENV)/bin/pip install --quiet -e ".[dev]"
+	$(VENV)/bin/pip install --quiet -c constraints.txt -e ".[dev]"
 	touch $@
 
 repro: install  ## fetch the data, train, evaluate: the whole pipeline
@@ -21,3 +21,20 @@ test: install  ## the test suite (slow tests excluded; `make test PYTEST_ARGS="-
 
 lint: install
 	ruff check src tests
+
+# constraints.txt: every package of the working venv at its exact version (femcal itself left
+# out), which `make install` installs. To move to newer versions: `.venv/bin/pip install
+# --upgrade -e ".[dev]"`, run the tests, then `make lock` and commit constraints.txt. torch
+# stays the CPU build of pyproject.toml's version (torch==X, never a +cpu local label or CUDA).
+lock:
+	@test -x $(VENV)/bin/pip || { echo "make lock: no $(VENV); run make install first" >&2; exit 1; }
+	@{ echo "# femcal's pinned dependencies: make install uses them (pip install -c constraints.txt)."; \
+	  echo "# Regenerated from the working venv by 'make lock'; see the Makefile."; \
+	  $(VENV)/bin/pip freeze --exclude-editable | grep -v -i -E '^(femcal|-e |#)' \
+	    | sed -E 's/^(torch==[^+]*)\+cpu$$/\1/'; } > constraints.txt.tmp
+	@if grep -i -q -E '^(nvidia-|triton|cuda)' constraints.txt.tmp; then \
+	  rm -f constraints.txt.tmp; \
+	  echo "make lock: the venv holds CUDA packages (nvidia-*, triton): reinstall the CPU torch" \
+	    "of pyproject.toml, then make lock again" >&2; exit 1; fi
+	@mv constraints.txt.tmp constraints.txt
+	@echo "constraints.txt: $$(grep -c -v '^#' constraints.txt) packages pinned"
