@@ -1,11 +1,19 @@
-"""The command line: settings errors are clear, and exit with status 2."""
+"""The command line: settings errors are clear, and exit with status 2; --version, -v/-q,
+the choices in --help, progress bars only on a terminal."""
+
+import logging
+import os
+import subprocess
+import sys
+from importlib import metadata
 
 import pytest
 import yaml
 
-from femcal.cli import build_parser, main
+from femcal.cli import _progress, build_parser, main
 from femcal.config import load_params, section
 from femcal.errors import ConfigError
+from femcal.settings import BUILTIN_EFFECTS, CALIBRATORS
 
 
 def test_missing_params_file(tmp_path, capsys):
@@ -89,3 +97,138 @@ def test_fetch_and_prepare_from_a_mirror(tmp_path, monkeypatch, capsys, syntheti
     err = capsys.readouterr().err
     assert "SHA-256" in err
     assert not (tmp_path / "data" / "raw" / "Large" / "MaterialConfigurations.csv").exists()
+
+
+# ------------------------------------------------------------------ --version, -v, -q, --help
+@pytest.fixture
+def femcal_log_level():
+    """main() sets the femcal logger's level: restore it for the other tests."""
+    logger = logging.getLogger("femcal")
+    level = logger.level
+    yield logger
+    logger.setLevel(level)
+
+
+def test_version_prints_the_installed_version(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out == f"femcal {metadata.version('femcal')}\n"
+
+
+@pytest.mark.parametrize(
+    ("before", "after", "level"),
+    [
+        ([], [], logging.INFO),
+        (["-v"], [], logging.DEBUG),
+        (["--verbose"], [], logging.DEBUG),
+        (["-q"], [], logging.WARNING),
+        (["--quiet"], [], logging.WARNING),
+        ([], ["-v"], logging.DEBUG),  # after the sub-command too
+        (["-q"], ["--verbose"], logging.DEBUG),  # the sub-command's wins
+    ],
+)
+def test_verbosity_sets_the_femcal_logger_level(tmp_path, femcal_log_level, before, after, level):
+    argv = [*before, "--params", str(tmp_path / "nope.yaml"), "prepare", *after]
+    assert main(argv) == 2
+    assert femcal_log_level.level == level
+
+
+def test_verbose_and_quiet_exclude_each_other(tmp_path, capsys):
+    for argv in (["-v", "-q", "prepare"], ["prepare", "--quiet", "--verbose"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert "not allowed with argument" in err and "-v/--verbose" in err
+
+
+@pytest.mark.parametrize(
+    ("option", "shown", "hidden"),
+    [
+        ([], ["INFO femcal.probe: info"], ["debug"]),
+        (["-v"], ["DEBUG femcal.probe: debug", "INFO femcal.probe: info"], []),
+        (["-q"], ["WARNING femcal.probe: warning"], ["info", "debug"]),
+    ],
+)
+def test_verbosity_changes_what_a_fresh_process_logs(tmp_path, option, shown, hidden):
+    """The logging a command really gets: its records on stderr, by the option given."""
+    code = (
+        "import logging, sys\n"
+        "from femcal.cli import main\n"
+        "main(sys.argv[1:])\n"
+        "log = logging.getLogger('femcal.probe')\n"
+        "log.debug('debug'); log.info('info'); log.warning('warning')\n"
+    )
+    argv = [*option, "--params", str(tmp_path / "nope.yaml"), "prepare"]
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120
+    )
+    lines = [line for line in proc.stderr.splitlines() if "femcal.probe" in line]
+    assert lines[-1] == "WARNING femcal.probe: warning"
+    for text in shown:
+        assert text in lines
+    for word in hidden:
+        assert not any(line.endswith(f": {word}") for line in lines)
+
+
+def _help(capsys, argv: list[str]) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        main([*argv, "--help"])
+    assert exit_.value.code == 0
+    return " ".join(capsys.readouterr().out.split())  # unwrapped
+
+
+def test_help_lists_the_choices(capsys):
+    calibrate = _help(capsys, ["calibrate"])
+    assert "--method {" + ",".join(CALIBRATORS) + "}" in calibrate
+    assert f"Built in: {', '.join(BUILTIN_EFFECTS)};" in calibrate
+    assert "--split {large,small,test}" in _help(capsys, ["baselines"])
+    assert "one of large, small, test" in _help(capsys, ["train"])
+    for cmd in ("train", "calibrate", "diagnose"):
+        assert "[-v | -q]" in _help(capsys, [cmd])
+    top = _help(capsys, [])
+    assert "-q, --quiet" in top and "--version" in top and "{fetch,prepare,train," in top
+
+
+def test_an_unknown_choice_is_refused_with_the_choices(capsys):
+    for argv, says in (
+        (["calibrate", "--method", "lbfgs"], "argument --method: invalid choice: 'lbfgs'"),
+        (["baselines", "--split", "medium"], "argument --split: invalid choice: 'medium'"),
+    ):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert says in err and "(choose from " in err
+
+
+def test_version_and_help_answer_without_heavy_imports():
+    code = (
+        "import sys\n"
+        "from femcal.cli import main\n"
+        "for argv in (['--version'], ['calibrate', '--help'], ['train', '--help']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit as exc:\n"
+        "        assert exc.code == 0, exc.code\n"
+        "heavy = [m for m in ('torch', 'pytorch_lightning', 'lightning', 'mlflow', 'optuna',"
+        " 'sklearn', 'pandas') if m in sys.modules]\n"
+        "print('HEAVY', heavy)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "HEAVY []"
+
+
+def test_progress_bars_only_on_a_terminal_and_not_when_quiet(monkeypatch):
+    parser = build_parser()
+    master, replica = os.openpty()  # a real terminal for stderr
+    with open(replica, "w") as terminal, open(os.devnull, "w") as devnull:
+        monkeypatch.setattr(sys, "stderr", terminal)
+        assert _progress(parser.parse_args(["prepare"]))
+        assert _progress(parser.parse_args(["-v", "prepare"]))
+        assert not _progress(parser.parse_args(["prepare", "-q"]))
+        monkeypatch.setattr(sys, "stderr", devnull)  # a file or pipe (dvc repro, CI)
+        assert not _progress(parser.parse_args(["prepare"]))
+    os.close(master)

@@ -957,3 +957,12 @@ def test_registry_tables_match_the_registries():
     assert set(GEOMETRY_FIELDS) == {f.name for f in dataclasses.fields(DiscGeometry)} | {"preset"}
     assert PRESETS == tuple(MESH_PRESETS)
     assert set(SPLITS) == set(PREPARED) == set(SPLIT_SAMPLING)
+
+
+def test_builtin_effects_table_matches_the_registry():
+    """`femcal calibrate --help` lists BUILTIN_EFFECTS without importing torch."""
+    from femcal.effects import available_effects, get_effect
+    from femcal.settings import BUILTIN_EFFECTS
+
+    builtin = [n for n in available_effects() if get_effect(n).__module__.startswith("femcal.")]
+    assert sorted(BUILTIN_EFFECTS) == builtin

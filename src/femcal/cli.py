@@ -1,6 +1,8 @@
 """``femcal`` command line: reads params.yaml and the environment, calls the library, prints.
 
-Every DVC stage is one sub-command, e.g. ``femcal train --split large``.
+Every DVC stage is one sub-command, e.g. ``femcal train --split large``. ``-v`` logs femcal's
+debug messages, ``-q`` only its warnings (and hides the progress bars, which are shown on a
+terminal only); ``--version`` prints the installed version.
 """
 
 from __future__ import annotations
@@ -10,10 +12,42 @@ import json
 import logging
 import os
 import sys
+from importlib import metadata
 from pathlib import Path
 
 from femcal.config import load_params, section
 from femcal.errors import ConfigError, FemcalError, InputDataError
+from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATORS, SPLITS
+
+#: Logging level of the ``femcal`` logger per verbosity option (none given: INFO).
+LOG_LEVELS = {"verbose": logging.DEBUG, "default": logging.INFO, "quiet": logging.WARNING}
+
+
+def version() -> str:
+    """The installed femcal's version (the package metadata; the source's when not installed)."""
+    try:
+        return metadata.version("femcal")
+    except metadata.PackageNotFoundError:  # pragma: no cover - run from a source tree
+        from femcal import __version__
+
+        return __version__
+
+
+def configure_logging(level: int) -> None:
+    """Route log records to stderr; femcal logs at ``level``, other libraries from WARNING.
+
+    ``-v`` (DEBUG) also lets other libraries' INFO records through.
+    """
+    logging.basicConfig(
+        level=logging.INFO if level <= logging.DEBUG else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    logging.getLogger("femcal").setLevel(level)
+
+
+def _progress(args: argparse.Namespace) -> bool:
+    """Progress bars: on a terminal (stderr) only, and not with ``-q``."""
+    return sys.stderr.isatty() and args.log_level < LOG_LEVELS["quiet"]
 
 
 def _tracking(params: dict) -> None:
@@ -96,7 +130,7 @@ def cmd_fetch(args: argparse.Namespace, params: dict) -> None:
 
     out = Path(args.out or section(params, "data", "raw_dir"))
     mirror = mirror_from_env()
-    paths = fetch_dataset(out, mirror=mirror, progress=True)
+    paths = fetch_dataset(out, mirror=mirror, progress=_progress(args))
     src = f"mirror {mirror}" if mirror else "the study's pinned public address"
     print(f"fetched {len(paths)} files from {src} into {out} (SHA-256 verified)")
 
@@ -131,7 +165,7 @@ def cmd_train(args: argparse.Namespace, params: dict) -> None:
         seed=int(settings.get("seed", section(params, "train", "seed"))),
         val_fraction=float(section(params, "train", "val_fraction")),
         model_name=settings.get("model_name") or section(params, "mlflow", "model_name"),
-        progress=sys.stderr.isatty(),
+        progress=_progress(args),
         data_split=settings.get("split", split),
     )
     reg = (
@@ -228,7 +262,7 @@ def cmd_train_inverse(args: argparse.Namespace, params: dict) -> None:
         study_name=str(cfg.get("study_name", "ivd-inverse")),
         seed=int(cfg.get("seed", 0)),
         register_as=cfg.get("register_as"),
-        progress=sys.stderr.isatty(),
+        progress=_progress(args),
     )
     reg = f"; registered as version {result.version}" if result.version else ""
     print(
@@ -329,7 +363,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         chunk_size=cfg.get("chunk_size"),
         plots=bool(cfg.get("plots", True)),
         max_plots=None if max_plots is None else int(max_plots),
-        progress=sys.stderr.isatty(),
+        progress=_progress(args),
         effects=effects,
     )
     held = (
@@ -446,7 +480,7 @@ def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
         scheduler_address=address,
         n_workers=n_workers,
         scratch_dir=Path(scratch) if scratch else None,
-        progress=sys.stderr.isatty(),
+        progress=_progress(args),
     )
     cpu = summary["cpu_seconds_per_configuration"]
     print(
@@ -498,7 +532,7 @@ def cmd_validate(args: argparse.Namespace, params: dict) -> None:
         out_dir=out,
         scheduler_address=address,
         n_workers=n_workers,
-        progress=sys.stderr.isatty(),
+        progress=_progress(args),
     )
     s = result.summary
     print(
@@ -553,41 +587,85 @@ def _add_effects_module(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_verbosity(p: argparse.ArgumentParser, *, default: object) -> None:
+    """``-v/--verbose`` and ``-q/--quiet``, exclusive; given before or after the sub-command."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "-v",
+        "--verbose",
+        dest="log_level",
+        action="store_const",
+        const=LOG_LEVELS["verbose"],
+        default=default,
+        help="also log femcal's debug messages (and other libraries' info)",
+    )
+    group.add_argument(
+        "-q",
+        "--quiet",
+        dest="log_level",
+        action="store_const",
+        const=LOG_LEVELS["quiet"],
+        default=default,
+        help="log warnings and errors only; no progress bars",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="femcal", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="femcal", description=__doc__.splitlines()[0].replace("``", "")
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     parser.add_argument("--params", default="params.yaml", help="settings file (params.yaml)")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    _add_verbosity(parser, default=LOG_LEVELS["default"])
+    # The sub-commands take -v/-q too; given there, they win (absent, they leave the top's).
+    common = argparse.ArgumentParser(add_help=False)
+    _add_verbosity(common, default=argparse.SUPPRESS)
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("fetch", help="get the study's FE data (mirror or pinned download)")
+
+    def command(name: str, **kwargs) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[common], **kwargs)
+
+    p = command("fetch", help="get the study's FE data (mirror or pinned download)")
     p.add_argument("--out", help="destination folder (default: data.raw_dir)")
     p.set_defaults(func=cmd_fetch)
-    sub.add_parser("prepare", help="tidy tables + parameter space").set_defaults(func=cmd_prepare)
+    command("prepare", help="tidy tables + parameter space").set_defaults(func=cmd_prepare)
     for name, func, helptext in (
         ("train", cmd_train, "Optuna search + final surrogate, logged and registered in MLflow"),
         ("baselines", cmd_baselines, "fit the study's model zoo"),
     ):
-        p = sub.add_parser(name, help=helptext)
-        p.add_argument("--split", required=True, help="a section of train: large, small, ...")
+        p = command(name, help=helptext)
         p.set_defaults(func=func)
-    sub.add_parser("interpolate", help="train on 1,3,5 Nm, test at 2,4 Nm").set_defaults(
+    sub.choices["train"].add_argument(
+        "--split",
+        required=True,
+        help="a section of train in params.yaml (large, small, holdout, ...); it names the run, "
+        "and its `split` setting the prepared table trained on (one of "
+        f"{', '.join(SPLITS)}; default: the section's name)",
+    )
+    sub.choices["baselines"].add_argument(
+        "--split", required=True, choices=SPLITS, help="the prepared table to fit on"
+    )
+    command("interpolate", help="train on 1,3,5 Nm, test at 2,4 Nm").set_defaults(
         func=cmd_interpolate
     )
-    sub.add_parser("evaluate", help="Test-set table for every surrogate").set_defaults(
-        func=cmd_evaluate
-    )
-    sub.add_parser(
+    command("evaluate", help="Test-set table for every surrogate").set_defaults(func=cmd_evaluate)
+    command(
         "train-inverse", help="the study's inverse network on surrogate samples (Optuna, MLflow)"
     ).set_defaults(func=cmd_train_inverse)
-    p = sub.add_parser("calibrate", help="calibrate measured specimens (registered surrogate)")
+    p = command("calibrate", help="calibrate measured specimens (registered surrogate)")
     p.add_argument("--dataset", help="a name under calibrate.datasets (default: the first)")
     p.add_argument(
         "--effects",
+        metavar="EFFECT[,EFFECT...]",
         help="comma-separated physical effects added to the disc (default: the dataset's "
-        "effects in params.yaml; none for --measurements); '' = the disc alone",
+        "effects in params.yaml; none for --measurements); '' = the disc alone. Built in: "
+        f"{', '.join(BUILTIN_EFFECTS)}; installed plugins and --effects-module files add more",
     )
     p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
     p.add_argument("--out", help="output folder (default: calibrate.out_dir/<dataset>)")
-    p.add_argument("--method", help="pgd (default), pgd-study, ga, inverse")
+    p.add_argument(
+        "--method", choices=CALIBRATORS, help="calibration method (default: calibrate.method)"
+    )
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
     p.add_argument("--model-version", help="version of the registered surrogate")
     p.add_argument("--model-alias", help="alias of the registered surrogate")
@@ -597,10 +675,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_metrics_file(p)
     _add_effects_module(p)
     p.set_defaults(func=cmd_calibrate)
-    sub.add_parser("plant", help="a cohort with hidden effects from FE curves").set_defaults(
+    command("plant", help="a cohort with hidden effects from FE curves").set_defaults(
         func=cmd_plant
     )
-    p = sub.add_parser("diagnose", help="where the model fails; which effect is missing")
+    p = command("diagnose", help="where the model fails; which effect is missing")
     p.add_argument("--measurements", help="measurement file (default: diagnose.measurements)")
     p.add_argument("--out", help="output folder (default: diagnose.out_dir)")
     p.add_argument("--noise-deg", type=float, help="measurement noise sd (default: estimated)")
@@ -608,12 +686,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_metrics_file(p)
     _add_effects_module(p)
     p.set_defaults(func=cmd_diagnose)
-    p = sub.add_parser("simulate", help="FE campaign on Dask -> dataset in the study's layout")
+    p = command("simulate", help="FE campaign on Dask -> dataset in the study's layout")
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
     p.add_argument("--store", help="campaign store, JSON lines (default: fe.store)")
     _add_metrics_file(p)
     p.set_defaults(func=cmd_simulate)
-    p = sub.add_parser("validate", help="FE re-simulation of calibrated parameters; IDP check")
+    p = command("validate", help="FE re-simulation of calibrated parameters; IDP check")
     p.add_argument("--calibration", help="calibration folder (default: validate.calibration_dir)")
     p.add_argument("--measurements", help="measurements calibrated to (validate.measurements)")
     p.add_argument("--out", help="output folder (default: validate.out_dir)")
@@ -625,11 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
-    logging.getLogger("femcal").setLevel(logging.INFO)
+    configure_logging(args.log_level)
     try:
         params = load_params(args.params)  # validated against femcal.settings' schema
         from femcal.settings import check_environment

@@ -66,6 +66,7 @@ from femcal.settings.fe import IdpRange as IdpRange
 from femcal.settings.fe import ValidateSettings as ValidateSettings
 from femcal.settings.keywords import ACTIVATIONS as ACTIVATIONS
 from femcal.settings.keywords import BASELINE_MODELS as BASELINE_MODELS
+from femcal.settings.keywords import BUILTIN_EFFECTS as BUILTIN_EFFECTS
 from femcal.settings.keywords import (
     CALIBRATOR_OPTIONS,
     INVERSE_HYPERPARAMETERS,

@@ -34,6 +34,9 @@ BASELINE_MODELS: tuple[str, ...] = (
 )
 #: Registered calibrators (femcal.calibration registry).
 CALIBRATORS: tuple[str, ...] = ("pgd", "pgd-study", "ga", "inverse")
+#: Built-in physical effects (femcal.effects.builtin); installed plugins and effect files
+#: (``--effects-module``, ``effects.modules``) register more at run time.
+BUILTIN_EFFECTS: tuple[str, ...] = ("facet_contact", "ligament_tension", "neutral_zone")
 #: Prepared splits (femcal.prepare.SPLITS) and FE campaign splits (femcal.fe.campaign).
 SPLITS: tuple[str, ...] = ("large", "small", "test")
 #: Registered FE solver adapters (femcal.fe registry).
