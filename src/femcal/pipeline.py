@@ -47,13 +47,18 @@ def run_train(
     progress: bool = False,
     data_split: str | None = None,
 ):
-    """Train (search + final ensemble) on one split; save the model dir and the summary.
+    """Train (search + final ensemble) on one split; export the model folder, write the summary.
 
     ``split`` names the run (Optuna study, MLflow run); ``data_split`` is the prepared table
     trained on (default: ``split``), so that e.g. a held-out surrogate trains on "large" too.
+
+    ``out_dir`` receives the logged MLflow model file for file (:func:`femcal.tracking.
+    export_model`), with ``mlflow.json`` recording the run and the registered version: the
+    folder DVC versions is a complete model that loads and serves without the tracking store.
     """
     import mlflow
 
+    from femcal.tracking import export_model
     from femcal.train import train_surrogate, write_summary
 
     table, space = load_split(prepared_dir, data_split or split)
@@ -75,20 +80,17 @@ def run_train(
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     if tmp.exists():
         shutil.rmtree(tmp)
-    result.surrogate.save(tmp)
-    (tmp / "mlflow.json").write_text(
-        json.dumps(
-            {
-                "tracking_uri": mlflow.get_tracking_uri(),
-                "run_id": result.run_id,
-                "model_uri": result.model_uri,
-                "registered_model": model_name if settings.get("register") else None,
-                "version": result.version,
-                "promoted": result.promoted,
-            },
-            indent=2,
-        )
-        + "\n"
+    export_model(
+        result.model_uri,
+        tmp,
+        record={
+            "tracking_uri": mlflow.get_tracking_uri(),
+            "run_id": result.run_id,
+            "model_uri": result.model_uri,
+            "registered_model": model_name if settings.get("register") else None,
+            "version": result.version,
+            "promoted": result.promoted,
+        },
     )
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -133,9 +135,10 @@ def run_baselines(
 
 
 def _load_nn(path: Path):
-    from femcal.surrogates.nn import NeuralSurrogate
+    """The surrogate in a model folder of the train stage (through its trusted loader)."""
+    from femcal.tracking import load_surrogate
 
-    return NeuralSurrogate.load(path)
+    return load_surrogate(str(path))
 
 
 def run_evaluate(
@@ -318,13 +321,16 @@ def run_calibrate(
     ``effects`` lists physical effects (:mod:`femcal.effects`) added to the disc: their
     parameters are calibrated jointly with the material parameters.
 
-    Reads the measurements, loads the surrogate (and the held-out surrogate) from the MLflow
-    registry, checks the moments with the moment policy (:class:`femcal.moments.MomentPolicy`
-    of ``error_growth`` and ``max_log_ratio``, params.yaml ``moments``), calibrates the batch
+    Reads the measurements, loads the surrogate (and the held-out surrogate): a model folder
+    (``models/surrogate-large``, the one ``dvc.lock`` pins) or an MLflow model URI. Checks the
+    moments with the moment policy (:class:`femcal.moments.MomentPolicy` of ``error_growth``
+    and ``max_log_ratio``, params.yaml ``moments``), calibrates the batch
     with each point weighted by ``1 / sd(M)^2`` of the surrogate's error at its moment (times
     the measurement's own weight), writes ``out_dir`` (see
     :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
-    per-specimen tables and every output file as artifacts.
+    per-specimen tables and every output file as artifacts. The run's tags
+    ``femcal.model.*`` and ``femcal.holdout.*`` name each surrogate: its URI, the SHA-256 of its
+    files and its registered version when known (:class:`femcal.tracking.ModelSource`).
 
     ``out_dir`` is all or nothing (:mod:`femcal.outputs`): it is checked before anything
     else, the files are written into a staging folder beside it, only those are logged to
@@ -348,10 +354,11 @@ def run_calibrate(
     from femcal.moments import MomentPolicy
     from femcal.outputs import staged_output
     from femcal.reachability import assess_reachability
-    from femcal.tracking import load_surrogate, resolve_model_version
+    from femcal.tracking import load_surrogate, open_model
 
     meas = read_measurements(measurements)
-    surrogate = load_surrogate(model_uri)
+    source = open_model(model_uri)
+    surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
     policy.check(meas)
     weight = meas.weight * policy.weights(meas.moments)  # (n, 4, m): 1 / sd(M)^2, relative
@@ -366,8 +373,9 @@ def run_calibrate(
     )
     opts = calibration_options(method, options, surrogate=surrogate, start_bank=start_bank)
     holdout = None
-    if holdout_uri:
-        holdout = CurveModel(load_surrogate(holdout_uri), meas.moments)
+    holdout_source = open_model(holdout_uri) if holdout_uri else None
+    if holdout_source is not None:
+        holdout = CurveModel(load_surrogate(holdout_source), meas.moments)
         if effects:
             holdout = EffectModel(holdout, list(effects))
     result = calibrate(
@@ -417,10 +425,11 @@ def run_calibrate(
                 logged[f"option.{key}"] = value
         if "start_bank" in opts:
             logged["option.start_bank"] = f"{start_bank} ({len(opts['start_bank'])} configs)"
-        for tag, uri in (("model", model_uri), ("holdout", holdout_uri)):
-            info = resolve_model_version(uri) if uri else None
-            if info:
-                logged[f"{tag}_version"] = f"{info['name']}/{info['version']}"
+        for tag, src in (("model", source), ("holdout", holdout_source)):
+            if src is not None:
+                mlflow.set_tags(src.tags(tag))
+                if src.version:
+                    logged[f"{tag}_version"] = src.version
         mlflow.log_params(logged)
         mlflow.log_metrics({k: float(v) for k, v in figures.items() if isinstance(v, (int, float))})
         if missing:
@@ -483,12 +492,21 @@ def run_train_inverse(
     register_as: str | None,
     progress: bool = False,
 ):
-    """Train the study's inverse network on samples of the registered surrogate; register it."""
+    """Train the study's inverse network on samples of the surrogate; register it.
+
+    ``surrogate_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI;
+    the training run's tags ``femcal.surrogate.*`` name it (URI, SHA-256, registered
+    version). ``out_dir`` receives the logged MLflow model file for file, as for
+    :func:`run_train`.
+    """
+    import mlflow
+
     from femcal.calibration import CurveModel
     from femcal.calibration.inverse import train_inverse
-    from femcal.tracking import load_surrogate
+    from femcal.tracking import export_model, load_surrogate, open_model
 
-    surrogate = load_surrogate(surrogate_uri)
+    source = open_model(surrogate_uri)
+    surrogate = load_surrogate(source)
     result = train_inverse(
         CurveModel(surrogate, moments),
         n_samples=int(settings.get("n_samples", 50_000)),
@@ -505,7 +523,21 @@ def run_train_inverse(
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     if tmp.exists():
         shutil.rmtree(tmp)
-    result.model.save(tmp)
+    client = mlflow.MlflowClient()
+    for key, value in source.tags("surrogate").items():
+        client.set_tag(result.run_id, key, value)
+    export_model(
+        result.model_uri,
+        tmp,
+        record={
+            "tracking_uri": mlflow.get_tracking_uri(),
+            "run_id": result.run_id,
+            "model_uri": result.model_uri,
+            "registered_model": register_as,
+            "version": result.version,
+            "promoted": result.promoted,
+        },
+    )
     if out_dir.exists():
         shutil.rmtree(out_dir)
     tmp.rename(out_dir)
@@ -521,6 +553,8 @@ def run_train_inverse(
                 "registered_version": result.version,
                 "promoted": result.promoted,
                 "surrogate_uri": surrogate_uri,
+                "surrogate_sha256": source.sha256,
+                "surrogate_version": source.version,
                 "best_params": result.best_params,
             },
             indent=2,
@@ -590,6 +624,8 @@ def run_diagnose(
     error at each moment (shape (m,), larger beyond the trained range) is part of the noise.
 
     ``out_dir`` is all or nothing, as for :func:`run_calibrate` (:mod:`femcal.outputs`).
+    ``model_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI; the
+    run's tags ``femcal.model.*`` name it (URI, SHA-256 of its files, registered version).
     """
     from femcal.outputs import check_destination
 
@@ -605,10 +641,11 @@ def run_diagnose(
     from femcal.moments import MomentPolicy
     from femcal.outputs import staged_output
     from femcal.reachability import assess_reachability
-    from femcal.tracking import load_surrogate
+    from femcal.tracking import load_surrogate, open_model
 
     meas = read_measurements(measurements)
-    surrogate = load_surrogate(model_uri)
+    source = open_model(model_uri)
+    surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
     policy.check(meas)
     # Before the fit: can the disc, with every candidate effect, produce these curves at all?
@@ -638,6 +675,7 @@ def run_diagnose(
     ):
         stage.note(mlflow_run_id=run.info.run_id)
         mlflow.set_tag("femcal.stage", "diagnose")
+        mlflow.set_tags(source.tags("model"))
         summary = write_diagnosis(diag, meas.rom_deg, stage.path, plots=plots, max_plots=max_plots)
         mlflow.log_params(
             {

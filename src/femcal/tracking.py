@@ -7,15 +7,27 @@ shared server instead.
 MLflow records absolute artifact locations (experiments, runs, logged models, model versions).
 The default store follows its folder: every start resolves the locations that point into
 another folder's store (a copied or moved project) to this one (:func:`relocate_store`).
+
+A logged surrogate is a complete MLflow model that carries femcal's code (``code/femcal``) and
+femcal's dependencies as its requirements, so ``mlflow models serve`` can rebuild its
+environment. The train stage exports it to ``models/surrogate-<split>`` (:func:`export_model`),
+the folder DVC versions: :func:`open_model` and :func:`load_surrogate` take that folder as well
+as a registry URI, and :class:`ModelSource` names what was loaded (content hash, registered
+version) for the runs that use it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
+import re
+import shutil
 import sqlite3
 import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +45,30 @@ DEFAULT_MODEL_NAME = "ivd-rom-surrogate"
 CHAMPION_ALIAS = "champion"
 #: Tag on a model version holding the validation metric used for promotion.
 VALIDATION_TAG = "val_mae_deg"
+#: femcal's training record in an exported model folder (run, registered version): not part of
+#: the MLflow model, so left out of the folder's content hash (:func:`folder_sha256`).
+RECORD_FILE = "mlflow.json"
+#: MLflow's note of the registered name and version, rewritten by every registry download.
+_REGISTRY_NOTE = "registered_model_meta"
+#: femcal's dependencies a logged model does not need: the pipeline's tools.
+PIPELINE_ONLY_REQUIREMENTS = frozenset({"dvc", "optuna", "distributed", "dask"})
+#: What loading a logged model imports: always among its requirements, with femcal's other
+#: declared dependencies (:func:`model_requirements`).
+MODEL_REQUIREMENTS = (
+    "torch",
+    "pytorch-lightning",
+    "mlflow",
+    "numpy",
+    "pandas",
+    "scikit-learn",
+    "scipy",
+    "threadpoolctl",
+    "lightgbm",
+    "skops",
+    "matplotlib",
+    "pyyaml",
+    "tqdm",
+)
 
 
 def default_tracking_uri(store_dir: str | Path = DEFAULT_STORE_DIR) -> str:
@@ -175,15 +211,27 @@ def relocate_store(store_dir: str | Path = DEFAULT_STORE_DIR) -> dict[str, int]:
     return counts
 
 
+def _sqlite_folder(uri: str, *, default: Path) -> Path:
+    """The folder of a ``sqlite:///path/mlflow.db`` store (``default`` for an in-memory one)."""
+    path = uri[len("sqlite:///") :] if uri.startswith("sqlite:///") else ""
+    return Path(path).resolve().parent if path and path != ":memory:" else default.resolve()
+
+
 def ensure_experiment(name: str, *, store_dir: str | Path = DEFAULT_STORE_DIR) -> str:
-    """Create (once) and activate the experiment ``name``; artifacts go beside a local store."""
+    """Create (once) and activate the experiment ``name``; artifacts go beside a local store.
+
+    With a SQLite store (the default ``<store_dir>/mlflow.db``, or any ``sqlite:///`` URI in
+    ``MLFLOW_TRACKING_URI``) the artifacts go to ``artifacts/`` beside the database file, so a
+    store elsewhere never writes into the project's ``mlruns/``.
+    """
     import mlflow
 
     exp = mlflow.get_experiment_by_name(name)
     if exp is None:
         artifact_location = None
-        if mlflow.get_tracking_uri().startswith("sqlite:"):
-            artifacts = Path(store_dir).resolve() / "artifacts"
+        uri = mlflow.get_tracking_uri()
+        if uri.startswith("sqlite:"):
+            artifacts = _sqlite_folder(uri, default=Path(store_dir)) / "artifacts"
             artifacts.mkdir(parents=True, exist_ok=True)
             artifact_location = artifacts.as_uri()
         try:
@@ -275,10 +323,16 @@ def input_example(space: ParameterSpace, n_per_case: int = 1) -> pd.DataFrame:
 def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model") -> Any:
     """Log a fitted surrogate (one with ``save(dir)`` and ``load(dir)``) as an MLflow pyfunc model.
 
+    The model is logged "from code" (``pyfunc_model.py``, no pickle) with the saved surrogate
+    (weights and JSON) and its ``femcal_loader.json`` under ``artifacts/surrogate``, femcal's
+    code under ``code/femcal`` and femcal's dependencies as its requirements
+    (:func:`model_requirements`), so that ``mlflow models serve`` with its default environment
+    manager can rebuild it where femcal is not installed.
+
     Returns
     -------
     mlflow.models.model.ModelInfo
-        Its ``model_uri`` can be registered.
+        Its ``model_uri`` can be registered, and exported to a folder (:func:`export_model`).
     """
     import mlflow
     from mlflow.models import infer_signature
@@ -297,22 +351,103 @@ def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model")
             artifacts={"surrogate": str(root)},
             signature=signature,
             input_example=example,
-            pip_requirements=_pip_requirements(),
+            pip_requirements=model_requirements(),
+            code_paths=[str(femcal_code(Path(tmp)))],
         )
     return info
 
 
-def _pip_requirements() -> list[str]:
-    from importlib.metadata import version
+def femcal_code(dest: Path) -> Path:
+    """Copy the femcal package (its sources, no ``__pycache__``) to ``dest/femcal``.
 
-    pkgs = ["torch", "pytorch-lightning", "numpy", "pandas", "scikit-learn", "mlflow"]
-    reqs = []
-    for p in pkgs:
+    A logged model carries this copy (MLflow ``code_paths``): a process that loads the model
+    without femcal installed (``mlflow models serve`` in a fresh environment) imports it from
+    there. Returns ``dest/femcal``.
+    """
+    package = Path(__file__).resolve().parent
+    target = Path(dest) / "femcal"
+    shutil.copytree(
+        package, target, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
+    )
+    return target
+
+
+def model_requirements() -> list[str]:
+    """The pip requirements of a logged femcal model: femcal's dependencies, pinned.
+
+    :data:`MODEL_REQUIREMENTS` and every other dependency femcal declares (not its extras),
+    at the installed version (a local label such as torch's ``+cpu`` dropped: the index
+    decides the build), except the pipeline's tools (:data:`PIPELINE_ONLY_REQUIREMENTS`),
+    which loading a model never imports. femcal itself is not a requirement: the model
+    carries its code (:func:`femcal_code`).
+    """
+    from importlib import metadata
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    try:
+        declared = [Requirement(r) for r in metadata.requires("femcal") or []]
+    except metadata.PackageNotFoundError:  # pragma: no cover - run from a source tree
+        declared = []
+    reqs: dict[str, str] = {}
+    for req in [*(Requirement(r) for r in MODEL_REQUIREMENTS), *declared]:
+        name = canonicalize_name(req.name)
+        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+            continue  # an extra (dev tools)
+        if name in PIPELINE_ONLY_REQUIREMENTS or name in reqs:
+            continue
         try:
-            reqs.append(f"{p}=={version(p)}")
-        except Exception:  # pragma: no cover - not installed
-            reqs.append(p)
-    return reqs
+            installed = metadata.version(req.name)
+        except metadata.PackageNotFoundError:  # pragma: no cover - declared, not installed
+            reqs[name] = str(req)
+            continue
+        reqs[name] = f"{req.name}=={installed.split('+', 1)[0]}"
+    return list(reqs.values())
+
+
+def _pip_requirements() -> list[str]:
+    """Former name of :func:`model_requirements`."""
+    return model_requirements()
+
+
+def export_model(
+    model_uri: str, dest: str | Path, *, record: Mapping[str, Any] | None = None
+) -> Path:
+    """Write a logged MLflow model into the folder ``dest``, file for file.
+
+    The folder is what the train stage leaves in ``models/`` for DVC: ``mlflow.pyfunc.
+    load_model(dest)``, ``mlflow models serve -m dest`` and :func:`load_surrogate` take it,
+    and its content hash (:func:`folder_sha256`) equals the registered model's.
+
+    Parameters
+    ----------
+    model_uri : str
+        The logged model (``ModelInfo.model_uri``, ``models:/NAME@ALIAS``, ...).
+    dest : str or Path
+        The folder to create; it must not exist or be empty.
+    record : mapping, optional
+        femcal's training record (tracking URI, run id, registered name and version), written
+        as ``mlflow.json`` beside the model files.
+
+    Returns
+    -------
+    Path
+        ``dest``.
+    """
+    import mlflow
+
+    dest = Path(dest)
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
+        raise ModelRegistryError(
+            f"Cannot export the model '{model_uri}' to {dest}: it exists and is not an empty "
+            "folder. Remove it, or give another destination."
+        )
+    dest.mkdir(parents=True, exist_ok=True)
+    mlflow.artifacts.download_artifacts(artifact_uri=model_uri, dst_path=str(dest))
+    if record is not None:
+        (dest / RECORD_FILE).write_text(json.dumps(dict(record), indent=2, default=str) + "\n")
+    return dest
 
 
 def register_and_promote(
@@ -390,29 +525,169 @@ def champion_version(name: str = DEFAULT_MODEL_NAME, *, alias: str = CHAMPION_AL
         return None
 
 
-def load_surrogate(uri: str = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}") -> Any:
-    """Load a registered surrogate as the femcal object (with ``torch_module()`` for gradients).
+#: A URI with a scheme of two or more characters (``models:/``, ``runs:/``, ``s3://``) is
+#: MLflow's to resolve; anything else (and ``file:``) is a folder on this machine.
+_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]+:")
+
+
+def is_local_model(uri: str) -> bool:
+    """Whether ``uri`` names a folder on this machine (``models/surrogate-large``, ``file:``)."""
+    return uri.startswith("file:") or not _SCHEME.match(uri)
+
+
+def folder_sha256(path: str | Path) -> str:
+    """SHA-256 over a model folder's files: their relative paths and contents, sorted.
+
+    Left out: ``__pycache__`` (written when a process imports the model's code), femcal's
+    training record (:data:`RECORD_FILE`) and MLflow's ``registered_model_meta`` (which a
+    registry download rewrites), so a folder exported from a registered model hashes like the
+    registered model itself.
+    """
+    root = Path(path)
+    digest = hashlib.sha256()
+    files = sorted(
+        (f.relative_to(root).as_posix(), f)
+        for f in root.rglob("*")
+        if f.is_file()
+        and "__pycache__" not in f.relative_to(root).parts
+        and f.suffix != ".pyc"
+        and f.relative_to(root).as_posix() not in (RECORD_FILE, _REGISTRY_NOTE)
+    )
+    for rel, file in files:
+        content = hashlib.sha256()
+        with open(file, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                content.update(block)
+        digest.update(f"{rel}\0{content.hexdigest()}\n".encode())
+    return digest.hexdigest()
+
+
+@dataclass(frozen=True)
+class ModelSource:
+    """A model resolved to a folder on this machine, and what it is.
+
+    Attributes
+    ----------
+    uri : str
+        What was asked for: a folder (``models/surrogate-large``) or an MLflow model URI.
+    path : Path
+        The folder holding the model's files (the folder itself, or MLflow's download).
+    sha256 : str
+        Its content hash (:func:`folder_sha256`).
+    version : str or None
+        ``"NAME/VERSION"`` of the registered model: resolved in the registry for a
+        ``models:/`` URI, read from the folder's training record (:data:`RECORD_FILE`) for a
+        folder; None when unknown or not registered.
+    """
+
+    uri: str
+    path: Path
+    sha256: str
+    version: str | None = None
+
+    def tags(self, role: str) -> dict[str, str]:
+        """MLflow run tags ``femcal.<role>.uri/.sha256/.version`` naming this model."""
+        return {
+            f"femcal.{role}.uri": self.uri,
+            f"femcal.{role}.sha256": self.sha256,
+            f"femcal.{role}.version": self.version or "unknown",
+        }
+
+
+def _recorded_version(folder: Path) -> str | None:
+    """``"NAME/VERSION"`` from a model folder's training record, or None."""
+    record = folder / RECORD_FILE
+    if not record.is_file():
+        return None
+    try:
+        data = json.loads(record.read_text())
+        name, version = data.get("registered_model"), data.get("version")
+    except (OSError, ValueError, AttributeError) as exc:
+        logger.warning("%s is not a femcal training record (%s); version unknown.", record, exc)
+        return None
+    return f"{name}/{version}" if name and version else None
+
+
+def open_model(uri: str) -> ModelSource:
+    """Resolve a model folder or an MLflow model URI to a local folder, with its provenance.
 
     Parameters
     ----------
     uri : str
-        An MLflow model URI: ``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...``.
+        A folder written by the train stage (``models/surrogate-large``, relative to the
+        working directory, or ``file:``), or an MLflow model URI (``models:/NAME@ALIAS``,
+        ``models:/NAME/VERSION``, ``runs:/...``), downloaded from the tracking store.
+
+    Raises
+    ------
+    ModelRegistryError
+        The folder does not exist or is a file, or the URI cannot be resolved in the store.
     """
     import mlflow
     from mlflow.exceptions import MlflowException
 
+    if is_local_model(uri):
+        path = _local_path(uri) if uri.startswith("file:") else Path(uri)
+        if path is None or not path.exists():
+            raise ModelRegistryError(
+                f"The model folder '{uri}' does not exist (looked in {Path.cwd()}). Fetch it "
+                f"with `dvc pull {uri}` (a teammate) or build it with `dvc repro` (the train "
+                "stage), or give a registry URI such as models:/ivd-rom-surrogate@champion."
+            )
+        if not path.is_dir():
+            raise ModelRegistryError(
+                f"The model '{uri}' is a file; give the model's folder (e.g. "
+                "models/surrogate-large, written by `femcal train`) or a registry URI such as "
+                "models:/ivd-rom-surrogate@champion."
+            )
+        return ModelSource(uri, path, folder_sha256(path), _recorded_version(path))
     try:
         local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri))
     except MlflowException as exc:
         raise ModelRegistryError(
             f"Could not load the model '{uri}' from the MLflow store "
             f"{mlflow.get_tracking_uri()}: {exc.message}. Run `dvc repro train` to register one, "
-            "or set MLFLOW_TRACKING_URI to the team's server."
+            "set MLFLOW_TRACKING_URI to the team's server, or give the DVC-versioned folder "
+            "(models/surrogate-large)."
         ) from None
-    candidates = list(local.rglob("femcal_loader.json"))
+    info = resolve_model_version(uri)
+    version = f"{info['name']}/{info['version']}" if info else None
+    return ModelSource(uri, local, folder_sha256(local), version)
+
+
+def load_surrogate(
+    uri: str | ModelSource = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}",
+) -> Any:
+    """Load a surrogate as the femcal object (with ``torch_module()`` for gradients).
+
+    Only data is read: the ``femcal_loader.json`` must name a class of femcal's surrogate
+    registry, which loads its weights with ``torch.load(weights_only=True)`` (and JSON); the
+    model's own code (``pyfunc_model.py``, ``code/``) is never run.
+
+    Parameters
+    ----------
+    uri : str or ModelSource
+        A model folder (``models/surrogate-large``) or an MLflow model URI:
+        ``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...`` (see
+        :func:`open_model`), or a source :func:`open_model` returned.
+    """
+    source = uri if isinstance(uri, ModelSource) else open_model(uri)
+    preferred = source.path / "artifacts" / "surrogate" / "femcal_loader.json"
+    candidates = [preferred]
+    if not preferred.is_file():  # a model logged by an earlier femcal: anywhere but code/
+        candidates = sorted(
+            f
+            for f in source.path.rglob("femcal_loader.json")
+            if f.relative_to(source.path).parts[0] != "code"
+        )
     if not candidates:
-        raise ModelRegistryError(f"'{uri}' is not a femcal surrogate (no femcal_loader.json).")
-    return _trusted_loader(candidates[0], uri=uri).load(candidates[0].parent)
+        raise ModelRegistryError(
+            f"'{source.uri}' is not a femcal surrogate (no femcal_loader.json in "
+            f"{source.path}). A folder written by `femcal train` before the models became "
+            "MLflow models holds config.json and weights.pt only: rebuild it with `dvc repro` "
+            "(the train stage) or pull a newer one with `dvc pull`."
+        )
+    return _trusted_loader(candidates[0], uri=source.uri).load(candidates[0].parent)
 
 
 def resolve_model_version(uri: str) -> dict[str, str] | None:

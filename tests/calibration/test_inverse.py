@@ -27,7 +27,7 @@ from femcal.calibration.inverse import (
 )
 from femcal.errors import ConfigError, InputDataError, ModelRegistryError, SurrogateNotFittedError
 from femcal.surrogates.nn import NeuralSurrogate
-from femcal.tracking import configure_tracking, ensure_experiment
+from femcal.tracking import configure_tracking, ensure_experiment, export_model
 
 from synth import study_space, tidy_table
 
@@ -220,6 +220,15 @@ def test_train_inverse_registers_and_calibrates(store, curve_model: CurveModel, 
     from_registry = calibrate(curve_model, held, method="inverse")
     np.testing.assert_array_equal(from_registry.x, result.x)
 
+    # The folder the train-inverse stage writes (models/inverse) is the same complete MLflow
+    # model: femcal and plain MLflow load it without the store.
+    folder = export_model(res.model_uri, store / "models" / "inverse")
+    np.testing.assert_array_equal(load_inverse(str(folder)).predict(held), res.model.predict(held))
+    out = mlflow.pyfunc.load_model(str(folder)).predict(frame)
+    np.testing.assert_allclose(out.to_numpy(), res.model.predict_physical(held), rtol=1e-6)
+    from_folder = calibrate(curve_model, held, method="inverse", options={"model_uri": str(folder)})
+    np.testing.assert_array_equal(from_folder.x, result.x)
+
 
 # ---------------------------------------------------------------------------- error paths
 def test_missing_point_is_refused(fitted: InverseModel, curve_model: CurveModel, data) -> None:
@@ -249,6 +258,16 @@ def test_missing_registered_model_is_a_clear_error(store, curve_model: CurveMode
         load_inverse("models:/nope@champion")
     with pytest.raises(ModelRegistryError, match="ivd-inverse@champion"):
         calibrate(curve_model, data["held_rom"][:2], method="inverse")
+    with pytest.raises(
+        ModelRegistryError, match=r"The model folder 'nowhere/inverse' does not exist.*dvc pull"
+    ):
+        load_inverse("nowhere/inverse")
+    (store / "empty").mkdir()
+    with pytest.raises(
+        ModelRegistryError,
+        match=r"'.*empty' is not a femcal inverse model \(no saved InverseModel in it\); rebuild",
+    ):
+        load_inverse(str(store / "empty"))
 
 
 def test_bad_settings_and_data(data) -> None:

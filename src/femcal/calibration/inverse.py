@@ -977,7 +977,8 @@ def log_inverse(model: InverseModel, *, name: str = "model") -> Any:
 
     The pyfunc takes a DataFrame with the columns :meth:`InverseModel.rom_columns` and
     returns the parameters in physical units. The model is logged "from code": MLflow stores
-    the saved model directory and a small entry-point script, not a pickle.
+    the saved model directory and a small entry-point script, not a pickle, with femcal's code
+    and dependencies as for a surrogate (:func:`femcal.tracking.log_surrogate`).
 
     Returns
     -------
@@ -986,7 +987,7 @@ def log_inverse(model: InverseModel, *, name: str = "model") -> Any:
     import mlflow
     from mlflow.models import infer_signature
 
-    from femcal.tracking import _pip_requirements
+    from femcal.tracking import femcal_code, model_requirements
 
     model._check_fitted()
     if model.space is None:
@@ -1005,7 +1006,8 @@ def log_inverse(model: InverseModel, *, name: str = "model") -> Any:
             artifacts={"inverse": str(root)},
             signature=signature,
             input_example=example,
-            pip_requirements=_pip_requirements(),
+            pip_requirements=model_requirements(),
+            code_paths=[str(femcal_code(Path(tmp)))],
         )
     return info
 
@@ -1239,21 +1241,33 @@ def train_inverse(
 
 
 def load_inverse(uri: str = DEFAULT_INVERSE_URI) -> InverseModel:
-    """Load a registered inverse model as an :class:`InverseModel`.
+    """Load an inverse model as an :class:`InverseModel` (weights and JSON only).
 
     Parameters
     ----------
     uri : str
-        An MLflow model URI: ``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...``.
+        The folder the train-inverse stage writes (``models/inverse``), or an MLflow model
+        URI: ``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...``.
 
     Raises
     ------
     ModelRegistryError
-        The URI cannot be resolved in the current store, or is not an inverse model.
+        The folder does not exist, the URI cannot be resolved in the current store, or neither
+        holds an inverse model.
     """
     import mlflow
     from mlflow.exceptions import MlflowException
 
+    from femcal.tracking import is_local_model, open_model
+
+    if is_local_model(uri):
+        model = _inverse_in(open_model(uri).path)
+        if model is None:
+            raise ModelRegistryError(
+                f"'{uri}' is not a femcal inverse model (no saved InverseModel in it); rebuild "
+                "it with `dvc repro train-inverse` or fetch it with `dvc pull`."
+            )
+        return model
     with tempfile.TemporaryDirectory() as tmp:
         try:
             local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=tmp))
@@ -1263,17 +1277,28 @@ def load_inverse(uri: str = DEFAULT_INVERSE_URI) -> InverseModel:
                 f"{mlflow.get_tracking_uri()}: {exc.message}. Run `dvc repro train-inverse` to "
                 "train and register one, or set MLFLOW_TRACKING_URI to the team's server."
             ) from None
-        for config in sorted(local.rglob("config.json")):
-            try:
-                fmt = json.loads(config.read_text()).get("format")
-            except (ValueError, OSError):
-                continue
-            if fmt == _FORMAT:
-                return InverseModel.load(config.parent)
+        model = _inverse_in(local)
+        if model is not None:
+            return model
     raise ModelRegistryError(
         f"'{uri}' is not a femcal inverse model (no saved InverseModel in its artifacts); "
         "run `dvc repro train-inverse` to register one."
     )
+
+
+def _inverse_in(folder: Path) -> InverseModel | None:
+    """The saved InverseModel in a model folder (``artifacts/inverse`` or any ``config.json`` of
+    its format outside ``code/``), or None."""
+    for config in sorted(folder.rglob("config.json")):
+        if config.relative_to(folder).parts[0] == "code":
+            continue
+        try:
+            fmt = json.loads(config.read_text()).get("format")
+        except (ValueError, OSError, AttributeError):
+            continue
+        if fmt == _FORMAT:
+            return InverseModel.load(config.parent)
+    return None
 
 
 # ----------------------------------------------------------------------------- calibrator
