@@ -240,7 +240,7 @@ class CalibrateSettings:
 
     out_dir: str = setting(PATH, "outputs go to <out_dir>/<dataset>/")
     method: str = setting(Choice(CALIBRATORS), "calibration method")
-    model_uri: str = setting(MODEL_URI, "the registered surrogate")
+    model_uri: str = setting(MODEL_URI, "the surrogate: a model folder or a models:/ URI")
     datasets: dict = setting(
         MapOf(
             FnCheck("a path or {measurements, effects}", _dataset),
