@@ -161,6 +161,26 @@ def test_next_measurement_names_where_close_explanations_differ(world):
         assert n["difference_sigma"] == pytest.approx(abs(n["difference_deg"]) / NOISE, rel=1e-3)
 
 
+def test_an_effect_that_explains_its_own_load_cases_stays_when_more_is_missing(world):
+    """Facet contact and a softening nobody registered, on different load cases: the
+    elimination keeps the effect (its load cases would need a much larger discrepancy without
+    it) and the verdict says that something else is missing too."""
+    base, _, _, _ = world
+    rng = np.random.default_rng(5)
+    fe = CurveModel(base.surrogate, MOMENTS).predict(study_space().sample_uniform(4, rng))
+    curves = []
+    for fe_rom in fe:
+        c = _facet(MOMENTS, fe_rom, MOMENTS)
+        c[[FLEX, LB]] += 0.8 * (MOMENTS / 5.0) ** 4
+        curves.append(c)
+    rom = np.stack(curves) + rng.normal(0, NOISE, (len(curves), 4, len(MOMENTS)))
+    diag = diagnose(base, rom, specimens=list("abcd"), noise_deg=NOISE, seed=0)
+    verdicts = [s.verdict for s in diag.specimens]
+    kept = [s for s in diag.specimens if "facet_contact" in s.effects and not s.adequate]
+    assert len(kept) >= 3, verdicts
+    assert all(s.verdict != NONE for s in diag.specimens), verdicts
+
+
 def test_verdict_labels():
     assert verdict_label([], True) == NONE
     assert verdict_label([], False) == UNEXPLAINED
@@ -178,5 +198,9 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, candidates=["capsule"])
     with pytest.raises(ConfigError, match="noise_deg must be > 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=-1.0)
+    with pytest.raises(ConfigError, match="elimination_cap must be >= 1 or 0"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, elimination_cap=0.5)
+    with pytest.raises(ConfigError, match="min_delta_inadequate must be >= 0"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, surrogate_error_deg=-0.1)

@@ -152,3 +152,37 @@ def test_ml_fit_compares_models_by_their_marginal_likelihood(base):
     assert np.all(big.neg2_log_ml > ml.neg2_log_ml)
     with pytest.raises(ValueError, match="'ml'"):
         fit_discrepancy(base, v0, meas, sigma, amplitude_deg="max")
+
+
+def test_ml_amplitude_respects_a_cap_per_load_case():
+    from femcal.discrepancy import ml_amplitude
+
+    rng = np.random.default_rng(4)
+    n, m = 50, len(MOMENTS)
+    sigma = np.full((n, 4, m), NOISE)
+    mask = np.ones((n, 4, m), dtype=bool)
+    x = np.log(MOMENTS)
+    bump = rng.normal(0.0, NOISE, (n, 4, m))
+    bump[:, :2] += 0.5 * (MOMENTS / 5.0) ** 3  # a misfit in flexion and extension
+    free = ml_amplitude(bump, mask, sigma, x)
+    cap = np.full((n, 4), np.inf)
+    cap[:, 0] = 2 * NOISE  # capped in flexion only
+    capped = ml_amplitude(bump, mask, sigma, x, cap=cap)
+    assert np.all(capped[:, 0] <= 2 * NOISE + 1e-12) and np.all(free[:, 0] > 2 * NOISE)
+    np.testing.assert_array_equal(capped[:, 1:], free[:, 1:])  # the rest stays free
+    np.testing.assert_array_equal(ml_amplitude(bump, mask, sigma, x, cap=np.inf), free)
+    # A cap of 0 still allows no discrepancy at all.
+    assert np.all(ml_amplitude(bump, mask, sigma, x, cap=0.0) == 0.0)
+
+
+def test_ml_fit_keeps_the_amplitude_under_its_cap(base):
+    x, meas, _ = _softened(base, 4, seed=2)
+    v0 = base.from_physical(x)
+    sigma = np.full(len(MOMENTS), NOISE)
+    cap = np.full((4, 4), np.inf)
+    cap[:, 0] = NOISE
+    fit = fit_discrepancy(base, v0, meas, sigma, amplitude_deg="ml", amplitude_cap=cap)
+    assert np.all(fit.amplitude_deg[:, 0] <= NOISE + 1e-12)
+    free = fit_discrepancy(base, v0, meas, sigma, amplitude_deg="ml")
+    # Held below what it needs, the discrepancy explains less: a worse marginal likelihood.
+    assert np.all(fit.neg2_log_ml >= free.neg2_log_ml - 1e-6)

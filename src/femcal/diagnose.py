@@ -12,11 +12,15 @@ For every specimen:
    the one with the lowest BIC (``chi^2 + k ln n`` with the known noise) if it beats the current
    model by ``min_delta`` (10 = "very strong" evidence), and go on while the model does not
    explain the data and another effect pays;
+   A model that holds an effect and still does not explain the data takes a further effect
+   at a lower bar (``min_delta_inadequate``): the data already say something more is missing;
 2b. **open world**: where the chosen model still does not explain the data, each of its effects
    must also pay beyond a smooth discrepancy: every model (with and without the effect) gets the
-   GP discrepancy it needs (type-II maximum likelihood per load case) and the models compare by
-   ``-2 log`` marginal likelihood ``+ k ln n``; an effect that only let the disc bend towards
-   physics nobody registered is dropped (backward elimination);
+   GP discrepancy it needs (type-II maximum likelihood per load case, capped in the dropped
+   effect's own load cases at ``elimination_cap`` times what the model with it needed there)
+   and the models compare by ``-2 log`` marginal likelihood ``+ k ln n``; an effect that only let
+   the disc bend towards physics nobody registered is dropped (backward elimination), one that
+   explains its own load cases stays;
 3. **adequacy** of the chosen model: is its ``chi^2`` consistent with the noise (p-value with the
    effective degrees of freedom, ``n - trace(hat matrix)``), and are its residuals free of long
    runs of one sign per load case (Wald-Wolfowitz)? If not, the verdict says ``unexplained``
@@ -351,6 +355,8 @@ def diagnose(
     bank_samples: int = 1024,
     gp_amplitude: str = "ml",
     stop_when_adequate: bool = True,
+    elimination_cap: float = 2.0,
+    min_delta_inadequate: float = 2.0,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -397,6 +403,17 @@ def diagnose(
         The discrepancy of the open-world elimination: each model's own type-II maximum
         likelihood amplitude, compared by marginal likelihood ("ml"), or one amplitude sized to
         the larger model's misfit, compared by generalised least squares ("misfit").
+    min_delta_inadequate : float
+        BIC improvement a further effect needs over a model that already holds an effect but
+        does not explain the data (the adequacy test said something more is missing; the
+        open-world elimination still checks that it pays beyond a smooth discrepancy).
+    elimination_cap : float
+        Open-world elimination: when an effect is dropped, the discrepancy in that effect's own
+        load cases may be at most this factor times what the model with the effect needed
+        there (0: no cap). Without a cap the smooth discrepancy takes over whatever an effect
+        explained and real effects are dropped; elsewhere it stays free, so an effect that only
+        compensated a disc bent towards unregistered physics is still dropped
+        (reports/bench_diagnose.md).
     stop_when_adequate : bool
         Stop adding effects once the model explains the data (default; measured in
         reports/bench_diagnose.md: going on while an effect pays ``min_delta`` doubled the time
@@ -413,6 +430,15 @@ def diagnose(
         get_effect(name)  # unknown names fail before any work
     if not 0 < alpha < 1:
         raise ConfigError(f"diagnose: alpha must be in (0, 1); got {alpha}.")
+    if not (elimination_cap == 0 or elimination_cap >= 1) or not np.isfinite(elimination_cap):
+        raise ConfigError(
+            "diagnose: elimination_cap must be >= 1 or 0 (no cap), a factor on the discrepancy "
+            f"the larger model needed in the dropped effect's load cases; got {elimination_cap}."
+        )
+    if not min_delta_inadequate >= 0:
+        raise ConfigError(
+            f"diagnose: min_delta_inadequate must be >= 0; got {min_delta_inadequate}."
+        )
     if gp_amplitude not in ("ml", "misfit"):
         raise ConfigError(
             f"diagnose: gp_amplitude must be 'ml' or 'misfit'; got {gp_amplitude!r}."
@@ -535,7 +561,15 @@ def diagnose(
                     current,
                     {e: round(cur_bic - bic_of(*per_spec[i][e], i), 1) for e in trials},
                 )
-                if best_eff is not None and cur_bic - best_bic >= min_delta:
+                # A model shown not to explain the data needs something more: the next effect
+                # only has to beat it by ``min_delta_inadequate`` (the elimination below keeps
+                # an effect only if it pays beyond a smooth discrepancy).
+                need = min_delta
+                if current and not _adequate_quick(
+                    cur_fit, cur_pos, i, measured, sigma, n_points, alpha
+                ):
+                    need = min_delta_inadequate
+                if best_eff is not None and cur_bic - best_bic >= need:
                     chosen[i] = best_eff
                     improved.append(int(i))
         # Keep adding while it pays (or, with ``stop_when_adequate``, only where the chosen
@@ -560,6 +594,7 @@ def diagnose(
         and not _adequate_quick(*per_spec[i][chosen[i]], i, measured, sigma, n_points, alpha)
     ]
     gls: dict[tuple[int, tuple[str, ...]], tuple[float, torch.Tensor]] = {}
+    gls_amp: dict[tuple[int, tuple[str, ...]], np.ndarray] = {}  # (4,) GP amplitude per LC
     reached: dict[int, torch.Tensor] = {}  # where elimination left a specimen (unit coords)
 
     def misfit_amplitude(i: int, effects: tuple[str, ...]) -> np.ndarray:
@@ -571,9 +606,17 @@ def diagnose(
         return np.clip(np.sqrt(np.clip(excess, 0.0, None)), sigma_m.min(), 5.0)
 
     def gls_fit(
-        effects: tuple[str, ...], rows: list[int], v: torch.Tensor, amp, again: bool = False
+        effects: tuple[str, ...],
+        rows: list[int],
+        v: torch.Tensor,
+        amp,
+        again: bool = False,
+        cap: np.ndarray | None = None,
     ) -> None:
-        """The GLS fit of ``effects`` with the GP from ``v`` (keeps the better with ``again``)."""
+        """The GLS fit of ``effects`` with the GP from ``v`` (keeps the better with ``again``).
+
+        ``cap`` (len(rows), 4): the largest GP amplitude per load case (``inf``: free).
+        """
         todo = [(k, i) for k, i in enumerate(rows) if again or (i, effects) not in gls]
         if not todo:
             return
@@ -583,7 +626,14 @@ def diagnose(
         if gp_amplitude == "ml":
             # Each model gets the discrepancy it needs (type-II maximum likelihood per load
             # case) and pays for it in log det C: -2 log marginal likelihood.
-            fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg="ml")
+            fit = fit_discrepancy(
+                model,
+                v[idx],
+                measured[ids],
+                sigma_m,
+                amplitude_deg="ml",
+                amplitude_cap=None if cap is None else cap[idx],
+            )
             score = fit.neg2_log_ml
         else:
             fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg=amp[idx])
@@ -592,6 +642,7 @@ def diagnose(
             key = (int(i), effects)
             if key not in gls or float(score[pos]) < gls[key][0]:
                 gls[key] = (float(score[pos]), fit.v[pos])
+                gls_amp[key] = fit.amplitude_deg[pos]
 
     def ensure_fitted() -> None:
         """Fit (without the GP) the models elimination reached that were never fitted."""
@@ -629,13 +680,34 @@ def diagnose(
                 cols = list(range(base.dim)) + [
                     base.dim + c for e in rest for c in range(*offsets[e])
                 ]
-                gls_fit(rest, members, v_gls[:, cols], amp)
+                # In the dropped effect's own load cases the discrepancy may be no larger than
+                # the model with the effect needed there: it may not take over what the effect
+                # explained; elsewhere it is free, so the disc can stop bending towards physics
+                # nobody registered (which is what a compensating effect was doing).
+                cap = None
+                if elimination_cap:
+                    own_lc = get_effect(drop).load_case_mask().numpy()
+                    cap = np.stack(
+                        [
+                            np.where(own_lc, elimination_cap * gls_amp[(i, current)], np.inf)
+                            for i in members
+                        ]
+                    )
+                gls_fit(rest, members, v_gls[:, cols], amp, cap=cap)
                 # The reduced model's own fit is a second start: from the larger model's
                 # parameters the disc may stay bent towards what the dropped effect did.
                 own = [i for i in members if rest in per_spec[i]]
                 if own:
                     v_own = torch.stack([per_spec[i][rest][0].v[per_spec[i][rest][1]] for i in own])
-                    gls_fit(rest, own, v_own, amp[[members.index(i) for i in own]], again=True)
+                    sel = [members.index(i) for i in own]
+                    gls_fit(
+                        rest,
+                        own,
+                        v_own,
+                        amp[sel],
+                        again=True,
+                        cap=None if cap is None else cap[sel],
+                    )
             k_cur = base.dim + sum(len(get_effect(e).parameters) for e in current)
             for i in members:
                 here = gls[(i, current)][0] + k_cur * log_n[i]

@@ -90,6 +90,7 @@ def ml_amplitude(
     *,
     length_scale: float = LENGTH_SCALE,
     grid: Sequence[float] | None = None,
+    cap: np.ndarray | None = None,
 ) -> np.ndarray:
     """Type-II maximum likelihood amplitude of the discrepancy, per specimen and load case.
 
@@ -107,6 +108,9 @@ def ml_amplitude(
         ln(moment) of the grid.
     grid : sequence of float, optional
         Amplitudes to try (deg); default :data:`ML_AMPLITUDES` times the smallest sigma.
+    cap : ndarray, shape (n, 4), optional
+        Largest amplitude allowed per specimen and load case (``inf``: free): the maximum
+        likelihood among the grid's amplitudes up to it (0 is always allowed).
 
     Returns
     -------
@@ -131,6 +135,10 @@ def ml_amplitude(
         w = np.linalg.solve(chol, r[..., None])[..., 0]
         logdet = 2 * np.log(np.diagonal(chol, axis1=-2, axis2=-1)).sum(-1)
         nll[g] = (w**2).sum(-1) + logdet
+    if cap is not None:
+        cap = np.broadcast_to(np.asarray(cap, dtype=float), (n, n_lc))
+        over = (amps[:, None, None] > cap[None] * (1 + 1e-9)) & (amps[:, None, None] > 0)
+        nll = np.where(over, np.inf, nll)
     return amps[np.argmin(nll, axis=0)]
 
 
@@ -176,6 +184,7 @@ def fit_discrepancy(
     length_scale: float = LENGTH_SCALE,
     max_iter: int = 8,
     ml_rounds: int = 2,
+    amplitude_cap: np.ndarray | None = None,
 ) -> DiscrepancyFit:
     """Fit the model and a GP discrepancy jointly (see the module docstring).
 
@@ -202,6 +211,10 @@ def fit_discrepancy(
         Levenberg-Marquardt iterations (per round).
     ml_rounds : int
         Rounds of amplitude / parameter updates with ``amplitude_deg="ml"``.
+    amplitude_cap : ndarray, shape (n, 4), optional
+        With ``amplitude_deg="ml"``: the largest amplitude allowed per specimen and load case
+        (``inf`` where free), e.g. what a larger model needed there, so that the discrepancy
+        cannot take over what an effect explained in its own load cases.
 
     Returns
     -------
@@ -240,7 +253,14 @@ def fit_discrepancy(
         amp = np.broadcast_to(amp[:, None] if amp.ndim == 1 else amp, (n, n_lc)).copy()
     for _round in range(ml_rounds if ml else 1):
         if ml:
-            amp = ml_amplitude(r.reshape(n, n_lc, m), mask, sig, x, length_scale=length_scale)
+            amp = ml_amplitude(
+                r.reshape(n, n_lc, m),
+                mask,
+                sig,
+                x,
+                length_scale=length_scale,
+                cap=amplitude_cap,
+            )
         cov = _covariance(mask, sig, x, amp, length_scale)
         chol = np.linalg.cholesky(cov)
 
