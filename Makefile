@@ -2,7 +2,7 @@
 VENV ?= .venv
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 
-.PHONY: repro test lint install lock
+.PHONY: repro test lint install lock remote
 install: $(VENV)/.installed  ## also installs CalculiX (ccx, the open FE solver) when missing
 	command -v ccx >/dev/null || { sudo=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
 	  $$sudo apt-get update -qq && $$sudo apt-get install -y -qq calculix-ccx; }
@@ -38,3 +38,13 @@ lock:
 	    "of pyproject.toml, then make lock again" >&2; exit 1; fi
 	@mv constraints.txt.tmp constraints.txt
 	@echo "constraints.txt: $$(grep -c -v '^#' constraints.txt) packages pinned"
+
+# A local-folder DVC remote as the project's default (a shared disk, a mounted drive):
+# `make remote DIR=/shared/femcal-dvc`, then `dvc push`; commit .dvc/config so that a
+# teammate's clone pulls from it (`dvc pull`). Running it again points the remote elsewhere.
+remote:
+	@test -n "$(DIR)" || { echo "make remote: give the folder: make remote DIR=/shared/femcal-dvc" >&2; exit 1; }
+	@command -v dvc >/dev/null || { echo "make remote: dvc not found; run make install first" >&2; exit 1; }
+	mkdir -p "$(abspath $(DIR))"
+	dvc remote add --default --force team "$(abspath $(DIR))"
+	@echo "DVC remote 'team' (default): $(abspath $(DIR)); commit .dvc/config, then dvc push"
