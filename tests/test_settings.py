@@ -528,7 +528,7 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
             r"options\.pgd-study\.projection: expected one of 'clip', 'average', got 'clamp'",
         ),
         (
-            'inverse: {model_uri: "models:/ivd-inverse@champion"}',
+            "inverse: {model_uri: models/inverse}",
             'inverse: {model_uri: "models:/ivd-inverse"}',
             r"calibrate\.options\.inverse\.model_uri: expected an MLflow model URI .* expected "
             r"models:/NAME@ALIAS or models:/NAME/VERSION",
@@ -565,7 +565,7 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
             r"sqlite:///mlruns/optuna\.db",
         ),
         (
-            "  model_uri: models:/ivd-rom-surrogate@champion",
+            "  model_uri: models/surrogate-large",
             "  model_uri: ivd-rom-surrogate@champion",
             r"calibrate\.model_uri: .* did you mean models:/ivd-rom-surrogate@champion\?",
         ),
