@@ -406,6 +406,7 @@ def run_calibrate(
             plots=plots,
             max_plots=max_plots,
             reachability=reach.notes(),
+            progress=progress,
         )
         logged = {
             "method": method,
@@ -440,9 +441,28 @@ def run_calibrate(
         mlflow.log_table(result.parameters_frame(), artifact_file="tables/parameters.json")
         _compare_with_previous(measurements, logged, figures, stage.path)
         stage.finalize()
-        mlflow.log_artifacts(str(stage.path), artifact_path="calibration")  # this run's files
+        _log_artifacts(stage.path, "calibration", progress=progress)  # this run's files
         stage.commit()
     return result, figures
+
+
+def _log_artifacts(folder: Path, artifact_path: str, *, progress: bool = False) -> None:
+    """``mlflow.log_artifacts(folder, artifact_path)`` file by file, with a progress bar.
+
+    The same artifact layout: ``<artifact_path>/<path of the file in folder>``.
+    """
+    import mlflow
+
+    files: Any = sorted(p for p in Path(folder).rglob("*") if p.is_file())
+    if progress and len(files) > 1:
+        from tqdm.auto import tqdm
+
+        files = tqdm(files, desc="MLflow artifacts", unit="file")
+    for path in files:
+        parent = path.parent.relative_to(folder).as_posix()
+        mlflow.log_artifact(
+            str(path), f"{artifact_path}/{parent}" if parent != "." else artifact_path
+        )
 
 
 def _compare_with_previous(

@@ -73,3 +73,15 @@ def test_holdout_scores_detect_a_different_model(curve_model, truth, small_surro
     other = CurveModel(small_surrogate, [1.5, 2.5, 3.5, 4.5, 5.5])  # another grid = other curves
     held = holdout_scores(res, other)
     assert np.all(held["mae"] > res.mae_deg)
+
+
+def test_write_outputs_shows_the_plots_progress_only_when_asked(
+    tmp_path, curve_model, truth, capsys
+):
+    res = calibrate(curve_model, truth[1][:3], method="pgd", options={"n_bank_uniform": 64})
+    write_outputs(res, tmp_path / "quiet", max_plots=2)
+    assert "plots" not in capsys.readouterr().err
+    write_outputs(res, tmp_path / "shown", max_plots=2, progress=True)
+    err = capsys.readouterr().err
+    assert "plots: 100%" in err and "2/2" in err
+    assert len(list((tmp_path / "shown" / "plots").glob("*.png"))) == 2

@@ -84,6 +84,33 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
     assert len(table) == 6 and set(table["specimen"]) == set(result.specimens)
 
 
+def test_run_calibrate_shows_plotting_and_logging_progress(registry, truth, capsys):
+    """On a terminal (progress=True): bars over the plots and the files logged to MLflow."""
+    run_calibrate(
+        measurements=_long_csv(registry / "meas.csv", truth[1][:3]),
+        out_dir=registry / "out",
+        method="pgd",
+        model_uri="models:/ivd-rom-surrogate@champion",
+        holdout_uri=None,
+        start_bank=None,
+        options={"n_bank_uniform": 64},
+        seed=0,
+        progress=True,
+        **MOMENTS,
+    )
+    err = capsys.readouterr().err
+    assert "plots: 100%" in err and "3/3" in err
+    files = sorted(p for p in (registry / "out").rglob("*") if p.is_file())
+    assert "MLflow artifacts: 100%" in err and f"{len(files)}/{len(files)}" in err
+    # The artifacts mirror the output folder, sub-folders included.
+    run_id = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'")["run_id"][0]
+    client = mlflow.MlflowClient()
+    plots = {a.path for a in client.list_artifacts(run_id, "calibration/plots")}
+    assert plots == {f"calibration/plots/spec-{i}.png" for i in range(3)}
+    top = {a.path for a in client.list_artifacts(run_id, "calibration")}
+    assert {"calibration/summary.md", "calibration/plots"} <= top
+
+
 def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
     meas = _long_csv(registry / "m.csv", truth[1][:1], moments=(1, 2, 3, 4, 9))
     with pytest.raises(

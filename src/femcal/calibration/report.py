@@ -321,6 +321,7 @@ def write_outputs(
     plots: bool = True,
     max_plots: int | None = None,
     reachability: Sequence[str] | None = None,
+    progress: bool = False,
 ) -> dict:
     """Write the tables, figures and summary of a calibration; returns the summary figures.
 
@@ -341,6 +342,8 @@ def write_outputs(
         Per specimen, why its points lie outside the model's envelope ("" when they do not;
         :meth:`femcal.reachability.ReachabilityReport.notes`): the ``reachability`` column of
         metrics.csv, flagged in ``flag`` and counted as ``n_outside_envelope``.
+    progress : bool
+        Show a progress bar (stderr) over the per-specimen plots.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -377,7 +380,12 @@ def write_outputs(
         plot_dir = out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
         used: set[str] = set()
-        for i in range(n_plot):
+        indices: Any = range(n_plot)
+        if progress and n_plot > 1:
+            from tqdm.auto import tqdm
+
+            indices = tqdm(indices, desc="plots", unit="specimen")
+        for i in indices:
             name = safe_file_name(result.specimens[i])
             while name in used:
                 name += "_"
