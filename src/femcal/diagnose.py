@@ -440,9 +440,7 @@ def diagnose(
             f"diagnose: min_delta_inadequate must be >= 0; got {min_delta_inadequate}."
         )
     if gp_amplitude not in ("ml", "misfit"):
-        raise ConfigError(
-            f"diagnose: gp_amplitude must be 'ml' or 'misfit'; got {gp_amplitude!r}."
-        )
+        raise ConfigError(f"diagnose: gp_amplitude must be 'ml' or 'misfit'; got {gp_amplitude!r}.")
     rng = np.random.default_rng(seed)
     measured = np.where(np.isfinite(rom_deg), np.asarray(rom_deg, dtype=float), np.nan)
     n, _, m = measured.shape
