@@ -158,9 +158,12 @@ def test_second_repro_runs_nothing_and_a_change_reruns_only_downstream(project):
 
 
 def test_teammate_pulls_data_and_models_and_has_nothing_to_run(project, tmp_path):
+    """The owner shares through a folder remote; a teammate clones, pulls, and calibrates and
+    diagnoses with the pulled models: no MLflow store of the owner's, no tracking server."""
     root, env, git, _ = project
     remote = tmp_path / "remote"
-    _run([BIN / "dvc", "remote", "add", "-d", "team", str(remote)], root, env)
+    _run(["make", "remote", f"DIR={remote}"], root, env)  # the README's command
+    assert f"url = {remote}" in (root / ".dvc/config").read_text()
     _run([BIN / "dvc", "push"], root, env)
     _run([*git, "add", "-A"], root, env)
     _run([*git, "commit", "-qm", "results"], root, env)
@@ -172,3 +175,65 @@ def test_teammate_pulls_data_and_models_and_has_nothing_to_run(project, tmp_path
     assert (clone / "data/prepared/test.csv").is_file()
     status = _run([BIN / "dvc", "repro"], clone, clone_env)
     assert "Running stage" not in status.stdout, status.stdout
+
+    # The teammate's MLflow store is new and empty; the clone has no mlruns/.
+    assert not (clone / "mlruns").exists()
+    store = tmp_path / "teammate-store"
+    store.mkdir()
+    uri = f"sqlite:///{store / 'mlflow.db'}"
+    team_env = {**clone_env, "MLFLOW_TRACKING_URI": uri}
+    cal = _run(
+        [BIN / "femcal", "calibrate", "--measurements", "data/raw/Test", "--out", "mine/cal"],
+        clone,
+        team_env,
+    )
+    assert "calibrated 64 specimens with pgd against models/surrogate-large" in cal.stdout
+    assert len(pd.read_csv(clone / "mine/cal/metrics.csv")) == 64
+    diag = _run([BIN / "femcal", "diagnose", "--out", "mine/diag"], clone, team_env)
+    assert "diagnosed 8 specimens" in diag.stdout, diag.stdout
+    assert not (clone / "mlruns").exists()
+    # Plain MLflow loads the pulled folder too (and serves it: tests/test_tracking_serve.py).
+    # The bytecode that writes into the folder's code/ is no change for DVC (.dvcignore).
+    code = (
+        "import mlflow; m = mlflow.pyfunc.load_model('models/surrogate-large');"
+        "import femcal; from femcal.tracking import input_example;"  # the folder's femcal
+        "from femcal.space import ParameterSpace;"
+        "s = ParameterSpace.from_json('data/prepared/parameter_space.json');"
+        "p = m.predict(input_example(s)); assert len(p) == 4 and (p > 0).all(), p;"
+        "print(femcal.__file__)"
+    )
+    bytecode_env = {k: v for k, v in team_env.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    where = _run([sys.executable, "-c", code], clone, bytecode_env).stdout.strip()
+    assert where.endswith("models/surrogate-large/code/femcal/__init__.py"), where
+    assert list((clone / "models/surrogate-large/code").rglob("__pycache__"))
+    status = _run([BIN / "dvc", "status"], clone, clone_env)
+    assert "Data and pipelines are up to date" in status.stdout, status.stdout
+
+    # Every run names the model that ran: the pulled folder's hash, the owner's version.
+    from mlflow import MlflowClient
+
+    from femcal.tracking import folder_sha256
+
+    folder = clone / "models/surrogate-large"
+    record = json.loads((folder / "mlflow.json").read_text())
+    version = f"{record['registered_model']}/{record['version']}"
+    runs = {
+        r.data.tags["femcal.stage"]: r.data.tags
+        for r in MlflowClient(tracking_uri=uri).search_runs(
+            [MlflowClient(tracking_uri=uri).get_experiment_by_name("femcal-ivd").experiment_id]
+        )
+    }
+    assert set(runs) == {"calibrate", "diagnose"}
+    for tags in runs.values():
+        assert tags["femcal.model.uri"] == "models/surrogate-large"
+        assert tags["femcal.model.sha256"] == folder_sha256(folder)
+        assert tags["femcal.model.version"] == version == "ivd-rom-surrogate/1"
+    holdout = clone / "models/surrogate-holdout"
+    assert runs["calibrate"]["femcal.holdout.sha256"] == folder_sha256(holdout)
+    # The owner's calibrate stage ran the same model (its own store, same hash).
+    owner = MlflowClient(tracking_uri=f"sqlite:///{root / 'mlruns' / 'mlflow.db'}")
+    owner_runs = owner.search_runs(
+        [owner.get_experiment_by_name("femcal-ivd").experiment_id],
+        filter_string="tags.`femcal.stage` = 'calibrate'",
+    )
+    assert {r.data.tags["femcal.model.sha256"] for r in owner_runs} == {folder_sha256(folder)}
