@@ -200,6 +200,8 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=-1.0)
     with pytest.raises(ConfigError, match="elimination_cap must be >= 1 or 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, elimination_cap=0.5)
+    with pytest.raises(ConfigError, match="shape_starts must be >= 0"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, shape_starts=-1)
     with pytest.raises(ConfigError, match="min_delta_inadequate must be >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):

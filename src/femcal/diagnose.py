@@ -49,7 +49,7 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.model import CurveModel
-from femcal.calibration.pgd import effect_bank, gauss_newton, nearest_starts, pgd
+from femcal.calibration.pgd import effect_bank, gauss_newton, nearest_starts, pgd, shape_design
 from femcal.discrepancy import (
     dense_grid,
     describe,
@@ -236,8 +236,16 @@ def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.nda
     return np.nansum(r**2, axis=(1, 2))
 
 
-def _grid(model: EffectModel, new: str, levels: Sequence[float]) -> tuple[slice, torch.Tensor]:
-    """Start grid over the grid parameters of effect ``new`` of ``model`` (others at start)."""
+def _grid(
+    model: EffectModel, new: str, levels: Sequence[float], shape_starts: int = 0
+) -> tuple[slice, torch.Tensor]:
+    """Starts (g, p) for effect ``new`` of ``model``, unit coordinates.
+
+    The grid ``levels`` over the grid parameters, the shape parameters at their classic start;
+    then ``shape_starts`` points of a scrambled Sobol design (fixed seed) over every parameter
+    of the effect, shape included: a law of the family far from its classic member (a soft
+    contact onset, say) is not reached from the classic member's basin.
+    """
     k = model.effect_names.index(new)
     sl = model._slices[k]
     eff = model.effects[k]
@@ -247,15 +255,23 @@ def _grid(model: EffectModel, new: str, levels: Sequence[float]) -> tuple[slice,
     g = start.repeat(mesh[0].size if cols else 1, 1)
     if cols:
         g[:, cols] = torch.tensor(np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32)
+    if shape_starts > 0 and len(cols) < len(eff.parameters):
+        design = shape_design(len(eff.parameters), shape_starts)
+        g = torch.cat([g, torch.tensor(design, dtype=torch.float32)])
     return sl, g
 
 
 def _starts(
-    model: EffectModel, prev: Sequence[str], v_prev: torch.Tensor, new: str, levels
+    model: EffectModel,
+    prev: Sequence[str],
+    v_prev: torch.Tensor,
+    new: str,
+    levels,
+    shape_starts: int = 0,
 ) -> torch.Tensor:
     """Starts (n * g, dim): the previous solution (disc + its effects) and a grid for ``new``."""
     n = v_prev.shape[0]
-    sl_new, grid = _grid(model, new, levels)
+    sl_new, grid = _grid(model, new, levels, shape_starts)
     g = len(grid)
     v0 = torch.empty((n, g, model.dim))
     v0[:, :, : model.n_disc] = v_prev[:, None, : model.n_disc]
@@ -357,6 +373,7 @@ def diagnose(
     stop_when_adequate: bool = True,
     elimination_cap: float = 2.0,
     min_delta_inadequate: float = 2.0,
+    shape_starts: int = 16,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -390,6 +407,11 @@ def diagnose(
         Gauss-Newton iterations per fit.
     effect_levels : sequence of float
         Unit-box levels of the start grid over a new effect's parameters.
+    shape_starts : int
+        A new effect also starts from this many points of a Sobol design over all of its
+        parameters, shape parameters included (:func:`femcal.calibration.pgd.shape_design`):
+        the grid keeps the shape at the family's classic member, and a law far from it (a soft
+        contact onset, say) was not reached from there (reports/bench_diagnose.md).
     discrepancy : bool
         Fit the GP discrepancy and describe what is missing.
     curve_points : int
@@ -435,6 +457,8 @@ def diagnose(
             "diagnose: elimination_cap must be >= 1 or 0 (no cap), a factor on the discrepancy "
             f"the larger model needed in the dropped effect's load cases; got {elimination_cap}."
         )
+    if shape_starts < 0:
+        raise ConfigError(f"diagnose: shape_starts must be >= 0; got {shape_starts}.")
     if not min_delta_inadequate >= 0:
         raise ConfigError(
             f"diagnose: min_delta_inadequate must be >= 0; got {min_delta_inadequate}."
@@ -525,8 +549,8 @@ def diagnose(
                     continue
                 effects = tuple(sorted((*current, new)))
                 model = effect_model(effects)
-                _, grid = _grid(model, new, effect_levels)
-                v0 = _starts(model, current, v_prev, new, effect_levels)
+                _, grid = _grid(model, new, effect_levels, shape_starts)
+                v0 = _starts(model, current, v_prev, new, effect_levels, shape_starts)
                 g = len(grid)
                 if not current and start_bank is not None and bank_starts > 0:
                     # The disc fitted alone has bent towards the missing physics: also start

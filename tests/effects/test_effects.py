@@ -188,6 +188,23 @@ def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
     torch.testing.assert_close(starts[1:5, 2:4], weak[2:4].expand(4, -1))
 
 
+def test_shape_starts_cover_every_parameter_of_each_effect_seeded(surrogate):
+    from femcal.calibration.pgd import effect_starts, shape_design
+
+    model = EffectModel(CurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
+    starts = effect_starts(model, (0.2, 0.8), shape_starts=8)
+    weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
+    # weak end; facet grid (4) + its design (8); neutral-zone grid (4) + its design (8)
+    assert starts.shape == (1 + 4 + 8 + 4 + 8, 7)
+    facet = starts[5:13]
+    torch.testing.assert_close(facet[:, :4], torch.tensor(shape_design(4, 8), dtype=torch.float32))
+    torch.testing.assert_close(facet[:, 4:], weak[4:].expand(8, -1))  # the other effect weak
+    # The design spreads the shape parameters over their box (not the classic member only).
+    assert float(facet[:, 2].min()) < 0.25 and float(facet[:, 2].max()) > 0.75
+    np.testing.assert_array_equal(shape_design(4, 8), shape_design(4, 8))  # fixed seed
+    assert shape_design(3, 0).shape == (0, 3)
+
+
 def test_the_weak_end_of_every_effect_leaves_the_disc_curves_unchanged(surrogate):
     # Effects the data do not need must be able to switch off, even at large rotations.
     base = CurveModel(surrogate, MOMENTS)
@@ -212,9 +229,12 @@ def test_adding_an_unneeded_effect_does_not_worsen_the_fit(surrogate):
     disc = calibrate(base, targets, method="pgd", options=opts, seed=0)
     full = calibrate(EffectModel(base, BUILTIN), targets, method="pgd", options=opts)
     assert np.all(full.exceedance == 0)
-    # Staged starts begin at the disc-alone solution with every effect off, and Gauss-Newton only
-    # accepts steps that lower the loss: no specimen may end worse (1e-4 deg: float32 rounding).
-    assert np.all(full.mae_deg <= disc.mae_deg + 1e-4)
+    # Staged starts begin at the disc-alone solution with every effect at its weak end, and that
+    # start is kept whenever the steps from it do not lower the MAE: no specimen may end worse
+    # than the disc alone with its effects weak. The weak end is not exactly off (a facet at
+    # 1e-4 Nm/deg^n still touches at large rotations; measured here: up to 2.1e-4 deg of MAE),
+    # so the tolerance is 5e-4 deg, 1 % of the 0.05 deg noise.
+    assert np.all(full.mae_deg <= disc.mae_deg + 5e-4)
 
 
 def test_effect_bank_is_seeded_inside_the_box_and_mixes_effects_on_and_off(surrogate):

@@ -126,7 +126,21 @@ def _has_effects(model) -> bool:
     return hasattr(model, "effects") and model.dim > getattr(model, "n_disc", model.dim)
 
 
-def effect_starts(model, levels: tuple[float, ...]) -> torch.Tensor:
+def shape_design(n_parameters: int, n_points: int) -> np.ndarray:
+    """A scrambled Sobol design (n_points, n_parameters) in the unit box, fixed seed 0.
+
+    The starts of an effect's shape parameters: a law of the family far from its classic
+    member (a soft contact onset, a long toe region) is not reached from the classic member's
+    basin by the local optimiser (reports/bench_diagnose.md).
+    """
+    if n_points <= 0:
+        return np.zeros((0, n_parameters))
+    from scipy.stats import qmc
+
+    return qmc.Sobol(n_parameters, scramble=True, seed=0).random(n_points)
+
+
+def effect_starts(model, levels: tuple[float, ...], shape_starts: int = 0) -> torch.Tensor:
     """Start points of the effect parameters of an effect model, in unit coordinates.
 
     Parameters
@@ -134,13 +148,16 @@ def effect_starts(model, levels: tuple[float, ...]) -> torch.Tensor:
     model : EffectModel
     levels : tuple of float
         Unit-box levels of each effect's grid.
+    shape_starts : int
+        Per effect with shape parameters, also this many points of :func:`shape_design` over
+        all of its parameters (the other effects at their weak end).
 
     Returns
     -------
     Tensor, shape (g, model.dim - model.n_disc)
         Row 0: every effect at its weak end (its parameters' ``start``). Then, per effect, the
         grid ``levels ** n`` over its ``n`` grid parameters (shape parameters stay at their
-        start), the other effects at their weak end.
+        start), and the shape design, the other effects at their weak end.
     """
     weak = torch.cat(
         [torch.tensor([q.start for q in e.parameters], dtype=torch.float32) for e in model.effects]
@@ -155,6 +172,11 @@ def effect_starts(model, levels: tuple[float, ...]) -> torch.Tensor:
         block = weak.repeat(len(g), 1)
         block[:, cols] = g
         rows.append(block)
+        if shape_starts > 0 and len(cols) < p:
+            design = torch.tensor(shape_design(p, shape_starts), dtype=torch.float32)
+            block = weak.repeat(len(design), 1)
+            block[:, offset : offset + p] = design
+            rows.append(block)
         offset += p
     return torch.cat(rows)
 
@@ -196,6 +218,7 @@ def gauss_newton(
     keep: int = 0,
     jacobian_members: int = 0,
     exact_final: int = 2,
+    keep_first: bool = False,
 ) -> tuple[torch.Tensor, int, torch.Tensor]:
     """Projected Levenberg-Marquardt from starts ``v`` (B, d) for specimens ``rows`` (B,).
 
@@ -207,7 +230,8 @@ def gauss_newton(
     ensemble members only (cheaper; steps are still accepted on the exact loss); the last
     ``exact_final`` iterations use the exact Jacobian. With ``keep_after > 0`` and
     ``keep > 0``, after ``keep_after`` iterations only the ``keep``
-    best starts of each specimen go on (successive halving: the others stop where they are).
+    best starts of each specimen go on (successive halving: the others stop where they are);
+    with ``keep_first`` each specimen's first start goes on too.
 
     Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
     """
@@ -225,7 +249,7 @@ def gauss_newton(
     nit = 0
     for nit in range(1, max_iter + 1):
         if keep_after and keep and nit == keep_after + 1:
-            active = _keep_best(problem, v, rows, active, keep, w, loss)
+            active = _keep_best(problem, v, rows, active, keep, w, loss, keep_first)
         if active.numel() == 0:
             nit -= 1
             break
@@ -273,8 +297,9 @@ def gauss_newton(
     return v, nit, converged
 
 
-def _keep_best(problem, v, rows, active, keep, w, loss) -> torch.Tensor:
-    """The active rows among the ``keep`` lowest-loss starts of each specimen."""
+def _keep_best(problem, v, rows, active, keep, w, loss, keep_first: bool = False) -> torch.Tensor:
+    """The active rows among the ``keep`` lowest-loss starts of each specimen (and its first
+    start with ``keep_first``)."""
     with torch.no_grad():
         cost = _cost(_residual(problem, rows, problem.model.curves(v)), w, loss)
     n = problem.n_specimens
@@ -284,6 +309,8 @@ def _keep_best(problem, v, rows, active, keep, w, loss) -> torch.Tensor:
     ranked = cost.reshape(n, k).argsort(1)[:, :keep]
     chosen = torch.zeros(len(rows), dtype=torch.bool)
     chosen[(torch.arange(n)[:, None] * k + ranked).reshape(-1)] = True
+    if keep_first:
+        chosen[torch.arange(n) * k] = True
     return active[chosen[active]]
 
 
@@ -389,6 +416,8 @@ def pgd(
     effect_levels: tuple[float, ...] = (0.15, 0.5, 0.85),
     effect_bank_starts: int = 4,
     effect_bank_samples: int = 1024,
+    effect_shape_starts: int = 8,
+    effect_keep: int = 8,
 ) -> Solution:
     """Projected gradient-based calibration of a batch (see the module docstring).
 
@@ -445,6 +474,13 @@ def pgd(
         (of ``effect_bank_samples`` drawn from ``start_bank``, :func:`effect_bank`) nearest each
         specimen's curves.
     effect_bank_samples : int
+    effect_shape_starts : int
+        Effect models: per effect with shape parameters, also this many starts of a Sobol
+        design over all of its parameters (:func:`effect_starts`).
+    effect_keep : int
+        Effect models: after ``keep_after`` iterations only the ``effect_keep`` best starts of
+        each specimen go on (0: every start runs to the end). The disc-alone start with every
+        effect at its weak end is the best at first wherever no effect is needed, so it stays.
 
     Returns
     -------
@@ -484,7 +520,7 @@ def pgd(
             fit_tolerance=fit_tolerance,
             ranges=False,
         )
-        grid = effect_starts(model, effect_levels)  # (g, d - n_disc)
+        grid = effect_starts(model, effect_levels, effect_shape_starts)  # (g, d - n_disc)
         v_disc = model.base.from_physical(disc.x)  # (n, n_disc)
         starts = [
             torch.cat([v_disc[:, None, :].expand(-1, len(grid), -1), grid.expand(n, -1, -1)], dim=2)
@@ -494,8 +530,13 @@ def pgd(
             bank_v, bank_pred = effect_bank(model, start_bank, rng, effect_bank_samples)
             starts.append(bank_v[nearest_starts(problem, bank_v, bank_pred, effect_bank_starts)])
         k_bank = 0
-        # Every staged start must survive the pruning: it is the only one with its effect on.
-        keep_after, keep = max_iter, sum(s.shape[1] for s in starts)
+        n_staged = sum(s.shape[1] for s in starts)
+        if effect_keep <= 0 or effect_keep >= n_staged:
+            keep_after, keep = max_iter, n_staged  # every staged start runs to the end
+        else:
+            # The first start (the disc-alone solution, every effect weak) always goes on:
+            # an effect the data do not need then never leaves a specimen worse off.
+            keep_after, keep = max(keep_after, 3), effect_keep
     else:
         bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
         idx = nearest_starts(problem, bank_v, bank_pred, n_starts)
@@ -521,11 +562,22 @@ def pgd(
             jacobian_members=jacobian_members,
             exact_final=exact_final,
             atol_deg=max(fit_tolerance * noise_deg, 1e-4),
+            keep_first=_has_effects(model),
         )
     elif optimizer == "adam":
         v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
     else:
         v, nit = lbfgsb(problem, v0, rows, max_iter=max_iter, loss=loss), max_iter
+    if _has_effects(model):
+        # The disc-alone solution with every effect weak is a point of the effect model: where
+        # the steps from it lowered the weighted squared error but not the MAE, keep it as it
+        # was, so that an effect model never ends worse than the disc alone.
+        first = torch.arange(n) * k
+        with torch.no_grad():
+            before = problem.scores(model.curves(v0[first]), rows[first])["mae"]
+            after = problem.scores(model.curves(v[first]), rows[first])["mae"]
+        back = first[before < after]
+        v[back] = v0[back]
     with torch.no_grad():
         scores = problem.scores(problem.model.curves(v), rows)
     mae = scores["mae"].reshape(n, k)

@@ -178,6 +178,14 @@ CALIBRATOR_OPTIONS: dict[str, Keywords] = {
                 "effect models: starts from the nearest disc-and-effect combinations",
             ),
             "effect_bank_samples": (Int(1), "disc-and-effect combinations drawn for those"),
+            "effect_shape_starts": (
+                Int(0),
+                "effect models: Sobol starts over each effect's parameters, shape included",
+            ),
+            "effect_keep": (
+                Int(0),
+                "effect models: starts per specimen kept after keep_after iterations (0: all)",
+            ),
         },
         "pgd calibrator",
         refused={
