@@ -123,6 +123,34 @@ def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate
     )
 
 
+def test_a_second_round_of_starts_finds_two_effects_at_once(surrogate):
+    # Facet contact and ligament tension both on (the model's own curves, no noise): the first
+    # round starts one effect at a time; the second adds each effect to the best found.
+    base = CurveModel(surrogate, MOMENTS)
+    model = EffectModel(base, ["facet_contact", "ligament_tension", "neutral_zone"])
+    rng = np.random.default_rng(8)
+    n = 6
+    facet = np.column_stack(
+        [rng.uniform(0.5, 2.0, n), rng.uniform(0.5, 2.0, n), [1.5] * n, [0.2] * n]
+    )
+    ligament = np.column_stack([rng.uniform(0.5, 2.0, n), rng.uniform(0.1, 0.5, n), [1.5] * n])
+    nz = np.array([[0.0, 0.5, 1.0]] * n)  # off
+    x = np.concatenate([study_space().sample_uniform(n, rng), facet, ligament, nz], axis=1)
+    targets = model.predict(x)
+    # (a stiff contact with a small gap can leave the moment balance unsolved: NaN curves,
+    # a known limitation of EffectModel; such draws are left out)
+    targets = targets[np.isfinite(targets).all(axis=(1, 2))]
+    assert len(targets) >= 4
+    opts = {"n_bank_uniform": 512, "fit_tolerance": 0.0, "effect_bank_starts": 0}
+    one = calibrate(model, targets, method="pgd", options={**opts, "effect_rounds": 1})
+    two = calibrate(model, targets, method="pgd", options=opts)
+    assert np.all(two.exceedance == 0)
+    # The second round starts from the first's best: never worse (float32 rounding), and
+    # better on average (measured: 0.21-0.38 -> 0.0004-0.009 deg).
+    assert np.all(two.mae_deg <= one.mae_deg + 1e-5)
+    assert two.mae_deg.mean() < 0.5 * one.mae_deg.mean(), (one.mae_deg, two.mae_deg)
+
+
 def test_fe_rotation_interpolates_and_extends_as_a_power_law():
     m = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
     rom = 2.0 * m**0.5

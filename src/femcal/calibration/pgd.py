@@ -163,22 +163,46 @@ def effect_starts(model, levels: tuple[float, ...], shape_starts: int = 0) -> to
         [torch.tensor([q.start for q in e.parameters], dtype=torch.float32) for e in model.effects]
     )
     rows = [weak[None, :]]
+    for offset, p, values in _effect_blocks(model, levels, shape_starts):
+        block = weak.repeat(len(values), 1)
+        block[:, offset : offset + p] = values
+        rows.append(block)
+    return torch.cat(rows)
+
+
+def _effect_blocks(model, levels, shape_starts: int) -> list[tuple[int, int, torch.Tensor]]:
+    """Per effect: its offset among the effect parameters, its size ``p`` and its starts (g, p):
+    the grid ``levels`` over its grid parameters (shape parameters at their start), then
+    ``shape_starts`` points of :func:`shape_design` when it has shape parameters."""
+    out = []
     offset = 0
     for e in model.effects:
         p = len(e.parameters)
-        cols = [offset + j for j, q in enumerate(e.parameters) if getattr(q, "grid", True)]
+        start = torch.tensor([q.start for q in e.parameters], dtype=torch.float32)
+        cols = [j for j, q in enumerate(e.parameters) if getattr(q, "grid", True)]
         mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * len(cols), indexing="ij")
         g = torch.tensor(np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32)
-        block = weak.repeat(len(g), 1)
-        block[:, cols] = g
-        rows.append(block)
+        values = start.repeat(len(g), 1)
+        values[:, cols] = g
         if shape_starts > 0 and len(cols) < p:
             design = torch.tensor(shape_design(p, shape_starts), dtype=torch.float32)
-            block = weak.repeat(len(design), 1)
-            block[:, offset : offset + p] = design
-            rows.append(block)
+            values = torch.cat([values, design])
+        out.append((offset, p, values))
         offset += p
-    return torch.cat(rows)
+    return out
+
+
+def _combination_starts(model, best: torch.Tensor, levels, shape_starts: int) -> torch.Tensor:
+    """Starts (n, 1 + g, d) from each specimen's best solution ``best`` (n, d): itself, then each
+    effect's grid and design with the disc and the other effects where ``best`` has them (so a
+    second effect can join one the first round found)."""
+    n_disc = model.n_disc
+    starts = [best[:, None, :]]
+    for offset, p, values in _effect_blocks(model, levels, shape_starts):
+        block = best[:, None, :].repeat(1, len(values), 1)
+        block[:, :, n_disc + offset : n_disc + offset + p] = values[None]
+        starts.append(block)
+    return torch.cat(starts, dim=1)
 
 
 def nearest_starts(
@@ -302,6 +326,7 @@ def _keep_best(problem, v, rows, active, keep, w, loss, keep_first: bool = False
     start with ``keep_first``)."""
     with torch.no_grad():
         cost = _cost(_residual(problem, rows, problem.model.curves(v)), w, loss)
+    cost = torch.nan_to_num(cost, nan=float("inf"))
     n = problem.n_specimens
     k = len(rows) // n
     if k <= keep:
@@ -418,6 +443,7 @@ def pgd(
     effect_bank_samples: int = 1024,
     effect_shape_starts: int = 8,
     effect_keep: int = 8,
+    effect_rounds: int = 2,
 ) -> Solution:
     """Projected gradient-based calibration of a batch (see the module docstring).
 
@@ -481,6 +507,10 @@ def pgd(
         Effect models: after ``keep_after`` iterations only the ``effect_keep`` best starts of
         each specimen go on (0: every start runs to the end). The disc-alone start with every
         effect at its weak end is the best at first wherever no effect is needed, so it stays.
+    effect_rounds : int
+        Effect models with several effects: rounds of starts. The first starts one effect at a
+        time; each further round starts every effect again from the best solution so far, the
+        other effects as found (a combination of effects, found one at a time).
 
     Returns
     -------
@@ -578,10 +608,40 @@ def pgd(
             after = problem.scores(model.curves(v[first]), rows[first])["mae"]
         back = first[before < after]
         v[back] = v0[back]
+        if optimizer == "gauss-newton" and len(model.effects) > 1:
+            # Second round: from each specimen's best solution, each effect again from its
+            # grid and design with the others as found, so that a second effect joins the
+            # first (the first round's starts have one effect on at a time).
+            for _ in range(effect_rounds - 1):
+                with torch.no_grad():
+                    mae = problem.scores(model.curves(v), rows)["mae"].reshape(n, k)
+                mae = torch.nan_to_num(mae, nan=float("inf"))
+                best = v.reshape(n, k, d)[torch.arange(n), mae.argmin(1)]
+                v0 = _combination_starts(model, best, effect_levels, effect_shape_starts)
+                k = v0.shape[1]
+                rows = torch.arange(n).repeat_interleave(k)
+                v0 = v0.reshape(n * k, d)
+                v, nit2, converged = gauss_newton(
+                    problem,
+                    v0,
+                    rows,
+                    max_iter=max_iter,
+                    loss=loss,
+                    tol=tol,
+                    keep_after=max(keep_after, 3) if 0 < effect_keep < k else max_iter,
+                    keep=effect_keep if 0 < effect_keep < k else k,
+                    jacobian_members=jacobian_members,
+                    exact_final=exact_final,
+                    atol_deg=max(fit_tolerance * noise_deg, 1e-4),
+                    keep_first=True,  # the first round's best goes on
+                )
+                nit += nit2
     with torch.no_grad():
         scores = problem.scores(problem.model.curves(v), rows)
     mae = scores["mae"].reshape(n, k)
     key = mae if select == "mae" else -scores["r2"].reshape(n, k)
+    # A start whose curves are NaN (an effect's moment balance left unsolved) is never chosen.
+    key = torch.nan_to_num(key, nan=float("inf"))
     best = key.argmin(1)
     flat_best = torch.arange(n) * k + best
     x = problem.model.to_physical(v[flat_best].double().numpy())

@@ -182,6 +182,10 @@ CALIBRATOR_OPTIONS: dict[str, Keywords] = {
                 Int(0),
                 "effect models: Sobol starts over each effect's parameters, shape included",
             ),
+            "effect_rounds": (
+                Int(1),
+                "effect models: rounds of starts (the second adds effects to the first's best)",
+            ),
             "effect_keep": (
                 Int(0),
                 "effect models: starts per specimen kept after keep_after iterations (0: all)",
