@@ -129,8 +129,42 @@ class EffectModel:
 
         return phi
 
-    def curves(self, v: torch.Tensor) -> torch.Tensor:
-        """Composite RoM curves, shape (n, dim) -> (n, 4, m); differentiable in ``v``."""
+    def _disc_share(self, v: torch.Tensor) -> torch.Tensor:
+        """The disc's share of the applied moment (n, 4, m) by bisection, no graph, no tangent
+        (the Newton step in :meth:`curves` gives the exact derivative at the solution)."""
+        v = v.detach()
+        b = v.shape[0]
+        phi_disc = self._disc(v[:, : self.n_disc])
+        applied = self.moments.to(v.dtype).expand(b, 4, -1)
+        params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
+        parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
+        if not parallel:
+            return applied.clone()
+        lc_mask = torch.zeros(4, dtype=torch.bool)
+        for e, _ in parallel:
+            lc_mask |= e.load_case_mask()
+        with torch.no_grad():
+            lo = torch.log(applied * _MIN_SHARE)
+            hi = torch.log(applied).clone()
+            for _ in range(_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                md = torch.exp(mid)
+                phi = phi_disc(md, detached=True)[0]
+                total = torch.zeros_like(phi)
+                for e, p in parallel:
+                    total = total + e.moment(phi, p) * e.load_case_mask()[None, :, None]
+                g = md + total - applied
+                hi = torch.where(g > 0, mid, hi)
+                lo = torch.where(g > 0, lo, mid)
+            md0 = torch.exp(0.5 * (lo + hi))
+            return torch.where(lc_mask[None, :, None], md0, applied)
+
+    def curves(self, v: torch.Tensor, *, share: torch.Tensor | None = None) -> torch.Tensor:
+        """Composite RoM curves, shape (n, dim) -> (n, 4, m); differentiable in ``v``.
+
+        ``share`` (n, 4, m): the disc's share of the moment from :meth:`_disc_share` at the
+        same ``v`` (computed here when omitted; the Jacobian passes it, bisected once per row).
+        """
         self.n_evaluations += int(v.shape[0])
         b = v.shape[0]
         phi_disc = self._disc(v[:, : self.n_disc])
@@ -149,17 +183,7 @@ class EffectModel:
                     total = total + e.moment(phi, pp) * e.load_case_mask()[None, :, None]
                 return total
 
-            with torch.no_grad():  # bisection for the disc's share of the moment
-                lo = torch.log(applied * _MIN_SHARE)
-                hi = torch.log(applied).clone()
-                for _ in range(_BISECTIONS):
-                    mid = 0.5 * (lo + hi)
-                    md = torch.exp(mid)
-                    g = md + extra(phi_disc(md, detached=True)[0], True) - applied
-                    hi = torch.where(g > 0, mid, hi)
-                    lo = torch.where(g > 0, lo, mid)
-                md0 = torch.exp(0.5 * (lo + hi))
-                md0 = torch.where(lc_mask[None, :, None], md0, applied)
+            md0 = self._disc_share(v) if share is None else share
             # One Newton step with the graph: exact implicit gradient at the solution.
             phi0, slope = phi_disc(md0)
             phi_req = phi0.detach().requires_grad_(True)
@@ -200,8 +224,9 @@ class EffectModel:
             self.n_evaluations += n * d
             primal = vc.repeat_interleave(d, 0)
             tangent = torch.eye(d, dtype=v.dtype).repeat(n, 1)
+            share = self._disc_share(vc).repeat_interleave(d, 0)  # bisected once per row
             with fwad.dual_level():
-                out = self.curves(fwad.make_dual(primal, tangent))
+                out = self.curves(fwad.make_dual(primal, tangent), share=share)
                 val, jac = fwad.unpack_dual(out)
             shape = (n, d, *val.shape[1:])
             if jac is None:  # no path from v to the curves
