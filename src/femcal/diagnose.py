@@ -237,20 +237,25 @@ def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.nda
 
 
 def _grid(
-    model: EffectModel, new: str, levels: Sequence[float], shape_starts: int = 0
+    model: EffectModel,
+    new: str,
+    levels: Sequence[float],
+    shape_starts: int = 0,
+    grid_shapes: bool = False,
 ) -> tuple[slice, torch.Tensor]:
     """Starts (g, p) for effect ``new`` of ``model``, unit coordinates.
 
-    The grid ``levels`` over the grid parameters, the shape parameters at their classic start;
-    then ``shape_starts`` points of a scrambled Sobol design (fixed seed) over every parameter
-    of the effect, shape included: a law of the family far from its classic member (a soft
-    contact onset, say) is not reached from the classic member's basin.
+    The grid ``levels`` over the grid parameters (over every parameter, shape included, with
+    ``grid_shapes``), the others at their classic start; then ``shape_starts`` points of a
+    scrambled Sobol design (fixed seed) over every parameter of the effect. A law of the family
+    far from its classic member (a soft contact onset, say) is not reached from the classic
+    member's basin.
     """
     k = model.effect_names.index(new)
     sl = model._slices[k]
     eff = model.effects[k]
     start = torch.tensor([q.start for q in eff.parameters], dtype=torch.float32)
-    cols = [j for j, q in enumerate(eff.parameters) if q.grid]
+    cols = [j for j, q in enumerate(eff.parameters) if q.grid or grid_shapes]
     mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * len(cols), indexing="ij")
     g = start.repeat(mesh[0].size if cols else 1, 1)
     if cols:
@@ -268,10 +273,11 @@ def _starts(
     new: str,
     levels,
     shape_starts: int = 0,
+    grid_shapes: bool = False,
 ) -> torch.Tensor:
     """Starts (n * g, dim): the previous solution (disc + its effects) and a grid for ``new``."""
     n = v_prev.shape[0]
-    sl_new, grid = _grid(model, new, levels, shape_starts)
+    sl_new, grid = _grid(model, new, levels, shape_starts, grid_shapes)
     g = len(grid)
     v0 = torch.empty((n, g, model.dim))
     v0[:, :, : model.n_disc] = v_prev[:, None, : model.n_disc]
@@ -373,7 +379,8 @@ def diagnose(
     stop_when_adequate: bool = True,
     elimination_cap: float = 2.0,
     min_delta_inadequate: float = 2.0,
-    shape_starts: int = 16,
+    grid_shapes: bool = True,
+    shape_starts: int = 0,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -407,11 +414,15 @@ def diagnose(
         Gauss-Newton iterations per fit.
     effect_levels : sequence of float
         Unit-box levels of the start grid over a new effect's parameters.
+    grid_shapes : bool
+        The start grid of a new effect also spans its shape parameters (``effect_levels`` over
+        every parameter: 81 starts for facet contact, 27 for the others), not only the classic
+        member: a law far from it (a soft contact onset, say) was not reached from there
+        (measured in reports/bench_diagnose.md).
     shape_starts : int
         A new effect also starts from this many points of a Sobol design over all of its
-        parameters, shape parameters included (:func:`femcal.calibration.pgd.shape_design`):
-        the grid keeps the shape at the family's classic member, and a law far from it (a soft
-        contact onset, say) was not reached from there (reports/bench_diagnose.md).
+        parameters (:func:`femcal.calibration.pgd.shape_design`); measured: 16 of them found
+        less than ``grid_shapes``.
     discrepancy : bool
         Fit the GP discrepancy and describe what is missing.
     curve_points : int
@@ -549,8 +560,8 @@ def diagnose(
                     continue
                 effects = tuple(sorted((*current, new)))
                 model = effect_model(effects)
-                _, grid = _grid(model, new, effect_levels, shape_starts)
-                v0 = _starts(model, current, v_prev, new, effect_levels, shape_starts)
+                _, grid = _grid(model, new, effect_levels, shape_starts, grid_shapes)
+                v0 = _starts(model, current, v_prev, new, effect_levels, shape_starts, grid_shapes)
                 g = len(grid)
                 if not current and start_bank is not None and bank_starts > 0:
                     # The disc fitted alone has bent towards the missing physics: also start
