@@ -96,8 +96,10 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
         "diagnose",
     ):
         assert f"Running stage '{stage}'" in first.stdout
-    report = json.loads((root / "reports/surrogates.json").read_text())
+    report = json.loads((root / "reports/surrogates_table.json").read_text())
     rows = report["trained_on_large"]
+    headline = json.loads((root / "reports/surrogates.json").read_text())
+    assert headline["n_test_rows"] == 24 * 20 and len(headline) <= 15
     assert {"nn@large", "linear@large", "lightgbm@large"} <= set(rows)
     assert all(r["n_rows"] == 24 * 20 for r in rows.values())
     # nn trained on Large, on Small, and in the interpolation check

@@ -229,6 +229,9 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
         interpolation_path=Path("reports/interpolation.json"),
         markdown=Path("reports/surrogates.md"),
         json_path=Path("reports/surrogates.json"),
+        table_path=Path("reports/surrogates_table.json"),
+        predictions_path=Path("reports/plots/surrogate_test_predictions.csv"),
+        curves_path=Path("reports/plots/training_curves.csv"),
     )
     for title, rows in sections.items():
         print(title)
@@ -237,7 +240,10 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
                 f"  {s.model:>18} {s.train_split:>6}: MAE {s.scores['mae']:.3f} deg, "
                 f"mean R² {s.scores['r2_mean']:.4f}"
             )
-    print("report: reports/surrogates.md")
+    print(
+        "reports: reports/surrogates.md, reports/surrogates_table.json; plot data: "
+        "reports/plots/ (dvc plots show)"
+    )
 
 
 def _optuna_storage(params: dict) -> str:
@@ -348,6 +354,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     _check_measurements(measurements)
     _load_user_effects(args, params)
     _tracking(params)
+    from femcal.headlines import calibration_headline
     from femcal.pipeline import run_calibrate
 
     result, figures = run_calibrate(
@@ -379,7 +386,8 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     )
     if figures["n_plotted"] < figures["n_specimens"]:
         print(f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)")
-    _write_metrics(args, figures)  # only when asked (the DVC stage): never ad hoc
+    # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
+    _write_metrics(args, calibration_headline(figures))
     print(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
 
 
@@ -409,6 +417,7 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
     _check_measurements(measurements)
     _load_user_effects(args, params)
     _tracking(params)
+    from femcal.headlines import diagnosis_headline
     from femcal.pipeline import run_diagnose
 
     diag, summary = run_diagnose(
@@ -426,7 +435,8 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
         plots=bool(cfg.get("plots", True)),
         max_plots=cfg.get("max_plots"),
     )
-    _write_metrics(args, summary)  # only when asked (the DVC stage): never ad hoc
+    # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
+    _write_metrics(args, diagnosis_headline(summary))
     print(
         f"diagnosed {summary['n_specimens']} specimens in {diag.seconds:.1f} s (noise sigma "
         f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "

@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from femcal.errors import InputDataError
+from femcal.headlines import surrogate_headline
 from femcal.metrics import surrogate_scores
 from femcal.schema import LOAD_CASES, STATUS_OK
 
@@ -124,19 +126,120 @@ def markdown_table(scores: list[Score], *, title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_reports(
-    sections: Mapping[str, list[Score]], *, markdown: Path, json_path: Path, preamble: str = ""
-) -> None:
-    """Write the evaluation as Markdown (for people) and JSON (for ``dvc metrics show``)."""
-    md = ["# Surrogate evaluation on the study's 64 Test configurations", "", preamble, ""]
-    data: dict[str, Any] = {}
+def evaluation_table(sections: Mapping[str, list[Score]]) -> dict[str, dict[str, Any]]:
+    """Every row of every section: section key -> ``model@split`` -> :meth:`Score.as_dict`.
+
+    The section key is the title's part before ":", lower case, spaces as "_"
+    (``trained_on_large``, ``trained_on_small``, ``interpolation``).
+    """
+    data: dict[str, dict[str, Any]] = {}
     for title, scores in sections.items():
-        md.append(markdown_table(scores, title=title))
         key = title.split(":")[0].strip().lower().replace(" ", "_")
         data[key] = {f"{s.model}@{s.train_split}": s.as_dict() for s in scores}
-    markdown.parent.mkdir(parents=True, exist_ok=True)
+    return data
+
+
+def write_reports(
+    sections: Mapping[str, list[Score]],
+    *,
+    markdown: Path,
+    json_path: Path,
+    table_path: Path,
+    preamble: str = "",
+) -> dict[str, Any]:
+    """Write the evaluation: Markdown and a JSON table (for people), headlines (DVC metrics).
+
+    Parameters
+    ----------
+    sections : mapping
+        Section title -> its scores (e.g. "Trained on Large").
+    markdown : Path
+        The tables for people (``reports/surrogates.md``).
+    json_path : Path
+        The headline figures (``reports/surrogates.json``, the stage's DVC metrics: a few flat
+        keys, :func:`femcal.headlines.surrogate_headline`).
+    table_path : Path
+        Every model x training set x load case (``reports/surrogates_table.json``).
+    preamble : str
+        A paragraph under the Markdown title.
+
+    Returns
+    -------
+    dict
+        The headline figures written to ``json_path``.
+    """
+    md = ["# Surrogate evaluation on the study's 64 Test configurations", "", preamble, ""]
+    for title, scores in sections.items():
+        md.append(markdown_table(scores, title=title))
+    data = evaluation_table(sections)
+    headline = surrogate_headline(data)
+    for path in (markdown, json_path, table_path):
+        path.parent.mkdir(parents=True, exist_ok=True)
     markdown.write_text("\n".join(md))
-    json_path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    table_path.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+    json_path.write_text(json.dumps(headline, indent=2, default=_json_default) + "\n")
+    return headline
+
+
+def prediction_table(model: Any, test: pd.DataFrame) -> pd.DataFrame:
+    """Predicted vs FE RoM of every successful Test row (the data of a scatter plot).
+
+    Parameters
+    ----------
+    model : object with ``predict(DataFrame) -> ndarray (n,)``
+    test : DataFrame
+        Tidy table (config_id, load_case, moment_nm, parameters, rom_deg, status).
+
+    Returns
+    -------
+    DataFrame
+        ``config_id``, ``load_case``, ``moment_nm``, ``fe_rom_deg``, ``predicted_rom_deg``,
+        ``error_deg`` (predicted - FE), one row per successful Test row.
+    """
+    rows = test[test["status"] == STATUS_OK].reset_index(drop=True)
+    pred = np.asarray(model.predict(rows), dtype=float).reshape(-1)
+    if len(pred) != len(rows):
+        raise InputDataError(
+            f"The model returned {len(pred)} predictions for {len(rows)} Test rows; it must "
+            "return one RoM per row (predict(DataFrame) -> ndarray of shape (n,))."
+        )
+    out = rows[["config_id", "load_case", "moment_nm"]].copy()
+    out["fe_rom_deg"] = rows["rom_deg"].to_numpy(dtype=float)
+    out["predicted_rom_deg"] = pred
+    out["error_deg"] = pred - out["fe_rom_deg"]
+    return out
+
+
+#: Columns of the training-curves table (:func:`training_curves`).
+CURVE_COLUMNS = ("member", "epoch", "train_loss", "val_loss", "val_mae_deg")
+
+
+def training_curves(model: Any) -> pd.DataFrame:
+    """Per member and epoch: the training and validation loss of a trained network.
+
+    Parameters
+    ----------
+    model : NeuralSurrogate
+        A fitted or loaded network (its ``history_``, saved in the model folder).
+
+    Returns
+    -------
+    DataFrame
+        :data:`CURVE_COLUMNS`; losses in the network's scaled units, ``val_mae_deg`` in
+        degrees (empty cells where a value was not recorded).
+    """
+    history = getattr(model, "history_", None)
+    if not history:
+        raise InputDataError(
+            f"{type(model).__name__} holds no training history (history_ is {history!r}); "
+            "training curves need a NeuralSurrogate trained or loaded by femcal "
+            "(`dvc repro train@large` writes one)."
+        )
+    table = pd.DataFrame(history)
+    for column in CURVE_COLUMNS:
+        if column not in table:
+            table[column] = np.nan
+    return table[list(CURVE_COLUMNS)].sort_values(["member", "epoch"]).reset_index(drop=True)
 
 
 def _json_default(x: Any) -> Any:

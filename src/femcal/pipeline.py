@@ -150,10 +150,22 @@ def run_evaluate(
     interpolation_path: Path | None,
     markdown: Path,
     json_path: Path,
+    table_path: Path,
+    predictions_path: Path | None = None,
+    curves_path: Path | None = None,
+    plot_split: str = "large",
 ) -> dict[str, list[Score]]:
-    """Score every model on the Test split; write Markdown + JSON; log to MLflow."""
+    """Score every model on the Test split; write the reports and plot data; log to MLflow.
+
+    ``json_path`` gets the headline figures (the stage's DVC metrics), ``table_path`` every
+    model x training set x load case, ``markdown`` the tables for people. For the network
+    trained on ``plot_split`` (the one calibrate uses), ``predictions_path`` gets its
+    predicted vs FE RoM of every Test row and ``curves_path`` its training and validation
+    loss per member and epoch (from the model folder): the data of ``dvc plots``.
+    """
     import mlflow
 
+    from femcal.evaluate import prediction_table, training_curves
     from femcal.surrogates.baselines import load_baseline
 
     test, _ = load_split(prepared_dir, "test")
@@ -166,9 +178,16 @@ def run_evaluate(
             if (nn_dir / "mlflow.json").exists()
             else {}
         )
+        nn = _load_nn(nn_dir)
+        if split == plot_split and predictions_path is not None:
+            predictions_path.parent.mkdir(parents=True, exist_ok=True)
+            prediction_table(nn, test).to_csv(predictions_path, index=False)
+        if split == plot_split and curves_path is not None:
+            curves_path.parent.mkdir(parents=True, exist_ok=True)
+            training_curves(nn).to_csv(curves_path, index=False)
         rows.append(
             score_model(
-                _load_nn(nn_dir),
+                nn,
                 test,
                 name="nn",
                 train_split=split,
@@ -190,7 +209,13 @@ def run_evaluate(
         "and moments, averaged over load cases; curve R² = the study's per-specimen R² across "
         "the moments of a curve, averaged. Study figures: Atad et al., 4-fold CV means."
     )
-    write_reports(sections, markdown=markdown, json_path=json_path, preamble=preamble)
+    write_reports(
+        sections,
+        markdown=markdown,
+        json_path=json_path,
+        table_path=table_path,
+        preamble=preamble,
+    )
     with mlflow.start_run(run_name="evaluate"):
         mlflow.set_tag("femcal.stage", "evaluate")
         for title, rows in sections.items():
@@ -201,7 +226,9 @@ def run_evaluate(
                     )
                     mlflow.log_metrics({k: float(v) for k, v in s.scores.items() if np.isfinite(v)})
         mlflow.log_artifact(str(markdown))
-        mlflow.log_artifact(str(json_path))
+        for path in (json_path, table_path, predictions_path, curves_path):
+            if path is not None:
+                mlflow.log_artifact(str(path))
     return sections
 
 
