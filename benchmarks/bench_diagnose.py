@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shlex
 import sys
@@ -461,8 +462,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         cohort = restrict(cohort, args.max_specimens)
         print(f"{kind} seed {seed}: {len(cohort['specimens'])} specimens ...", flush=True)
         rows.append(one_cohort(cohort, ctx))
-    command = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_diagnose.py " + " ".join(
-        shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)
+    threads = os.environ.get("OMP_NUM_THREADS")
+    command = (
+        (f"OMP_NUM_THREADS={threads} " if threads else "")
+        + (".venv/bin/python benchmarks/bench_diagnose.py ")
+        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     )
     meta = {
         "command": command.strip(),
