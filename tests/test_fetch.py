@@ -12,8 +12,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from requests.exceptions import ConnectionError as RequestsConnectionError
 
-from femcal import fetch
 from femcal.errors import ChecksumError, DataSourceError
 from femcal.fetch import (
     BASE_URL,
@@ -44,9 +44,11 @@ def _write_tree(root: Path, files: dict[str, bytes] = FILES) -> Path:
     return root
 
 
-def _leftovers(root: Path) -> list[Path]:
-    """Temporary files left anywhere under ``root``."""
-    return [p for p in root.rglob("*") if p.name.startswith(".") or p.suffix == ".part"]
+def _leftovers(root: Path, keep: tuple[str, ...] = ()) -> list[Path]:
+    """Files left anywhere under ``root`` other than the data files ``keep`` (pooch's temps)."""
+    return [
+        p for p in root.rglob("*") if p.is_file() and p.relative_to(root).as_posix() not in keep
+    ]
 
 
 # ------------------------------------------------------------------ constants
@@ -95,7 +97,7 @@ def test_fetch_from_mirror(tmp_path: Path) -> None:
     assert paths == [dest / rel for rel in FILES]
     for rel, data in FILES.items():
         assert (dest / rel).read_bytes() == data
-    assert _leftovers(dest) == []
+    assert _leftovers(dest, tuple(FILES)) == []
     # Second run: everything present with the right hash, the mirror is not even read.
     for p in mirror.rglob("*.csv"):
         p.unlink()
@@ -134,12 +136,43 @@ def test_mirror_checksum_mismatch(tmp_path: Path) -> None:
         fetch_dataset(dest, mirror=mirror, manifest=manifest)
     assert STUDY_COMMIT in str(info.value)
     assert not (dest / "Small" / "b.csv").exists()
-    assert _leftovers(dest) == []
+    assert _leftovers(dest, ("Large/a.csv",)) == []
 
 
 def test_bad_manifest_entry(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="must be a relative path"):
         fetch_dataset(tmp_path, mirror=tmp_path, manifest={"../x.csv": "0" * 64})
+
+
+def test_mirror_path_that_does_not_exist(tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere"
+    with pytest.raises(DataSourceError, match=r"mirror .*nowhere is not a directory.*unset it"):
+        fetch_dataset(tmp_path / "dest", mirror=missing, manifest=_manifest())
+    assert not (tmp_path / "dest").exists()
+
+
+def test_mirror_needs_no_network(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """CI has no internet: copying from the mirror never opens a connection."""
+
+    def no_network(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the mirror path opened a network connection")
+
+    monkeypatch.setattr(socket, "create_connection", no_network)
+    monkeypatch.setattr(socket.socket, "connect", no_network)
+    monkeypatch.setattr("requests.get", no_network)
+    mirror = _write_tree(tmp_path / "mirror")
+    dest = tmp_path / "dest"
+    paths = fetch_dataset(dest, mirror=mirror, manifest=_manifest())
+    assert [p.read_bytes() for p in paths] == list(FILES.values())
+
+
+def test_mirror_replaced_file_is_logged(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    mirror = _write_tree(tmp_path / "mirror")
+    dest = _write_tree(tmp_path / "dest", {"Large/a.csv": b"garbage"})
+    with caplog.at_level("INFO", logger="femcal.fetch"):
+        fetch_dataset(dest, mirror=mirror, manifest=_manifest())
+    assert "had the wrong SHA-256" in caplog.text
+    assert "3 file(s) fetched, 0 already present" in caplog.text
 
 
 # ------------------------------------------------------------------- download
@@ -191,7 +224,7 @@ def test_download_success(server: tuple[str, Path, list[str]], tmp_path: Path) -
     paths = fetch_dataset(dest, base_url=base, manifest=_manifest(), timeout=5, progress=True)
     assert [p.read_bytes() for p in paths] == list(FILES.values())
     assert sorted(requests) == sorted(f"/datasets/{rel}" for rel in FILES)
-    assert _leftovers(dest) == []
+    assert _leftovers(dest, tuple(FILES)) == []
     probe = tmp_path / "probe"
     probe.touch()  # outputs get the usual permissions, not mkstemp's owner-only 0o600
     assert os.stat(paths[0]).st_mode & 0o777 == os.stat(probe).st_mode & 0o666
@@ -245,7 +278,7 @@ def test_download_404(server: tuple[str, Path, list[str]], tmp_path: Path) -> No
 def test_download_truncated(server: tuple[str, Path, list[str]], tmp_path: Path) -> None:
     base, _, _ = server
     dest = tmp_path / "dest"
-    with pytest.raises(DataSourceError, match=r"truncated\.csv failed.*ended 994 bytes early"):
+    with pytest.raises(DataSourceError, match=r"truncated\.csv failed.*994 more expected"):
         fetch_dataset(dest, base_url=base, manifest={"Large/truncated.csv": "0" * 64}, timeout=5)
     assert not (dest / "Large" / "truncated.csv").exists()
     assert _leftovers(dest) == []
@@ -263,11 +296,12 @@ def test_download_connection_refused(tmp_path: Path) -> None:
 def test_default_download_uses_base_url(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     seen: list[str] = []
 
-    def fake_urlopen(url: str, timeout: float) -> object:
+    def fake_get(url: str, timeout: float, **kwargs: object) -> object:
         seen.append(url)
-        raise OSError("offline")
+        assert timeout == 60.0
+        raise RequestsConnectionError("offline")
 
-    monkeypatch.setattr(fetch.urllib.request, "urlopen", fake_urlopen)
+    monkeypatch.setattr("requests.get", fake_get)
     rel = "Test/ROM_Results_Flexion_TestData_64_wMoment.csv"
     with pytest.raises(DataSourceError, match="offline"):
         fetch_dataset(tmp_path, manifest={rel: MANIFEST[rel]})

@@ -1,24 +1,25 @@
 """Obtain the study's published FE dataset: from a local mirror or by download, SHA-256 pinned.
 
-Every file is written to a temporary file next to its destination, its SHA-256 is checked
-against :data:`MANIFEST`, and only then is it moved into place with :func:`os.replace`; a
-partial or corrupted transfer therefore never becomes an output.
+The files are a :mod:`pooch` registry (:data:`MANIFEST`: relative path -> SHA-256). Pooch
+writes every file to a temporary file next to its destination, checks its SHA-256 and only
+then moves it into place; a partial or corrupted transfer therefore never becomes an output.
+A local mirror (``FEMCAL_DATA_MIRROR``) is read by a copying downloader, without any network
+access, and is checked against the same hashes.
 """
 
 from __future__ import annotations
 
-import hashlib
+import contextlib
 import logging
 import os
+import shutil
 import urllib.parse
-import urllib.request
-import uuid
 from collections.abc import Callable, Iterator, Mapping
-from http.client import HTTPException
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
 
-from femcal.errors import ChecksumError, ConfigError, DataSourceError
+import pooch
+
+from femcal.errors import ChecksumError, ConfigError, DataSourceError, FemcalError
 
 logger = logging.getLogger(__name__)
 
@@ -128,8 +129,6 @@ MANIFEST: dict[str, str] = {
     ),
 }
 
-_CHUNK = 1 << 16
-
 
 def sha256_file(path: str | Path) -> str:
     """SHA-256 of a file's bytes.
@@ -144,11 +143,7 @@ def sha256_file(path: str | Path) -> str:
     str
         64 lower-case hexadecimal digits.
     """
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(_CHUNK), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
+    return pooch.file_hash(str(path), alg="sha256").lower()
 
 
 def mirror_from_env(environ: Mapping[str, str] = os.environ) -> Path | None:
@@ -192,46 +187,47 @@ def _check_relpath(relpath: str) -> PurePosixPath:
     return rel
 
 
-def _stream_to_temp(source: BinaryIO, target: Path) -> tuple[Path, str]:
-    """Copy ``source`` into a new temporary file next to ``target``; return it and its SHA-256."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    # A unique name created with the usual permissions (mkstemp would make it owner-only).
-    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
-    digest = hashlib.sha256()
-    try:
-        with open(tmp, "xb") as out:
-            for chunk in iter(lambda: source.read(_CHUNK), b""):
-                digest.update(chunk)
-                out.write(chunk)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return tmp, digest.hexdigest()
+class _Recording:
+    """A pooch downloader wrapper that remembers the SHA-256 of what each call wrote.
+
+    Pooch reports a hash mismatch as a bare :class:`ValueError`; the recorded hash lets
+    :func:`fetch_dataset` raise a :class:`ChecksumError` that names the received hash.
+    """
+
+    def __init__(self, inner: Callable[[str, str, pooch.Pooch | None], None]) -> None:
+        self.inner = inner
+        self.received: dict[str, str] = {}
+
+    def __call__(self, url: str, output_file: str, pooch_: pooch.Pooch | None) -> None:
+        self.inner(url, output_file, pooch_)
+        self.received[url] = sha256_file(output_file)
 
 
-def _open_mirror(mirror: Path, relpath: str) -> Callable[[], BinaryIO]:
-    src = mirror.joinpath(*PurePosixPath(relpath).parts)
+class _MirrorCopy:
+    """A pooch downloader that copies a local file: the "URL" of a mirror file is its path.
 
-    def opener() -> BinaryIO:
+    No network access: the file is read from the mirror folder only.
+    """
+
+    def __init__(self, mirror: Path) -> None:
+        self.mirror = mirror
+
+    def __call__(self, url: str, output_file: str, pooch_: pooch.Pooch | None) -> None:
+        src = Path(url)
         if not src.is_file():
+            relpath = src.relative_to(self.mirror).as_posix()
             raise DataSourceError(
-                f"The data file {relpath} is missing in the mirror {mirror} (looked for {src}). "
-                f"Set {MIRROR_ENV_VAR} to the folder holding Large/, Small/ and Test/ of the "
-                "study's dataset, or unset it to download the files."
+                f"The data file {relpath} is missing in the mirror {self.mirror} (looked for "
+                f"{src}). Set {MIRROR_ENV_VAR} to the folder holding Large/, Small/ and Test/ "
+                "of the study's dataset, or unset it to download the files."
             )
-        return open(src, "rb")
-
-    return opener
-
-
-def _open_url(url: str, timeout: float) -> Callable[[], BinaryIO]:
-    def opener() -> BinaryIO:
         try:
-            return urllib.request.urlopen(url, timeout=timeout)
-        except (OSError, HTTPException, ValueError) as exc:
-            raise _download_error(url, exc) from exc
-
-    return opener
+            shutil.copyfile(src, output_file)
+        except OSError as exc:
+            raise DataSourceError(
+                f"Reading {src} from the mirror failed: {exc}. Check the file and its "
+                f"permissions, or unset {MIRROR_ENV_VAR} to download the files."
+            ) from exc
 
 
 def _download_error(url: str, exc: BaseException) -> DataSourceError:
@@ -242,54 +238,43 @@ def _download_error(url: str, exc: BaseException) -> DataSourceError:
     )
 
 
-def _fetch_one(
-    relpath: str,
-    expected: str,
-    target: Path,
-    opener: Callable[[], BinaryIO],
-    origin: str,
-    *,
-    from_mirror: bool,
-) -> None:
-    """Obtain one file through ``opener`` into ``target`` via a verified temporary file."""
-    with opener() as source:
-        try:
-            tmp, received = _stream_to_temp(source, target)
-        except (OSError, HTTPException) as exc:
-            if from_mirror:
-                raise DataSourceError(
-                    f"Reading {relpath} from the mirror ({origin}) failed: {exc}. Check the file "
-                    f"and its permissions, or unset {MIRROR_ENV_VAR} to download the files."
-                ) from exc
-            raise _download_error(origin, exc) from exc
-        remaining = getattr(source, "length", None)  # HTTP: bytes announced but not received
-        if isinstance(remaining, int) and remaining > 0:
-            tmp.unlink(missing_ok=True)
-            raise _download_error(
-                origin, ConnectionError(f"transfer ended {remaining} bytes early")
-            )
-    if received != expected.lower():
-        tmp.unlink(missing_ok=True)
-        if from_mirror:
-            fix = (
-                f"The mirror does not hold the study's files at commit {STUDY_COMMIT}: point "
-                f"{MIRROR_ENV_VAR} at an unmodified copy of that commit's datasets/ folder, or "
-                "unset it to download the files."
-            )
-        else:
-            fix = (
-                "The transfer was corrupted or the server does not serve the study's pinned "
-                f"commit {STUDY_COMMIT}: re-run to re-download, and check base_url."
-            )
-        raise ChecksumError(
-            f"SHA-256 mismatch for {relpath} from {origin}: expected {expected.lower()}, "
-            f"received {received}. Nothing was written to {target}. {fix}"
+def _checksum_error(
+    relpath: str, origin: str, expected: str, received: str, target: Path, *, from_mirror: bool
+) -> ChecksumError:
+    if from_mirror:
+        fix = (
+            f"The mirror does not hold the study's files at commit {STUDY_COMMIT}: point "
+            f"{MIRROR_ENV_VAR} at an unmodified copy of that commit's datasets/ folder, or "
+            "unset it to download the files."
         )
+    else:
+        fix = (
+            "The transfer was corrupted or the server does not serve the study's pinned "
+            f"commit {STUDY_COMMIT}: re-run to re-download, and check base_url."
+        )
+    return ChecksumError(
+        f"SHA-256 mismatch for {relpath} from {origin}: expected {expected}, "
+        f"received {received}. Nothing was written to {target}. {fix}"
+    )
+
+
+@contextlib.contextmanager
+def _quiet_pooch() -> Iterator[None]:
+    """Silence pooch's own stderr logger below WARNING; femcal logs the transfers itself."""
+    pooch_logger = pooch.get_logger()
+    level = pooch_logger.level
+    pooch_logger.setLevel(logging.WARNING)
     try:
-        os.replace(tmp, target)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
+        yield
+    finally:
+        pooch_logger.setLevel(level)
+
+
+def _usual_file_mode() -> int:
+    """The mode a newly created file gets under the current umask (pooch's are 0o600)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
 
 
 def fetch_dataset(
@@ -303,10 +288,12 @@ def fetch_dataset(
 ) -> list[Path]:
     """Make ``dest`` hold every file of ``manifest`` with its pinned SHA-256.
 
-    A file already present with the right hash is kept untouched. Otherwise it is copied
-    from ``mirror / relpath`` (when ``mirror`` is given) or downloaded from
-    ``base_url + relpath``, written to a temporary file in the destination folder, checked
-    and moved into place atomically. On any failure the temporary file is removed.
+    ``dest`` is the local storage of a :func:`pooch.create` registry built from
+    ``manifest``. A file already present with the right hash is kept untouched. Otherwise
+    it is copied from ``mirror / relpath`` (when ``mirror`` is given; no network access
+    then) or downloaded from ``base_url + relpath``; pooch writes it to a temporary file in
+    the destination folder, checks it and moves it into place. On any failure the temporary
+    file is removed.
 
     Parameters
     ----------
@@ -330,17 +317,40 @@ def fetch_dataset(
 
     Raises
     ------
+    ConfigError
+        A manifest entry is not a relative path inside the dataset folder.
     DataSourceError
-        A file is missing in the mirror, or a download failed.
+        The mirror is not a directory, a file is missing in the mirror, or a download failed.
     ChecksumError
         A copied or downloaded file does not have its pinned SHA-256.
     """
     dest = Path(dest)
-    mirror = Path(mirror) if mirror is not None else None
+    from_mirror = mirror is not None
     entries: list[tuple[str, str, Path]] = []
     for relpath, expected in manifest.items():
         rel = _check_relpath(relpath)
         entries.append((relpath, expected.lower(), dest.joinpath(*rel.parts)))
+
+    if mirror is not None:
+        mirror = Path(mirror).expanduser()
+        if not mirror.is_dir():
+            raise DataSourceError(
+                f"The mirror {mirror} is not a directory. Give (or set {MIRROR_ENV_VAR} to) "
+                "the folder holding Large/, Small/ and Test/ of the study's dataset, or unset "
+                "it to download the files."
+            )
+        urls = {rel: str(mirror.joinpath(*PurePosixPath(rel).parts)) for rel, _, _ in entries}
+        downloader = _Recording(_MirrorCopy(mirror))
+    else:
+        urls = {rel: base_url + urllib.parse.quote(rel) for rel, _, _ in entries}
+        downloader = _Recording(pooch.HTTPDownloader(timeout=timeout, progressbar=False))
+    registry = pooch.create(
+        path=dest,
+        base_url=base_url,
+        registry={rel: f"sha256:{expected}" for rel, expected, _ in entries},
+        urls=urls,
+        retry_if_failed=0,
+    )
 
     iterator: Iterator[tuple[str, str, Path]] = iter(entries)
     if progress:
@@ -348,22 +358,45 @@ def fetch_dataset(
 
         iterator = iter(tqdm(entries, desc="fetch", unit="file"))
 
-    n_kept = n_new = 0
-    for relpath, expected, target in iterator:
-        if target.is_file():
-            if sha256_file(target) == expected:
+    mode = _usual_file_mode()
+
+    def record(fname: str, action: str, _pooch: pooch.Pooch) -> str:
+        """Pooch processor: a new file gets the usual permissions; returns pooch's action."""
+        if action != "fetch":
+            os.chmod(fname, mode)
+        return action
+
+    actions: list[str] = []
+    with _quiet_pooch():
+        for relpath, expected, target in iterator:
+            origin = urls[relpath]
+            try:
+                action = registry.fetch(relpath, processor=record, downloader=downloader)
+            except FemcalError:
+                raise
+            except ValueError as exc:  # pooch's hash mismatch
+                received = downloader.received.get(origin)
+                if received is None or received == expected:
+                    raise
+                raise _checksum_error(
+                    relpath, origin, expected, received, target, from_mirror=from_mirror
+                ) from exc
+            except OSError as exc:  # requests' errors are OSErrors
+                if from_mirror:
+                    raise
+                raise _download_error(origin, exc) from exc
+            actions.append(action)
+            if action == "fetch":
                 logger.debug("%s present with the right SHA-256; kept.", target)
-                n_kept += 1
-                continue
-            logger.warning("%s has the wrong SHA-256; fetching it again.", target)
-        if mirror is not None:
-            origin = str(mirror.joinpath(*PurePosixPath(relpath).parts))
-            opener = _open_mirror(mirror, relpath)
-        else:
-            origin = base_url + urllib.parse.quote(relpath)
-            opener = _open_url(origin, timeout)
-        logger.info("Fetching %s from %s", relpath, origin)
-        _fetch_one(relpath, expected, target, opener, origin, from_mirror=mirror is not None)
-        n_new += 1
-    logger.info("Dataset in %s: %d file(s) fetched, %d already present.", dest, n_new, n_kept)
+            elif action == "update":
+                logger.warning("%s had the wrong SHA-256; fetched again from %s.", target, origin)
+            else:
+                logger.info("Fetched %s from %s", relpath, origin)
+    n_kept = actions.count("fetch")
+    logger.info(
+        "Dataset in %s: %d file(s) fetched, %d already present.",
+        dest,
+        len(actions) - n_kept,
+        n_kept,
+    )
     return [target for _, _, target in entries]
