@@ -11,9 +11,9 @@ For every specimen:
    specimen's curves, because the disc fitted alone has bent towards the missing physics), add
    the one with the lowest BIC (``chi^2 + k ln n`` with the known noise) if it beats the current
    model by ``min_delta`` (10 = "very strong" evidence), and go on while the model does not
-   explain the data and another effect pays;
-   A model that holds an effect and still does not explain the data takes a further effect
-   at a lower bar (``min_delta_inadequate``): the data already say something more is missing;
+   explain the data and another effect pays (a model that holds an effect and still does not
+   explain the data takes a further effect at a lower bar, ``min_delta_inadequate``: the data
+   already say that something more is missing);
 2b. **open world**: where the chosen model still does not explain the data, each of its effects
    must also pay beyond a smooth discrepancy: every model (with and without the effect) gets the
    GP discrepancy it needs (type-II maximum likelihood per load case, capped in the dropped

@@ -64,10 +64,12 @@ def test_dataset_reads_with_prepare_and_keeps_every_value(coarse_campaign, tmp_p
 
 @requires_ccx
 def test_failed_job_is_data_with_its_reason_and_survives_into_the_dataset(tmp_path):
-    # Two increments of at most 0.2 cannot reach the 5 moments: a real solver abort.
+    # Two increments of at most 0.2 cannot reach the 5 moments: a real solver abort. (Seed 1:
+    # a configuration that reaches a level before the increments run out; the qmc design of
+    # seed 4 aborts on "fiber extension is too large" at 0 levels instead.)
     settings = {"geometry": "coarse", "initial_increment": 0.2, "max_increments": 2}
     settings["max_attempts"] = 1
-    design_df = split_design(study_space(), {"large": 1}, seed=4)
+    design_df = split_design(study_space(), {"large": 1}, seed=1)
     result = run_campaign(
         "calculix",
         settings,
