@@ -49,7 +49,13 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.model import CurveModel
-from femcal.calibration.pgd import effect_bank, gauss_newton, nearest_starts, pgd, shape_design
+from femcal.calibration.pgd import (
+    effect_bank,
+    gauss_newton,
+    nearest_starts,
+    pgd,
+    single_effect_starts,
+)
 from femcal.discrepancy import (
     dense_grid,
     describe,
@@ -243,27 +249,12 @@ def _grid(
     shape_starts: int = 0,
     grid_shapes: bool = False,
 ) -> tuple[slice, torch.Tensor]:
-    """Starts (g, p) for effect ``new`` of ``model``, unit coordinates.
-
-    The grid ``levels`` over the grid parameters (over every parameter, shape included, with
-    ``grid_shapes``), the others at their classic start; then ``shape_starts`` points of a
-    scrambled Sobol design (fixed seed) over every parameter of the effect. A law of the family
-    far from its classic member (a soft contact onset, say) is not reached from the classic
-    member's basin.
-    """
+    """Starts (g, p) for effect ``new`` of ``model`` and its slice
+    (:func:`femcal.calibration.pgd.single_effect_starts`)."""
     k = model.effect_names.index(new)
-    sl = model._slices[k]
-    eff = model.effects[k]
-    start = torch.tensor([q.start for q in eff.parameters], dtype=torch.float32)
-    cols = [j for j, q in enumerate(eff.parameters) if q.grid or grid_shapes]
-    mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * len(cols), indexing="ij")
-    g = start.repeat(mesh[0].size if cols else 1, 1)
-    if cols:
-        g[:, cols] = torch.tensor(np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32)
-    if shape_starts > 0 and len(cols) < len(eff.parameters):
-        design = shape_design(len(eff.parameters), shape_starts)
-        g = torch.cat([g, torch.tensor(design, dtype=torch.float32)])
-    return sl, g
+    return model._slices[k], single_effect_starts(
+        model.effects[k], levels, shape_starts, grid_shapes
+    )
 
 
 def _starts(

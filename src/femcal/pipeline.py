@@ -56,9 +56,7 @@ def run_train(
     export_model`), with ``mlflow.json`` recording the run and the registered version: the
     folder DVC versions is a complete model that loads and serves without the tracking store.
     """
-    import mlflow
 
-    from femcal.tracking import export_model
     from femcal.train import train_surrogate, write_summary
 
     table, space = load_split(prepared_dir, data_split or split)
@@ -77,6 +75,18 @@ def run_train(
         run_name=f"train-{split}",
         progress=progress,
     )
+    _export_folder(result, out_dir, model_name if settings.get("register") else None)
+    write_summary(result, metrics_path)
+    return result
+
+
+def _export_folder(result, out_dir: Path, registered_model: str | None) -> None:
+    """The logged MLflow model of a training ``result`` (``model_uri``, ``run_id``, ``version``,
+    ``promoted``) exported to ``out_dir``, which appears complete or not at all."""
+    import mlflow
+
+    from femcal.tracking import export_model
+
     tmp = out_dir.with_name(out_dir.name + ".tmp")
     if tmp.exists():
         shutil.rmtree(tmp)
@@ -87,16 +97,14 @@ def run_train(
             "tracking_uri": mlflow.get_tracking_uri(),
             "run_id": result.run_id,
             "model_uri": result.model_uri,
-            "registered_model": model_name if settings.get("register") else None,
+            "registered_model": registered_model,
             "version": result.version,
             "promoted": result.promoted,
         },
     )
     if out_dir.exists():
         shutil.rmtree(out_dir)
-    tmp.rename(out_dir)  # the model directory appears complete or not at all
-    write_summary(result, metrics_path)
-    return result
+    tmp.rename(out_dir)
 
 
 def run_baselines(
@@ -550,7 +558,7 @@ def run_train_inverse(
 
     from femcal.calibration import CurveModel
     from femcal.calibration.inverse import train_inverse
-    from femcal.tracking import export_model, load_surrogate, open_model
+    from femcal.tracking import load_surrogate, open_model
 
     source = open_model(surrogate_uri)
     surrogate = load_surrogate(source)
@@ -567,27 +575,10 @@ def run_train_inverse(
         run_name="train-inverse",
         progress=progress,
     )
-    tmp = out_dir.with_name(out_dir.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
     client = mlflow.MlflowClient()
     for key, value in source.tags("surrogate").items():
         client.set_tag(result.run_id, key, value)
-    export_model(
-        result.model_uri,
-        tmp,
-        record={
-            "tracking_uri": mlflow.get_tracking_uri(),
-            "run_id": result.run_id,
-            "model_uri": result.model_uri,
-            "registered_model": register_as,
-            "version": result.version,
-            "promoted": result.promoted,
-        },
-    )
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    tmp.rename(out_dir)
+    _export_folder(result, out_dir, register_as)
     metrics_path.parent.mkdir(parents=True, exist_ok=True)
     metrics_path.write_text(
         json.dumps(

@@ -188,6 +188,10 @@ def _project_params(folder: Path, modules: list[str]) -> Path:
     params = yaml.safe_load((Path(__file__).parents[2] / "params.yaml").read_text())
     params["effects"] = {"modules": modules}
     params["mlflow"]["store_dir"] = str(folder / "mlruns")
+    # The registry, not the project's model folder (which exists after `make repro`, relative to
+    # the working directory): the test's own store has no surrogate, so a command stops there.
+    params["calibrate"]["model_uri"] = "models:/ivd-rom-surrogate@champion"
+    params["calibrate"]["holdout_uri"] = "models:/ivd-rom-surrogate-holdout@champion"
     path = folder / "params.yaml"
     path.write_text(yaml.safe_dump(params, sort_keys=False))
     measurements = folder / "one.csv"

@@ -170,26 +170,46 @@ def effect_starts(model, levels: tuple[float, ...], shape_starts: int = 0) -> to
     return torch.cat(rows)
 
 
+def single_effect_starts(
+    effect, levels, shape_starts: int = 0, grid_shapes: bool = False
+) -> torch.Tensor:
+    """Starts (g, p) of one effect's parameters, unit coordinates: the grid ``levels`` over its
+    grid parameters (over all of them, shape included, with ``grid_shapes``; the others at their
+    classic start), then ``shape_starts`` points of :func:`shape_design` when some parameters
+    are not gridded. A law far from the family's classic member (a soft contact onset, say) is
+    not reached from the classic member's basin."""
+    p = len(effect.parameters)
+    start = torch.tensor([q.start for q in effect.parameters], dtype=torch.float32)
+    cols = [j for j, q in enumerate(effect.parameters) if getattr(q, "grid", True) or grid_shapes]
+    mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * len(cols), indexing="ij")
+    values = start.repeat(mesh[0].size if cols else 1, 1)
+    if cols:
+        values[:, cols] = torch.tensor(
+            np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32
+        )
+    if shape_starts > 0 and len(cols) < p:
+        design = torch.tensor(shape_design(p, shape_starts), dtype=torch.float32)
+        values = torch.cat([values, design])
+    return values
+
+
 def _effect_blocks(model, levels, shape_starts: int) -> list[tuple[int, int, torch.Tensor]]:
-    """Per effect: its offset among the effect parameters, its size ``p`` and its starts (g, p):
-    the grid ``levels`` over its grid parameters (shape parameters at their start), then
-    ``shape_starts`` points of :func:`shape_design` when it has shape parameters."""
+    """Per effect: its offset among the effect parameters, its size ``p`` and its starts (g, p)
+    (:func:`single_effect_starts`)."""
     out = []
     offset = 0
     for e in model.effects:
-        p = len(e.parameters)
-        start = torch.tensor([q.start for q in e.parameters], dtype=torch.float32)
-        cols = [j for j, q in enumerate(e.parameters) if getattr(q, "grid", True)]
-        mesh = np.meshgrid(*[np.asarray(levels, dtype=float)] * len(cols), indexing="ij")
-        g = torch.tensor(np.stack([m.reshape(-1) for m in mesh], 1), dtype=torch.float32)
-        values = start.repeat(len(g), 1)
-        values[:, cols] = g
-        if shape_starts > 0 and len(cols) < p:
-            design = torch.tensor(shape_design(p, shape_starts), dtype=torch.float32)
-            values = torch.cat([values, design])
-        out.append((offset, p, values))
-        offset += p
+        out.append((offset, len(e.parameters), single_effect_starts(e, levels, shape_starts)))
+        offset += len(e.parameters)
     return out
+
+
+def _effect_halving(keep_after: int, effect_keep: int, k: int, max_iter: int) -> tuple[int, int]:
+    """``(keep_after, keep)`` for ``k`` staged starts of an effect model: the ``effect_keep``
+    best go on after at least 3 iterations, or every start runs to the end (0 or >= k)."""
+    if effect_keep <= 0 or effect_keep >= k:
+        return max_iter, k
+    return max(keep_after, 3), effect_keep
 
 
 def _combination_starts(model, best: torch.Tensor, levels, shape_starts: int) -> torch.Tensor:
@@ -560,13 +580,12 @@ def pgd(
             bank_v, bank_pred = effect_bank(model, start_bank, rng, effect_bank_samples)
             starts.append(bank_v[nearest_starts(problem, bank_v, bank_pred, effect_bank_starts)])
         k_bank = 0
-        n_staged = sum(s.shape[1] for s in starts)
-        if effect_keep <= 0 or effect_keep >= n_staged:
-            keep_after, keep = max_iter, n_staged  # every staged start runs to the end
-        else:
-            # The first start (the disc-alone solution, every effect weak) always goes on:
-            # an effect the data do not need then never leaves a specimen worse off.
-            keep_after, keep = max(keep_after, 3), effect_keep
+        # The first start (the disc-alone solution, every effect weak) always goes on
+        # (keep_first): an effect the data do not need then never leaves a specimen worse off.
+        halving_after = keep_after
+        keep_after, keep = _effect_halving(
+            halving_after, effect_keep, sum(s.shape[1] for s in starts), max_iter
+        )
     else:
         bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
         idx = nearest_starts(problem, bank_v, bank_pred, n_starts)
@@ -579,8 +598,9 @@ def pgd(
     rows = torch.arange(n).repeat_interleave(k)
     v0 = v0.reshape(n * k, d)
     converged = torch.ones(n * k, dtype=torch.bool)
-    if optimizer == "gauss-newton":
-        v, nit, converged = gauss_newton(
+
+    def newton(v0, rows, keep_after, keep):
+        return gauss_newton(
             problem,
             v0,
             rows,
@@ -594,6 +614,9 @@ def pgd(
             atol_deg=max(fit_tolerance * noise_deg, 1e-4),
             keep_first=_has_effects(model),
         )
+
+    if optimizer == "gauss-newton":
+        v, nit, converged = newton(v0, rows, keep_after, keep)
     elif optimizer == "adam":
         v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
     else:
@@ -621,19 +644,9 @@ def pgd(
                 k = v0.shape[1]
                 rows = torch.arange(n).repeat_interleave(k)
                 v0 = v0.reshape(n * k, d)
-                v, nit2, converged = gauss_newton(
-                    problem,
-                    v0,
-                    rows,
-                    max_iter=max_iter,
-                    loss=loss,
-                    tol=tol,
-                    keep_after=max(keep_after, 3) if 0 < effect_keep < k else max_iter,
-                    keep=effect_keep if 0 < effect_keep < k else k,
-                    jacobian_members=jacobian_members,
-                    exact_final=exact_final,
-                    atol_deg=max(fit_tolerance * noise_deg, 1e-4),
-                    keep_first=True,  # the first round's best goes on
+                # The first round's best is the first start: it always goes on.
+                v, nit2, converged = newton(
+                    v0, rows, *_effect_halving(halving_after, effect_keep, k, max_iter)
                 )
                 nit += nit2
     with torch.no_grad():
