@@ -1,0 +1,347 @@
+"""Benchmark: wall time of a whole ``femcal calibrate`` of the 64 Test specimens (the real CLI).
+
+Runs ``femcal calibrate --measurements data/raw/Test --out <tmp>/out-<i> [options]`` in a
+subprocess from the project root, with ``MLFLOW_TRACKING_URI`` pointing at a temporary SQLite
+store and ``--out`` at a temporary folder, so nothing of the project (``mlruns/``,
+``reports/``) is touched. Per variant (a set of options): one untimed warm-up run (it creates
+the store: MLflow's migrations are a one-off cost), then ``--repeats`` timed runs.
+
+Where the time goes, once per label: ``python -X importtime`` (heavy packages) and ``cProfile``
+(cumulative time of the CLI's phases: tracking setup, reading, model loading, reachability,
+calibration, tables and plots, MLflow logging) of the default command. Profiled times are
+longer than plain ones (the profiler's overhead), so read them as shares.
+
+Writes ``reports/bench_cli_calibrate.json`` (each label's figures, merged with the file's other
+labels) and ``reports/bench_cli_calibrate.md`` (every label in the file).
+
+Usage (from the project root, after ``dvc repro`` or ``dvc pull``)::
+
+    nice -n 19 env OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_cli_calibrate.py \
+        --label after --variant "plots all=" --variant "plots none=--plots none"
+
+The machine's load average is recorded before and after each run: on a shared machine the
+figures move with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import pstats
+import re
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+FEMCAL = Path(sys.executable).parent / "femcal"
+MEASUREMENTS = "data/raw/Test"
+JSON_PATH = REPO / "reports" / "bench_cli_calibrate.json"
+MD_PATH = REPO / "reports" / "bench_cli_calibrate.md"
+
+#: Phases of the profile: label -> (file suffix, function name) whose cumulative times add up.
+PHASES = {
+    "whole CLI (main)": [("femcal/cli.py", "main")],
+    "tracking setup (mlflow import, store, killed runs)": [("femcal/cli.py", "_tracking")],
+    "read measurements": [("femcal/measurements.py", "read_measurements")],
+    "load models (with torch/Lightning imports)": [("femcal/tracking.py", "load_surrogate")],
+    "reachability check": [("femcal/reachability.py", "assess_reachability")],
+    "calibrate (pgd)": [("femcal/calibration/base.py", "calibrate")],
+    "write outputs (tables + plots)": [("femcal/calibration/report.py", "write_outputs")],
+    "per-specimen plots": [
+        ("femcal/calibration/report.py", "plot_specimen"),
+        ("femcal/calibration/report.py", "plot_specimens"),
+    ],
+    "summary plot": [("femcal/calibration/report.py", "plot_summary")],
+    "MLflow artifacts": [("femcal/pipeline.py", "_log_artifacts")],
+    "MLflow tables": [("mlflow/tracking/fluent.py", "log_table")],
+    "compare with previous run": [("femcal/pipeline.py", "_compare_with_previous")],
+}
+#: Packages whose import time is reported (cumulative, where first imported).
+PACKAGES = (
+    "torch",
+    "pytorch_lightning",
+    "mlflow",
+    "matplotlib",
+    "matplotlib.pyplot",
+    "pandas",
+    "sklearn",
+    "scipy",
+    "tqdm",
+)
+
+
+def load_average() -> float:
+    return os.getloadavg()[0]
+
+
+def command(out: Path) -> list[str]:
+    return [str(FEMCAL), "-q", "calibrate", "--measurements", MEASUREMENTS, "--out", str(out)]
+
+
+def run(args: list[str], env: dict[str, str]) -> dict:
+    load_before = load_average()
+    start = time.perf_counter()
+    proc = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"{shlex.join(args)} failed ({proc.returncode}):\n{proc.stderr}")
+    seconds = re.search(r"in ([0-9.]+) s:", proc.stdout)
+    return {
+        "wall_s": round(wall, 3),
+        "calibration_s": float(seconds.group(1)) if seconds else None,
+        "load_before": round(load_before, 2),
+        "load_after": round(load_average(), 2),
+        "stdout": proc.stdout.strip(),
+    }
+
+
+def bench_variant(extra: list[str], repeats: int, env: dict[str, str]) -> dict:
+    with tempfile.TemporaryDirectory(prefix="bench-cli-calibrate-") as tmp:
+        tmp_path = Path(tmp)
+        run_env = {**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+        warm = run(command(tmp_path / "out-warmup") + extra, run_env)
+        runs = [run(command(tmp_path / f"out-{i}") + extra, run_env) for i in range(repeats)]
+        last = tmp_path / f"out-{repeats - 1}"
+        pngs = len(list(last.rglob("*.png")))
+        files = len([p for p in last.rglob("*") if p.is_file()])
+    walls = [r["wall_s"] for r in runs]
+    return {
+        "args": extra,
+        "command": shlex.join(
+            [
+                "femcal",
+                "-q",
+                "calibrate",
+                "--measurements",
+                MEASUREMENTS,
+                "--out",
+                "<tmp>/out",
+                *extra,
+            ]
+        ),
+        "warmup_wall_s": warm["wall_s"],
+        "runs": runs,
+        "wall_s_median": round(statistics.median(walls), 3),
+        "wall_s_min": min(walls),
+        "wall_s_max": max(walls),
+        "png_files": pngs,
+        "files": files,
+    }
+
+
+def import_times(env: dict[str, str]) -> dict[str, float]:
+    """Cumulative import time (s) of the heavy packages in one default run (-X importtime)."""
+    with tempfile.TemporaryDirectory(prefix="bench-cli-calibrate-") as tmp:
+        tmp_path = Path(tmp)
+        run_env = {**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+        args = [
+            sys.executable,
+            "-X",
+            "importtime",
+            "-m",
+            "femcal",
+            "-q",
+            "calibrate",
+            "--measurements",
+            MEASUREMENTS,
+            "--out",
+            str(tmp_path / "out"),
+        ]
+        proc = subprocess.run(args, cwd=REPO, env=run_env, capture_output=True, text=True)
+    found: dict[str, float] = {}
+    top_total = 0.0
+    for line in proc.stderr.splitlines():
+        m = re.match(r"import time:\s+(\d+) \|\s+(\d+) \|( *)(\S+)", line)
+        if not m:
+            continue
+        cumulative, indent, name = int(m.group(2)) / 1e6, len(m.group(3)), m.group(4)
+        if indent == 1:
+            top_total += cumulative
+        if name in PACKAGES and name not in found:
+            found[name] = round(cumulative, 3)
+    found["all imports (sum of top-level)"] = round(top_total, 3)
+    return found
+
+
+#: What any calibrate must import: the surrogate's code (torch, Lightning), MLflow's SQL store.
+FLOOR_CODE = (
+    "import femcal.effects, femcal.calibration, femcal.tracking, pandas; "
+    "from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore"
+)
+
+
+def import_floor(env: dict[str, str], repeats: int) -> dict:
+    """Wall time of a Python process that only imports what ``femcal calibrate`` needs."""
+    walls = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-c", FLOOR_CODE], cwd=REPO, env=env, check=True)
+        walls.append(round(time.perf_counter() - start, 3))
+    return {"code": FLOOR_CODE, "walls_s": walls, "wall_s_median": statistics.median(walls)}
+
+
+def profile(env: dict[str, str]) -> dict[str, float | None]:
+    """Cumulative seconds per phase of one default run under cProfile."""
+    with tempfile.TemporaryDirectory(prefix="bench-cli-calibrate-") as tmp:
+        tmp_path = Path(tmp)
+        run_env = {**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+        prof = tmp_path / "calibrate.prof"
+        args = [
+            sys.executable,
+            "-m",
+            "cProfile",
+            "-o",
+            str(prof),
+            "-m",
+            "femcal",
+            "-q",
+            "calibrate",
+            "--measurements",
+            MEASUREMENTS,
+            "--out",
+            str(tmp_path / "out"),
+        ]
+        proc = subprocess.run(args, cwd=REPO, env=run_env, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise SystemExit(f"profiled run failed:\n{proc.stderr}")
+        stats = pstats.Stats(str(prof)).stats  # type: ignore[attr-defined]
+    out: dict[str, float | None] = {}
+    for label, funcs in PHASES.items():
+        total, hit = 0.0, False
+        for (file, _line, name), (_cc, _nc, _tt, ct, _callers) in stats.items():
+            if name in {f for _, f in funcs} and any(
+                file.replace(os.sep, "/").endswith(s) and name == f for s, f in funcs
+            ):
+                total += ct
+                hit = True
+        out[label] = round(total, 3) if hit else None
+    return out
+
+
+def markdown(data: dict) -> str:
+    lines = [
+        "# `femcal calibrate` of the 64 Test specimens: wall time of the whole CLI call",
+        "",
+        "Generated by `benchmarks/bench_cli_calibrate.py` (see its docstring): the real CLI in a "
+        "subprocess, a temporary MLflow store (`MLFLOW_TRACKING_URI=sqlite:///<tmp>/mlflow.db`) "
+        "and output folder; one untimed warm-up run per variant (it creates the store), then the "
+        "timed runs. `load` is the 1-minute load average before each run: the machine (2 cores) "
+        "was shared with other benchmarks, so the figures move with it.",
+        "",
+    ]
+    for label, entry in data.items():
+        meta = entry["meta"]
+        lines += [
+            f"## {label}",
+            "",
+            f"{meta['when']}, commit {meta['commit']}, {meta['machine']}, "
+            f"{meta['cpus']} CPUs, {meta['threads']}, run under `{meta['nice']}`.",
+            "",
+            "| variant | command | median wall (s) | min | max | calibration (s) | load | PNGs "
+            "| files |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for name, v in entry["variants"].items():
+            loads = ", ".join(f"{r['load_before']:.1f}" for r in v["runs"])
+            cal = ", ".join(f"{r['calibration_s']:.2f}" for r in v["runs"])
+            lines.append(
+                f"| {name} | `{v['command']}` | {v['wall_s_median']:.2f} | {v['wall_s_min']:.2f} "
+                f"| {v['wall_s_max']:.2f} | {cal} | {loads} | {v['png_files']} | {v['files']} |"
+            )
+        if entry.get("floor"):
+            f = entry["floor"]
+            lines += [
+                "",
+                f"Floor: a Python process that only imports what the command needs (`python -c "
+                f'"{f["code"]}"`): median {f["wall_s_median"]:.2f} s '
+                f"({', '.join(f'{w:.2f}' for w in f['walls_s'])}).",
+            ]
+        if entry.get("profile"):
+            lines += [
+                "",
+                "Where the time goes (one default run under cProfile, cumulative seconds; the "
+                "profiler slows Python code down, so read these as shares):",
+                "",
+                "| phase | seconds |",
+                "|---|---|",
+            ]
+            for phase, s in entry["profile"].items():
+                lines.append(f"| {phase} | {'-' if s is None else f'{s:.2f}'} |")
+        if entry.get("imports"):
+            lines += [
+                "",
+                "Import time (`python -X importtime`, cumulative where first imported; nested "
+                "packages are counted in their importer):",
+                "",
+                "| package | seconds |",
+                "|---|---|",
+            ]
+            for pkg, s in entry["imports"].items():
+                lines.append(f"| {pkg} | {s:.2f} |")
+        if entry.get("note"):
+            lines += ["", entry["note"]]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--label", required=True, help="e.g. before, after")
+    parser.add_argument(
+        "--variant",
+        action="append",
+        metavar="NAME=OPTIONS",
+        help="a named set of extra calibrate options, e.g. 'plots none=--plots none' "
+        "(repeatable; default: 'default=' , the command as the README gives it)",
+    )
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--no-profile", action="store_true", help="skip importtime and cProfile")
+    parser.add_argument("--note", default="", help="a sentence added under the label's tables")
+    args = parser.parse_args(argv)
+    env = dict(os.environ)
+    variants = {}
+    for spec in args.variant or ["default="]:
+        name, _, opts = spec.partition("=")
+        variants[name] = bench_variant(shlex.split(opts), args.repeats, env)
+        print(f"{name}: median {variants[name]['wall_s_median']:.2f} s", flush=True)
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--", "src"], cwd=REPO, capture_output=True, text=True
+    ).stdout.strip()
+    threads = env.get("OMP_NUM_THREADS")
+    entry = {
+        "meta": {
+            "when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "commit": commit + (" (src/ modified)" if dirty else ""),
+            "machine": platform.machine(),
+            "cpus": os.cpu_count(),
+            "threads": f"OMP_NUM_THREADS={threads}" if threads else "OMP_NUM_THREADS unset",
+            "nice": f"nice -n {os.nice(0)}",
+        },
+        "variants": variants,
+    }
+    entry["floor"] = import_floor(env, args.repeats)
+    if not args.no_profile:
+        entry["imports"] = import_times(env)
+        entry["profile"] = profile(env)
+    if args.note:
+        entry["note"] = args.note
+    data = json.loads(JSON_PATH.read_text()) if JSON_PATH.exists() else {}
+    data[args.label] = entry
+    JSON_PATH.write_text(json.dumps(data, indent=2) + "\n")
+    MD_PATH.write_text(markdown(data))
+    print(f"wrote {JSON_PATH.relative_to(REPO)}, {MD_PATH.relative_to(REPO)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
