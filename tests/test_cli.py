@@ -183,6 +183,7 @@ def test_help_lists_the_choices(capsys):
     calibrate = _help(capsys, ["calibrate"])
     assert "--method {" + ",".join(CALIBRATORS) + "}" in calibrate
     assert f"Built in: {', '.join(BUILTIN_EFFECTS)};" in calibrate
+    assert "--plots {all,summary,none}" in calibrate and "true = all, false = none" in calibrate
     assert "--split {large,small,test}" in _help(capsys, ["baselines"])
     assert "one of large, small, test" in _help(capsys, ["train"])
     for cmd in ("train", "calibrate", "diagnose"):
@@ -194,6 +195,7 @@ def test_help_lists_the_choices(capsys):
 def test_an_unknown_choice_is_refused_with_the_choices(capsys):
     for argv, says in (
         (["calibrate", "--method", "lbfgs"], "argument --method: invalid choice: 'lbfgs'"),
+        (["calibrate", "--plots", "some"], "argument --plots: invalid choice: 'some'"),
         (["baselines", "--split", "medium"], "argument --split: invalid choice: 'medium'"),
     ):
         with pytest.raises(SystemExit) as exit_:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from femcal.config import load_params, section
 from femcal.errors import ConfigError, FemcalError, InputDataError
-from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATORS, SPLITS
+from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATORS, PLOT_CHOICES, SPLITS
 
 #: Logging level of the ``femcal`` logger per verbosity option (none given: INFO).
 LOG_LEVELS = {"verbose": logging.DEBUG, "default": logging.INFO, "quiet": logging.WARNING}
@@ -368,7 +368,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         seed=int(args.seed if args.seed is not None else cfg.get("seed", 0)),
         **_moment_settings(params),
         chunk_size=cfg.get("chunk_size"),
-        plots=bool(cfg.get("plots", True)),
+        plots=args.plots or ("all" if cfg.get("plots", True) else "none"),
         max_plots=None if max_plots is None else int(max_plots),
         progress=_progress(args),
         effects=effects,
@@ -682,6 +682,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout-uri", help="held-out surrogate URI (default: calibrate.holdout_uri)")
     p.add_argument("--no-holdout", action="store_true", help="skip the held-out re-evaluation")
     p.add_argument("--seed", type=int, help="seed (default: calibrate.seed)")
+    p.add_argument(
+        "--plots",
+        choices=PLOT_CHOICES,
+        help="figures to write: all (plots/<specimen>.png for the first calibrate.max_plots "
+        "specimens, and summary.png), summary (summary.png only) or none; the tables, "
+        "curves.csv and summary.md/json are always written (default: calibrate.plots, "
+        "true = all, false = none)",
+    )
     _add_metrics_file(p)
     _add_effects_module(p)
     p.set_defaults(func=cmd_calibrate)

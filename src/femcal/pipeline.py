@@ -346,12 +346,17 @@ def run_calibrate(
     error_growth: float,
     max_log_ratio: float,
     chunk_size: int | None = None,
-    plots: bool = True,
+    plots: bool | str = True,
     max_plots: int | None = None,
     progress: bool = False,
     effects: Sequence[str] = (),
 ):
     """Calibrate every specimen of a measurement file against the registered surrogate.
+
+    ``plots``: "all" (True) writes the per-specimen PNGs and the summary page, "summary" the
+    summary page only, "none" (False) no figure
+    (:func:`femcal.calibration.report.write_outputs`). The time of each phase (reading and
+    loading, calibration, outputs, MLflow logging) is logged at DEBUG level (``femcal -v``).
 
     ``effects`` lists physical effects (:mod:`femcal.effects`) added to the disc: their
     parameters are calibrated jointly with the material parameters.
@@ -381,6 +386,18 @@ def run_calibrate(
     from femcal.outputs import check_destination
 
     check_destination(out_dir)  # a bad output folder is the first error, not the last
+    from femcal.calibration.report import plot_mode
+
+    plots = plot_mode(plots)  # a wrong value before the calibration
+    clock = time.perf_counter()
+    timings: dict[str, float] = {}
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = round(now - clock, 3)
+        clock = now
+
     import mlflow
 
     from femcal.calibration import CurveModel, calibrate
@@ -413,6 +430,7 @@ def run_calibrate(
         holdout = CurveModel(load_surrogate(holdout_source), meas.moments)
         if effects:
             holdout = EffectModel(holdout, list(effects))
+    lap("imports, reading, models, reachability")
     result = calibrate(
         model,
         meas.rom_deg,
@@ -424,6 +442,7 @@ def run_calibrate(
         progress=progress,
         options=opts,
     )
+    lap("calibration")
     missing = meas.missing_load_cases()
     label = "+".join([method, *effects])
     # Outputs staged beside out_dir (a kill leaves nothing at out_dir); the MLflow run covers
@@ -443,6 +462,7 @@ def run_calibrate(
             reachability=reach.notes(),
             progress=progress,
         )
+        lap(f"outputs (tables, plots: {plots})")
         logged = {
             "method": method,
             "effects": ",".join(effects) or "none",
@@ -478,6 +498,8 @@ def run_calibrate(
         stage.finalize()
         _log_artifacts(stage.path, "calibration", progress=progress)  # this run's files
         stage.commit()
+    lap("MLflow logging")
+    logger.debug("calibrate timings: %s", ", ".join(f"{k} {v:.2f} s" for k, v in timings.items()))
     return result, figures
 
 

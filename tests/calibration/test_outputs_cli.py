@@ -149,6 +149,43 @@ def test_a_reused_out_keeps_nothing_stale_and_logs_only_this_runs_files(project,
     assert len(_calibrate_runs()) == 2  # no MLflow run for a refused command
 
 
+@pytest.mark.parametrize(
+    ("option", "pngs"),
+    [
+        ([], {"summary.png", "plots/spec-0.png"}),
+        (["--plots", "all"], None),
+        (["--plots", "summary"], {"summary.png"}),
+        (["--plots", "none"], set()),
+    ],
+)
+def test_plots_option_chooses_the_figures_and_keeps_every_table(project, capsys, option, pngs):
+    """params.yaml says plots: true (max_plots: 1): the default and "all" write every figure."""
+    pngs = {"summary.png", "plots/spec-0.png"} if pngs is None else pngs
+    out = project / "res"
+    assert main(["calibrate", "--measurements", "meas.csv", "--out", "res", *option]) == 0
+    assert {p.relative_to(out).as_posix() for p in out.rglob("*.png")} == pngs
+    assert (out / "plots").is_dir() == ("plots/spec-0.png" in pngs)
+    for table in ("parameters.csv", "metrics.csv", "curves.csv", "summary.md", "summary.json"):
+        assert (out / table).is_file(), table
+    assert len(pd.read_csv(out / "parameters.csv")) == 2
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_plotted"] == (1 if "plots/spec-0.png" in pngs else 0)
+    logged = {
+        p.removeprefix("calibration/")
+        for p in _artifacts(_calibrate_runs()["run_id"][0], "calibration")
+    }
+    assert {p for p in logged if p.endswith(".png")} == pngs  # MLflow gets what was written
+    assert "calibrated 2 specimens" in capsys.readouterr().out
+
+
+def test_plots_option_overrides_plots_false_in_params(project):
+    args = ["--params", "noplots.yaml", "calibrate", "--measurements", "meas.csv"]
+    assert main([*args, "--out", "off"]) == 0
+    assert not list((project / "off").rglob("*.png"))
+    assert main([*args, "--out", "on", "--plots", "summary"]) == 0
+    assert [p.name for p in (project / "on").rglob("*.png")] == ["summary.png"]
+
+
 def test_an_adhoc_diagnose_leaves_the_pipelines_metrics_alone(project, capsys):
     tracked = project / "reports" / "diagnose.json"
     tracked.parent.mkdir()

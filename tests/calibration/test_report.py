@@ -6,9 +6,18 @@ import json
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from femcal.calibration import CurveModel, calibrate
-from femcal.calibration.report import coverage, holdout_scores, identifiability, write_outputs
+from femcal.calibration.report import (
+    coverage,
+    holdout_scores,
+    identifiability,
+    plot_mode,
+    plot_specimen,
+    plot_specimens,
+    write_outputs,
+)
 from femcal.schema import LOAD_CASES
 
 
@@ -85,3 +94,65 @@ def test_write_outputs_shows_the_plots_progress_only_when_asked(
     err = capsys.readouterr().err
     assert "plots: 100%" in err and "2/2" in err
     assert len(list((tmp_path / "shown" / "plots").glob("*.png"))) == 2
+
+
+@pytest.mark.parametrize(
+    ("plots", "pngs"),
+    [
+        (True, {"summary.png", "plots/S0.png", "plots/S1.png"}),
+        ("all", None),
+        ("summary", {"summary.png"}),
+        ("none", set()),
+        (False, set()),
+    ],
+)
+def test_write_outputs_plots_choose_the_figures_not_the_tables(
+    tmp_path, curve_model, truth, plots, pngs
+):
+    pngs = {"summary.png", "plots/S0.png", "plots/S1.png"} if pngs is None else pngs
+    res = calibrate(
+        curve_model,
+        truth[1][:3],
+        specimens=["S0", "S1", "S2"],
+        method="pgd",
+        options={"n_bank_uniform": 64},
+    )
+    out = tmp_path / "out"
+    figures = write_outputs(res, out, plots=plots, max_plots=2)
+    assert {p.relative_to(out).as_posix() for p in out.rglob("*.png")} == pngs
+    assert figures["n_plotted"] == (2 if "plots/S0.png" in pngs else 0)
+    for table in ("parameters.csv", "metrics.csv", "curves.csv", "summary.md", "summary.json"):
+        assert (out / table).is_file(), table
+    assert len(pd.read_csv(out / "metrics.csv")) == 3
+
+
+def test_an_unknown_plots_value_is_refused_before_any_file(tmp_path, curve_model, truth):
+    res = calibrate(curve_model, truth[1][:2], method="pgd", options={"n_bank_uniform": 64})
+    with pytest.raises(ValueError, match=r"plots must be one of all, summary, none .*'some'"):
+        write_outputs(res, tmp_path / "out", plots="some")
+    assert not (tmp_path / "out").exists()
+    assert plot_mode(True) == "all" and plot_mode(False) == "none"
+    assert plot_mode("summary") == "summary"
+
+
+def test_one_redrawn_figure_writes_what_a_figure_per_specimen_writes(
+    tmp_path, curve_model, truth, small_surrogate
+):
+    """plot_specimens reuses one figure: each PNG shows its own specimen (not the previous)."""
+    from matplotlib.image import imread
+
+    targets = truth[1][:3].copy()
+    targets[1, 2] = np.nan  # specimen 1 without lateral bending: "not measured", then back
+    res = calibrate(curve_model, targets, method="pgd", options={"n_bank_uniform": 64})
+    held = holdout_scores(res, CurveModel(small_surrogate, curve_model.moments.numpy()))
+    batch = [tmp_path / f"batch{i}.png" for i in range(3)]
+    plot_specimens(res, batch, held["prediction"])
+    images = [imread(p) for p in batch]
+    assert all(img.shape == images[0].shape for img in images)
+    assert not np.array_equal(images[0], images[1]) and not np.array_equal(images[1], images[2])
+    for i in (0, 2):  # alone: the same picture up to the layout of the first specimen
+        plot_specimen(res, i, tmp_path / f"alone{i}.png", held["prediction"][i])
+        alone = imread(tmp_path / f"alone{i}.png")
+        assert alone.shape == images[i].shape
+        assert np.mean(np.abs(alone - images[i])) < 0.02
+    plot_specimens(res, [])  # nothing to draw: no figure built, no file

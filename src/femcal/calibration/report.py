@@ -12,7 +12,10 @@
 * ``ranges.csv``: the identifiability range of every parameter of every specimen;
 * ``curves.csv``: measured and calibrated RoM of every point (long format);
 * ``plots/<specimen>.png``: measured vs calibrated RoM per load case (the study's figure 4);
-* ``summary.png`` and ``summary.md``, ``summary.json`` (aggregate figures, DVC metrics).
+  one figure redrawn per specimen (:func:`plot_specimens`); ``plots="summary"`` or ``"none"``
+  leaves them out;
+* ``summary.png`` (not with ``plots="none"``) and ``summary.md``, ``summary.json`` (aggregate
+  figures, DVC metrics).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +35,7 @@ from femcal.calibration.base import CalibrationResult
 from femcal.calibration.model import CurveModel
 from femcal.metrics import curve_metrics
 from femcal.schema import LOAD_CASES
+from femcal.settings.keywords import PLOT_CHOICES  # all, summary, none
 
 logger = logging.getLogger(__name__)
 
@@ -156,51 +161,131 @@ def safe_file_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "specimen"
 
 
+def plot_mode(plots: bool | str) -> str:
+    """``plots`` as one of ``PLOT_CHOICES`` (True is "all", False is "none").
+
+    "all": every per-specimen PNG and the summary page; "summary": the summary page only;
+    "none": no figure (the tables, curves.csv and summary.md/json are always written).
+
+    Raises
+    ------
+    ValueError
+        Another value.
+    """
+    if plots is True or plots is False:
+        return "all" if plots else "none"
+    if plots not in PLOT_CHOICES:
+        raise ValueError(
+            f"plots must be one of {', '.join(PLOT_CHOICES)} (or a bool); got {plots!r}"
+        )
+    return str(plots)
+
+
+class _SpecimenFigure:
+    """The per-specimen figure, built once and redrawn for every specimen.
+
+    Building a figure (four axes, their ticks) and laying it out cost more than drawing it;
+    one figure whose lines, titles and limits change per specimen writes the same PNG (the
+    layout of the first specimen is kept) several times faster.
+    """
+
+    def __init__(self, result: CalibrationResult, *, holdout: bool) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        from matplotlib.figure import Figure
+
+        self.result = result
+        self.fig = Figure(figsize=(12, 3.0), dpi=80)
+        # Not sharex: the limits are set alike, and shared axes lay out their siblings' labels.
+        self.axes = self.fig.subplots(1, len(LOAD_CASES))
+        fine = np.linspace(result.moments.min(), result.moments.max(), 50)
+        self.lines = []
+        for ax in self.axes:
+            measured = ax.plot([], [], "o", color="black", label="measured")[0]
+            model = ax.plot([], [], "-", color="C0", label=result.method)[0]
+            held = (
+                ax.plot([], [], ":", color="C3", label="held-out model")[0] if holdout else None
+            )
+            note = ax.text(
+                0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes
+            )
+            self.lines.append((measured, model, held, note))
+            ax.set_xlabel("moment (Nm)")
+            ax.set_xlim(0, max(fine.max(), 1) * 1.05)
+        self.axes[0].set_ylabel("RoM (deg)")
+        self.axes[0].legend(fontsize=7, loc="upper left")
+        self.laid_out = False
+
+    def draw(self, i: int, path: Path, holdout_pred: np.ndarray | None = None) -> None:
+        result = self.result
+        for j, (ax, lc) in enumerate(zip(self.axes, LOAD_CASES)):
+            measured, model, held, note = self.lines[j]
+            y = result.measured[i, j]
+            ok = np.isfinite(y)
+            measured.set_data(result.moments[ok], y[ok])
+            note.set_visible(not ok.any())
+            model.set_data(result.moments, result.prediction[i, j])
+            if held is not None and holdout_pred is not None:
+                held.set_data(result.moments, holdout_pred[j])
+            r2 = result.r2_per_load_case[i, j]
+            mae = result.mae_per_load_case[i, j]
+            # y given: a title placed by hand skips the search for overlapping tick labels
+            ax.set_title(
+                lc if not np.isfinite(mae) else f"{lc}\nMAE {mae:.3f}°, R² {r2:.3f}",
+                fontsize=9,
+                y=1.0,
+            )
+            ax.relim()
+            ax.autoscale_view(scalex=False)
+        self.fig.suptitle(
+            f"specimen {result.specimens[i]}: MAE {result.mae_deg[i]:.3f}°, "
+            f"mean R² {result.r2_mean[i]:.4f}",
+            fontsize=10,
+        )
+        if not self.laid_out:
+            self.fig.tight_layout()
+            # Keep this layout: a figure with a layout engine is drawn twice per savefig.
+            self.fig.set_layout_engine(None)
+            self.laid_out = True
+        self.fig.savefig(path)
+
+
 def plot_specimen(result: CalibrationResult, i: int, path: Path, holdout_pred=None) -> None:
     """Measured vs calibrated RoM per load case of specimen ``i`` (one PNG)."""
-    import matplotlib
+    _SpecimenFigure(result, holdout=holdout_pred is not None).draw(i, path, holdout_pred)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(LOAD_CASES), figsize=(12, 3.0), sharex=True)
-    fine = np.linspace(result.moments.min(), result.moments.max(), 50)
-    for j, (ax, lc) in enumerate(zip(axes, LOAD_CASES)):
-        y = result.measured[i, j]
-        ok = np.isfinite(y)
-        if ok.any():
-            ax.plot(result.moments[ok], y[ok], "o", color="black", label="measured")
-        else:
-            ax.text(0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes)
-        ax.plot(result.moments, result.prediction[i, j], "-", color="C0", label=result.method)
-        if holdout_pred is not None:
-            ax.plot(result.moments, holdout_pred[j], ":", color="C3", label="held-out model")
-        r2 = result.r2_per_load_case[i, j]
-        mae = result.mae_per_load_case[i, j]
-        title = lc if not np.isfinite(mae) else f"{lc}\nMAE {mae:.3f}°, R² {r2:.3f}"
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("moment (Nm)")
-        ax.set_xlim(0, max(fine.max(), 1) * 1.05)
-    axes[0].set_ylabel("RoM (deg)")
-    axes[0].legend(fontsize=7, loc="upper left")
-    fig.suptitle(
-        f"specimen {result.specimens[i]}: MAE {result.mae_deg[i]:.3f}°, "
-        f"mean R² {result.r2_mean[i]:.4f}",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+def plot_specimens(
+    result: CalibrationResult,
+    paths: Sequence[Path],
+    holdout_pred: np.ndarray | None = None,
+    *,
+    progress: bool = False,
+) -> None:
+    """:func:`plot_specimen` of specimens ``0 .. len(paths) - 1``, one figure redrawn.
+
+    ``holdout_pred`` (n, 4, m): the held-out surrogate's curves at the calibrated parameters.
+    ``progress`` shows a bar (stderr) over the specimens.
+    """
+    if not len(paths):
+        return
+    figure = _SpecimenFigure(result, holdout=holdout_pred is not None)
+    indices: Any = range(len(paths))
+    if progress and len(paths) > 1:
+        from tqdm.auto import tqdm
+
+        indices = tqdm(indices, desc="plots", unit="specimen")
+    for i in indices:
+        figure.draw(i, paths[i], None if holdout_pred is None else holdout_pred[i])
 
 
 def plot_summary(result: CalibrationResult, path: Path, holdout=None) -> None:
     """One page: MAE and R² histograms, measured vs calibrated, per-parameter ranges."""
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: nothing to close, no backend state
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    fig = Figure(figsize=(11, 8))
+    axes = fig.subplots(2, 2)
     ax = axes[0, 0]
     ax.hist(
         result.mae_deg[np.isfinite(result.mae_deg)],
@@ -250,7 +335,6 @@ def plot_summary(result: CalibrationResult, path: Path, holdout=None) -> None:
     )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def _markdown(result: CalibrationResult, figures: dict, ident: pd.DataFrame | None) -> str:
@@ -318,7 +402,7 @@ def write_outputs(
     out_dir: Path,
     *,
     holdout: CurveModel | None = None,
-    plots: bool = True,
+    plots: bool | str = True,
     max_plots: int | None = None,
     reachability: Sequence[str] | None = None,
     progress: bool = False,
@@ -333,8 +417,10 @@ def write_outputs(
     holdout : CurveModel, optional
         An independently trained surrogate on the same moment grid: its MAE at the calibrated
         parameters is reported as ``holdout_mae_deg``.
-    plots : bool
-        Write the per-specimen PNGs and the summary page.
+    plots : {"all", "summary", "none"} or bool
+        "all" (True): the per-specimen PNGs (``plots/``) and the summary page (``summary.png``);
+        "summary": the summary page only; "none" (False): no figure. The tables and
+        ``summary.md``/``summary.json`` are written in every case.
     max_plots : int, optional
         Write per-specimen PNGs for the first ``max_plots`` specimens only (the tables always
         hold every specimen; the summary says how many were plotted).
@@ -345,6 +431,7 @@ def write_outputs(
     progress : bool
         Show a progress bar (stderr) over the per-specimen plots.
     """
+    mode = plot_mode(plots)  # a wrong value before any file is written
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     held = holdout_scores(result, holdout) if holdout is not None else None
@@ -375,29 +462,29 @@ def write_outputs(
         )
     n = len(result.specimens)
     n_plot = n if max_plots is None else min(n, int(max_plots))
-    figures["n_plotted"] = n_plot if plots else 0
-    if plots:
+    figures["n_plotted"] = n_plot if mode == "all" else 0
+    if mode == "all":
         plot_dir = out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
         used: set[str] = set()
-        indices: Any = range(n_plot)
-        if progress and n_plot > 1:
-            from tqdm.auto import tqdm
-
-            indices = tqdm(indices, desc="plots", unit="specimen")
-        for i in indices:
+        paths = []
+        for i in range(n_plot):
             name = safe_file_name(result.specimens[i])
             while name in used:
                 name += "_"
             used.add(name)
-            plot_specimen(
-                result, i, plot_dir / f"{name}.png", None if held is None else held["prediction"][i]
-            )
-        plot_summary(result, out_dir / "summary.png", held)
+            paths.append(plot_dir / f"{name}.png")
+        start = time.perf_counter()
+        plot_specimens(
+            result, paths, None if held is None else held["prediction"], progress=progress
+        )
+        logger.debug("%d specimen plots in %.2f s", n_plot, time.perf_counter() - start)
         if n_plot < n:
             logger.warning(
                 "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
             )
+    if mode != "none":
+        plot_summary(result, out_dir / "summary.png", held)
     (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
     (out_dir / "summary.md").write_text(_markdown(result, figures, identifiability(result)))
     return figures

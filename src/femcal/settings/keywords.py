@@ -20,6 +20,9 @@ from femcal.settings.values import MODEL_URI, NAME
 # ------------------------------------------------------------------ registries' names
 #: Hidden activations of the networks (femcal.surrogates.nn.ACTIVATIONS).
 ACTIVATIONS: tuple[str, ...] = ("silu", "gelu", "relu", "tanh", "softplus")
+#: What ``femcal calibrate --plots`` writes (femcal.calibration.report.plot_mode): every figure,
+#: the summary page only, or none.
+PLOT_CHOICES: tuple[str, ...] = ("all", "summary", "none")
 #: The study's baseline models (femcal.surrogates registry, without "nn").
 BASELINE_MODELS: tuple[str, ...] = (
     "linear",
