@@ -3,6 +3,11 @@
 Every DVC stage is one sub-command, e.g. ``femcal train --split large``. ``-v`` logs femcal's
 debug messages, ``-q`` only its warnings (and hides the progress bars, which are shown on a
 terminal only); ``--version`` prints the installed version.
+
+Relative paths typed on the command line start at the current folder; relative paths in
+params.yaml start at its folder (the project root), and the stores' (``mlflow.store_dir``,
+``train.storage``) at the repository's root, also in the temporary copy of ``dvc exp run
+--temp/--queue`` (:mod:`femcal.paths`).
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from pathlib import Path
 
 from femcal.config import load_params, section
 from femcal.errors import ConfigError, FemcalError, InputDataError
+from femcal.paths import setting_path, setting_uri, store_path, store_url
 from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATORS, PLOT_CHOICES, SPLITS
 
 #: Logging level of the ``femcal`` logger per verbosity option (none given: INFO).
@@ -50,12 +56,20 @@ def _progress(args: argparse.Namespace) -> bool:
     return sys.stderr.isatty() and args.log_level < LOG_LEVELS["quiet"]
 
 
+def _path(params: dict, *keys: str) -> Path:
+    """A path setting of params.yaml, relative to the project root (:mod:`femcal.paths`)."""
+    return setting_path(params, section(params, *keys))
+
+
 def _tracking(params: dict) -> None:
-    """Point MLflow at the store; tag this process's runs; close runs of killed processes."""
+    """Point MLflow at the store; tag this process's runs; close runs of killed processes.
+
+    ``mlflow.store_dir`` is relative to the repository's root (:func:`femcal.paths.store_path`).
+    """
     from femcal.tracking import configure_tracking, ensure_experiment
     from femcal.tracking_runs import close_killed_runs, tag_runs_with_process
 
-    store = section(params, "mlflow", "store_dir")
+    store = store_path(params, section(params, "mlflow", "store_dir"))
     configure_tracking(store_dir=store)
     experiment = ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
     tag_runs_with_process()  # pid + host on every run this command starts
@@ -80,8 +94,9 @@ def _check_measurements(path: Path) -> None:
     """A missing measurement file or folder, reported before any heavy import."""
     if not path.exists():
         raise InputDataError(
-            f"Measurement file {path} does not exist; check the path (relative paths start at "
-            f"the current folder {Path.cwd()})."
+            f"Measurement file {path} does not exist; check the path (relative paths on the "
+            f"command line start at the current folder {Path.cwd()}, in params.yaml at its "
+            "folder)."
         )
 
 
@@ -128,7 +143,7 @@ def _load_user_effects(args: argparse.Namespace, params: dict) -> list[str]:
 def cmd_fetch(args: argparse.Namespace, params: dict) -> None:
     from femcal.fetch import fetch_dataset, mirror_from_env
 
-    out = Path(args.out or section(params, "data", "raw_dir"))
+    out = Path(args.out) if args.out else _path(params, "data", "raw_dir")
     mirror = mirror_from_env()
     paths = fetch_dataset(out, mirror=mirror, progress=_progress(args))
     src = f"mirror {mirror}" if mirror else "the study's pinned public address"
@@ -139,8 +154,8 @@ def cmd_prepare(args: argparse.Namespace, params: dict) -> None:
     from femcal.prepare import prepare_dataset
 
     data = section(params, "data")
-    raw = Path(data.get("source_dir") or section(params, "data", "raw_dir"))
-    out = Path(section(params, "data", "prepared_dir"))
+    raw = setting_path(params, data.get("source_dir") or section(params, "data", "raw_dir"))
+    out = _path(params, "data", "prepared_dir")
     limit = section(params, "data").get("limit_configs")
     written = prepare_dataset(raw, out, limit_configs=limit)
     for name, path in written.items():
@@ -155,10 +170,10 @@ def cmd_train(args: argparse.Namespace, params: dict) -> None:
     settings = section(params, "train", split)
     storage = _optuna_storage(params)
     result = run_train(
-        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        prepared_dir=_path(params, "data", "prepared_dir"),
         split=split,
-        out_dir=Path(f"models/surrogate-{split}"),
-        metrics_path=Path(f"reports/train-{split}.json"),
+        out_dir=setting_path(params, f"models/surrogate-{split}"),
+        metrics_path=setting_path(params, f"reports/train-{split}.json"),
         settings=settings,
         storage=storage,
         study_name=section(params, "train", "study_name"),
@@ -185,9 +200,9 @@ def cmd_baselines(args: argparse.Namespace, params: dict) -> None:
 
     _tracking(params)
     seconds = run_baselines(
-        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        prepared_dir=_path(params, "data", "prepared_dir"),
         split=args.split,
-        out_dir=Path(f"models/baselines-{args.split}"),
+        out_dir=setting_path(params, f"models/baselines-{args.split}"),
         models=section(params, "baselines", "models"),
         seed=int(section(params, "baselines", "seed")),
         n_jobs=int(section(params, "baselines", "n_jobs")),
@@ -201,8 +216,8 @@ def cmd_interpolate(args: argparse.Namespace, params: dict) -> None:
 
     _tracking(params)
     scores = run_interpolation(
-        prepared_dir=Path(section(params, "data", "prepared_dir")),
-        out_path=Path("reports/interpolation.json"),
+        prepared_dir=_path(params, "data", "prepared_dir"),
+        out_path=setting_path(params, "reports/interpolation.json"),
         train_moments=section(params, "interpolation", "train_moments"),
         test_moments=section(params, "interpolation", "test_moments"),
         fixed=section(params, "train", "large", "fixed"),
@@ -221,17 +236,21 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
 
     _tracking(params)
     splits = ("large", "small")
+
+    def at(path: str) -> Path:  # the project's layout, at the project root
+        return setting_path(params, path)
+
     sections = run_evaluate(
-        prepared_dir=Path(section(params, "data", "prepared_dir")),
-        surrogate_dirs={s: Path(f"models/surrogate-{s}") for s in splits},
-        baseline_dirs={s: Path(f"models/baselines-{s}") for s in splits},
+        prepared_dir=_path(params, "data", "prepared_dir"),
+        surrogate_dirs={s: at(f"models/surrogate-{s}") for s in splits},
+        baseline_dirs={s: at(f"models/baselines-{s}") for s in splits},
         baseline_models=section(params, "baselines", "models"),
-        interpolation_path=Path("reports/interpolation.json"),
-        markdown=Path("reports/surrogates.md"),
-        json_path=Path("reports/surrogates.json"),
-        table_path=Path("reports/surrogates_table.json"),
-        predictions_path=Path("reports/plots/surrogate_test_predictions.csv"),
-        curves_path=Path("reports/plots/training_curves.csv"),
+        interpolation_path=at("reports/interpolation.json"),
+        markdown=at("reports/surrogates.md"),
+        json_path=at("reports/surrogates.json"),
+        table_path=at("reports/surrogates_table.json"),
+        predictions_path=at("reports/plots/surrogate_test_predictions.csv"),
+        curves_path=at("reports/plots/training_curves.csv"),
     )
     for title, rows in sections.items():
         print(title)
@@ -247,9 +266,14 @@ def cmd_evaluate(args: argparse.Namespace, params: dict) -> None:
 
 
 def _optuna_storage(params: dict) -> str:
-    storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or section(params, "train", "storage")
-    if storage.startswith("sqlite:///") and not storage.startswith("sqlite:////"):
-        Path(storage[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+    """FEMCAL_OPTUNA_STORAGE as given, else train.storage (a relative SQLite file under the
+    repository's root, :func:`femcal.paths.store_url`); a SQLite file's folder is created."""
+    storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or store_url(
+        params, section(params, "train", "storage")
+    )
+    file = storage[len("sqlite:///") :] if storage.startswith("sqlite:///") else ""
+    if file and file != ":memory:":
+        Path(file).parent.mkdir(parents=True, exist_ok=True)
     return storage
 
 
@@ -259,10 +283,10 @@ def cmd_train_inverse(args: argparse.Namespace, params: dict) -> None:
     _tracking(params)
     cfg = section(params, "inverse")
     result = run_train_inverse(
-        surrogate_uri=section(params, "inverse", "surrogate_uri"),
+        surrogate_uri=setting_uri(params, section(params, "inverse", "surrogate_uri")),
         moments=[float(m) for m in section(params, "inverse", "moments")],
-        out_dir=Path("models/inverse"),
-        metrics_path=Path("reports/train-inverse.json"),
+        out_dir=setting_path(params, "models/inverse"),
+        metrics_path=setting_path(params, "reports/train-inverse.json"),
         settings=cfg,
         storage=_optuna_storage(params),
         study_name=str(cfg.get("study_name", "ivd-inverse")),
@@ -314,14 +338,20 @@ def _fit_warnings(figures: dict, out: str) -> str:
 def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
     cfg = section(params, "calibrate")
     method = args.method or section(params, "calibrate", "method")
-    model_uri = args.model_uri or section(params, "calibrate", "model_uri")
+    model_uri = args.model_uri or setting_uri(params, section(params, "calibrate", "model_uri"))
     if args.model_version or args.model_alias:
         name = section(params, "mlflow", "model_name")
         ref = f"/{args.model_version}" if args.model_version else f"@{args.model_alias}"
         model_uri = f"models:/{name}{ref}"
-    holdout_uri = None if args.no_holdout else (args.holdout_uri or cfg.get("holdout_uri"))
+    holdout_uri = None
+    if not args.no_holdout:
+        holdout_uri = args.holdout_uri or (
+            setting_uri(params, cfg["holdout_uri"]) if cfg.get("holdout_uri") else None
+        )
     options = dict((cfg.get("options") or {}).get(method) or {})
-    bank = cfg.get("start_bank")
+    if isinstance(options.get("model_uri"), str):  # the inverse network's folder or URI
+        options["model_uri"] = setting_uri(params, options["model_uri"])
+    bank = setting_path(params, cfg["start_bank"]) if cfg.get("start_bank") else None
     max_plots = cfg.get("max_plots")
     datasets = cfg.get("datasets") or {}
     if args.dataset and args.dataset not in datasets:
@@ -348,8 +378,10 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         effects = []
     else:
         effects = entry_effects
-    measurements = Path(args.measurements or entry_path)
-    out = args.out or str(Path(section(params, "calibrate", "out_dir")) / (name or "custom"))
+    measurements = (
+        Path(args.measurements) if args.measurements else setting_path(params, entry_path)
+    )
+    out = args.out or str(_path(params, "calibrate", "out_dir") / (name or "custom"))
     _check_outputs(args, out, "calibrate.out_dir")  # before anything heavy is imported
     _check_measurements(measurements)
     _load_user_effects(args, params)
@@ -363,7 +395,7 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
         method=method,
         model_uri=model_uri,
         holdout_uri=holdout_uri,
-        start_bank=Path(bank) if bank else None,
+        start_bank=bank,
         options=options,
         seed=int(args.seed if args.seed is not None else cfg.get("seed", 0)),
         **_moment_settings(params),
@@ -393,11 +425,11 @@ def cmd_calibrate(args: argparse.Namespace, params: dict) -> None:
 
 def cmd_plant(args: argparse.Namespace, params: dict) -> None:
     cfg = section(params, "plant")
-    out = _check_outputs(args, section(params, "plant", "out_dir"), "plant.out_dir")
+    out = _check_outputs(args, _path(params, "plant", "out_dir"), "plant.out_dir")
     from femcal.pipeline import run_plant
 
     path = run_plant(
-        prepared_dir=Path(section(params, "data", "prepared_dir")),
+        prepared_dir=_path(params, "data", "prepared_dir"),
         out_dir=out,
         n_per_class=int(section(params, "plant", "n_per_class")),
         moments=[float(m) for m in section(params, "plant", "moments")],
@@ -411,9 +443,11 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
     cfg = section(params, "diagnose")
     noise = args.noise_deg if args.noise_deg is not None else cfg.get("noise_deg")
     bank = section(params, "calibrate").get("start_bank")
-    out = args.out or section(params, "diagnose", "out_dir")
+    out = args.out or _path(params, "diagnose", "out_dir")
     _check_outputs(args, out, "diagnose.out_dir")  # before anything heavy is imported
-    measurements = Path(args.measurements or section(params, "diagnose", "measurements"))
+    measurements = (
+        Path(args.measurements) if args.measurements else _path(params, "diagnose", "measurements")
+    )
     _check_measurements(measurements)
     _load_user_effects(args, params)
     _tracking(params)
@@ -423,10 +457,10 @@ def cmd_diagnose(args: argparse.Namespace, params: dict) -> None:
     diag, summary = run_diagnose(
         measurements=measurements,
         out_dir=Path(out),
-        model_uri=args.model_uri or section(params, "calibrate", "model_uri"),
+        model_uri=args.model_uri or setting_uri(params, section(params, "calibrate", "model_uri")),
         noise_deg=None if noise is None else float(noise),
         candidates=cfg.get("candidates"),
-        start_bank=Path(bank) if bank else None,
+        start_bank=setting_path(params, bank) if bank else None,
         min_delta=float(cfg.get("min_delta", 10.0)),
         alpha=float(cfg.get("alpha", 0.01)),
         max_effects=int(cfg.get("max_effects", 3)),
@@ -471,7 +505,7 @@ def _fe_runtime(params: dict) -> tuple[str | None, int]:
 
 def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
     cfg = section(params, "fe")
-    out = Path(args.out or section(params, "fe", "out_dir"))
+    out = Path(args.out) if args.out else _path(params, "fe", "out_dir")
     _check_outputs(args, out, "fe.out_dir")  # before the campaign
     address, n_workers = _fe_runtime(params)
     from femcal.pipeline import run_simulate
@@ -485,11 +519,13 @@ def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
         seed=int(section(params, "fe", "seed")),
         load_cases=list(section(params, "fe", "load_cases")),
         moments=[float(m) for m in section(params, "fe", "moments")],
-        store=Path(args.store or section(params, "fe", "store")),
+        store=Path(args.store)
+        if args.store
+        else store_path(params, section(params, "fe", "store")),
         out_dir=out,
         scheduler_address=address,
         n_workers=n_workers,
-        scratch_dir=Path(scratch) if scratch else None,
+        scratch_dir=setting_path(params, scratch) if scratch else None,
         progress=_progress(args),
     )
     cpu = summary["cpu_seconds_per_configuration"]
@@ -525,20 +561,32 @@ def cmd_simulate(args: argparse.Namespace, params: dict) -> None:
 def cmd_validate(args: argparse.Namespace, params: dict) -> None:
     cfg = section(params, "validate")
     fe = section(params, "fe")
-    out = Path(args.out or section(params, "validate", "out_dir"))
+    out = Path(args.out) if args.out else _path(params, "validate", "out_dir")
     _check_outputs(args, out, "validate.out_dir")  # before the FE campaign
     address, n_workers = _fe_runtime(params)
     _tracking(params)
     from femcal.pipeline import run_validate
 
     result = run_validate(
-        calibration_dir=Path(args.calibration or section(params, "validate", "calibration_dir")),
-        measurements=Path(args.measurements or section(params, "validate", "measurements")),
+        calibration_dir=(
+            Path(args.calibration)
+            if args.calibration
+            else _path(params, "validate", "calibration_dir")
+        ),
+        measurements=(
+            Path(args.measurements)
+            if args.measurements
+            else _path(params, "validate", "measurements")
+        ),
         solver=section(params, "fe", "solver"),
         settings=dict(fe.get("settings") or {}),
         forces=[float(f) for f in cfg.get("forces") or []],
         literature=cfg.get("idp_literature") or {},
-        store=Path(args.store or section(params, "validate", "store")),
+        store=(
+            Path(args.store)
+            if args.store
+            else store_path(params, section(params, "validate", "store"))
+        ),
         out_dir=out,
         scheduler_address=address,
         n_workers=n_workers,
@@ -625,7 +673,15 @@ def build_parser() -> argparse.ArgumentParser:
         prog="femcal", description=__doc__.splitlines()[0].replace("``", "")
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
-    parser.add_argument("--params", default="params.yaml", help="settings file (params.yaml)")
+    parser.add_argument(
+        "--params",
+        default="params.yaml",
+        help="settings file (default: params.yaml). Relative paths in it start at its folder "
+        "(the project root), whatever the current folder; the stores (mlflow.store_dir, "
+        "train.storage, fe.store) at the repository's root, also from the temporary copy of "
+        "`dvc exp run --temp/--queue` (DVC_ROOT); MLFLOW_TRACKING_URI and FEMCAL_OPTUNA_STORAGE "
+        "override them. Relative paths given on the command line start at the current folder",
+    )
     _add_verbosity(parser, default=LOG_LEVELS["default"])
     # The sub-commands take -v/-q too; given there, they win (absent, they leave the top's).
     common = argparse.ArgumentParser(add_help=False)
