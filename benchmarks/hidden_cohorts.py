@@ -92,6 +92,8 @@ REGISTERED: dict[str, str | None] = {
     "neutral_zone": "neutral_zone",
     "softening": None,
 }
+#: Every hidden component, in the order of ``HiddenCohort.component_clean_deg``.
+COMPONENT_NAMES: tuple[str, ...] = ("facet", "ligament", "neutral_zone", "softening")
 #: Laws drawn per component (uniformly).
 LAWS: dict[str, tuple[str, ...]] = {
     "facet": ("hertz", "linear_smooth_gap"),
@@ -320,6 +322,12 @@ class HiddenCohort:
         Noisy measured RoM, NaN where the specimen's protocol has no such moment.
     clean_deg : ndarray, shape (n, 4, m)
         The same without noise (also NaN where not measured).
+    component_clean_deg : ndarray, shape (n, c, 4, m)
+        Each specimen's disc with one of its hidden components alone, without noise, for the
+        ``c`` components of :data:`COMPONENT_NAMES` (NaN where the specimen lacks the
+        component or was not measured). With the specimen's own noise (``rom_deg -
+        clean_deg``) it says whether each component of a combination would be visible on its
+        own.
     truth : DataFrame
         ``specimen, config_id, class, effects`` (the registered effects to be named, "+"-joined,
         "" for none), ``protocol``, ``n_points``, ``max_rom_deg``, and per component its
@@ -335,6 +343,7 @@ class HiddenCohort:
     truth: pd.DataFrame
     noise_deg: float
     seed: int
+    component_clean_deg: np.ndarray | None = None
 
     @property
     def labels(self) -> np.ndarray:
@@ -355,6 +364,9 @@ class HiddenCohort:
             truth=self.truth.iloc[idx].reset_index(drop=True),
             noise_deg=self.noise_deg,
             seed=self.seed,
+            component_clean_deg=None
+            if self.component_clean_deg is None
+            else self.component_clean_deg[idx][..., keep],
         )
 
     def to_long(self) -> pd.DataFrame:
@@ -439,7 +451,7 @@ def make_hidden_cohort(
     for _ in classes:
         turn = [protocols[k % len(protocols)] for k in range(n_per_class)]
         assigned += [turn[k] for k in rng.permutation(n_per_class)]
-    rows, clean = [], []
+    rows, clean, alone = [], [], []
     for i, (label, cfg, proto) in enumerate(zip(labels, configs, assigned)):
         moments = np.asarray(PROTOCOLS[proto], dtype=float)
         tries = 0
@@ -456,9 +468,19 @@ def make_hidden_cohort(
                         f"0..{ROM_MAX_DEG} deg and no FE configuration is left."
                     )
                 cfg = spare.pop(0)
+        cols = np.searchsorted(grid, moments)
         full = np.full((4, len(grid)), np.nan)
-        full[:, np.searchsorted(grid, moments)] = curve
+        full[:, cols] = curve
         clean.append(full)
+        each = np.full((len(COMPONENT_NAMES), 4, len(grid)), np.nan)
+        for c in comps:  # deterministic: the random stream (and the cohort) is unchanged
+            k = COMPONENT_NAMES.index(c)
+            each[k][:, cols] = (
+                curve
+                if len(comps) == 1
+                else specimen_curves({c: comps[c]}, fe_moments, fe_rom[cfg], moments)
+            )
+        alone.append(each)
         rows.append(
             {
                 "specimen": f"H{i:03d}",
@@ -482,6 +504,7 @@ def make_hidden_cohort(
         truth=truth,
         noise_deg=float(noise_deg),
         seed=int(seed),
+        component_clean_deg=np.stack(alone),
     )
 
 

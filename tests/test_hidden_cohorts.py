@@ -78,3 +78,29 @@ def test_stratified_takes_every_class():
     labels = np.repeat(np.array(hc.CLASSES), 8)
     idx = hc.stratified(labels, 14)
     assert len(idx) == 14 and set(labels[idx]) == set(hc.CLASSES)
+
+
+def test_component_curves_alone_match_single_classes_and_leave_the_cohort_unchanged():
+    m, rom = _fe()
+    c = hc.make_hidden_cohort(m, rom, seed=3)
+    n_comp = len(hc.COMPONENT_NAMES)
+    assert c.component_clean_deg.shape == (len(c.specimens), n_comp, 4, len(c.moments))
+    for i, label in enumerate(c.labels):
+        have = hc.COMPONENTS[label]
+        for k, comp in enumerate(hc.COMPONENT_NAMES):
+            alone = c.component_clean_deg[i, k]
+            measured = np.isfinite(c.clean_deg[i])
+            if comp not in have:
+                assert not np.isfinite(alone).any()
+                continue
+            assert np.array_equal(np.isfinite(alone), measured)
+            if len(have) == 1:
+                assert np.allclose(alone[measured], c.clean_deg[i][measured])
+            else:  # each component alone moves the curve less than both together
+                both = np.abs(c.clean_deg[i] - c.component_clean_deg[i, k])
+                assert np.nanmax(both) > 1e-6
+    # computing them draws nothing (checked once against the cohorts before they existed)
+    again = hc.make_hidden_cohort(m, rom, seed=3)
+    assert np.array_equal(c.rom_deg, again.rom_deg, equal_nan=True)
+    sub = c.subset([0, 40])
+    assert sub.component_clean_deg.shape[:2] == (2, n_comp)
