@@ -181,6 +181,23 @@ def test_an_effect_that_explains_its_own_load_cases_stays_when_more_is_missing(w
     assert all(s.verdict != NONE for s in diag.specimens), verdicts
 
 
+def test_every_effect_of_a_combination_still_pays_given_the_others(world):
+    """Stepwise selection: each sub-model of a final combination, without one of its effects,
+    scores worse (BIC), however well or badly the combination explains the data."""
+    _, _, _, diag = world
+    checked = 0
+    for s in diag.specimens:
+        if len(s.effects) < 2:
+            continue
+        crit = {tuple(sorted(r["effects"])): r["criterion"] for r in s.ranking}
+        here = crit[tuple(sorted(s.effects))]
+        for drop in s.effects:
+            rest = tuple(sorted(e for e in s.effects if e != drop))
+            assert crit[rest] > here, (s.specimen, drop, crit)
+        checked += 1
+    assert checked >= 3
+
+
 def test_verdict_labels():
     assert verdict_label([], True) == NONE
     assert verdict_label([], False) == UNEXPLAINED
@@ -202,6 +219,8 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, elimination_cap=0.5)
     with pytest.raises(ConfigError, match="shape_starts must be >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, shape_starts=-1)
+    with pytest.raises(ConfigError, match=r"backward_delta must be in \[0, min_delta=10.0\]"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, backward_delta=11.0)
     with pytest.raises(ConfigError, match="min_delta_inadequate must be >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
