@@ -86,7 +86,7 @@ def test_register_as_decorator_and_as_call_then_get_create_and_names():
     assert reg.names() == ["cog", "gear"] == list(reg)
     assert "gear" in reg and "nope" not in reg and len(reg) == 2
     assert reg.create("gear", teeth=30).teeth == 30
-    assert reg.items() == [("cog", Cog), ("gear", Local)]
+    assert reg.items() == [("gear", Local), ("cog", Cog)]  # in registration order
 
 
 def test_objects_that_carry_their_name_register_bare():

@@ -227,9 +227,9 @@ class Registry(Generic[T]):
         return sorted(self._entries)
 
     def items(self) -> list[tuple[str, T]]:
-        """``(name, object)`` pairs, sorted by name."""
+        """``(name, object)`` pairs, in registration order."""
         self.load()
-        return sorted(self._entries.items(), key=lambda item: item[0])
+        return list(self._entries.items())
 
     def __contains__(self, name: object) -> bool:
         self.load()
