@@ -84,7 +84,7 @@ def test_register_as_decorator_and_as_call_then_get_create_and_names():
     assert reg.register("cog", Cog) is Cog  # a call returns the object
     assert reg.get("gear") is Local and reg.get("cog") is Cog
     assert reg.names() == ["cog", "gear"] == list(reg)
-    assert "gear" in reg and "nope" not in reg and len(reg) == 2
+    assert "gear" in reg and "nope" not in reg and ["gear"] not in reg and len(reg) == 2
     assert reg.create("gear", teeth=30).teeth == 30
     assert reg.items() == [("gear", Local), ("cog", Cog)]  # in registration order
 

@@ -34,6 +34,29 @@ import, so a command that does not use it pays nothing and cannot fail because o
   A plugin that fails to load is reported as a ConfigError naming the entry point, its
   distribution, the error and the fix, on every use of that registry until it is fixed or
   uninstalled; whatever it registered before failing is removed, and the other plugins load.
+
+femcal's four registries, each with thin module functions of the same verbs:
+
+==========================================  ======================  =========================
+registry                                    entry-point group       module functions
+==========================================  ======================  =========================
+``femcal.surrogates.surrogate_registry``    ``femcal.surrogates``   ``register_surrogate``,
+                                                                    ``get_surrogate``,
+                                                                    ``make_surrogate``,
+                                                                    ``available_surrogates``
+``femcal.calibration.calibrator_registry``  ``femcal.calibrators``  ``register_calibrator``,
+                                                                    ``get_calibrator``,
+                                                                    ``available_calibrators``
+``femcal.effects.effect_registry``          ``femcal.effects``      ``register_effect``,
+                                                                    ``get_effect``,
+                                                                    ``available_effects``
+``femcal.fe.solver_registry``               ``femcal.solvers``      ``register_solver``,
+                                                                    ``make_solver``,
+                                                                    ``available_solvers``
+==========================================  ======================  =========================
+
+``make_*`` builds an instance (``create``), ``get_*`` returns what was registered, except the
+older ``femcal.fe.get_solver``, kept as an alias of ``make_solver``.
 """
 
 from __future__ import annotations
@@ -233,7 +256,10 @@ class Registry(Generic[T]):
 
     def __contains__(self, name: object) -> bool:
         self.load()
-        return name in self._entries
+        try:
+            return name in self._entries
+        except TypeError:  # an unhashable value is no name
+            return False
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.names())
