@@ -217,10 +217,13 @@ def _install_plugin(root: Path, entry: str) -> None:
 
 
 @pytest.fixture
-def clean_registry(monkeypatch):
-    monkeypatch.setattr(surrogate_base, "_REGISTRY", dict(surrogate_base._REGISTRY))
-    monkeypatch.setattr(surrogate_base, "_PLUGINS_DONE", False)
+def clean_registry():
+    registry = surrogate_base.surrogate_registry
+    registry.load()
+    state = registry.snapshot()
+    registry.rescan_plugins()
     yield
+    registry.restore(state)
     sys.modules.pop("femcal_plugin_demo", None)
 
 
@@ -230,7 +233,7 @@ def test_entry_point_plugins_are_trusted(tmp_path, monkeypatch, clean_registry):
         trusted_surrogate_class(spec, source="model/femcal_loader.json")
     _install_plugin(tmp_path, f"demo = {spec}")
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(surrogate_base, "_PLUGINS_DONE", False)
+    surrogate_base.surrogate_registry.rescan_plugins()  # as in a fresh process
     cls = trusted_surrogate_class(spec, source="model/femcal_loader.json")
     assert cls.__name__ == "DemoSurrogate" and spec in trusted_surrogate_classes()
     assert "femcal.surrogates.nn:NeuralSurrogate" in trusted_surrogate_classes()

@@ -98,7 +98,7 @@ def test_loading_the_same_file_again_is_harmless(tmp_path):
     assert load_effect_modules([tmp_path / "." / path.name, path]) == ["creep"]
     assert get_effect("creep") is cls
     # After a registry reset the file's classes come back without re-importing it.
-    del effects_base._EFFECTS["creep"]
+    effects_base.effect_registry.unregister("creep")
     assert load_effect_modules([path]) == ["creep"]
     assert get_effect("creep") is cls
 
@@ -252,7 +252,7 @@ def install_plugin(tmp_path: Path, monkeypatch, entry_points: str, modules: dict
     for name, text in modules.items():
         write(site / f"{name}.py", text)
     monkeypatch.syspath_prepend(str(site))  # also invalidates importlib's caches
-    effects_base._PLUGINS_DONE = False  # as in a fresh process
+    effects_base.effect_registry.rescan_plugins()  # as in a fresh process
 
 
 def test_an_entry_point_naming_a_module_registers_its_effects(tmp_path, monkeypatch):

@@ -6,6 +6,7 @@ from femcal.calibration.base import (
     Solution,
     available_calibrators,
     calibrate,
+    calibrator_registry,
     get_calibrator,
     register_calibrator,
 )
@@ -18,6 +19,7 @@ __all__ = [
     "Solution",
     "available_calibrators",
     "calibrate",
+    "calibrator_registry",
     "get_calibrator",
     "register_calibrator",
 ]

@@ -8,7 +8,9 @@ A calibrator is one function registered under a name::
 It receives every specimen of a batch at once and returns a :class:`Solution`; the front
 function :func:`calibrate` times the batch, evaluates the solution through the surrogate and
 returns a :class:`CalibrationResult` (SciPy style: ``x``, ``fun``, ``success``, ``message``,
-``nit`` plus named fields). A new calibrator is a new module that registers itself.
+``nit`` plus named fields). A new calibrator is a new module that registers itself, listed in
+the registry's ``builtins`` (:data:`calibrator_registry`, a :class:`~femcal.registry.Registry`),
+or an installed package's entry point in the group ``femcal.calibrators``.
 """
 
 from __future__ import annotations
@@ -27,40 +29,52 @@ import torch
 from femcal.calibration.model import CurveModel
 from femcal.errors import ConfigError, InputDataError
 from femcal.metrics import curve_metrics
+from femcal.registry import Registry
 from femcal.schema import LOAD_CASES
 
 logger = logging.getLogger(__name__)
 
-_CALIBRATORS: dict[str, Callable[..., Solution]] = {}
+#: Entry-point group of installed calibrator plugins.
+ENTRY_POINT_GROUP = "femcal.calibrators"
+
+#: The calibrator registry: the built-in methods and installed plugins (entry points of
+#: :data:`ENTRY_POINT_GROUP`, a module registering functions, or a function).
+calibrator_registry: Registry[Callable[..., Solution]] = Registry(
+    "calibrator",
+    what="calibration method",
+    group=ENTRY_POINT_GROUP,
+    builtins=(
+        "femcal.calibration.ga",
+        "femcal.calibration.inverse",
+        "femcal.calibration.pgd",
+        "femcal.calibration.pgd_study",
+    ),
+    fix=(
+        'Or register your own: a function decorated with @register_calibrator("name"), in a '
+        f"package with an entry point in the group {ENTRY_POINT_GROUP}."
+    ),
+    expects="a calibrator function",
+)
 
 
-def register_calibrator(name: str) -> Callable[[Callable[..., Solution]], Callable[..., Solution]]:
-    """Decorator registering a calibrator function under ``name``."""
+def register_calibrator(
+    name: str, *, replace: bool = False
+) -> Callable[[Callable[..., Solution]], Callable[..., Solution]]:
+    """Decorator registering a calibrator function under ``name``.
 
-    def decorate(fn: Callable[..., Solution]) -> Callable[..., Solution]:
-        if name in _CALIBRATORS and _CALIBRATORS[name] is not fn:
-            raise ConfigError(f"A calibrator named '{name}' is already registered.")
-        _CALIBRATORS[name] = fn
-        return fn
-
-    return decorate
+    ConfigError if another function already holds ``name`` (unless ``replace=True``).
+    """
+    return calibrator_registry.register(name, replace=replace)
 
 
 def available_calibrators() -> list[str]:
     """Registered calibrator names, sorted."""
-    _load_builtin()
-    return sorted(_CALIBRATORS)
+    return calibrator_registry.names()
 
 
 def get_calibrator(name: str) -> Callable[..., Solution]:
     """The calibrator registered under ``name`` (ConfigError listing the names otherwise)."""
-    _load_builtin()
-    try:
-        return _CALIBRATORS[name]
-    except KeyError:
-        raise ConfigError(
-            f"Unknown calibration method '{name}'; choose one of {', '.join(sorted(_CALIBRATORS))}."
-        ) from None
+    return calibrator_registry.get(name)
 
 
 def check_choices(method: str, **options: tuple[str, tuple[str, ...]]) -> None:
@@ -73,11 +87,6 @@ def check_choices(method: str, **options: tuple[str, tuple[str, ...]]) -> None:
             raise ConfigError(
                 f"{method}: unknown {name} '{value}'; choose one of {', '.join(choices)}."
             )
-
-
-def _load_builtin() -> None:
-    # Importing the modules registers them.
-    from femcal.calibration import ga, inverse, pgd, pgd_study  # noqa: F401
 
 
 @dataclass

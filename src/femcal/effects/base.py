@@ -39,29 +39,23 @@ Where an effect module can live (every one registers its effects when imported):
 from __future__ import annotations
 
 import hashlib
-import importlib
 import importlib.util
 import sys
 import traceback
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from importlib import metadata
 from pathlib import Path
-from types import ModuleType
 from typing import ClassVar
 
 import numpy as np
 import torch
 
 from femcal.errors import ConfigError
+from femcal.registry import Registry
 from femcal.schema import LOAD_CASES
 
-_EFFECTS: dict[str, type[Effect]] = {}
 #: The entry-point group installed packages declare their effects in.
 ENTRY_POINT_GROUP = "femcal.effects"
-#: Entry points loaded so far (``name = value``), and whether all of them are.
-_ENTRY_POINTS_LOADED: set[str] = set()
-_PLUGINS_DONE = False
 #: Effect files loaded by path: resolved path -> the classes they registered (idempotence).
 _USER_FILES: dict[Path, list[type[Effect]]] = {}
 
@@ -159,12 +153,22 @@ class Effect:
         return u
 
 
-def register_effect(cls: type[Effect]) -> type[Effect]:
-    """Class decorator: register an effect under ``cls.name`` (validated)."""
+def _check_effect(name: str, cls: type[Effect]) -> None:
+    """Refuse an effect class that is incomplete or registered under another name."""
+    if not (isinstance(cls, type) and issubclass(cls, Effect)):
+        raise ConfigError(
+            f"Only Effect subclasses can be registered as effects; got {cls!r}. Derive your "
+            "class from femcal.effects.Effect."
+        )
     if not cls.name or cls.kind not in ("parallel", "series"):
         raise ConfigError(
             f"Effect {cls.__name__} needs a name and kind 'parallel' or 'series'; got "
             f"name={cls.name!r}, kind={cls.kind!r}."
+        )
+    if name != cls.name:
+        raise ConfigError(
+            f"Effect {cls.__name__} is named {cls.name!r} (its class attribute `name`) but was "
+            f"registered as {name!r}; register it under its own name (@register_effect)."
         )
     unknown = [lc for lc in cls.load_cases if lc not in LOAD_CASES]
     if unknown or not cls.load_cases:
@@ -178,92 +182,45 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
                 f"Effect '{cls.name}' parameter '{q.name}': need lower < upper (and lower > 0 "
                 f"on a log scale); got [{q.lower}, {q.upper}]."
             )
-    if cls.name in _EFFECTS and _EFFECTS[cls.name] is not cls:
-        old = _EFFECTS[cls.name]
-        raise ConfigError(
-            f"An effect named '{cls.name}' is already registered ({old.__module__}."
-            f"{old.__qualname__}); got another class {cls.__module__}.{cls.__qualname__}. "
-            "Give yours another name (its class attribute `name`)."
-        )
-    _EFFECTS[cls.name] = cls
-    return cls
+
+
+#: The effect registry: built-in modules (every module of this package), installed plugins
+#: (entry points of :data:`ENTRY_POINT_GROUP`) and the files :func:`load_effect_modules` loads.
+effect_registry: Registry[type[Effect]] = Registry(
+    "effect",
+    what="physical effect",
+    group=ENTRY_POINT_GROUP,
+    builtins=("femcal.effects.*",),
+    fix=(
+        "Or register your own: an Effect subclass decorated with @register_effect, in a file "
+        "given to --effects-module (or effects.modules in params.yaml), or in a package with "
+        f"an entry point in the group {ENTRY_POINT_GROUP} (see femcal.effects)."
+    ),
+    name_of=lambda cls: getattr(cls, "name", None),
+    accepts=lambda obj: isinstance(obj, type) and issubclass(obj, Effect),
+    expects="an Effect subclass",
+    on_register=_check_effect,
+    rename="Give yours another name (its class attribute `name`)",
+)
+
+
+def register_effect(cls: type[Effect]) -> type[Effect]:
+    """Class decorator: register an effect under ``cls.name`` (validated).
+
+    ConfigError if the class is incomplete or another class already holds its name; the same
+    class again is not a duplicate.
+    """
+    return effect_registry.register(cls)
 
 
 def available_effects() -> list[str]:
     """Registered effect names, sorted (built-in, installed plugins, loaded files)."""
-    _load_registry()
-    return sorted(_EFFECTS)
+    return effect_registry.names()
 
 
 def get_effect(name: str) -> type[Effect]:
     """The effect class registered under ``name`` (ConfigError listing the names otherwise)."""
-    _load_registry()
-    try:
-        return _EFFECTS[name]
-    except KeyError:
-        raise ConfigError(
-            f"Unknown physical effect '{name}'; choose one of {', '.join(sorted(_EFFECTS))}, or "
-            "register your own (see femcal.effects)."
-        ) from None
-
-
-def _load_registry() -> None:
-    """Register the built-in effects, then those of installed plugins (entry points)."""
-    _load_builtin()
-    _load_entry_points()
-
-
-def _load_builtin() -> None:
-    """Import every module of the femcal.effects package: a new file registers itself."""
-    import pkgutil
-
-    import femcal.effects as package
-
-    for info in pkgutil.iter_modules(package.__path__):
-        importlib.import_module(f"femcal.effects.{info.name}")
-
-
-def _load_entry_points() -> None:
-    """Load the installed plugins: every entry point of the group ``femcal.effects``.
-
-    Each entry point is loaded once per process. A broken one raises a ConfigError naming it,
-    whenever the registry is used, until it is fixed or uninstalled.
-    """
-    global _PLUGINS_DONE
-    if _PLUGINS_DONE:
-        return
-    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        key = f"{ep.name} = {ep.value}"
-        if key not in _ENTRY_POINTS_LOADED:
-            _load_entry_point(ep)
-            _ENTRY_POINTS_LOADED.add(key)
-    _PLUGINS_DONE = True
-
-
-def _load_entry_point(ep: metadata.EntryPoint) -> None:
-    """Load one entry point: a module registers its effects; an Effect subclass is registered."""
-    dist = getattr(ep, "dist", None)
-    where = f"'{ep.name} = {ep.value}' (entry point group {ENTRY_POINT_GROUP}"
-    where += f", distribution {dist.name} {dist.version})" if dist is not None else ")"
-    fix = f"pip uninstall {dist.name}" if dist is not None else "uninstall it"
-    snapshot = dict(_EFFECTS)
-    try:
-        obj = ep.load()
-        if isinstance(obj, type) and issubclass(obj, Effect):
-            register_effect(obj)
-    except Exception as exc:
-        _EFFECTS.clear()
-        _EFFECTS.update(snapshot)
-        raise ConfigError(
-            f"The femcal effect plugin {where} failed to load: {type(exc).__name__}: {exc}. "
-            f"Fix the plugin, or remove it ({fix})."
-        ) from exc
-    if not isinstance(obj, ModuleType) and not (isinstance(obj, type) and issubclass(obj, Effect)):
-        raise ConfigError(
-            f"The femcal effect plugin {where} names {obj!r}, a {type(obj).__name__}; an entry "
-            "point of this group names a module ('my_package.effects') or an Effect subclass "
-            f"('my_package.effects:Creep'). Fix the plugin, or remove it ({fix})."
-        )
+    return effect_registry.get(name)
 
 
 def load_effect_modules(paths: Sequence[str | Path]) -> list[str]:
@@ -300,7 +257,7 @@ def load_effect_modules(paths: Sequence[str | Path]) -> list[str]:
     >>> load_effect_modules(["my_effects.py"])  # doctest: +SKIP
     ['creep']
     """
-    _load_registry()
+    effect_registry.load()
     files = [file for path in paths for file in _effect_files(Path(path))]
     names: list[str] = []
     for file in files:
@@ -351,14 +308,13 @@ def _load_effect_file(file: Path) -> list[type[Effect]]:
     if spec is None or spec.loader is None:  # pragma: no cover - a .py file always has one
         raise ConfigError(f"Effect module {file} cannot be imported; give a .py file.")
     module = importlib.util.module_from_spec(spec)
-    snapshot = dict(_EFFECTS)
+    state = effect_registry.snapshot()
     sys.modules[module_name] = module
     try:
         spec.loader.exec_module(module)
     except Exception as exc:
         sys.modules.pop(module_name, None)
-        _EFFECTS.clear()
-        _EFFECTS.update(snapshot)
+        effect_registry.restore(state)
         if isinstance(exc, ConfigError):
             raise ConfigError(f"Effect module {file}: {exc}") from exc
         line = _error_line(exc, resolved)
@@ -367,7 +323,7 @@ def _load_effect_file(file: Path) -> list[type[Effect]]:
             f"{f' (line {line})' if line else ''}: {exc}. Fix the module; `python {file}` shows "
             "the full traceback."
         ) from exc
-    classes = [cls for name, cls in _EFFECTS.items() if snapshot.get(name) is not cls]
+    classes = [cls for name, cls in effect_registry.items() if state.entries.get(name) is not cls]
     if not classes:
         sys.modules.pop(module_name, None)
         defined = [

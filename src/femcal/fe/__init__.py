@@ -9,8 +9,10 @@ from femcal.fe.base import (
     SolverAdapter,
     available_solvers,
     get_solver,
+    make_solver,
     register_solver,
     simulate,
+    solver_registry,
 )
 
 __all__ = [
@@ -22,6 +24,8 @@ __all__ = [
     "SolverAdapter",
     "available_solvers",
     "get_solver",
+    "make_solver",
     "register_solver",
     "simulate",
+    "solver_registry",
 ]

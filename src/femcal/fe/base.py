@@ -29,6 +29,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from femcal.errors import ConfigError
+from femcal.registry import Registry
 from femcal.schema import LOAD_CASES, STATUS_FAILED, STATUS_OK
 
 logger = logging.getLogger(__name__)
@@ -161,47 +162,51 @@ class SolverAdapter(Protocol):
     def parse(self, prepared: PreparedRun, outcome: RunOutcome) -> FEResult: ...
 
 
-_SOLVERS: dict[str, Callable[..., SolverAdapter]] = {}
+#: Entry-point group of installed solver-adapter plugins.
+ENTRY_POINT_GROUP = "femcal.solvers"
+
+#: The solver registry: adapter classes (or factories) by name; the built-in ones are the
+#: modules of this package, plugins the entry points of :data:`ENTRY_POINT_GROUP`.
+solver_registry: Registry[Callable[..., SolverAdapter]] = Registry(
+    "FE solver",
+    group=ENTRY_POINT_GROUP,
+    builtins=("femcal.fe.*",),
+    fix=(
+        "Set fe.solver in params.yaml to one of them, or register your own: an adapter class "
+        'decorated with @register_solver("name") in a module of femcal.fe, or in a package '
+        f"with an entry point in the group {ENTRY_POINT_GROUP}."
+    ),
+    expects="a solver adapter class",
+)
 
 
 def register_solver(
-    name: str,
+    name: str, *, replace: bool = False
 ) -> Callable[[Callable[..., SolverAdapter]], Callable[..., SolverAdapter]]:
-    """Class decorator: make an adapter available as ``get_solver(name, **settings)``."""
+    """Class decorator: make an adapter available as ``make_solver(name, **settings)``.
 
-    def decorate(factory: Callable[..., SolverAdapter]) -> Callable[..., SolverAdapter]:
-        _SOLVERS[name] = factory
-        return factory
-
-    return decorate
+    ConfigError if another adapter already holds ``name`` (unless ``replace=True``).
+    """
+    return solver_registry.register(name, replace=replace)
 
 
 def available_solvers() -> list[str]:
     """Names of the registered solver adapters."""
-    _import_builtin()
-    return sorted(_SOLVERS)
+    return solver_registry.names()
+
+
+def make_solver(name: str, **settings: object) -> SolverAdapter:
+    """An adapter instance by registry name, built with ``settings`` (keyword arguments)."""
+    return solver_registry.create(name, **settings)
 
 
 def get_solver(name: str, **settings: object) -> SolverAdapter:
-    """An adapter instance by registry name, built with ``settings`` (keyword arguments)."""
-    _import_builtin()
-    if name not in _SOLVERS:
-        raise ConfigError(
-            f"Unknown FE solver {name!r}; available: {', '.join(sorted(_SOLVERS)) or 'none'}. "
-            "Set fe.solver in params.yaml to one of them."
-        )
-    return _SOLVERS[name](**settings)
+    """An adapter instance, as :func:`make_solver` (kept for callers of this older name).
 
-
-def _import_builtin() -> None:
-    import importlib
-    import pkgutil
-
-    import femcal.fe as package
-
-    for module in pkgutil.iter_modules(package.__path__):
-        if module.name not in ("base", "__init__"):
-            importlib.import_module(f"femcal.fe.{module.name}")
+    Unlike the ``get_`` functions of the other registries, which return the registered class,
+    this one builds the adapter; ``solver_registry.get(name)`` gives the class.
+    """
+    return make_solver(name, **settings)
 
 
 def simulate(adapter: SolverAdapter, job: FEJob, workdir: Path) -> FEResult:

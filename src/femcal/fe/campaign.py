@@ -417,10 +417,10 @@ _ADAPTERS: dict[str, Any] = {}
 
 def _adapter(name: str, settings: Mapping[str, Any], digest: str) -> Any:
     """One adapter instance per worker process and settings."""
-    from femcal.fe.base import get_solver
+    from femcal.fe.base import make_solver
 
     if digest not in _ADAPTERS:
-        _ADAPTERS[digest] = get_solver(name, **dict(settings))
+        _ADAPTERS[digest] = make_solver(name, **dict(settings))
     return _ADAPTERS[digest]
 
 

@@ -6,23 +6,24 @@ arguments, ``fit(X, y)`` learns and returns ``self``, fitted attributes end in `
 the surrogate's :class:`~femcal.space.ParameterSpace`, in physical units; ``y`` is the RoM in
 degrees. ``predict(X)`` returns RoM in degrees, shape (n,).
 
-A new surrogate is one file: a class decorated with :func:`register_surrogate`. A package
-can also provide surrogates through the entry-point group ``femcal.surrogates`` (a module
-that registers its classes on import, or a class, registered under the entry point's name).
+A new surrogate is one file: a class decorated with :func:`register_surrogate`, its module
+listed in the registry's ``builtins`` (:data:`surrogate_registry`, a
+:class:`~femcal.registry.Registry`). A package can also provide surrogates through the
+entry-point group ``femcal.surrogates`` (a module that registers its classes on import, or a
+class, registered under the entry point's name).
 Only registered classes are loaded from saved models (:func:`trusted_surrogate_class`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from importlib import metadata
-from types import ModuleType
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import pandas as pd
 
 from femcal.errors import ConfigError, InputDataError, UntrustedArtifactError
+from femcal.registry import Registry
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 
@@ -36,79 +37,57 @@ class Surrogate(Protocol):
     def predict(self, X: pd.DataFrame) -> np.ndarray: ...
 
 
-_REGISTRY: dict[str, Callable[..., Surrogate]] = {}
 #: Entry-point group of installed surrogate plugins.
 ENTRY_POINT_GROUP = "femcal.surrogates"
-_PLUGINS_DONE = False
 
 
-def register_surrogate(name: str) -> Callable[[type], type]:
-    """Class decorator: make a surrogate available under ``name``."""
+def _set_registry_name(name: str, cls: Any) -> None:
+    """A surrogate class knows the name it is registered under (``registry_name``)."""
+    if not isinstance(cls, type):
+        raise ConfigError(
+            f"A surrogate is registered as a class (its instances fit and predict); got "
+            f"{cls!r} for '{name}'. Register the class."
+        )
+    cls.registry_name = name
 
-    def deco(cls: type) -> type:
-        if name in _REGISTRY and _REGISTRY[name] is not cls:
-            raise ConfigError(f"A surrogate named '{name}' is already registered.")
-        _REGISTRY[name] = cls
-        cls.registry_name = name
-        return cls
 
-    return deco
+#: The surrogate registry: the built-in surrogates (baselines, the network) and installed
+#: plugins (entry points of :data:`ENTRY_POINT_GROUP`).
+surrogate_registry: Registry[type] = Registry(
+    "surrogate",
+    group=ENTRY_POINT_GROUP,
+    builtins=("femcal.surrogates.baselines", "femcal.surrogates.nn"),
+    fix=(
+        'Or register your own: a class decorated with @register_surrogate("name"), in a '
+        f"package with an entry point in the group {ENTRY_POINT_GROUP}."
+    ),
+    accepts=lambda obj: isinstance(obj, type),
+    expects="a surrogate class",
+    on_register=_set_registry_name,
+)
+
+
+def register_surrogate(name: str, *, replace: bool = False) -> Callable[[type], type]:
+    """Class decorator: make a surrogate available under ``name`` (sets ``registry_name``).
+
+    ConfigError if another class already holds ``name`` (unless ``replace=True``).
+    """
+    return surrogate_registry.register(name, replace=replace)
 
 
 def available_surrogates() -> list[str]:
     """Registered surrogate names, sorted."""
-    _import_builtins()
-    return sorted(_REGISTRY)
+    return surrogate_registry.names()
+
+
+def get_surrogate(name: str) -> type:
+    """The surrogate class registered as ``name`` (ConfigError listing the names otherwise)."""
+    return surrogate_registry.get(name)
 
 
 def make_surrogate(name: str, **kwargs: Any) -> Surrogate:
     """Build the surrogate registered as ``name`` with keyword arguments ``kwargs``."""
-    _import_builtins()
-    try:
-        cls = _REGISTRY[name]
-    except KeyError:
-        raise ConfigError(
-            f"Unknown surrogate '{name}'. Registered surrogates: {', '.join(sorted(_REGISTRY))}."
-        ) from None
-    return cls(**kwargs)
-
-
-def _import_builtins() -> None:
-    # Importing the modules runs their @register_surrogate decorators.
-    import femcal.surrogates.baselines  # noqa: F401
-    import femcal.surrogates.nn  # noqa: F401
-
-
-def _load_entry_points() -> None:
-    """Load the installed surrogate plugins (group ``femcal.surrogates``), once per process.
-
-    An entry point names a module (its ``@register_surrogate`` classes register on import) or
-    a class (registered under the entry point's name).
-    """
-    global _PLUGINS_DONE
-    if _PLUGINS_DONE:
-        return
-    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        dist = getattr(ep, "dist", None)
-        where = f"'{ep.name} = {ep.value}' (entry point group {ENTRY_POINT_GROUP}"
-        where += f", distribution {dist.name} {dist.version})" if dist is not None else ")"
-        try:
-            obj = ep.load()
-        except Exception as exc:
-            raise ConfigError(
-                f"The femcal surrogate plugin {where} failed to load: {type(exc).__name__}: "
-                f"{exc}. Fix the plugin, or uninstall it."
-            ) from exc
-        if isinstance(obj, type):
-            if obj not in _REGISTRY.values():
-                register_surrogate(ep.name)(obj)
-        elif not isinstance(obj, ModuleType):
-            raise ConfigError(
-                f"The femcal surrogate plugin {where} names a {type(obj).__name__}; an entry "
-                "point of this group names a module or a surrogate class. Fix the plugin, or "
-                "uninstall it."
-            )
-    _PLUGINS_DONE = True
+    return surrogate_registry.create(name, **kwargs)
 
 
 def trusted_surrogate_classes() -> dict[str, type]:
@@ -117,11 +96,9 @@ def trusted_surrogate_classes() -> dict[str, type]:
     Those of femcal's surrogate registry: the built-in surrogates, those installed through the
     ``femcal.surrogates`` entry points and those registered in this process.
     """
-    _import_builtins()
-    _load_entry_points()
     return {
         f"{cls.__module__}:{cls.__qualname__}": cls
-        for cls in _REGISTRY.values()
+        for _, cls in surrogate_registry.items()
         if isinstance(cls, type)
     }
 
