@@ -193,6 +193,10 @@ CALIBRATOR_OPTIONS: dict[str, Keywords] = {
                 Int(0),
                 "effect models: starts per specimen kept after keep_after iterations (0: all)",
             ),
+            "effect_max_iter": (
+                Int(1),
+                "effect models: Gauss-Newton iterations once effects join (max_iter: the disc)",
+            ),
         },
         "pgd calibrator",
         refused={
