@@ -364,6 +364,36 @@ def register_and_promote(
     return str(mv.version), promoted
 
 
+def register_run_model(
+    model_uri: str,
+    register_as: str | None,
+    *,
+    val_metric: float,
+    tags: dict[str, str] | None = None,
+) -> tuple[str | None, bool]:
+    """Register a model logged by the active run when ``register_as`` names it.
+
+    :func:`register_and_promote`, then the run is tagged ``registered_version`` and
+    ``promoted``.
+
+    Returns
+    -------
+    version : str or None
+        The new model version (None when ``register_as`` is empty).
+    promoted : bool
+        Whether the champion alias now points to it.
+    """
+    if not register_as:
+        return None, False
+    import mlflow
+
+    version, promoted = register_and_promote(
+        model_uri, name=register_as, val_metric=val_metric, tags=tags
+    )
+    mlflow.set_tags({"registered_version": version, "promoted": str(promoted)})
+    return version, promoted
+
+
 def champion_version(name: str = DEFAULT_MODEL_NAME, *, alias: str = CHAMPION_ALIAS) -> Any | None:
     """The model version holding ``alias``, or None when the model or alias does not exist."""
     from mlflow import MlflowClient

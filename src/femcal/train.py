@@ -23,7 +23,12 @@ import pandas as pd
 from femcal.errors import ConfigError
 from femcal.schema import STATUS_OK
 from femcal.space import ParameterSpace
-from femcal.training.study import TrialRun, run_study, study_name_for
+from femcal.training.study import (
+    TrialRun,
+    hidden_from_width_depth,
+    search_settings,
+    study_name_for,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -66,14 +71,7 @@ class TrainResult:
 
 def surrogate_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
     """Turn flat hyper-parameters (``width``, ``depth``) into NeuralSurrogate keywords."""
-    kw = dict(params)
-    if "width" in kw or "depth" in kw:
-        width = int(kw.pop("width", 256))
-        depth = int(kw.pop("depth", 4))
-        kw["hidden"] = tuple([width] * depth)
-    if "hidden" in kw:
-        kw["hidden"] = tuple(int(h) for h in kw["hidden"])
-    return kw
+    return hidden_from_width_depth(params, width=256, depth=4)
 
 
 def ok_rows(table: pd.DataFrame) -> pd.DataFrame:
@@ -158,7 +156,7 @@ def train_surrogate(
     import mlflow
 
     from femcal.surrogates.nn import NeuralSurrogate
-    from femcal.tracking import log_surrogate, register_and_promote
+    from femcal.tracking import log_surrogate, register_run_model
 
     t0 = time.perf_counter()
     if n_trials < 0 or final_members < 1:
@@ -188,41 +186,30 @@ def train_surrogate(
         )
         mlflow.set_tag("femcal.stage", "train")
 
-        best_params: dict[str, Any] = dict(fixed)
-        n_complete = 0
-        if n_trials > 0:
-
-            def train_trial(trial: TrialRun) -> float:
-                model = NeuralSurrogate(
-                    space, **surrogate_kwargs(trial.params), n_members=1, seed=seed + trial.number
-                )
-                model.fit(
-                    X_tr,
-                    y_tr,
-                    X_val=X_va,
-                    y_val=y_va,
-                    logger=trial.logger,
-                    callbacks=trial.callbacks,
-                )
-                value = float(model.best_val_mae_deg_)
-                mlflow.log_metric("best_val_mae_deg", value)
-                return value
-
-            outcome = run_study(
-                train_trial,
-                storage=storage,
-                study_name=full_name,
-                search_space=search_space,
-                fixed=fixed,
-                n_trials=n_trials,
-                seed=seed,
-                monitor="val_mae_deg",
-                heartbeat_seconds=heartbeat_seconds,
-                progress=progress,
+        def train_trial(trial: TrialRun) -> float:
+            model = NeuralSurrogate(
+                space, **surrogate_kwargs(trial.params), n_members=1, seed=seed + trial.number
             )
-            n_complete = outcome.n_complete
-            best_params.update(outcome.best_params)
-            mlflow.log_metric("best_trial_val_mae_deg", outcome.best_value)
+            model.fit(
+                X_tr, y_tr, X_val=X_va, y_val=y_va, logger=trial.logger, callbacks=trial.callbacks
+            )
+            value = float(model.best_val_mae_deg_)
+            mlflow.log_metric("best_val_mae_deg", value)
+            return value
+
+        best_params, n_complete = search_settings(
+            train_trial,
+            fixed=fixed,
+            n_trials=n_trials,
+            metric="val_mae_deg",
+            storage=storage,
+            study_name=full_name,
+            search_space=search_space,
+            seed=seed,
+            monitor="val_mae_deg",
+            heartbeat_seconds=heartbeat_seconds,
+            progress=progress,
+        )
 
         final_kw = surrogate_kwargs(best_params)
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
@@ -238,15 +225,12 @@ def train_surrogate(
         mlflow.log_metric("val_mae_deg", val_mae)
 
         info = log_surrogate(model, space)
-        version, promoted = None, False
-        if register_as:
-            version, promoted = register_and_promote(
-                info.model_uri,
-                name=register_as,
-                val_metric=val_mae,
-                tags={"optuna_study": full_name, "train_run_id": parent.info.run_id},
-            )
-            mlflow.set_tags({"registered_version": version, "promoted": str(promoted)})
+        version, promoted = register_run_model(
+            info.model_uri,
+            register_as,
+            val_metric=val_mae,
+            tags={"optuna_study": full_name, "train_run_id": parent.info.run_id},
+        )
         seconds = time.perf_counter() - t0
         mlflow.log_metric("train_seconds", seconds)
         return TrainResult(

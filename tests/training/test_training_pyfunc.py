@@ -12,7 +12,7 @@ import pytest
 from femcal.errors import UntrustedArtifactError
 from femcal.inverse import InverseModel, load_inverse, log_inverse
 from femcal.surrogates.nn import NeuralSurrogate
-from femcal.tracking import configure_tracking, ensure_experiment, input_example, log_surrogate
+from femcal.tracking import input_example, log_surrogate
 from femcal.training.pyfunc import LOADER_FILE, model_requirements, trusted_loader
 
 from synth import study_space, tidy_table
@@ -44,15 +44,6 @@ class InversePyfunc(mlflow.pyfunc.PythonModel):
 
 mlflow.models.set_model(InversePyfunc())
 """
-
-
-@pytest.fixture
-def store(tmp_path, monkeypatch):
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    configure_tracking(store_dir=tmp_path / "mlruns")
-    ensure_experiment("pyfunc", store_dir=tmp_path / "mlruns")
-    yield tmp_path
-    mlflow.set_tracking_uri(None)
 
 
 @pytest.fixture(scope="module")

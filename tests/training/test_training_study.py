@@ -8,26 +8,16 @@ import pytest
 from mlflow import MlflowClient
 
 from femcal.errors import ConfigError
-from femcal.tracking import configure_tracking, ensure_experiment
 from femcal.training.study import (
     TrialRun,
     fixed_as_trial,
     n_complete,
     run_study,
+    search_settings,
     study_name_for,
 )
 
 SPACE = {"x": {"type": "float", "low": -2.0, "high": 2.0}}
-
-
-@pytest.fixture
-def store(tmp_path, monkeypatch):
-    """A temporary MLflow store; the tracking URI is reset afterwards."""
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    configure_tracking(store_dir=tmp_path / "mlruns")
-    ensure_experiment("study", store_dir=tmp_path / "mlruns")
-    yield tmp_path
-    mlflow.set_tracking_uri(None)
 
 
 def _quadratic(seen: list[TrialRun]):
@@ -73,7 +63,7 @@ def test_a_study_resumes_from_its_storage(store) -> None:
     # Each trial was a nested MLflow run of the run that started it, tagged COMPLETE.
     client = MlflowClient()
     children = client.search_runs(
-        [mlflow.get_experiment_by_name("study").experiment_id],
+        [mlflow.get_experiment_by_name("training").experiment_id],
         filter_string=f"tags.mlflow.parentRunId = '{first.info.run_id}'",
     )
     assert sorted(c.data.params["trial"] for c in children) == ["0", "1"]
@@ -89,6 +79,27 @@ def test_a_study_resumes_from_its_storage(store) -> None:
 def test_runner_settings_and_helpers(store) -> None:
     with pytest.raises(ConfigError, match="n_trials >= 1"):
         _run(store, 0, [])
+    # Without trials the fixed settings are the answer and no study is opened.
+    assert search_settings(_quadratic([]), fixed={"x": 1.0}, n_trials=0, metric="m") == (
+        {"x": 1.0},
+        0,
+    )
+    assert not (store / "optuna.db").exists()
+    with mlflow.start_run() as run:
+        best, n = search_settings(
+            _quadratic([]),
+            fixed={"x": 1.0, "width": 8},
+            n_trials=2,
+            metric="loss",
+            storage=f"sqlite:///{store / 'optuna.db'}",
+            study_name="q2",
+            search_space=SPACE,
+            seed=0,
+            monitor="val_mae",
+        )
+    assert n == 2 and best["width"] == 8 and set(best) == {"x", "width"}
+    logged = MlflowClient().get_run(run.info.run_id).data.metrics["best_trial_loss"]
+    assert logged == min((1.0 - 0.5) ** 2, (best["x"] - 0.5) ** 2)
     assert fixed_as_trial({"x": 5.0, "width": 8}, SPACE) == {}
     assert fixed_as_trial({"x": 1.0}, SPACE) == {"x": 1.0}
     choices = {"act": {"type": "categorical", "choices": ["relu", "gelu"]}}

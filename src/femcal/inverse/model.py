@@ -29,17 +29,8 @@ from femcal.inverse.net import InverseLightningModule, InverseNet, last_val_mae
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import ACTIVATIONS
+from femcal.training import persist
 from femcal.training.lightning import BestWeights, batch_loader, cpu_trainer, quiet_lightning
-from femcal.training.persist import (
-    finite_or_none,
-    freeze,
-    history_from_json,
-    history_to_json,
-    load_weights,
-    none_to_nan,
-    read_config,
-    save_model_files,
-)
 
 log = logging.getLogger(__name__)
 
@@ -376,7 +367,7 @@ class InverseModel(BaseEstimator):
             )
             trainer.fit(module, train_dataloaders=train_loader, val_dataloaders=val_loader)
 
-        self.net_ = freeze(net)
+        self.net_ = persist.freeze(net)
         self.moments_ = m
         self.input_loc_ = loc
         self.input_scale_ = scale
@@ -477,16 +468,16 @@ class InverseModel(BaseEstimator):
                 "moments": self.moments_.tolist(),
                 "input_loc": self.input_loc_.tolist(),
                 "input_scale": self.input_scale_.tolist(),
-                "best_val_mae": finite_or_none(self.best_val_mae_),
-                "history": history_to_json(self.history_),
+                "best_val_mae": persist.finite_or_none(self.best_val_mae_),
+                "history": persist.history_to_json(self.history_),
             },
         }
-        save_model_files(path, config, self.net_)
+        persist.save_model_files(path, config, self.net_)
 
     @classmethod
     def load(cls, path: str | Path) -> InverseModel:
         """Read a model written by :meth:`save` from the directory ``path``."""
-        config = read_config(path, fmt=FORMAT, what="InverseModel")
+        config = persist.read_config(path, fmt=FORMAT, what="InverseModel")
         space = None if config.get("space") is None else ParameterSpace.from_dict(config["space"])
         init = dict(config["init"])
         init["hidden"] = tuple(init["hidden"])
@@ -497,14 +488,14 @@ class InverseModel(BaseEstimator):
             input_loc=fitted["input_loc"],
             input_scale=fitted["input_scale"],
         )
-        net.load_state_dict(load_weights(path))
-        model.net_ = freeze(net)
+        net.load_state_dict(persist.load_weights(path))
+        model.net_ = persist.freeze(net)
         model.moments_ = np.asarray(fitted["moments"], dtype=float)
         model.input_loc_ = np.asarray(fitted["input_loc"], dtype=float)
         model.input_scale_ = np.asarray(fitted["input_scale"], dtype=float)
         bv = fitted.get("best_val_mae")
-        model.best_val_mae_ = float(none_to_nan(bv))
-        model.history_ = history_from_json(fitted.get("history", []))
+        model.best_val_mae_ = float(persist.none_to_nan(bv))
+        model.history_ = persist.history_from_json(fitted.get("history", []))
         model.n_features_in_ = len(LOAD_CASES) * model.moments_.size
         return model
 

@@ -21,7 +21,12 @@ import numpy as np
 from femcal.errors import ConfigError
 from femcal.inverse.data import make_inverse_dataset, rom_mae_deg, surrogate_fingerprint
 from femcal.inverse.model import INVERSE_SETTINGS, InverseModel
-from femcal.training.study import TrialRun, run_study, study_name_for
+from femcal.training.study import (
+    TrialRun,
+    hidden_from_width_depth,
+    search_settings,
+    study_name_for,
+)
 
 if TYPE_CHECKING:
     from femcal.calibration.model import CurveModel
@@ -73,13 +78,7 @@ class InverseTrainResult:
 
 def inverse_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
     """Flat hyper-parameters (``width``/``depth`` allowed) -> :class:`InverseModel` keywords."""
-    kw = dict(params)
-    if "width" in kw or "depth" in kw:
-        width = int(kw.pop("width", 256))
-        depth = int(kw.pop("depth", 5))
-        kw["hidden"] = tuple([width] * depth)
-    if "hidden" in kw:
-        kw["hidden"] = tuple(int(h) for h in kw["hidden"])
+    kw = hidden_from_width_depth(params, width=256, depth=5)
     allowed = set(INVERSE_SETTINGS) - {"seed"}
     unknown = sorted(set(kw) - allowed)
     if unknown:
@@ -152,7 +151,7 @@ def train_inverse(
     import mlflow
 
     from femcal.inverse.store import log_inverse
-    from femcal.tracking import register_and_promote
+    from femcal.tracking import register_run_model
 
     t0 = time.perf_counter()
     search_space = dict(search_space or {})
@@ -199,37 +198,27 @@ def train_inverse(
         mlflow.set_tag("femcal.stage", "train-inverse")
         mlflow.log_metric("dataset_seconds", time.perf_counter() - t0)
 
-        best_params: dict[str, Any] = dict(fixed)
-        n_complete = 0
-        if n_trials > 0:
-
-            def train_trial(trial: TrialRun) -> float:
-                model = fit(
-                    trial.params,
-                    seed + trial.number,
-                    logger=trial.logger,
-                    callbacks=trial.callbacks,
-                )
-                value = rom_mae_deg(model, curve_model, X_va)
-                mlflow.log_metrics({"best_val_mae": model.best_val_mae_, "val_rom_mae_deg": value})
-                return value
-
-            assert storage is not None  # checked above
-            outcome = run_study(
-                train_trial,
-                storage=storage,
-                study_name=full_name,
-                search_space=search_space,
-                fixed=fixed,
-                n_trials=n_trials,
-                seed=seed,
-                monitor="val_mae",
-                heartbeat_seconds=heartbeat_seconds,
-                progress=progress,
+        def train_trial(trial: TrialRun) -> float:
+            model = fit(
+                trial.params, seed + trial.number, logger=trial.logger, callbacks=trial.callbacks
             )
-            n_complete = outcome.n_complete
-            best_params.update(outcome.best_params)
-            mlflow.log_metric("best_trial_val_rom_mae_deg", outcome.best_value)
+            value = rom_mae_deg(model, curve_model, X_va)
+            mlflow.log_metrics({"best_val_mae": model.best_val_mae_, "val_rom_mae_deg": value})
+            return value
+
+        best_params, n_complete = search_settings(
+            train_trial,
+            fixed=fixed,
+            n_trials=n_trials,
+            metric="val_rom_mae_deg",
+            storage=storage,
+            study_name=full_name,
+            search_space=search_space,
+            seed=seed,
+            monitor="val_mae",
+            heartbeat_seconds=heartbeat_seconds,
+            progress=progress,
+        )
 
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
         model = fit(best_params, seed, progress=progress)
@@ -246,19 +235,16 @@ def train_inverse(
             model.save(Path(tmp) / "inverse_model")
             mlflow.log_artifacts(str(Path(tmp) / "inverse_model"), artifact_path="inverse_model")
         info = log_inverse(model)
-        version, promoted = None, False
-        if register_as:
-            version, promoted = register_and_promote(
-                info.model_uri,
-                name=register_as,
-                val_metric=val_rom,
-                tags={
-                    "optuna_study": full_name,
-                    "train_run_id": parent.info.run_id,
-                    "val_mae_unit": repr(val_mae),
-                },
-            )
-            mlflow.set_tags({"registered_version": version, "promoted": str(promoted)})
+        version, promoted = register_run_model(
+            info.model_uri,
+            register_as,
+            val_metric=val_rom,
+            tags={
+                "optuna_study": full_name,
+                "train_run_id": parent.info.run_id,
+                "val_mae_unit": repr(val_mae),
+            },
+        )
         seconds = time.perf_counter() - t0
         mlflow.log_metric("train_seconds", seconds)
         return InverseTrainResult(

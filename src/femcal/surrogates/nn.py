@@ -50,17 +50,8 @@ from femcal.surrogates.romnet import (
     RomNet,
     pack_blocks,
 )
+from femcal.training import persist
 from femcal.training.lightning import BestWeights, batch_loader, cpu_trainer, quiet_lightning
-from femcal.training.persist import (
-    finite_or_none,
-    freeze,
-    history_from_json,
-    history_to_json,
-    load_weights,
-    none_to_nan,
-    read_config,
-    save_model_files,
-)
 
 log = logging.getLogger(__name__)
 
@@ -382,7 +373,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         )
         for member, state in zip(ens.members, states):
             member.load_state_dict(state)
-        self.net_ = freeze(ens)
+        self.net_ = persist.freeze(ens)
         self.history_ = history
         self.n_features_in_ = 2 + self.space.dim
         self.moment_range_ = (float(np.min(moment)), float(np.max(moment)))
@@ -452,13 +443,13 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
             "space": self.space.to_dict(),
             "architecture": self.net_.architecture(),
             "fitted": {
-                "best_val_mae_deg": finite_or_none(self.best_val_mae_deg_),
+                "best_val_mae_deg": persist.finite_or_none(self.best_val_mae_deg_),
                 "n_features_in": self.n_features_in_,
                 "moment_range": list(self.moment_range_),
-                "history": history_to_json(self.history_),
+                "history": persist.history_to_json(self.history_),
             },
         }
-        save_model_files(path, config, self.net_)
+        persist.save_model_files(path, config, self.net_)
 
     @classmethod
     def load(cls, path: str | Path) -> NeuralSurrogate:
@@ -474,20 +465,20 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         NeuralSurrogate
             Fitted, ready to predict.
         """
-        config = read_config(path, fmt=_FORMAT, what="NeuralSurrogate")
+        config = persist.read_config(path, fmt=_FORMAT, what="NeuralSurrogate")
         space = ParameterSpace.from_dict(config["space"])
         init = dict(config["init"])
         init["hidden"] = tuple(init["hidden"])
         model = cls(space, **init)
         net = RomNet(space.lower, space.upper, **config["architecture"])
-        state = load_weights(path)
+        state = persist.load_weights(path)
         net.load_state_dict(state)
         fitted = config.get("fitted", {})
         bv = fitted.get("best_val_mae_deg")
-        model.net_ = freeze(net)
-        model.best_val_mae_deg_ = float(none_to_nan(bv))
+        model.net_ = persist.freeze(net)
+        model.best_val_mae_deg_ = float(persist.none_to_nan(bv))
         model.n_features_in_ = int(fitted.get("n_features_in", 2 + space.dim))
         # Models saved before moment_range was recorded were all trained on 1..5 Nm.
         model.moment_range_ = tuple(float(v) for v in fitted.get("moment_range", (1.0, 5.0)))
-        model.history_ = history_from_json(fitted.get("history", []))
+        model.history_ = persist.history_from_json(fitted.get("history", []))
         return model

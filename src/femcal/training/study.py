@@ -70,6 +70,35 @@ def suggest(trial: Any, search_space: Mapping[str, Mapping[str, Any]]) -> dict[s
     return out
 
 
+def hidden_from_width_depth(
+    params: Mapping[str, Any], *, width: int = 256, depth: int
+) -> dict[str, Any]:
+    """Flat hyper-parameters with ``width``/``depth`` (as a search space has them) as
+    ``hidden``, a tuple of ints; the other entries unchanged.
+
+    Parameters
+    ----------
+    params : mapping
+        Settings; ``width`` or ``depth`` alone takes the other from the defaults.
+    width, depth : int
+        The defaults.
+
+    Returns
+    -------
+    dict
+        ``params`` without ``width``/``depth``, with ``hidden = (width,) * depth`` (or its own
+        ``hidden`` as ints).
+    """
+    kw = dict(params)
+    if "width" in kw or "depth" in kw:
+        w = int(kw.pop("width", width))
+        d = int(kw.pop("depth", depth))
+        kw["hidden"] = tuple([w] * d)
+    if "hidden" in kw:
+        kw["hidden"] = tuple(int(h) for h in kw["hidden"])
+    return kw
+
+
 def study_name_for(base: str, *, search_space: Mapping, fixed: Mapping, data_id: str) -> str:
     """A study name that changes when the search space, fixed settings or data change, so a
     resumed study never mixes trials of different problems."""
@@ -290,3 +319,48 @@ def run_study(
         best_value=float(study.best_value),
         n_complete=n_complete(study),
     )
+
+
+def search_settings(
+    train_trial: Callable[[TrialRun], float],
+    *,
+    fixed: Mapping[str, Any],
+    n_trials: int,
+    metric: str,
+    **study: Any,
+) -> tuple[dict[str, Any], int]:
+    """The fixed settings overridden by the best trial of a study (:func:`run_study`).
+
+    With ``n_trials == 0`` no study runs: the fixed settings are returned as they are. Else
+    the best trial's objective is logged to the active MLflow run as ``best_trial_<metric>``.
+
+    Parameters
+    ----------
+    train_trial : callable
+        See :func:`run_study`.
+    fixed : mapping
+        The settings every trial starts from.
+    n_trials : int
+        Complete trials the study should hold (>= 0).
+    metric : str
+        Name of the objective in the logged metric.
+    **study
+        The other keywords of :func:`run_study` (storage, study_name, search_space, seed,
+        monitor, heartbeat_seconds, progress).
+
+    Returns
+    -------
+    best_params : dict
+        ``fixed`` updated by the best trial's values.
+    n_complete : int
+        Complete trials in the study (0 without a study).
+    """
+    best_params = dict(fixed)
+    if n_trials <= 0:
+        return best_params, 0
+    import mlflow
+
+    outcome = run_study(train_trial, fixed=fixed, n_trials=n_trials, **study)
+    best_params.update(outcome.best_params)
+    mlflow.log_metric(f"best_trial_{metric}", outcome.best_value)
+    return best_params, outcome.n_complete
