@@ -1,4 +1,4 @@
-"""MLflow glue: where runs go, the registered surrogate's pyfunc flavour, champion promotion.
+"""MLflow glue: where runs go, logging and loading surrogates, champion promotion.
 
 The default tracking and registry store is a SQLite database inside ``mlruns/`` with artifacts
 beside it (MLflow 3 refuses a plain file store). ``MLFLOW_TRACKING_URI`` points a team at a
@@ -8,12 +8,13 @@ MLflow records absolute artifact locations (experiments, runs, logged models, mo
 The default store follows its folder: every start resolves the locations that point into
 another folder's store (a copied or moved project) to this one (:func:`relocate_store`).
 
-A logged surrogate is a complete MLflow model that carries femcal's code (``code/femcal``) and
-femcal's dependencies as its requirements, so ``mlflow models serve`` can rebuild its
-environment. The train stage exports it to ``models/surrogate-<split>`` (:func:`export_model`),
-the folder DVC versions: :func:`open_model` and :func:`load_surrogate` take that folder as well
-as a registry URI, and :class:`ModelSource` names what was loaded (content hash, registered
-version) for the runs that use it.
+A logged surrogate is a complete MLflow model (logged from code by
+:mod:`femcal.training.pyfunc`, as the inverse model) that carries femcal's code
+(``code/femcal``) and femcal's dependencies as its requirements, so ``mlflow models serve`` can
+rebuild its environment. The train stage exports it to ``models/surrogate-<split>``
+(:func:`export_model`), the folder DVC versions: :func:`open_model` and :func:`load_surrogate`
+take that folder as well as a registry URI, and :class:`ModelSource` names what was loaded
+(content hash, registered version) for the runs that use it.
 """
 
 from __future__ import annotations
