@@ -873,7 +873,7 @@ def _yaml_default(value):
 
 
 def test_hyperparameter_tables_match_the_estimators():
-    from femcal.calibration.inverse import InverseModel
+    from femcal.inverse import InverseModel
     from femcal.settings import INVERSE_FIXED, SURROGATE_FIXED
     from femcal.surrogates.nn import ACTIVATIONS, LOSSES, LR_SCHEDULES, NeuralSurrogate
     from femcal.train import surrogate_kwargs

@@ -11,8 +11,6 @@ import pytest
 from femcal.errors import ConfigError, ModelRegistryError, UntrustedArtifactError
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.tracking import (
-    MODEL_REQUIREMENTS,
-    PIPELINE_ONLY_REQUIREMENTS,
     RECORD_FILE,
     champion_version,
     configure_tracking,
@@ -22,9 +20,13 @@ from femcal.tracking import (
     input_example,
     load_surrogate,
     log_surrogate,
-    model_requirements,
     open_model,
     register_and_promote,
+)
+from femcal.training.pyfunc import (
+    MODEL_REQUIREMENTS,
+    PIPELINE_ONLY_REQUIREMENTS,
+    model_requirements,
 )
 
 from synth import study_space, tidy_table

@@ -7,7 +7,8 @@ import pytest
 from mlflow import MlflowClient
 
 from femcal.errors import ConfigError
-from femcal.train import suggest, surrogate_kwargs, train_surrogate, validation_split
+from femcal.train import surrogate_kwargs, train_surrogate, validation_split
+from femcal.training.study import suggest
 
 from synth import study_space, tidy_table
 

@@ -579,7 +579,7 @@ def run_train_inverse(
     import mlflow
 
     from femcal.calibration import CurveModel
-    from femcal.calibration.inverse import train_inverse
+    from femcal.inverse import train_inverse
     from femcal.tracking import load_surrogate, open_model
 
     source = open_model(surrogate_uri)

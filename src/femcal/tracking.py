@@ -1,4 +1,4 @@
-"""MLflow glue: where runs go, the registered surrogate's pyfunc flavour, champion promotion.
+"""MLflow glue: where runs go, logging and loading surrogates, champion promotion.
 
 The default tracking and registry store is a SQLite database inside ``mlruns/`` with artifacts
 beside it (MLflow 3 refuses a plain file store). ``MLFLOW_TRACKING_URI`` points a team at a
@@ -8,12 +8,13 @@ MLflow records absolute artifact locations (experiments, runs, logged models, mo
 The default store follows its folder: every start resolves the locations that point into
 another folder's store (a copied or moved project) to this one (:func:`relocate_store`).
 
-A logged surrogate is a complete MLflow model that carries femcal's code (``code/femcal``) and
-femcal's dependencies as its requirements, so ``mlflow models serve`` can rebuild its
-environment. The train stage exports it to ``models/surrogate-<split>`` (:func:`export_model`),
-the folder DVC versions: :func:`open_model` and :func:`load_surrogate` take that folder as well
-as a registry URI, and :class:`ModelSource` names what was loaded (content hash, registered
-version) for the runs that use it.
+A logged surrogate is a complete MLflow model (logged from code by
+:mod:`femcal.training.pyfunc`, as the inverse model) that carries femcal's code
+(``code/femcal``) and femcal's dependencies as its requirements, so ``mlflow models serve`` can
+rebuild its environment. The train stage exports it to ``models/surrogate-<split>``
+(:func:`export_model`), the folder DVC versions: :func:`open_model` and :func:`load_surrogate`
+take that folder as well as a registry URI, and :class:`ModelSource` names what was loaded
+(content hash, registered version) for the runs that use it.
 """
 
 from __future__ import annotations
@@ -23,9 +24,7 @@ import json
 import logging
 import os
 import re
-import shutil
 import sqlite3
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ import pandas as pd
 from femcal.errors import ConfigError, ModelRegistryError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
+from femcal.training.pyfunc import LOADER_FILE, FemcalPyfunc, log_model_from_code, trusted_loader
 
 logger = logging.getLogger(__name__)
 
@@ -50,25 +50,6 @@ VALIDATION_TAG = "val_mae_deg"
 RECORD_FILE = "mlflow.json"
 #: MLflow's note of the registered name and version, rewritten by every registry download.
 _REGISTRY_NOTE = "registered_model_meta"
-#: femcal's dependencies a logged model does not need: the pipeline's tools.
-PIPELINE_ONLY_REQUIREMENTS = frozenset({"dvc", "optuna", "distributed", "dask"})
-#: What loading a logged model imports: always among its requirements, with femcal's other
-#: declared dependencies (:func:`model_requirements`).
-MODEL_REQUIREMENTS = (
-    "torch",
-    "pytorch-lightning",
-    "mlflow",
-    "numpy",
-    "pandas",
-    "scikit-learn",
-    "scipy",
-    "threadpoolctl",
-    "lightgbm",
-    "skops",
-    "matplotlib",
-    "pyyaml",
-    "tqdm",
-)
 
 
 def default_tracking_uri(store_dir: str | Path = DEFAULT_STORE_DIR) -> str:
@@ -248,66 +229,9 @@ def ensure_experiment(name: str, *, store_dir: str | Path = DEFAULT_STORE_DIR) -
 
 
 # --------------------------------------------------------------------------- pyfunc flavour
-def _loader_path(obj: Any) -> str:
-    cls = type(obj)
-    return f"{cls.__module__}:{cls.__qualname__}"
-
-
-def _trusted_loader(file: Path, *, uri: str | None = None) -> Any:
-    """The registered surrogate class a ``femcal_loader.json`` names (never imported from it).
-
-    Parameters
-    ----------
-    file : Path
-        The ``femcal_loader.json``.
-    uri : str, optional
-        The model URI it was downloaded from, for messages.
-
-    Raises
-    ------
-    ModelRegistryError
-        The file is not a loader record.
-    UntrustedArtifactError
-        It names a class outside femcal's surrogate registry (see
-        :func:`femcal.surrogates.base.trusted_surrogate_class`).
-    """
-    from femcal.surrogates.base import trusted_surrogate_class
-
-    source = f"{file.name} of the model '{uri}'" if uri else str(file)
-    try:
-        record = json.loads(file.read_text())
-        spec = record["loader"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ModelRegistryError(
-            f"{source}: not a femcal loader record ({type(exc).__name__}: {exc}); expected "
-            '{"loader": "module:Class"}. Log the model again with femcal.tracking.log_surrogate.'
-        ) from None
-    return trusted_surrogate_class(spec, source=source)
-
-
-try:  # pragma: no branch - mlflow is a hard dependency; the guard keeps import errors clear
-    import mlflow.pyfunc as _pyfunc
-
-    _PythonModel = _pyfunc.PythonModel
-except ImportError as exc:  # pragma: no cover
-    raise ImportError("femcal.tracking needs mlflow: pip install mlflow") from exc
-
-
-class SurrogatePyfunc(_PythonModel):
-    """MLflow pyfunc wrapper of a saved femcal surrogate.
-
-    ``predict`` takes a DataFrame with columns ``load_case``, ``moment_nm`` and the parameter
-    names in physical units, and returns the RoM in degrees, one value per row.
-    """
-
-    def load_context(self, context: Any) -> None:
-        root = Path(context.artifacts["surrogate"])
-        self.surrogate = _trusted_loader(root / "femcal_loader.json").load(root)
-
-    def predict(self, context: Any, model_input: pd.DataFrame, params: Any = None) -> np.ndarray:
-        frame = model_input.copy()
-        frame["load_case"] = frame["load_case"].astype(str)
-        return np.asarray(self.surrogate.predict(frame), dtype=float)
+#: The pyfunc class of the surrogates logged before :mod:`femcal.training.pyfunc` (their
+#: ``pyfunc_model.py`` imports it from here); they still load.
+SurrogatePyfunc = FemcalPyfunc
 
 
 def input_example(space: ParameterSpace, n_per_case: int = 1) -> pd.DataFrame:
@@ -323,92 +247,19 @@ def input_example(space: ParameterSpace, n_per_case: int = 1) -> pd.DataFrame:
 def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model") -> Any:
     """Log a fitted surrogate (one with ``save(dir)`` and ``load(dir)``) as an MLflow pyfunc model.
 
-    The model is logged "from code" (``pyfunc_model.py``, no pickle) with the saved surrogate
-    (weights and JSON) and its ``femcal_loader.json`` under ``artifacts/surrogate``, femcal's
-    code under ``code/femcal`` and femcal's dependencies as its requirements
-    (:func:`model_requirements`), so that ``mlflow models serve`` with its default environment
-    manager can rebuild it where femcal is not installed.
+    The model is logged "from code" (:func:`femcal.training.pyfunc.log_model_from_code`, no
+    pickle) with the saved surrogate (weights and JSON) and its ``femcal_loader.json`` under
+    ``artifacts/surrogate``, femcal's code under ``code/femcal`` and femcal's dependencies as
+    its requirements (:func:`~femcal.training.pyfunc.model_requirements`), so that
+    ``mlflow models serve`` with its default environment manager can rebuild it where femcal
+    is not installed.
 
     Returns
     -------
     mlflow.models.model.ModelInfo
         Its ``model_uri`` can be registered, and exported to a folder (:func:`export_model`).
     """
-    import mlflow
-    from mlflow.models import infer_signature
-
-    example = input_example(space)
-    signature = infer_signature(example, np.asarray(surrogate.predict(example), dtype=float))
-    with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp) / "surrogate"
-        surrogate.save(root)
-        (root / "femcal_loader.json").write_text(
-            json.dumps({"loader": _loader_path(surrogate)}) + "\n"
-        )
-        info = mlflow.pyfunc.log_model(
-            name=name,
-            python_model=str(Path(__file__).with_name("pyfunc_model.py")),
-            artifacts={"surrogate": str(root)},
-            signature=signature,
-            input_example=example,
-            pip_requirements=model_requirements(),
-            code_paths=[str(femcal_code(Path(tmp)))],
-        )
-    return info
-
-
-def femcal_code(dest: Path) -> Path:
-    """Copy the femcal package (its sources, no ``__pycache__``) to ``dest/femcal``.
-
-    A logged model carries this copy (MLflow ``code_paths``): a process that loads the model
-    without femcal installed (``mlflow models serve`` in a fresh environment) imports it from
-    there. Returns ``dest/femcal``.
-    """
-    package = Path(__file__).resolve().parent
-    target = Path(dest) / "femcal"
-    shutil.copytree(
-        package, target, ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
-    )
-    return target
-
-
-def model_requirements() -> list[str]:
-    """The pip requirements of a logged femcal model: femcal's dependencies, pinned.
-
-    :data:`MODEL_REQUIREMENTS` and every other dependency femcal declares (not its extras),
-    at the installed version (a local label such as torch's ``+cpu`` dropped: the index
-    decides the build), except the pipeline's tools (:data:`PIPELINE_ONLY_REQUIREMENTS`),
-    which loading a model never imports. femcal itself is not a requirement: the model
-    carries its code (:func:`femcal_code`).
-    """
-    from importlib import metadata
-
-    from packaging.requirements import Requirement
-    from packaging.utils import canonicalize_name
-
-    try:
-        declared = [Requirement(r) for r in metadata.requires("femcal") or []]
-    except metadata.PackageNotFoundError:  # pragma: no cover - run from a source tree
-        declared = []
-    reqs: dict[str, str] = {}
-    for req in [*(Requirement(r) for r in MODEL_REQUIREMENTS), *declared]:
-        name = canonicalize_name(req.name)
-        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
-            continue  # an extra (dev tools)
-        if name in PIPELINE_ONLY_REQUIREMENTS or name in reqs:
-            continue
-        try:
-            installed = metadata.version(req.name)
-        except metadata.PackageNotFoundError:  # pragma: no cover - declared, not installed
-            reqs[name] = str(req)
-            continue
-        reqs[name] = f"{req.name}=={installed.split('+', 1)[0]}"
-    return list(reqs.values())
-
-
-def _pip_requirements() -> list[str]:
-    """Former name of :func:`model_requirements`."""
-    return model_requirements()
+    return log_model_from_code(surrogate, kind="surrogate", example=input_example(space), name=name)
 
 
 def export_model(
@@ -512,6 +363,36 @@ def register_and_promote(
             val_metric,
         )
     return str(mv.version), promoted
+
+
+def register_run_model(
+    model_uri: str,
+    register_as: str | None,
+    *,
+    val_metric: float,
+    tags: dict[str, str] | None = None,
+) -> tuple[str | None, bool]:
+    """Register a model logged by the active run when ``register_as`` names it.
+
+    :func:`register_and_promote`, then the run is tagged ``registered_version`` and
+    ``promoted``.
+
+    Returns
+    -------
+    version : str or None
+        The new model version (None when ``register_as`` is empty).
+    promoted : bool
+        Whether the champion alias now points to it.
+    """
+    if not register_as:
+        return None, False
+    import mlflow
+
+    version, promoted = register_and_promote(
+        model_uri, name=register_as, val_metric=val_metric, tags=tags
+    )
+    mlflow.set_tags({"registered_version": version, "promoted": str(promoted)})
+    return version, promoted
 
 
 def champion_version(name: str = DEFAULT_MODEL_NAME, *, alias: str = CHAMPION_ALIAS) -> Any | None:
@@ -672,13 +553,14 @@ def load_surrogate(
         :func:`open_model`), or a source :func:`open_model` returned.
     """
     source = uri if isinstance(uri, ModelSource) else open_model(uri)
-    preferred = source.path / "artifacts" / "surrogate" / "femcal_loader.json"
+    preferred = source.path / "artifacts" / "surrogate" / LOADER_FILE
     candidates = [preferred]
     if not preferred.is_file():  # a model logged by an earlier femcal: anywhere but code/
         candidates = sorted(
             f
-            for f in source.path.rglob("femcal_loader.json")
+            for f in source.path.rglob(LOADER_FILE)
             if f.relative_to(source.path).parts[0] != "code"
+            and f.relative_to(source.path).parts[:2] != ("artifacts", "inverse")
         )
     if not candidates:
         raise ModelRegistryError(
@@ -687,7 +569,7 @@ def load_surrogate(
             "MLflow models holds config.json and weights.pt only: rebuild it with `dvc repro` "
             "(the train stage) or pull a newer one with `dvc pull`."
         )
-    return _trusted_loader(candidates[0], uri=source.uri).load(candidates[0].parent)
+    return trusted_loader(candidates[0], uri=source.uri).load(candidates[0].parent)
 
 
 def resolve_model_version(uri: str) -> dict[str, str] | None:

@@ -12,7 +12,6 @@ import hashlib
 import json
 import logging
 import time
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,15 +19,18 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import pytorch_lightning as pl
 
 from femcal.errors import ConfigError
 from femcal.schema import STATUS_OK
 from femcal.space import ParameterSpace
+from femcal.training.study import (
+    TrialRun,
+    hidden_from_width_depth,
+    search_settings,
+    study_name_for,
+)
 
 logger = logging.getLogger(__name__)
-
-_SUGGEST_TYPES = ("float", "int", "categorical")
 
 
 @dataclass
@@ -67,53 +69,9 @@ class TrainResult:
     extra: dict = field(default_factory=dict)
 
 
-def suggest(trial: Any, search_space: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
-    """Draw one value per entry of ``search_space`` from an Optuna trial.
-
-    Parameters
-    ----------
-    trial : optuna.Trial
-    search_space : mapping
-        ``{name: {"type": "float"|"int"|"categorical", "low":…, "high":…, "log": bool,
-        "choices": [...]}}``, as written in params.yaml.
-    """
-    out: dict[str, Any] = {}
-    for name, spec in search_space.items():
-        kind = spec.get("type")
-        if kind not in _SUGGEST_TYPES:
-            raise ConfigError(
-                f"params.yaml train.search_space.{name}.type is {kind!r}; use one of "
-                f"{', '.join(_SUGGEST_TYPES)}."
-            )
-        try:
-            if kind == "float":
-                out[name] = trial.suggest_float(
-                    name, float(spec["low"]), float(spec["high"]), log=bool(spec.get("log", False))
-                )
-            elif kind == "int":
-                out[name] = trial.suggest_int(
-                    name, int(spec["low"]), int(spec["high"]), log=bool(spec.get("log", False))
-                )
-            else:
-                out[name] = trial.suggest_categorical(name, list(spec["choices"]))
-        except KeyError as exc:
-            raise ConfigError(
-                f"params.yaml train.search_space.{name} ({kind}) lacks {exc}; floats and ints "
-                "need low and high, categoricals need choices."
-            ) from None
-    return out
-
-
 def surrogate_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
     """Turn flat hyper-parameters (``width``, ``depth``) into NeuralSurrogate keywords."""
-    kw = dict(params)
-    if "width" in kw or "depth" in kw:
-        width = int(kw.pop("width", 256))
-        depth = int(kw.pop("depth", 4))
-        kw["hidden"] = tuple([width] * depth)
-    if "hidden" in kw:
-        kw["hidden"] = tuple(int(h) for h in kw["hidden"])
-    return kw
+    return hidden_from_width_depth(params, width=256, depth=4)
 
 
 def ok_rows(table: pd.DataFrame) -> pd.DataFrame:
@@ -139,46 +97,10 @@ def validation_split(
     return table[~is_val].reset_index(drop=True), table[is_val].reset_index(drop=True)
 
 
-def study_name_for(base: str, *, search_space: Mapping, fixed: Mapping, data_id: str) -> str:
-    """A study name that changes when the search space, fixed settings or data change, so a
-    resumed study never mixes trials of different problems."""
-    blob = json.dumps(
-        {"space": search_space, "fixed": fixed, "data": data_id}, sort_keys=True, default=str
-    )
-    return f"{base}-{hashlib.sha256(blob.encode()).hexdigest()[:10]}"
-
-
 def table_fingerprint(table: pd.DataFrame) -> str:
     """Short content hash of a tidy table."""
     h = pd.util.hash_pandas_object(table, index=False).to_numpy()
     return hashlib.sha256(h.tobytes()).hexdigest()[:12]
-
-
-class _OptunaPruning(pl.Callback):
-    """Report the validation MAE to Optuna after each epoch and stop hopeless trials."""
-
-    def __init__(self, trial: Any, monitor: str = "val_mae_deg") -> None:
-        self.trial = trial
-        self.monitor = monitor
-        self.pruned = False
-
-    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if trainer.sanity_checking:
-            return
-        value = trainer.callback_metrics.get(self.monitor)
-        if value is None:
-            return
-        self.trial.report(float(value), step=trainer.current_epoch)
-        if self.trial.should_prune():
-            self.pruned = True
-            trainer.should_stop = True
-
-
-def _mlflow_logger(run_id: str, prefix: str = "") -> Any:
-    import mlflow
-    from pytorch_lightning.loggers import MLFlowLogger
-
-    return MLFlowLogger(tracking_uri=mlflow.get_tracking_uri(), run_id=run_id, prefix=prefix)
 
 
 def train_surrogate(
@@ -207,7 +129,7 @@ def train_surrogate(
     space : ParameterSpace
         The parameter box.
     search_space : mapping
-        Optuna search space (see :func:`suggest`).
+        Optuna search space (see :func:`femcal.training.study.suggest`).
     fixed : mapping
         Fixed NeuralSurrogate keywords (``width``/``depth`` allowed), overridden by the search.
     n_trials : int
@@ -232,10 +154,9 @@ def train_surrogate(
     TrainResult
     """
     import mlflow
-    import optuna
 
     from femcal.surrogates.nn import NeuralSurrogate
-    from femcal.tracking import log_surrogate, register_and_promote
+    from femcal.tracking import log_surrogate, register_run_model
 
     t0 = time.perf_counter()
     if n_trials < 0 or final_members < 1:
@@ -265,72 +186,30 @@ def train_surrogate(
         )
         mlflow.set_tag("femcal.stage", "train")
 
-        best_params: dict[str, Any] = dict(fixed)
-        n_complete = 0
-        if n_trials > 0:
-            with warnings.catch_warnings():  # heartbeats are 'experimental' in Optuna
-                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-                rdb = optuna.storages.RDBStorage(
-                    storage,
-                    heartbeat_interval=heartbeat_seconds,
-                    grace_period=3 * heartbeat_seconds,
-                    heartbeat_stale_trial_callback=optuna.storages.RetryHeartbeatStaleTrialCallback(
-                        max_retry=2
-                    ),
-                )
-            study = optuna.create_study(
-                study_name=full_name,
-                storage=rdb,
-                load_if_exists=True,
-                direction="minimize",
-                sampler=optuna.samplers.TPESampler(seed=seed),
-                pruner=optuna.pruners.MedianPruner(n_startup_trials=3, n_warmup_steps=20),
+        def train_trial(trial: TrialRun) -> float:
+            model = NeuralSurrogate(
+                space, **surrogate_kwargs(trial.params), n_members=1, seed=seed + trial.number
             )
+            model.fit(
+                X_tr, y_tr, X_val=X_va, y_val=y_va, logger=trial.logger, callbacks=trial.callbacks
+            )
+            value = float(model.best_val_mae_deg_)
+            mlflow.log_metric("best_val_mae_deg", value)
+            return value
 
-            def objective(trial: optuna.Trial) -> float:
-                hp = {**fixed, **suggest(trial, search_space)}
-                with mlflow.start_run(run_name=f"trial-{trial.number}", nested=True) as run:
-                    mlflow.log_params({**hp, "trial": trial.number, "optuna_study": full_name})
-                    pruning = _OptunaPruning(trial)
-                    model = NeuralSurrogate(
-                        space, **surrogate_kwargs(hp), n_members=1, seed=seed + trial.number
-                    )
-                    model.fit(
-                        X_tr,
-                        y_tr,
-                        X_val=X_va,
-                        y_val=y_va,
-                        logger=_mlflow_logger(run.info.run_id),
-                        callbacks=[pruning],
-                    )
-                    value = float(model.best_val_mae_deg_)
-                    mlflow.log_metric("best_val_mae_deg", value)
-                    if pruning.pruned:
-                        mlflow.set_tag("optuna.state", "PRUNED")
-                        raise optuna.TrialPruned()
-                    mlflow.set_tag("optuna.state", "COMPLETE")
-                return value
-
-            if not study.trials:
-                start = _fixed_as_trial(fixed, search_space)
-                if start:
-                    study.enqueue_trial(start)  # the known recipe is trial 0
-            done = _n_complete(study)
-            if done < n_trials:
-                logger.info("Optuna study %s: %d of %d trials done", full_name, done, n_trials)
-                study.optimize(
-                    objective,
-                    callbacks=[
-                        optuna.study.MaxTrialsCallback(
-                            n_trials, states=(optuna.trial.TrialState.COMPLETE,)
-                        )
-                    ],
-                    n_trials=n_trials - done + 4,  # headroom for pruned/failed trials
-                    show_progress_bar=progress,
-                )
-            n_complete = _n_complete(study)
-            best_params.update(study.best_trial.params)
-            mlflow.log_metric("best_trial_val_mae_deg", float(study.best_value))
+        best_params, n_complete = search_settings(
+            train_trial,
+            fixed=fixed,
+            n_trials=n_trials,
+            metric="val_mae_deg",
+            storage=storage,
+            study_name=full_name,
+            search_space=search_space,
+            seed=seed,
+            monitor="val_mae_deg",
+            heartbeat_seconds=heartbeat_seconds,
+            progress=progress,
+        )
 
         final_kw = surrogate_kwargs(best_params)
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
@@ -346,15 +225,12 @@ def train_surrogate(
         mlflow.log_metric("val_mae_deg", val_mae)
 
         info = log_surrogate(model, space)
-        version, promoted = None, False
-        if register_as:
-            version, promoted = register_and_promote(
-                info.model_uri,
-                name=register_as,
-                val_metric=val_mae,
-                tags={"optuna_study": full_name, "train_run_id": parent.info.run_id},
-            )
-            mlflow.set_tags({"registered_version": version, "promoted": str(promoted)})
+        version, promoted = register_run_model(
+            info.model_uri,
+            register_as,
+            val_metric=val_mae,
+            tags={"optuna_study": full_name, "train_run_id": parent.info.run_id},
+        )
         seconds = time.perf_counter() - t0
         mlflow.log_metric("train_seconds", seconds)
         return TrainResult(
@@ -368,29 +244,6 @@ def train_surrogate(
             promoted=promoted,
             seconds=seconds,
         )
-
-
-def _fixed_as_trial(
-    fixed: Mapping[str, Any], search_space: Mapping[str, Mapping[str, Any]]
-) -> dict[str, Any]:
-    """The fixed settings that lie inside the search space, as an Optuna trial to enqueue."""
-    start = {}
-    for name, spec in search_space.items():
-        if name not in fixed:
-            continue
-        value = fixed[name]
-        if spec.get("type") == "categorical":
-            if value in list(spec.get("choices", [])):
-                start[name] = value
-        elif "low" in spec and "high" in spec and spec["low"] <= value <= spec["high"]:
-            start[name] = value
-    return start
-
-
-def _n_complete(study: Any) -> int:
-    import optuna
-
-    return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)))
 
 
 def write_summary(result: TrainResult, path: str | Path) -> None:

@@ -18,7 +18,7 @@ import torch
 
 from femcal.errors import ConfigError
 from femcal.space import ParameterSpace
-from femcal.surrogates.nn import _forward_tangents
+from femcal.surrogates.romnet import forward_tangents
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ class CurveModel:
     ----------
     surrogate : object
         A fitted femcal surrogate with ``torch_module()`` returning a
-        :class:`~femcal.surrogates.nn.RomNet` (the registered neural surrogate).
+        :class:`~femcal.surrogates.romnet.RomNet` (the registered neural surrogate).
     moments : array_like, shape (m,)
         The moment grid in Nm (> 0).
     space : ParameterSpace, optional
@@ -136,7 +136,7 @@ class CurveModel:
         ``jacobian_members`` differentiates only the first k ensemble members: the values are
         the ensemble's, the Jacobian the mean of those members' (approximate, about
         ``n_members / k`` times cheaper). Default: exact
-        (:meth:`~femcal.surrogates.nn.RomNet.curves_jacobian`).
+        (:meth:`~femcal.surrogates.romnet.RomNet.curves_jacobian`).
         """
         self.n_evaluations += int(v.shape[0]) * (1 + self.dim)
         net = self.net
@@ -155,7 +155,7 @@ class CurveModel:
                 if k >= k_jac:
                     values += net.to_degrees(member(v).reshape(shape) @ basis.T)
                     continue
-                h, tangent = _forward_tangents(member, v)
+                h, tangent = forward_tangents(member, v)
                 deg = net.to_degrees(h.reshape(shape) @ basis.T)
                 dscaled = tangent.reshape(n, d, *shape[1:]) @ basis.T
                 scale = deg * net.y_scale if net.log_target else net.y_scale

@@ -15,7 +15,7 @@ with the file, the line, the dotted path of the key, what was given and what is 
 
 Open maps are validated too: the model hyper-parameters of ``train.<split>.fixed`` and
 ``inverse.fixed`` against the keyword arguments of :class:`femcal.surrogates.nn.
-NeuralSurrogate` and :class:`femcal.calibration.inverse.InverseModel`, the options of
+NeuralSurrogate` and :class:`femcal.inverse.InverseModel`, the options of
 ``calibrate.options.<method>`` against the calibrator's keyword arguments, the FE adapter's
 ``fe.settings`` against :class:`femcal.fe.calculix.CalculixDisc`, and ``search_space``
 entries against their ``{type: float|int|categorical, low, high, log, choices}`` form. The

@@ -1,7 +1,7 @@
 """Optuna search spaces: ``search_space`` entries over the keywords of an estimator.
 
 Each entry is ``{type: float|int|categorical, low, high, log, choices}`` (the form
-:func:`femcal.train.suggest` reads), and its bounds or choices must be valid values of the
+:func:`femcal.training.study.suggest` reads), and its bounds or choices must be valid values of the
 hyper-parameter itself.
 """
 
@@ -66,7 +66,8 @@ class SearchEntry:
 
 
 class SearchSpace(Check):
-    """An Optuna search space over the keywords of ``table`` (see :func:`femcal.train.suggest`).
+    """An Optuna search space over the keywords of ``table`` (see
+    :func:`femcal.training.study.suggest`).
 
     Each entry is ``{type: float|int|categorical, low, high, log, choices}``: float and int
     need ``low < high`` (``low > 0`` with ``log``), categorical needs ``choices``; the bounds

@@ -1,4 +1,5 @@
-"""The inverse-model baseline: fit, reproducibility, Optuna + MLflow training, calibrator, errors.
+"""The inverse model (femcal.inverse) and its calibrator: fit, reproducibility, Optuna + MLflow
+training, calibrator, errors.
 
 The surrogate is a small NeuralSurrogate fitted on the synthetic study table of ``synth``;
 training uses a real Optuna RDB storage and a real temporary MLflow store and registry.
@@ -16,7 +17,8 @@ import torch
 from mlflow import MlflowClient
 
 from femcal.calibration import CurveModel, calibrate
-from femcal.calibration.inverse import (
+from femcal.errors import ConfigError, InputDataError, ModelRegistryError, SurrogateNotFittedError
+from femcal.inverse import (
     STUDY_SETTINGS,
     InverseModel,
     inverse_kwargs,
@@ -25,7 +27,6 @@ from femcal.calibration.inverse import (
     rom_mae_deg,
     train_inverse,
 )
-from femcal.errors import ConfigError, InputDataError, ModelRegistryError, SurrogateNotFittedError
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.tracking import configure_tracking, ensure_experiment, export_model
 

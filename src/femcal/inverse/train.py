@@ -1,0 +1,262 @@
+"""Train the inverse model: samples from the surrogate, an Optuna study, MLflow, the registry.
+
+The study is :func:`femcal.training.study.run_study` (the surrogate's too): an RDB storage with
+heartbeats, the fixed recipe as trial 0, every trial a nested MLflow run; the final model is
+logged as an MLflow pyfunc (:func:`femcal.inverse.store.log_inverse`) and registered.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tempfile
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from femcal.errors import ConfigError
+from femcal.inverse.data import make_inverse_dataset, rom_mae_deg, surrogate_fingerprint
+from femcal.inverse.model import INVERSE_SETTINGS, InverseModel
+from femcal.training.study import (
+    TrialRun,
+    hidden_from_width_depth,
+    search_settings,
+    study_name_for,
+)
+
+if TYPE_CHECKING:
+    from femcal.calibration.model import CurveModel
+
+
+@dataclass
+class InverseTrainResult:
+    """What :func:`train_inverse` produced.
+
+    Attributes
+    ----------
+    model : InverseModel
+        The final fitted model.
+    best_params : dict
+        Its settings (fixed ones merged with the best trial's).
+    val_mae : float
+        Validation MAE in the unit box.
+    run_id : str
+        The MLflow run of this training.
+    model_uri : str or None
+        The logged MLflow pyfunc model.
+    version : str or None
+        The registered model version (None when not registered).
+    promoted : bool
+        Whether the champion alias moved to ``version``.
+    seconds : float
+        Wall time of the whole call.
+    val_rom_mae_deg : float
+        Validation MAE in degrees of the curves re-evaluated through the surrogate at the
+        predicted parameters (the Optuna objective and the promotion metric).
+    n_trials : int
+        Complete trials in the study after this call.
+    extra : dict
+        Anything else (study name, sample count).
+    """
+
+    model: InverseModel
+    best_params: dict
+    val_mae: float
+    run_id: str
+    model_uri: str | None = None
+    version: str | None = None
+    promoted: bool = False
+    seconds: float = 0.0
+    val_rom_mae_deg: float = math.nan
+    n_trials: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+def inverse_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
+    """Flat hyper-parameters (``width``/``depth`` allowed) -> :class:`InverseModel` keywords."""
+    kw = hidden_from_width_depth(params, width=256, depth=5)
+    allowed = set(INVERSE_SETTINGS) - {"seed"}
+    unknown = sorted(set(kw) - allowed)
+    if unknown:
+        raise ConfigError(
+            f"Unknown inverse-model settings {unknown}; use width/depth or {sorted(allowed)} "
+            "(the seed comes from train_inverse's seed)."
+        )
+    return kw
+
+
+def train_inverse(
+    curve_model: CurveModel,
+    *,
+    n_samples: int = 50_000,
+    search_space: Mapping[str, Mapping[str, Any]] | None = None,
+    fixed: Mapping[str, Any] | None = None,
+    n_trials: int = 0,
+    storage: str | None = None,
+    study_name: str = "inverse",
+    seed: int = 0,
+    val_fraction: float = 0.1,
+    sampling: str = "lhs",
+    register_as: str | None = None,
+    run_name: str = "train-inverse",
+    progress: bool = False,
+    heartbeat_seconds: int = 30,
+) -> InverseTrainResult:
+    """Sample a training set from the surrogate, search settings with Optuna, fit, log, register.
+
+    Parameters
+    ----------
+    curve_model : CurveModel
+        The surrogate on the moment grid the inverse model will accept (the study: 1..5 Nm).
+    n_samples : int
+        Configurations sampled in the unit box (the study: 50,000).
+    search_space : mapping, optional
+        Optuna search space (see :func:`femcal.training.study.suggest`) over :class:`InverseModel`
+        settings (``width``/``depth`` allowed).
+    fixed : mapping, optional
+        Fixed settings, overridden by the search; enqueued as trial 0 where inside the space.
+    n_trials : int
+        Complete trials the study should hold; a resumed study only runs the missing ones.
+        0 fits the final model on ``fixed`` alone.
+    storage : str, optional
+        Optuna RDB storage URL (``sqlite:///...``); needed when ``n_trials > 0``.
+    study_name : str
+        Base name of the study; a hash of the problem (surrogate, grid, samples, search
+        space, fixed settings) is appended.
+    seed : int
+        Seeds the samples, the validation split, the sampler and every fit.
+    val_fraction : float
+        Fraction of the samples held out for validation and early stopping.
+    sampling : {"lhs", "uniform"}
+        How the configurations are drawn.
+    register_as : str, optional
+        Registered model name (e.g. "ivd-inverse"); the champion alias moves only on a better
+        validation MAE in degrees.
+    run_name : str
+        Name of the parent MLflow run (in the active experiment).
+    progress : bool
+        Progress bars of Optuna and Lightning.
+    heartbeat_seconds : int
+        Trials send a heartbeat this often; a trial silent for three periods is failed and
+        retried.
+
+    Returns
+    -------
+    InverseTrainResult
+    """
+    import mlflow
+
+    from femcal.inverse.store import log_inverse
+    from femcal.tracking import register_run_model
+
+    t0 = time.perf_counter()
+    search_space = dict(search_space or {})
+    fixed = dict(fixed or {})
+    if n_trials < 0:
+        raise ConfigError(f"n_trials must be >= 0; got {n_trials}.")
+    if n_trials > 0 and not storage:
+        raise ConfigError("An Optuna search (n_trials > 0) needs an RDB storage URL (sqlite:///…).")
+    if not 0.0 < val_fraction < 1.0:
+        raise ConfigError(f"val_fraction must lie in (0, 1); got {val_fraction}.")
+    if int(n_samples) < 10:
+        raise ConfigError(f"n_samples must be >= 10; got {n_samples}.")
+    inverse_kwargs(fixed)  # fail early on unknown settings
+
+    rng = np.random.default_rng(seed)
+    rom, unit = make_inverse_dataset(curve_model, n_samples, rng, sampling=sampling)
+    perm = rng.permutation(rom.shape[0])
+    n_val = max(1, int(round(val_fraction * rom.shape[0])))
+    X_va, U_va = rom[perm[:n_val]], unit[perm[:n_val]]
+    X_tr, U_tr = rom[perm[n_val:]], unit[perm[n_val:]]
+    moments = curve_model.moments.double().numpy()
+    space = curve_model.space
+    data_id = f"{surrogate_fingerprint(curve_model)}-{n_samples}-{seed}-{sampling}-{val_fraction}"
+    full_name = study_name_for(study_name, search_space=search_space, fixed=fixed, data_id=data_id)
+
+    def fit(params: Mapping[str, Any], fit_seed: int, **kw: Any) -> InverseModel:
+        model = InverseModel(space, **inverse_kwargs(params), seed=fit_seed)
+        return model.fit(X_tr, U_tr, moments=moments, X_val=X_va, U_val=U_va, **kw)
+
+    with mlflow.start_run(run_name=run_name) as parent:
+        mlflow.log_params(
+            {
+                "n_trials": n_trials,
+                "n_samples": n_samples,
+                "sampling": sampling,
+                "seed": seed,
+                "val_fraction": val_fraction,
+                "n_train": X_tr.shape[0],
+                "n_val": X_va.shape[0],
+                "moments": json.dumps(moments.tolist()),
+                "optuna_study": full_name,
+            }
+        )
+        mlflow.set_tag("femcal.stage", "train-inverse")
+        mlflow.log_metric("dataset_seconds", time.perf_counter() - t0)
+
+        def train_trial(trial: TrialRun) -> float:
+            model = fit(
+                trial.params, seed + trial.number, logger=trial.logger, callbacks=trial.callbacks
+            )
+            value = rom_mae_deg(model, curve_model, X_va)
+            mlflow.log_metrics({"best_val_mae": model.best_val_mae_, "val_rom_mae_deg": value})
+            return value
+
+        best_params, n_complete = search_settings(
+            train_trial,
+            fixed=fixed,
+            n_trials=n_trials,
+            metric="val_rom_mae_deg",
+            storage=storage,
+            study_name=full_name,
+            search_space=search_space,
+            seed=seed,
+            monitor="val_mae",
+            heartbeat_seconds=heartbeat_seconds,
+            progress=progress,
+        )
+
+        mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
+        model = fit(best_params, seed, progress=progress)
+        for row in model.history_:
+            for key in ("train_loss", "val_mae", "lr"):
+                value = row.get(key)
+                if value is not None and np.isfinite(value):
+                    mlflow.log_metric(f"final.{key}", float(value), step=int(row["epoch"]))
+        val_mae = float(model.best_val_mae_)
+        val_rom = rom_mae_deg(model, curve_model, X_va)
+        mlflow.log_metrics({"val_mae": val_mae, "val_rom_mae_deg": val_rom})
+
+        with tempfile.TemporaryDirectory() as tmp:
+            model.save(Path(tmp) / "inverse_model")
+            mlflow.log_artifacts(str(Path(tmp) / "inverse_model"), artifact_path="inverse_model")
+        info = log_inverse(model)
+        version, promoted = register_run_model(
+            info.model_uri,
+            register_as,
+            val_metric=val_rom,
+            tags={
+                "optuna_study": full_name,
+                "train_run_id": parent.info.run_id,
+                "val_mae_unit": repr(val_mae),
+            },
+        )
+        seconds = time.perf_counter() - t0
+        mlflow.log_metric("train_seconds", seconds)
+        return InverseTrainResult(
+            model=model,
+            best_params=best_params,
+            val_mae=val_mae,
+            run_id=parent.info.run_id,
+            model_uri=info.model_uri,
+            version=version,
+            promoted=promoted,
+            seconds=seconds,
+            val_rom_mae_deg=val_rom,
+            n_trials=n_complete,
+            extra={"optuna_study": full_name, "n_samples": int(n_samples)},
+        )
