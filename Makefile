@@ -20,7 +20,8 @@ test: install  ## the test suite (slow tests excluded; `make test PYTEST_ARGS="-
 	pytest $(PYTEST_ARGS)
 
 lint: install
-	ruff check src tests
+	ruff check src tests benchmarks
+	ruff format --check src tests benchmarks
 
 # constraints.txt: every package of the working venv at its exact version (femcal itself left
 # out), which `make install` installs. To move to newer versions: `.venv/bin/pip install

@@ -204,9 +204,7 @@ class _SpecimenFigure:
         for ax in self.axes:
             measured = ax.plot([], [], "o", color="black", label="measured")[0]
             model = ax.plot([], [], "-", color="C0", label=result.method)[0]
-            held = (
-                ax.plot([], [], ":", color="C3", label="held-out model")[0] if holdout else None
-            )
+            held = ax.plot([], [], ":", color="C3", label="held-out model")[0] if holdout else None
             note = ax.text(
                 0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes
             )
@@ -455,8 +453,7 @@ def write_outputs(
         figures["n_outside_envelope"] = int(sum(bool(note) for note in reachability))
     if figures["n_r2_negative"]:
         logger.warning(
-            "%d of %d specimens fit worse than their mean (R² < 0): see metrics.csv (column "
-            "flag).",
+            "%d of %d specimens fit worse than their mean (R² < 0): see metrics.csv (column flag).",
             figures["n_r2_negative"],
             figures["n_specimens"],
         )
