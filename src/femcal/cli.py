@@ -611,7 +611,7 @@ def cmd_validate(args: argparse.Namespace, params: dict) -> None:
             f"  IDP at {row['force_n']:g} N: {row['idp_mpa_min']:.3f}-{row['idp_mpa_max']:.3f} "
             f"MPa{verdict}"
         )
-    from femcal.fe.validate import _json_safe
+    from femcal.fe.validate import json_safe
 
     keys = (
         "n_specimens",
@@ -622,7 +622,7 @@ def cmd_validate(args: argparse.Namespace, params: dict) -> None:
         "idp",
         "n_fe_failed_jobs",
     )
-    _write_metrics(args, _json_safe({k: s[k] for k in keys}))  # only when asked (DVC stage)
+    _write_metrics(args, json_safe({k: s[k] for k in keys}))  # only when asked (DVC stage)
     print(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv")
 
 

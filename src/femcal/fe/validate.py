@@ -332,17 +332,17 @@ def validate_calibration(
     curves.to_csv(out_dir / CURVES_CSV, index=False)
     idp_df.to_csv(out_dir / IDP_CSV, index=False)
     (out_dir / VALIDATION_JSON).write_text(
-        json.dumps(_json_safe(summary), indent=2, default=str) + "\n"
+        json.dumps(json_safe(summary), indent=2, default=str) + "\n"
     )
     return ValidationResult(table, summary, curves, idp_df, campaign)
 
 
-def _json_safe(value: Any) -> Any:
-    """NaN and inf as null (strict JSON)."""
+def json_safe(value: Any) -> Any:
+    """``value`` with NaN and inf as null (strict JSON), dicts, lists and tuples walked through."""
     if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
+        return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
