@@ -296,6 +296,17 @@ def _slices_of(effects: Sequence[str]) -> dict[str, tuple[int, int]]:
     return out
 
 
+def _solutions(per_spec: list[dict], rows, effects: tuple[str, ...]) -> torch.Tensor:
+    """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
+    return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
+
+
+def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[int]:
+    """Columns of an EffectModel of ``effects`` that an EffectModel of ``rest`` keeps."""
+    offsets = _slices_of(effects)
+    return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
+
+
 def _hat_trace_and_cov(jac: torch.Tensor, mask: np.ndarray, sigma: np.ndarray):
     """Effective number of parameters and the parameter covariance (unit box prior).
 
@@ -569,7 +580,7 @@ def diagnose(
         for current, members in groups.items():
             rows = np.asarray(members)
             prev_fit, _ = per_spec[rows[0]][current]
-            v_prev = torch.stack([per_spec[i][current][0].v[per_spec[i][current][1]] for i in rows])
+            v_prev = _solutions(per_spec, rows, current)
             trials: dict[tuple[str, ...], _Fit] = {}
             for new in candidates:
                 if new in current:
@@ -647,15 +658,10 @@ def diagnose(
             dropped = 0
             for current, members in groups.items():
                 rows = np.asarray(members)
-                v_cur = torch.stack(
-                    [per_spec[i][current][0].v[per_spec[i][current][1]] for i in rows]
-                )
-                offsets = _slices_of(current)
+                v_cur = _solutions(per_spec, rows, current)
                 for drop in current:
                     rest = tuple(e for e in current if e != drop)
-                    cols = list(range(base.dim)) + [
-                        base.dim + c for e in rest for c in range(*offsets[e])
-                    ]
+                    cols = _columns(base.dim, current, rest)
                     model = effect_model(rest)
                     v, pred, chi2 = _fit_from(
                         model, measured, weight, sigma, rows, v_cur[:, cols], 1, max_iter
@@ -772,18 +778,13 @@ def diagnose(
         still = []
         gls.clear()  # the GP's size changes with the model under test
         for current, members in groups.items():
-            v_cur = torch.stack(
-                [per_spec[i][current][0].v[per_spec[i][current][1]] for i in members]
-            )
+            v_cur = _solutions(per_spec, members, current)
             amp = np.array([misfit_amplitude(i, current) for i in members])
             gls_fit(current, members, v_cur, amp)
             v_gls = torch.stack([gls[(i, current)][1] for i in members])
-            offsets = _slices_of(current)
             for drop in current:
                 rest = tuple(e for e in current if e != drop)
-                cols = list(range(base.dim)) + [
-                    base.dim + c for e in rest for c in range(*offsets[e])
-                ]
+                cols = _columns(base.dim, current, rest)
                 # In the dropped effect's own load cases the discrepancy may be no larger than
                 # the model with the effect needed there: it may not take over what the effect
                 # explained; elsewhere it is free, so the disc can stop bending towards physics
@@ -802,7 +803,7 @@ def diagnose(
                 # parameters the disc may stay bent towards what the dropped effect did.
                 own = [i for i in members if rest in per_spec[i]]
                 if own:
-                    v_own = torch.stack([per_spec[i][rest][0].v[per_spec[i][rest][1]] for i in own])
+                    v_own = _solutions(per_spec, own, rest)
                     sel = [members.index(i) for i in own]
                     gls_fit(
                         rest,
@@ -879,7 +880,7 @@ def diagnose(
         for effects, members in finals.items():
             rows = np.asarray(members)
             model = base if not effects else effect_model(effects)
-            v = torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
+            v = _solutions(per_spec, rows, effects)
             dfit = fit_discrepancy(model, v, measured[rows], sigma_m)
             mean, sd = discrepancy_posterior(dfit, moments, dense, mask[rows])
             for pos, i in enumerate(rows):
@@ -911,7 +912,7 @@ def diagnose(
             for i in members:
                 final_curves[i] = curves0[i]
             continue
-        v = torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in members])
+        v = _solutions(per_spec, members, effects)
         cv = _dense_curves(dense_base, effects, v)
         for pos, i in enumerate(members):
             final_curves[i] = cv[pos]
