@@ -82,16 +82,15 @@ class CurveModel:
         self.n_evaluations = 0
 
     # ----------------------------------------------------------------- coordinates
+    @property
+    def unit_space(self) -> ParameterSpace:
+        """The coordinates ``v`` the calibrators move in: the network's input space."""
+        return self.net.space
+
     def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
         """Network coordinates (n, d) -> physical parameters (n, d), float64, inside the box."""
-        v64 = torch.as_tensor(np.asarray(v, dtype=float)).clamp(0.0, 1.0)
-        net = self.net
-        lo = net.lower.double()
-        hi = net.upper.double()
-        linear = lo + v64 * (hi - lo)
-        logged = torch.exp(net.log_lower.double() + v64 * (net.log_upper - net.log_lower).double())
-        x = torch.where(net.log_mask, logged, linear).numpy()
-        return self.space.clip(x)
+        v64 = np.clip(np.asarray(v, dtype=float), 0.0, 1.0)
+        return self.space.clip(self.unit_space.from_unit(v64))
 
     def from_physical(self, x: np.ndarray, *, clip: bool = True) -> torch.Tensor:
         """Physical parameters (n, d) -> network coordinates (n, d), float32.
@@ -102,8 +101,8 @@ class CurveModel:
         """
         x = np.asarray(x, dtype=float)
         if not clip:
-            x = np.where(self.net.log_mask.numpy(), np.maximum(x, 1e-12), x)
-        v = self.net.unit(torch.as_tensor(x, dtype=torch.float32))
+            x = np.where(self.unit_space.is_log, np.maximum(x, 1e-12), x)
+        v = self.unit_space.to_unit(torch.as_tensor(x, dtype=torch.float32))
         return v.clamp(0.0, 1.0) if clip else v
 
     def from_linear_unit(self, u: torch.Tensor) -> torch.Tensor:
@@ -112,15 +111,14 @@ class CurveModel:
         Values outside [0, 1] map outside the box too (used by the ablations without
         projection); positive parameters pushed below zero are floored at 1e-12 physical.
         """
-        lo = torch.tensor(np.array(self.space.lower), dtype=u.dtype)
-        width = torch.tensor(np.array(self.space.width), dtype=u.dtype)
-        x = lo + u * width
-        x = torch.where(self.net.log_mask, x.clamp_min(1e-12), x)
-        return self.net.unit(x)
+        x = self.space.linear().from_unit(u)
+        mask = torch.tensor(np.array(self.unit_space.is_log))
+        x = torch.where(mask, x.clamp_min(1e-12), x)
+        return self.unit_space.to_unit(x)
 
     def linear_unit_to_physical(self, u: np.ndarray) -> np.ndarray:
         """The study's unit box -> physical, float64, not clipped (ablations report exceedance)."""
-        return self.space.lower + np.asarray(u, dtype=float) * self.space.width
+        return self.space.linear().from_unit(u)
 
     # ----------------------------------------------------------------- evaluation
     def curves(self, v: torch.Tensor) -> torch.Tensor:
