@@ -1,11 +1,11 @@
-"""The surrogate as a function of the parameters on a fixed moment grid.
+"""The disc surrogate as a function of the parameters on a fixed moment grid.
 
-:class:`CurveModel` is what every calibrator optimises: for a batch of parameter vectors it
-returns the RoM curves of the four load cases at the measured moments, shape (n, 4, m). It
-works in the surrogate network's own unit coordinates ``v`` (the box is exactly [0, 1]^d;
-parameters with positive bounds are log-scaled there, which conditions the problem), and
-converts to physical units at the edges, clipping onto the bounds in float64 so that a
-returned configuration is never outside the box, not even by rounding.
+:class:`SurrogateCurveModel` is the :class:`~femcal.curves.CurveModel` of the disc alone: for
+a batch of parameter vectors it returns the RoM curves of the four load cases at the measured
+moments, shape (n, 4, m). It works in the surrogate network's own unit coordinates ``v`` (its
+input space; the box is exactly [0, 1]^d, parameters with positive bounds log-scaled, which
+conditions the problem), and converts to physical units at the edges, clipping onto the bounds
+in float64 so that a returned configuration is never outside the box, not even by rounding.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from femcal.curves import CurveModel
 from femcal.errors import ConfigError
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import forward_tangents
@@ -25,8 +26,11 @@ logger = logging.getLogger(__name__)
 _EVAL_BATCH = 16_384
 
 
-class CurveModel:
-    """A differentiable surrogate evaluated on a moment grid.
+__all__ = ["CurveModel", "SurrogateCurveModel"]
+
+
+class SurrogateCurveModel:
+    """A differentiable surrogate evaluated on a moment grid (a :class:`CurveModel`).
 
     Parameters
     ----------
@@ -80,12 +84,24 @@ class CurveModel:
         self.moments = torch.tensor(m, dtype=torch.float32)
         self.dim = self.space.dim
         self.n_evaluations = 0
+        self._unit_space: ParameterSpace | None = None
 
     # ----------------------------------------------------------------- coordinates
     @property
     def unit_space(self) -> ParameterSpace:
-        """The coordinates ``v`` the calibrators move in: the network's input space."""
-        return self.net.space
+        """The coordinates ``v`` the calibrators move in: the network's input space (its
+        bounds and scales, :attr:`~femcal.surrogates.romnet.RomNet.space`) under the
+        parameters' names."""
+        if self._unit_space is None:
+            net_space = self.net.space
+            self._unit_space = ParameterSpace(
+                self.surrogate.space.names,  # type: ignore[attr-defined]
+                net_space.lower,
+                net_space.upper,
+                self.surrogate.space.units,  # type: ignore[attr-defined]
+                net_space.scales,
+            )
+        return self._unit_space
 
     def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
         """Network coordinates (n, d) -> physical parameters (n, d), float64, inside the box."""

@@ -1,4 +1,4 @@
-"""The disc surrogate composed with physical effects: a drop-in :class:`CurveModel`.
+"""The disc surrogate composed with physical effects: a :class:`~femcal.curves.CurveModel`.
 
 :class:`EffectModel` has the interface the calibrators use (``curves``, ``curves_jacobian``,
 ``to_physical``, ``from_physical``, ``predict``, ``space``, ``moments``, ``dim``), over the
@@ -33,11 +33,11 @@ _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
 
 
 class EffectModel:
-    """A :class:`~femcal.calibration.model.CurveModel` with physical effects added.
+    """The disc surrogate with physical effects added (a :class:`~femcal.curves.CurveModel`).
 
     Parameters
     ----------
-    base : CurveModel
+    base : SurrogateCurveModel
         The disc surrogate on the moment grid.
     effects : sequence of str
         Registered effect names (:func:`~femcal.effects.available_effects`); empty = the disc.
