@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import coverage, holdout_scores, identifiability
 from femcal.config import load_params, section
 from femcal.measurements import read_measurements
@@ -121,8 +121,8 @@ def main() -> None:
 
     surrogate = load_surrogate(cfg["model_uri"])
     held_sur = load_surrogate(cfg["holdout_uri"])
-    model = CurveModel(surrogate, meas.moments)
-    holdout = CurveModel(held_sur, meas.moments)
+    model = SurrogateCurveModel(surrogate, meas.moments)
+    holdout = SurrogateCurveModel(held_sur, meas.moments)
     bank = REPO / cfg["start_bank"]
     pgd_opts = calibration_options(
         "pgd", cfg["options"]["pgd"], surrogate=surrogate, start_bank=bank

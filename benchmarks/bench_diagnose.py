@@ -66,7 +66,7 @@ from hidden_cohorts import (
     stratified,
 )
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.config import load_params, section
 from femcal.diagnose import diagnose
 from femcal.effects.composite import EffectModel
@@ -224,7 +224,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
     moments, rom, noise = cohort["moments"], cohort["rom_deg"], cohort["noise_deg"]
     labels, classes = cohort["labels"], [c for c in cohort["classes"] if c in cohort["labels"]]
     n = len(labels)
-    model = CurveModel(surrogate, moments)
+    model = SurrogateCurveModel(surrogate, moments)
     if policy is not None:
         sur_err = policy.sigma_surrogate(moments)
         weight = np.ascontiguousarray(np.broadcast_to(policy.weights(moments), rom.shape))

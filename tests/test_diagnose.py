@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from femcal.calibration import CurveModel
+from femcal.calibration import SurrogateCurveModel
 from femcal.diagnose import NONE, UNEXPLAINED, diagnose, verdict_label
 from femcal.effects.planted import fe_rotation
 from femcal.errors import ConfigError
@@ -62,7 +62,7 @@ def world():
     ).fit(table, table["rom_deg"].to_numpy())
     rng = np.random.default_rng(11)
     configs = study_space().sample_uniform(15, rng)
-    fe = CurveModel(surrogate, MOMENTS).predict(configs)
+    fe = SurrogateCurveModel(surrogate, MOMENTS).predict(configs)
     curves, truth = [], []
     for i, fe_rom in enumerate(fe):
         kind = ("none", "combination", "softening")[i % 3]
@@ -77,7 +77,7 @@ def world():
         curves.append(c)
         truth.append(kind)
     rom = np.stack(curves) + rng.normal(0, NOISE, (len(curves), 4, len(MOMENTS)))
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     specimens = [f"S{i:02d}" for i in range(len(rom))]
     diag = diagnose(base, rom, specimens=specimens, noise_deg=NOISE, seed=0)
     return base, rom, np.array(truth), diag
@@ -167,7 +167,7 @@ def test_an_effect_that_explains_its_own_load_cases_stays_when_more_is_missing(w
     it) and the verdict says that something else is missing too."""
     base, _, _, _ = world
     rng = np.random.default_rng(5)
-    fe = CurveModel(base.surrogate, MOMENTS).predict(study_space().sample_uniform(4, rng))
+    fe = SurrogateCurveModel(base.surrogate, MOMENTS).predict(study_space().sample_uniform(4, rng))
     curves = []
     for fe_rom in fe:
         c = _facet(MOMENTS, fe_rom, MOMENTS)

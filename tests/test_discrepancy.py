@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from femcal.calibration import CurveModel
+from femcal.calibration import CurveModel, SurrogateCurveModel
 from femcal.discrepancy import (
     _covariance,
     _kernel,
@@ -28,7 +28,7 @@ NOISE = 0.02
 def base() -> CurveModel:
     table = tidy_table(40, seed=5)
     model = NeuralSurrogate(study_space(), hidden=(24, 24), max_epochs=30, batch_size=16, seed=0)
-    return CurveModel(model.fit(table, table["rom_deg"].to_numpy()), MOMENTS)
+    return SurrogateCurveModel(model.fit(table, table["rom_deg"].to_numpy()), MOMENTS)
 
 
 def _softened(base: CurveModel, n: int, seed: int):

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import write_outputs
 from femcal.cli import _fit_warnings
 from femcal.effects.composite import EffectModel
@@ -111,7 +111,7 @@ def test_meas() -> Measurements:
 
 
 def _envelope(disc, policy, reference, moments, effects=()):
-    model = CurveModel(disc, moments)
+    model = SurrogateCurveModel(disc, moments)
     if effects:
         model = EffectModel(model, list(effects))
     return build_envelope(model, sigma_model=policy.sigma_surrogate(moments), reference=reference)
@@ -242,7 +242,7 @@ def test_flexion_extension_swapped_get_the_convention_hint_where_the_model_tells
         study_space(), hidden=(32, 32), max_epochs=40, patience=40, batch_size=16, seed=0
     ).fit(table, table["rom_deg"].to_numpy())
     moments = np.arange(1.0, 6.0)
-    model = CurveModel(surrogate, moments)
+    model = SurrogateCurveModel(surrogate, moments)
     rom = model.predict(study_space().sample_uniform(6, np.random.default_rng(1)))
     env = build_envelope(model, sigma_model=0.02)
     names = [f"S{i}" for i in range(6)]
@@ -275,7 +275,7 @@ def test_a_fit_worse_than_the_mean_is_flagged_never_a_plain_success(
     rom = meas.rom_deg / DEG_PER_RAD
     report = check_reachability(_like(meas, rom), envelope)
     result = calibrate(
-        CurveModel(disc, meas.moments),
+        SurrogateCurveModel(disc, meas.moments),
         rom,
         specimens=meas.specimens,
         method="pgd",
@@ -301,7 +301,7 @@ def test_a_fit_worse_than_the_mean_is_flagged_never_a_plain_success(
 def test_a_good_fit_has_no_flag(tmp_path, disc, test_meas):
     meas = test_meas.subset(["0", "1"])
     result = calibrate(
-        CurveModel(disc, meas.moments),
+        SurrogateCurveModel(disc, meas.moments),
         meas.rom_deg,
         specimens=meas.specimens,
         method="pgd",
@@ -397,7 +397,7 @@ def test_calibrate_marks_the_specimen_out_of_reach(registry, test_meas, caplog):
 def test_assess_reachability_checks_in_well_under_a_second(disc, policy, test_meas):
     report = assess_reachability(
         test_meas,
-        CurveModel(disc, test_meas.moments),
+        SurrogateCurveModel(disc, test_meas.moments),
         sigma_model=policy.sigma_surrogate(test_meas.moments),
         reference=PREPARED / "large.csv",
     )

@@ -152,3 +152,129 @@ def test_from_bounds_csv_errors(tmp_path: Path, text: str, match: str) -> None:
 def test_from_bounds_csv_missing_file(tmp_path: Path) -> None:
     with pytest.raises(InputDataError, match="does not exist; run the 'fetch' stage"):
         ParameterSpace.from_bounds_csv(tmp_path / "ParameterBounds.csv")
+
+
+# --------------------------------------------------------------- scales (linear and log)
+@pytest.fixture
+def mixed() -> ParameterSpace:
+    # a linear parameter that crosses zero, two log parameters spanning decades
+    return ParameterSpace(
+        ["a", "k", "e"], [-1.0, 0.5, 1e-3], [1.0, 50.0, 10.0], scales=["linear", "log", "log"]
+    )
+
+
+def test_log_scale_maps_decades_evenly(mixed: ParameterSpace) -> None:
+    assert mixed.scales == ("linear", "log", "log")
+    np.testing.assert_array_equal(mixed.is_log, [False, True, True])
+    x = np.array([[0.0, 5.0, 0.1], [-1.0, 0.5, 1e-3], [1.0, 50.0, 10.0]])
+    u = mixed.to_unit(x)
+    np.testing.assert_allclose(u, [[0.5, 0.5, 0.5], [0, 0, 0], [1, 1, 1]], atol=1e-15)
+    np.testing.assert_allclose(mixed.from_unit(u), x, rtol=1e-14)
+    # a linear space maps exactly as before: (x - lower) / width
+    np.testing.assert_array_equal(mixed.linear().to_unit(x), (x - mixed.lower) / mixed.width)
+
+
+def test_numpy_and_torch_agree(mixed: ParameterSpace) -> None:
+    torch = pytest.importorskip("torch")
+    u = np.random.default_rng(3).random((7, 3))
+    x = mixed.from_unit(u)
+    for dtype, tol in ((torch.float64, 1e-14), (torch.float32, 1e-6)):
+        xt = mixed.from_unit(torch.tensor(u, dtype=dtype))
+        assert isinstance(xt, torch.Tensor) and xt.dtype == dtype
+        np.testing.assert_allclose(xt.double().numpy(), x, rtol=tol)
+        ut = mixed.to_unit(torch.tensor(x, dtype=dtype))
+        np.testing.assert_allclose(ut.double().numpy(), u, atol=tol * 10)
+
+
+@pytest.mark.parametrize("where", ["to_unit", "from_unit"])
+def test_jacobians_match_finite_differences(mixed: ParameterSpace, where: str) -> None:
+    rng = np.random.default_rng(11)
+    u = rng.uniform(0.05, 0.95, (5, 3))
+    point = u if where == "from_unit" else mixed.from_unit(u)
+    f = getattr(mixed, where)
+    jac = getattr(mixed, f"{where}_jacobian")(point)
+    assert jac.shape == point.shape
+    # central differences, step relative to each coordinate's size: truncation ~h^2
+    h = 1e-6 * np.maximum(np.abs(point), 1e-3)
+    fd = (f(point + h) - f(point - h)) / (2 * h)
+    np.testing.assert_allclose(jac, fd, rtol=1e-7)
+    # the two Jacobians are reciprocal (the maps are inverse to each other)
+    if where == "from_unit":
+        np.testing.assert_allclose(jac * mixed.to_unit_jacobian(mixed.from_unit(u)), 1.0)
+
+
+def test_torch_jacobian_matches_autograd(mixed: ParameterSpace) -> None:
+    torch = pytest.importorskip("torch")
+    u = torch.tensor(np.random.default_rng(5).random((4, 3)), dtype=torch.float64)
+    u.requires_grad_(True)
+    (grad,) = torch.autograd.grad(mixed.from_unit(u).sum(), u)
+    np.testing.assert_allclose(grad.numpy(), mixed.from_unit_jacobian(u.detach()).numpy())
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (
+            {"scales": ["log", "linear"]},
+            r"log-scaled parameter needs a lower bound > 0; got a: lower=0",
+        ),
+        ({"scales": ["linear", "ln"]}, r"Unknown parameter scale for b: 'ln'; use one of"),
+        ({"scales": ["linear"]}, r"Got 1 scales for 2 parameters"),
+    ],
+)
+def test_bad_scales(kwargs: dict, match: str) -> None:
+    with pytest.raises(InputDataError, match=match):
+        ParameterSpace(["a", "b"], [0.0, 1.0], [1.0, 2.0], **kwargs)
+
+
+def test_scales_in_equality_dict_and_concat(mixed: ParameterSpace) -> None:
+    assert mixed != mixed.linear()
+    assert ParameterSpace.from_dict(mixed.to_dict()) == mixed
+    # a linear space's description is what it always was (prepare's space.json unchanged)
+    assert "scales" not in mixed.linear().to_dict()
+    joint = ParameterSpace.concat(
+        mixed.linear(), ParameterSpace(["z"], [1.0], [2.0], scales=["log"])
+    )
+    assert joint.names == ("a", "k", "e", "z")
+    assert joint.scales == ("linear", "linear", "linear", "log")
+    # log_where_positive: the surrogate network's rule
+    assert mixed.linear().log_where_positive().scales == ("linear", "log", "log")
+    # the study's exceedance is in linear units whatever the scales
+    x = np.array([[2.0, 5.0, 20.0]])
+    np.testing.assert_allclose(mixed.exceedance(x), [0.5 + 10 / (10 - 1e-3)])
+
+
+def test_romnet_inputs_bit_identical_to_the_trained_map() -> None:
+    """RomNet.unit is the space's transform and equals the float32 map the networks were
+    trained with (log of float32 bounds), bit for bit; old weights carrying that map's
+    buffers still load."""
+    torch = pytest.importorskip("torch")
+    from femcal.surrogates.romnet import RomNet
+
+    lower = np.array([-1.0, 0.5, 1e-3, 2.0])
+    upper = np.array([1.0, 50.0, 10.0, 3.0])
+    net = RomNet(lower, upper, hidden=(8,), n_members=2)
+    x = torch.tensor(
+        ParameterSpace(list("abcd"), lower, upper).sample_uniform(64, np.random.default_rng(0)),
+        dtype=torch.float32,
+    )
+    lo = torch.tensor(lower, dtype=torch.float32)
+    hi = torch.tensor(upper, dtype=torch.float32)
+    mask = lo > 0
+    log_lo = torch.log(torch.where(mask, lo, torch.ones_like(lo)))
+    log_hi = torch.log(torch.where(mask, hi, torch.ones_like(hi)))
+    linear = (x - lo) / (hi - lo)
+    logged = (torch.log(torch.where(mask, x, torch.ones_like(x))) - log_lo) / (log_hi - log_lo)
+    legacy = torch.where(mask, logged, linear)
+    assert torch.equal(net.unit(x), legacy)
+    back = torch.where(
+        mask, torch.exp(log_lo + legacy * (log_hi - log_lo)), lo + legacy * (hi - lo)
+    )
+    assert torch.equal(net.params_from_unit(legacy), back)
+    state = net.state_dict() | {"log_mask": mask, "log_lower": log_lo, "log_upper": log_hi}
+    again = RomNet(lower, upper, hidden=(8,), n_members=2)
+    again.load_state_dict(state)  # strict: the legacy buffers are dropped, nothing else
+    assert torch.equal(
+        again(torch.zeros(3, dtype=torch.long), torch.ones(3), x[:3]),
+        net(torch.zeros(3, dtype=torch.long), torch.ones(3), x[:3]),
+    )

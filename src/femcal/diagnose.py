@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from femcal.calibration.base import CalibrationProblem
-from femcal.calibration.model import CurveModel
+from femcal.calibration.model import CurveModel, SurrogateCurveModel
 from femcal.calibration.pgd import (
     effect_bank,
     gauss_newton,
@@ -1079,7 +1079,7 @@ def _dense_base(base, dense: np.ndarray):
     surrogate = getattr(base, "surrogate", None)
     if surrogate is None:
         return None
-    return CurveModel(surrogate, dense, space=base.space)
+    return SurrogateCurveModel(surrogate, dense, space=base.space)
 
 
 def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.ndarray:

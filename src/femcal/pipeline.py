@@ -400,7 +400,7 @@ def run_calibrate(
 
     import mlflow
 
-    from femcal.calibration import CurveModel, calibrate
+    from femcal.calibration import SurrogateCurveModel, calibrate
     from femcal.calibration.report import write_outputs
     from femcal.measurements import read_measurements
     from femcal.moments import MomentPolicy
@@ -416,7 +416,7 @@ def run_calibrate(
     weight = meas.weight * policy.weights(meas.moments)  # (n, 4, m): 1 / sd(M)^2, relative
     from femcal.effects.composite import EffectModel
 
-    model = CurveModel(surrogate, meas.moments)
+    model = SurrogateCurveModel(surrogate, meas.moments)
     if effects:
         model = EffectModel(model, list(effects))
     # Before the fit: can the model produce these curves at all? (raises or warns)
@@ -427,7 +427,7 @@ def run_calibrate(
     holdout = None
     holdout_source = open_model(holdout_uri) if holdout_uri else None
     if holdout_source is not None:
-        holdout = CurveModel(load_surrogate(holdout_source), meas.moments)
+        holdout = SurrogateCurveModel(load_surrogate(holdout_source), meas.moments)
         if effects:
             holdout = EffectModel(holdout, list(effects))
     lap("imports, reading, models, reachability")
@@ -578,14 +578,14 @@ def run_train_inverse(
     """
     import mlflow
 
-    from femcal.calibration import CurveModel
+    from femcal.calibration import SurrogateCurveModel
     from femcal.inverse import train_inverse
     from femcal.tracking import load_surrogate, open_model
 
     source = open_model(surrogate_uri)
     surrogate = load_surrogate(source)
     result = train_inverse(
-        CurveModel(surrogate, moments),
+        SurrogateCurveModel(surrogate, moments),
         n_samples=int(settings.get("n_samples", 50_000)),
         search_space=settings.get("search_space") or {},
         fixed=settings.get("fixed") or {},
@@ -692,7 +692,7 @@ def run_diagnose(
     check_destination(out_dir)  # a bad output folder is the first error, not the last
     import mlflow
 
-    from femcal.calibration import CurveModel
+    from femcal.calibration import SurrogateCurveModel
     from femcal.diagnose import diagnose
     from femcal.diagnose_report import write_diagnosis
     from femcal.effects import available_effects
@@ -711,13 +711,15 @@ def run_diagnose(
     # Before the fit: can the disc, with every candidate effect, produce these curves at all?
     assess_reachability(
         meas,
-        EffectModel(CurveModel(surrogate, meas.moments), list(candidates or available_effects())),
+        EffectModel(
+            SurrogateCurveModel(surrogate, meas.moments), list(candidates or available_effects())
+        ),
         sigma_model=policy.sigma_surrogate(meas.moments),
         reference=start_bank,
         noise_deg=noise_deg,
     )
     diag = diagnose(
-        CurveModel(surrogate, meas.moments),
+        SurrogateCurveModel(surrogate, meas.moments),
         meas.rom_deg,
         specimens=meas.specimens,
         noise_deg=noise_deg,

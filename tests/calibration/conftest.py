@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from femcal.calibration import CurveModel
+from femcal.calibration import CurveModel, SurrogateCurveModel
 from femcal.surrogates.nn import NeuralSurrogate
 
 from synth import study_space, tidy_table
@@ -24,7 +24,7 @@ def small_surrogate() -> NeuralSurrogate:
 
 @pytest.fixture
 def curve_model(small_surrogate: NeuralSurrogate) -> CurveModel:
-    return CurveModel(small_surrogate, MOMENTS)
+    return SurrogateCurveModel(small_surrogate, MOMENTS)
 
 
 @pytest.fixture

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from femcal.calibration import CalibrationProblem, CurveModel, calibrate
+from femcal.calibration import CalibrationProblem, CurveModel, SurrogateCurveModel, calibrate
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
@@ -34,7 +34,7 @@ def model() -> CurveModel:
         n_members=1,
         seed=0,
     ).fit(X, table["rom_deg"].to_numpy())
-    return CurveModel(surrogate, moments=MOMENTS)
+    return SurrogateCurveModel(surrogate, moments=MOMENTS)
 
 
 @pytest.fixture(scope="module")

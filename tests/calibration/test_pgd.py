@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from femcal.calibration import CalibrationProblem, CurveModel, available_calibrators, calibrate
+from femcal.calibration import (
+    CalibrationProblem,
+    SurrogateCurveModel,
+    available_calibrators,
+    calibrate,
+)
 from femcal.calibration.pgd_study import _BETA1, _BETA2, _EPS
 from femcal.errors import ConfigError, InputDataError
 
@@ -195,7 +200,7 @@ def test_pgd_study_ablations(curve_model, truth):
 
 def test_curve_model_rejects_non_differentiable_surrogates():
     with pytest.raises(ConfigError, match="needs a differentiable surrogate with torch_module"):
-        CurveModel(object(), [1.0])
+        SurrogateCurveModel(object(), [1.0])
 
 
 def test_member_subset_jacobian(small_surrogate):
@@ -213,7 +218,7 @@ def test_member_subset_jacobian(small_surrogate):
     ens.n_members = 2
     sur = copy.copy(small_surrogate)
     sur.net_ = ens
-    model = CurveModel(sur, [1.0, 3.0, 5.0])
+    model = SurrogateCurveModel(sur, [1.0, 3.0, 5.0])
     v = torch.rand(5, ens.n_params, generator=torch.Generator().manual_seed(1))
     exact_values, exact = model.curves_jacobian(v)
     values, approx = model.curves_jacobian(v, jacobian_members=1)

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import (
     coverage,
     holdout_scores,
@@ -32,7 +32,7 @@ def test_write_outputs(tmp_path, curve_model, truth, small_surrogate):
         method="pgd",
         options={"n_bank_uniform": 256},
     )
-    holdout = CurveModel(small_surrogate, curve_model.moments.numpy())
+    holdout = SurrogateCurveModel(small_surrogate, curve_model.moments.numpy())
     figures = write_outputs(res, tmp_path / "out", holdout=holdout, max_plots=4)
     out = tmp_path / "out"
     params = pd.read_csv(out / "parameters.csv")
@@ -79,7 +79,9 @@ def test_coverage_and_identifiability(curve_model, truth):
 
 def test_holdout_scores_detect_a_different_model(curve_model, truth, small_surrogate):
     res = calibrate(curve_model, truth[1], method="pgd", options={"n_bank_uniform": 256})
-    other = CurveModel(small_surrogate, [1.5, 2.5, 3.5, 4.5, 5.5])  # another grid = other curves
+    other = SurrogateCurveModel(
+        small_surrogate, [1.5, 2.5, 3.5, 4.5, 5.5]
+    )  # another grid = other curves
     held = holdout_scores(res, other)
     assert np.all(held["mae"] > res.mae_deg)
 
@@ -144,7 +146,7 @@ def test_one_redrawn_figure_writes_what_a_figure_per_specimen_writes(
     targets = truth[1][:3].copy()
     targets[1, 2] = np.nan  # specimen 1 without lateral bending: "not measured", then back
     res = calibrate(curve_model, targets, method="pgd", options={"n_bank_uniform": 64})
-    held = holdout_scores(res, CurveModel(small_surrogate, curve_model.moments.numpy()))
+    held = holdout_scores(res, SurrogateCurveModel(small_surrogate, curve_model.moments.numpy()))
     batch = [tmp_path / f"batch{i}.png" for i in range(3)]
     plot_specimens(res, batch, held["prediction"])
     images = [imread(p) for p in batch]

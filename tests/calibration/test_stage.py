@@ -209,12 +209,12 @@ def test_missing_registered_model(registry, truth):
 
 def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
     # Targets with a planted facet contact: the disc alone, then the disc with the effect.
-    from femcal.calibration import CurveModel
+    from femcal.calibration import SurrogateCurveModel
     from femcal.effects.composite import EffectModel
 
     tmp = registry
     moments = (1.0, 2.0, 3.0, 4.0, 5.0)
-    model = EffectModel(CurveModel(small_surrogate, moments), ["facet_contact"])
+    model = EffectModel(SurrogateCurveModel(small_surrogate, moments), ["facet_contact"])
     x = small_surrogate.space.sample_uniform(4, np.random.default_rng(2))
     curves = model.predict(np.concatenate([x, [[0.5, 2.0]] * 4], axis=1))
     meas = _long_csv(tmp / "meas.csv", curves, moments)
@@ -250,12 +250,12 @@ def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
 def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, monkeypatch):
     # The common in vitro protocol, 1.25 .. 7.5 Nm, against a surrogate trained on 1..5 Nm.
     import femcal.calibration
-    from femcal.calibration import CurveModel
+    from femcal.calibration import SurrogateCurveModel
 
     moments = (1.25, 2.5, 5.0, 7.5)
     x = small_surrogate.space.sample_uniform(2, np.random.default_rng(4))
     meas = _long_csv(
-        registry / "vitro.csv", CurveModel(small_surrogate, moments).predict(x), moments
+        registry / "vitro.csv", SurrogateCurveModel(small_surrogate, moments).predict(x), moments
     )
     seen = {}
     real = femcal.calibration.calibrate

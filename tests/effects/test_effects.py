@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.effects import Effect, EffectParameter, available_effects, get_effect, register_effect
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import fe_rotation, make_cohort, plant
@@ -57,13 +57,13 @@ def test_a_user_effect_is_one_class(clean_registry):
 
 
 def test_disc_alone_equals_the_surrogate(surrogate):
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     v = torch.rand(4, 13, generator=torch.Generator().manual_seed(0))
     torch.testing.assert_close(EffectModel(base, []).curves(v), base.curves(v))
 
 
 def test_effects_act_where_they_should(surrogate):
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     v = torch.rand(3, 13, generator=torch.Generator().manual_seed(1))
     disc = base.curves(v)
     for name, lcs in (("facet_contact", [1, 3]), ("ligament_tension", [0, 2])):
@@ -79,7 +79,7 @@ def test_effects_act_where_they_should(surrogate):
 
 
 def test_composite_jacobian_matches_finite_differences(surrogate):
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["facet_contact", "ligament_tension", "neutral_zone"])
     model.net = copy.deepcopy(model.net).double()
     model.moments = model.moments.double()
@@ -96,7 +96,7 @@ def test_composite_jacobian_matches_finite_differences(surrogate):
 def test_the_jacobian_is_finite_far_from_contact(surrogate):
     # A gap far beyond the rotations (unit 1 = 6 deg) puts the facet ramp in softplus
     # underflow; the derivative in the exponent must still be finite (0, not 0 * log 0).
-    base = CurveModel(surrogate, [0.02, 0.05])  # rotations well below a degree
+    base = SurrogateCurveModel(surrogate, [0.02, 0.05])  # rotations well below a degree
     model = EffectModel(base, BUILTIN)
     v = torch.rand(4, model.dim, generator=torch.Generator().manual_seed(5))
     v[:, base.dim] = 1.0  # facet gap at its upper bound
@@ -106,7 +106,7 @@ def test_the_jacobian_is_finite_far_from_contact(surrogate):
 
 
 def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate):
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["facet_contact"])
     rng = np.random.default_rng(3)
     x = np.concatenate([study_space().sample_uniform(4, rng), [[1.0, 1.0]] * 4], axis=1)
@@ -126,7 +126,7 @@ def test_joint_calibration_recovers_a_planted_effect_inside_the_bounds(surrogate
 def test_a_second_round_of_starts_finds_two_effects_at_once(surrogate):
     # Facet contact and ligament tension both on (the model's own curves, no noise): the first
     # round starts one effect at a time; the second adds each effect to the best found.
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["facet_contact", "ligament_tension", "neutral_zone"])
     rng = np.random.default_rng(8)
     n = 6
@@ -202,7 +202,7 @@ def test_make_cohort_is_seeded_and_balanced():
 def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
     from femcal.calibration.pgd import effect_starts
 
-    model = EffectModel(CurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
+    model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
     starts = effect_starts(model, (0.2, 0.8))
     weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
     # facet 4 parameters, neutral zone 3; shape parameters (after the first two) not gridded.
@@ -219,7 +219,7 @@ def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
 def test_shape_starts_cover_every_parameter_of_each_effect_seeded(surrogate):
     from femcal.calibration.pgd import effect_starts, shape_design
 
-    model = EffectModel(CurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
+    model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
     starts = effect_starts(model, (0.2, 0.8), shape_starts=8)
     weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
     # weak end; facet grid (4) + its design (8); neutral-zone grid (4) + its design (8)
@@ -235,7 +235,7 @@ def test_shape_starts_cover_every_parameter_of_each_effect_seeded(surrogate):
 
 def test_the_weak_end_of_every_effect_leaves_the_disc_curves_unchanged(surrogate):
     # Effects the data do not need must be able to switch off, even at large rotations.
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, BUILTIN)
     v_disc = torch.rand((16, base.dim), generator=torch.Generator().manual_seed(0))
     weak = torch.tensor([q.start for e in model.effects for q in e.parameters])
@@ -249,7 +249,7 @@ def test_the_weak_end_of_every_effect_leaves_the_disc_curves_unchanged(surrogate
 
 def test_adding_an_unneeded_effect_does_not_worsen_the_fit(surrogate):
     # Targets without any effect: the disc with all effects must fit them as well as the disc.
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     rng = np.random.default_rng(11)
     targets = base.predict(study_space().sample_uniform(6, rng))
     targets = targets + rng.normal(0, 0.05, targets.shape)
@@ -268,7 +268,7 @@ def test_adding_an_unneeded_effect_does_not_worsen_the_fit(surrogate):
 def test_effect_bank_is_seeded_inside_the_box_and_mixes_effects_on_and_off(surrogate):
     from femcal.calibration.pgd import effect_bank
 
-    base = CurveModel(surrogate, np.arange(1.0, 5.01))
+    base = SurrogateCurveModel(surrogate, np.arange(1.0, 5.01))
     model = EffectModel(base, ["facet_contact", "neutral_zone"])
     bank = surrogate.space.sample_uniform(32, np.random.default_rng(0))
     v1, p1 = effect_bank(model, bank, np.random.default_rng(7), 256)

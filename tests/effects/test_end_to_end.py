@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.diagnose import diagnose
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
@@ -32,7 +32,7 @@ def world():
     fe_moments = np.arange(1.0, 5.01, 0.5)  # the measured grid: no interpolation error
     rng = np.random.default_rng(7)
     configs = study_space().sample_uniform(40, rng)
-    fe_rom = CurveModel(surrogate, fe_moments).predict(configs)
+    fe_rom = SurrogateCurveModel(surrogate, fe_moments).predict(configs)
     cohort = make_cohort(
         fe_moments, fe_rom, classes=CLASSES, n_per_class=4, noise_deg=NOISE, rng=rng
     )
@@ -41,7 +41,7 @@ def world():
 
 def test_calibrate_diagnose_add_the_effect_and_the_error_falls(world):
     surrogate, cohort = world
-    base = CurveModel(surrogate, cohort.moments)
+    base = SurrogateCurveModel(surrogate, cohort.moments)
     planted = cohort.truth["effect"].to_numpy()
     opts = {"n_bank_uniform": 1024, "noise_deg": NOISE}
     # 1. Calibrate the disc alone.

@@ -11,7 +11,7 @@ import torch
 import yaml
 
 import femcal.effects.base as effects_base
-from femcal.calibration import CurveModel
+from femcal.calibration import SurrogateCurveModel
 from femcal.cli import build_parser, main
 from femcal.effects import available_effects, get_effect, load_effect_modules
 from femcal.effects.composite import EffectModel
@@ -73,7 +73,7 @@ def test_a_user_file_registers_its_effect_and_the_model_uses_it(tmp_path, surrog
     assert "creep" in available_effects()
     assert get_effect("creep").__name__ == "Creep"
 
-    base = CurveModel(surrogate, MOMENTS)
+    base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["creep"])
     assert model.dim == base.dim + 1
     v = torch.rand(3, 13, generator=torch.Generator().manual_seed(0))

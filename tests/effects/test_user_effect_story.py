@@ -20,7 +20,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from femcal.calibration import CurveModel
+from femcal.calibration import SurrogateCurveModel
 from femcal.cli import main
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
@@ -78,7 +78,7 @@ def project(tmp_path, monkeypatch, clean_registry):
     register_and_promote(info.model_uri, name="ivd-rom-surrogate", val_metric=0.1)
     # Measurements: 6 specimens with the softening (0.5..0.9 deg at 5 Nm, power 3..5), 3 without.
     rng = np.random.default_rng(4)
-    clean = CurveModel(surrogate, MOMENTS).predict(study_space().sample_uniform(9, rng))
+    clean = SurrogateCurveModel(surrogate, MOMENTS).predict(study_space().sample_uniform(9, rng))
     planted = np.arange(9) < 6
     for i in np.flatnonzero(planted):
         extra = rng.uniform(0.5, 0.9) * (MOMENTS / 5.0) ** rng.uniform(3.0, 5.0)

@@ -16,7 +16,7 @@ import pytest
 import torch
 from mlflow import MlflowClient
 
-from femcal.calibration import CurveModel, calibrate
+from femcal.calibration import CurveModel, SurrogateCurveModel, calibrate
 from femcal.errors import ConfigError, InputDataError, ModelRegistryError, SurrogateNotFittedError
 from femcal.inverse import (
     STUDY_SETTINGS,
@@ -64,7 +64,7 @@ def surrogate() -> NeuralSurrogate:
 @pytest.fixture(scope="module")
 def curve_model(surrogate: NeuralSurrogate) -> CurveModel:
     """Overrides the conftest's: the thresholds below were measured on this surrogate."""
-    return CurveModel(surrogate, MOMENTS)
+    return SurrogateCurveModel(surrogate, MOMENTS)
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +245,7 @@ def test_missing_point_is_refused(fitted: InverseModel, curve_model: CurveModel,
 def test_other_moment_grid_is_refused(
     fitted: InverseModel, surrogate: NeuralSurrogate, data
 ) -> None:
-    other = CurveModel(surrogate, [1.0, 2.0, 3.0])
+    other = SurrogateCurveModel(surrogate, [1.0, 2.0, 3.0])
     with pytest.raises(
         InputDataError, match=r"moment grid \[1.0, 2.0, 3.0, 4.0, 5.0\].*--method pgd"
     ):

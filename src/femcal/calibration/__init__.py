@@ -10,13 +10,14 @@ from femcal.calibration.base import (
     get_calibrator,
     register_calibrator,
 )
-from femcal.calibration.model import CurveModel
+from femcal.calibration.model import CurveModel, SurrogateCurveModel
 
 __all__ = [
     "CalibrationProblem",
     "CalibrationResult",
     "CurveModel",
     "Solution",
+    "SurrogateCurveModel",
     "available_calibrators",
     "calibrate",
     "calibrator_registry",

@@ -1,11 +1,11 @@
-"""The surrogate as a function of the parameters on a fixed moment grid.
+"""The disc surrogate as a function of the parameters on a fixed moment grid.
 
-:class:`CurveModel` is what every calibrator optimises: for a batch of parameter vectors it
-returns the RoM curves of the four load cases at the measured moments, shape (n, 4, m). It
-works in the surrogate network's own unit coordinates ``v`` (the box is exactly [0, 1]^d;
-parameters with positive bounds are log-scaled there, which conditions the problem), and
-converts to physical units at the edges, clipping onto the bounds in float64 so that a
-returned configuration is never outside the box, not even by rounding.
+:class:`SurrogateCurveModel` is the :class:`~femcal.curves.CurveModel` of the disc alone: for
+a batch of parameter vectors it returns the RoM curves of the four load cases at the measured
+moments, shape (n, 4, m). It works in the surrogate network's own unit coordinates ``v`` (its
+input space; the box is exactly [0, 1]^d, parameters with positive bounds log-scaled, which
+conditions the problem), and converts to physical units at the edges, clipping onto the bounds
+in float64 so that a returned configuration is never outside the box, not even by rounding.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from femcal.curves import CurveModel
 from femcal.errors import ConfigError
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import forward_tangents
@@ -25,8 +26,11 @@ logger = logging.getLogger(__name__)
 _EVAL_BATCH = 16_384
 
 
-class CurveModel:
-    """A differentiable surrogate evaluated on a moment grid.
+__all__ = ["CurveModel", "SurrogateCurveModel"]
+
+
+class SurrogateCurveModel:
+    """A differentiable surrogate evaluated on a moment grid (a :class:`CurveModel`).
 
     Parameters
     ----------
@@ -80,18 +84,29 @@ class CurveModel:
         self.moments = torch.tensor(m, dtype=torch.float32)
         self.dim = self.space.dim
         self.n_evaluations = 0
+        self._unit_space: ParameterSpace | None = None
 
     # ----------------------------------------------------------------- coordinates
+    @property
+    def unit_space(self) -> ParameterSpace:
+        """The coordinates ``v`` the calibrators move in: the network's input space (its
+        bounds and scales, :attr:`~femcal.surrogates.romnet.RomNet.space`) under the
+        parameters' names."""
+        if self._unit_space is None:
+            net_space = self.net.space
+            self._unit_space = ParameterSpace(
+                self.surrogate.space.names,  # type: ignore[attr-defined]
+                net_space.lower,
+                net_space.upper,
+                self.surrogate.space.units,  # type: ignore[attr-defined]
+                net_space.scales,
+            )
+        return self._unit_space
+
     def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
         """Network coordinates (n, d) -> physical parameters (n, d), float64, inside the box."""
-        v64 = torch.as_tensor(np.asarray(v, dtype=float)).clamp(0.0, 1.0)
-        net = self.net
-        lo = net.lower.double()
-        hi = net.upper.double()
-        linear = lo + v64 * (hi - lo)
-        logged = torch.exp(net.log_lower.double() + v64 * (net.log_upper - net.log_lower).double())
-        x = torch.where(net.log_mask, logged, linear).numpy()
-        return self.space.clip(x)
+        v64 = np.clip(np.asarray(v, dtype=float), 0.0, 1.0)
+        return self.space.clip(self.unit_space.from_unit(v64))
 
     def from_physical(self, x: np.ndarray, *, clip: bool = True) -> torch.Tensor:
         """Physical parameters (n, d) -> network coordinates (n, d), float32.
@@ -102,8 +117,8 @@ class CurveModel:
         """
         x = np.asarray(x, dtype=float)
         if not clip:
-            x = np.where(self.net.log_mask.numpy(), np.maximum(x, 1e-12), x)
-        v = self.net.unit(torch.as_tensor(x, dtype=torch.float32))
+            x = np.where(self.unit_space.is_log, np.maximum(x, 1e-12), x)
+        v = self.unit_space.to_unit(torch.as_tensor(x, dtype=torch.float32))
         return v.clamp(0.0, 1.0) if clip else v
 
     def from_linear_unit(self, u: torch.Tensor) -> torch.Tensor:
@@ -112,15 +127,14 @@ class CurveModel:
         Values outside [0, 1] map outside the box too (used by the ablations without
         projection); positive parameters pushed below zero are floored at 1e-12 physical.
         """
-        lo = torch.tensor(np.array(self.space.lower), dtype=u.dtype)
-        width = torch.tensor(np.array(self.space.width), dtype=u.dtype)
-        x = lo + u * width
-        x = torch.where(self.net.log_mask, x.clamp_min(1e-12), x)
-        return self.net.unit(x)
+        x = self.space.linear().from_unit(u)
+        mask = torch.tensor(np.array(self.unit_space.is_log))
+        x = torch.where(mask, x.clamp_min(1e-12), x)
+        return self.unit_space.to_unit(x)
 
     def linear_unit_to_physical(self, u: np.ndarray) -> np.ndarray:
         """The study's unit box -> physical, float64, not clipped (ablations report exceedance)."""
-        return self.space.lower + np.asarray(u, dtype=float) * self.space.width
+        return self.space.linear().from_unit(u)
 
     # ----------------------------------------------------------------- evaluation
     def curves(self, v: torch.Tensor) -> torch.Tensor:

@@ -53,16 +53,23 @@ import torch
 from femcal.errors import ConfigError
 from femcal.registry import Registry
 from femcal.schema import LOAD_CASES
+from femcal.space import ParameterSpace
 
 #: The entry-point group installed packages declare their effects in.
 ENTRY_POINT_GROUP = "femcal.effects"
 #: Effect files loaded by path: resolved path -> the classes they registered (idempotence).
 _USER_FILES: dict[Path, list[type[Effect]]] = {}
+#: Each effect class' parameter space, built once (keyed by the class and its parameters).
+_SPACES: dict[tuple, ParameterSpace] = {}
 
 
 @dataclass(frozen=True)
 class EffectParameter:
-    """One parameter of an effect: name, unit and bounds (physical units)."""
+    """One parameter of an effect: name, unit, bounds (physical units) and scale.
+
+    ``log=True`` puts it on a log scale in the unit box (the bounds must then be > 0); the
+    transform is :class:`~femcal.space.ParameterSpace`'s, like every parameter's in femcal.
+    """
 
     name: str
     unit: str
@@ -74,11 +81,18 @@ class EffectParameter:
     #: not: they start at the family's classic member (``start``) and move from there.
     grid: bool = True
 
+    @property
+    def scale(self) -> str:
+        """``"log"`` or ``"linear"``."""
+        return "log" if self.log else "linear"
+
+    def space(self) -> ParameterSpace:
+        """This parameter alone as a one-dimensional :class:`~femcal.space.ParameterSpace`."""
+        return ParameterSpace([self.name], [self.lower], [self.upper], [self.unit], [self.scale])
+
     def physical(self, u: float) -> float:
         """The physical value at unit-box coordinate ``u``."""
-        if self.log:
-            return float(self.lower * (self.upper / self.lower) ** u)
-        return float(self.lower + u * (self.upper - self.lower))
+        return float(self.space().from_unit(np.array([u], dtype=float))[0])
 
 
 class Effect:
@@ -129,28 +143,31 @@ class Effect:
         return torch.tensor([lc in cls.load_cases for lc in LOAD_CASES])
 
     @classmethod
+    def space(cls) -> ParameterSpace:
+        """The effect's parameters as a :class:`~femcal.space.ParameterSpace` (with scales)."""
+        key = (cls, cls.parameters)
+        space = _SPACES.get(key)
+        if space is None:
+            space = ParameterSpace(
+                [q.name for q in cls.parameters],
+                [q.lower for q in cls.parameters],
+                [q.upper for q in cls.parameters],
+                [q.unit for q in cls.parameters],
+                [q.scale for q in cls.parameters],
+            )
+            _SPACES[key] = space
+        return space
+
+    @classmethod
     def from_unit(cls, u: torch.Tensor) -> dict[str, torch.Tensor]:
         """Unit-box values (B, p) -> physical parameters by name, each (B,)."""
-        out = {}
-        for j, q in enumerate(cls.parameters):
-            if q.log:
-                value = q.lower * (q.upper / q.lower) ** u[:, j]
-            else:
-                value = q.lower + u[:, j] * (q.upper - q.lower)
-            out[q.name] = value
-        return out
+        x = cls.space().from_unit(u)
+        return {q.name: x[:, j] for j, q in enumerate(cls.parameters)}
 
     @classmethod
     def to_unit(cls, x: np.ndarray) -> np.ndarray:
         """Physical values (n, p) -> unit box (n, p)."""
-        x = np.asarray(x, dtype=float)
-        u = np.empty_like(x)
-        for j, q in enumerate(cls.parameters):
-            if q.log:
-                u[:, j] = np.log(x[:, j] / q.lower) / np.log(q.upper / q.lower)
-            else:
-                u[:, j] = (x[:, j] - q.lower) / (q.upper - q.lower)
-        return u
+        return cls.space().to_unit(np.asarray(x, dtype=float))
 
 
 def _check_effect(name: str, cls: type[Effect]) -> None:

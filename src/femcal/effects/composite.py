@@ -1,4 +1,4 @@
-"""The disc surrogate composed with physical effects: a drop-in :class:`CurveModel`.
+"""The disc surrogate composed with physical effects: a :class:`~femcal.curves.CurveModel`.
 
 :class:`EffectModel` has the interface the calibrators use (``curves``, ``curves_jacobian``,
 ``to_physical``, ``from_physical``, ``predict``, ``space``, ``moments``, ``dim``), over the
@@ -33,11 +33,11 @@ _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
 
 
 class EffectModel:
-    """A :class:`~femcal.calibration.model.CurveModel` with physical effects added.
+    """The disc surrogate with physical effects added (a :class:`~femcal.curves.CurveModel`).
 
     Parameters
     ----------
-    base : CurveModel
+    base : SurrogateCurveModel
         The disc surrogate on the moment grid.
     effects : sequence of str
         Registered effect names (:func:`~femcal.effects.available_effects`); empty = the disc.
@@ -56,28 +56,21 @@ class EffectModel:
             self._slices.append(slice(start, start + len(e.parameters)))
             start += len(e.parameters)
         self.dim = start
-        names = list(base.space.names)
-        lower, upper = list(base.space.lower), list(base.space.upper)
-        units = list(base.space.units) if base.space.units else None
-        for e in self.effects:
-            names += e.names()
-            lower += list(e.lower())
-            upper += list(e.upper())
-            if units is not None:
-                units += [q.unit for q in e.parameters]
-        self.space = ParameterSpace(names, lower, upper, units)
+        effect_spaces = [e.space() for e in self.effects]
+        #: Physical bounds of the joint parameters (the disc's calibration box, then each
+        #: effect's), used to clip.
+        self.space = ParameterSpace.concat(base.space.linear(), *effect_spaces)
+        #: The joint coordinates ``v``: the disc network's input space, then each effect's.
+        self.unit_space = ParameterSpace.concat(base.unit_space, *effect_spaces)
         self.n_evaluations = 0
         #: Lowest trained moment: below it the disc curve is continued as a power law.
         self.m_low = float(getattr(base.surrogate, "moment_range_", (1.0, 5.0))[0])
 
     # ------------------------------------------------------------ coordinates
     def to_physical(self, v: np.ndarray | torch.Tensor) -> np.ndarray:
-        v = np.clip(np.asarray(v, dtype=float), 0.0, 1.0)
-        parts = [self.base.to_physical(v[:, : self.n_disc])]
-        for e, sl in zip(self.effects, self._slices):
-            vals = e.from_unit(torch.as_tensor(v[:, sl], dtype=torch.float64))
-            parts.append(np.stack([vals[q].numpy() for q in e.names()], axis=1))
-        return self.space.clip(np.concatenate(parts, axis=1))
+        """Joint coordinates (n, dim) -> physical parameters (n, dim), float64, in the box."""
+        v64 = np.clip(np.asarray(v, dtype=float), 0.0, 1.0)
+        return self.space.clip(self.unit_space.from_unit(v64))
 
     def from_physical(self, x: np.ndarray, *, clip: bool = True) -> torch.Tensor:
         """Physical (n, 13) or (n, dim) -> unit coordinates (n, dim); effect parameters that

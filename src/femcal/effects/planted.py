@@ -24,6 +24,7 @@ import torch
 from femcal.effects.base import get_effect
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
+from femcal.space import ParameterSpace
 
 #: Parameter ranges drawn per planted effect (physical units; log-uniform for "log" ones).
 VISIBLE_RANGES: dict[str, dict[str, tuple[float, float]]] = {
@@ -197,8 +198,8 @@ def make_cohort(
                 if par.name not in VISIBLE_RANGES[effect]:
                     continue  # a shape parameter: the classic member (see plant)
                 lo, hi = VISIBLE_RANGES[effect][par.name]
-                u = rng.random()
-                params[par.name] = lo * (hi / lo) ** u if par.log else lo + u * (hi - lo)
+                visible = ParameterSpace([par.name], [lo], [hi], scales=[par.scale])
+                params[par.name] = float(visible.from_unit(np.array([rng.random()]))[0])
         clean.append(plant(effect, params, fe_moments, fe_rom[cfg], q))
         rows.append({"specimen": f"P{i:03d}", "config_id": int(cfg), "effect": effect, **params})
     clean_arr = np.stack(clean)

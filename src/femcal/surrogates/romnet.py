@@ -22,6 +22,7 @@ from torch import nn
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
+from femcal.space import ParameterSpace
 
 #: Activation functions by name.
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -36,6 +37,8 @@ LR_SCHEDULES: tuple[str, ...] = ("onecycle", "cosine", "constant")
 #: Loss functions understood by :class:`RomLightningModule`.
 LOSSES: tuple[str, ...] = ("l1", "l2")
 _SQRT_HALF = math.sqrt(0.5)
+#: Buffers of models saved before the input transform moved to ParameterSpace (dropped on load).
+_LEGACY_BUFFERS = ("log_mask", "log_lower", "log_upper")
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
@@ -62,7 +65,8 @@ class RomNet(nn.Module):
         Whether the network models log RoM (the output is then ``exp`` of it, always > 0).
     log_params : bool
         Whether parameters with strictly positive bounds enter in log scale (mapped to [0, 1]
-        by the log of their bounds); the others are mapped linearly to [0, 1].
+        by the log of their bounds); the others are mapped linearly to [0, 1]. The map is
+        :attr:`space`'s (:meth:`femcal.space.ParameterSpace.log_where_positive`).
     moment_degree : int
         Degree of the polynomial in the scaled log-moment.
     moment_loc, moment_scale : float
@@ -71,10 +75,21 @@ class RomNet(nn.Module):
         Output scaling: the members predict ``(t - y_loc) / y_scale`` with ``t`` = log RoM
         (``log_target``) or RoM in degrees.
 
+    names : sequence of str, optional
+        Parameter names (``p0``, ``p1``, ... by default), for :attr:`space`.
+
+    Attributes
+    ----------
+    space : ParameterSpace
+        The network's input space: the bounds with each parameter's scale. :meth:`unit` and
+        :meth:`params_from_unit` are its :meth:`~femcal.space.ParameterSpace.to_unit` and
+        :meth:`~femcal.space.ParameterSpace.from_unit`, in the dtype of their argument.
+
     Notes
     -----
-    All scalings are buffers, so ``state_dict`` holds the whole fitted model and ``.double()``
-    gives an exact float64 model (used to check gradients with ``torch.autograd.gradcheck``).
+    The bounds and output scalings are buffers, so ``state_dict`` holds the whole fitted model
+    and ``.double()`` gives a float64 model (used to check gradients with
+    ``torch.autograd.gradcheck``).
     """
 
     def __init__(
@@ -93,6 +108,7 @@ class RomNet(nn.Module):
         moment_scale: float = 1.0,
         y_loc: float = 0.0,
         y_scale: float = 1.0,
+        names: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         lower_t = torch.tensor(np.array(lower, dtype=float), dtype=torch.float32)
@@ -122,14 +138,11 @@ class RomNet(nn.Module):
         self.moment_degree = int(moment_degree)
         self.n_load_cases = len(LOAD_CASES)
 
-        log_mask = (lower_t > 0) if self.log_params else torch.zeros_like(lower_t, dtype=bool)
-        safe_lo = torch.where(log_mask, lower_t, torch.ones_like(lower_t))
-        safe_hi = torch.where(log_mask, upper_t, torch.ones_like(upper_t))
+        names = [f"p{j}" for j in range(self.n_params)] if names is None else list(names)
+        space = ParameterSpace(names, np.array(lower, dtype=float), np.array(upper, dtype=float))
+        self.space = space.log_where_positive() if self.log_params else space
         self.register_buffer("lower", lower_t)
         self.register_buffer("upper", upper_t)
-        self.register_buffer("log_mask", log_mask)
-        self.register_buffer("log_lower", torch.log(safe_lo))
-        self.register_buffer("log_upper", torch.log(safe_hi))
         self.register_buffer("moment_loc", torch.tensor(float(moment_loc)))
         self.register_buffer("moment_scale", torch.tensor(float(moment_scale)))
         self.register_buffer("y_loc", torch.tensor(float(y_loc)))
@@ -165,16 +178,17 @@ class RomNet(nn.Module):
             "moment_degree": self.moment_degree,
         }
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D401
+        # Models saved before the transform moved to ParameterSpace carry its log bounds as
+        # buffers: they are derived from the bounds, so they are dropped on load.
+        for key in _LEGACY_BUFFERS:
+            state_dict.pop(prefix + key, None)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     # -------------------------------------------------------------------------- pieces
     def unit(self, params: torch.Tensor) -> torch.Tensor:
         """Physical parameters, shape (n, d) -> network inputs in [0, 1] inside the box."""
-        linear = (params - self.lower) / (self.upper - self.lower)
-        if not bool(self.log_mask.any()):
-            return linear
-        # Positive placeholders keep log (and its gradient) finite where the mask is off.
-        safe = torch.where(self.log_mask, params, torch.ones_like(params))
-        logged = (torch.log(safe) - self.log_lower) / (self.log_upper - self.log_lower)
-        return torch.where(self.log_mask, logged, linear)
+        return self.space.to_unit(params)
 
     def moment_basis(self, moment_nm: torch.Tensor) -> torch.Tensor:
         """Polynomial basis of the scaled log-moment, shape (n,) -> (n, moment_degree + 1)."""
@@ -257,11 +271,7 @@ class RomNet(nn.Module):
     # ------------------------------------------------- curves on a grid, for calibration
     def params_from_unit(self, v: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`unit`: network inputs, shape (n, d) -> physical parameters."""
-        linear = self.lower + v * (self.upper - self.lower)
-        if not bool(self.log_mask.any()):
-            return linear
-        logged = torch.exp(self.log_lower + v * (self.log_upper - self.log_lower))
-        return torch.where(self.log_mask, logged, linear)
+        return self.space.from_unit(v)
 
     def curves(self, v: torch.Tensor, moment_nm: torch.Tensor) -> torch.Tensor:
         """RoM curves of every load case on a moment grid, from network inputs.
