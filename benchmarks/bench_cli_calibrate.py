@@ -52,7 +52,7 @@ MD_PATH = REPO / "reports" / "bench_cli_calibrate.md"
 #: Phases of the profile: label -> (file suffix, function name) whose cumulative times add up.
 PHASES = {
     "whole CLI (main)": [("femcal/cli.py", "main")],
-    "tracking setup (mlflow import, store, killed runs)": [("femcal/cli.py", "_tracking")],
+    "tracking setup (mlflow import, store, killed runs)": [("femcal/stages/common.py", "tracking")],
     "read measurements": [("femcal/measurements.py", "read_measurements")],
     "load models (with torch/Lightning imports)": [("femcal/tracking.py", "load_surrogate")],
     "reachability check": [("femcal/reachability.py", "assess_reachability")],
@@ -63,9 +63,9 @@ PHASES = {
         ("femcal/calibration/report.py", "plot_specimens"),
     ],
     "summary plot": [("femcal/calibration/report.py", "plot_summary")],
-    "MLflow artifacts": [("femcal/pipeline.py", "_log_artifacts")],
+    "MLflow artifacts": [("femcal/stages/calibrate.py", "log_artifacts")],
     "MLflow tables": [("mlflow/tracking/fluent.py", "log_table")],
-    "compare with previous run": [("femcal/pipeline.py", "_compare_with_previous")],
+    "compare with previous run": [("femcal/stages/calibrate.py", "compare_with_previous")],
 }
 #: Packages whose import time is reported (cumulative, where first imported).
 PACKAGES = (

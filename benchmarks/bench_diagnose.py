@@ -71,9 +71,9 @@ from femcal.config import load_params, section
 from femcal.diagnose import diagnose
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
-from femcal.pipeline import calibration_options, load_split, training_configurations
 from femcal.prepare import wide_rom
 from femcal.schema import LOAD_CASES
+from femcal.stages.common import calibration_options, load_split, training_configurations
 from femcal.tracking import configure_tracking, load_surrogate, resolve_model_version
 
 REPO = Path(__file__).resolve().parents[1]

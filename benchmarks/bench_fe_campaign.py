@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from femcal.fe.campaign import CampaignResult, design, run_campaign
-from femcal.pipeline import fe_space
+from femcal.stages.simulate import fe_space
 
 #: The study's ParameterBounds.csv.
 BOUNDS = {

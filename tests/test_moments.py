@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import yaml
 
-from femcal.cli import _moment_settings
 from femcal.errors import ConfigError, InputDataError
 from femcal.measurements import Measurements, from_arrays
 from femcal.moments import MomentPolicy, log_distance
+from femcal.stages.common import moment_settings as _moment_settings
 
 GROWTH = 3.2
 LMAX = 0.51

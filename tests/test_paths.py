@@ -113,8 +113,8 @@ def test_the_cli_reads_params_paths_from_the_project_root(project, monkeypatch, 
 def test_the_cli_puts_the_mlflow_store_at_the_project_root(project, monkeypatch):
     import mlflow
 
-    from femcal.cli import _tracking
     from femcal.config import load_params
+    from femcal.stages.common import tracking as _tracking
 
     _, root, elsewhere = project
     (root / "params.yaml").write_text(

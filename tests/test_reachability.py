@@ -21,7 +21,6 @@ import pytest
 
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import write_outputs
-from femcal.cli import _fit_warnings
 from femcal.effects.composite import EffectModel
 from femcal.errors import ConfigError, InputDataError
 from femcal.measurements import Measurements, from_arrays, read_measurements
@@ -35,6 +34,7 @@ from femcal.reachability import (
     reference_curves,
 )
 from femcal.schema import LOAD_CASES
+from femcal.stages.calibrate import fit_warnings as _fit_warnings
 
 from synth import study_space, tidy_table
 
@@ -83,7 +83,7 @@ pytestmark = pytest.mark.skipif(
 @pytest.fixture(scope="module")
 def disc():
     """A small surrogate of the study's FE model (first 512 Large configurations)."""
-    from femcal.pipeline import load_split
+    from femcal.stages.common import load_split
     from femcal.surrogates.nn import NeuralSurrogate
 
     table, space = load_split(PREPARED, "large")
@@ -129,7 +129,7 @@ def _like(meas: Measurements, rom: np.ndarray, source: str = "edited.csv") -> Me
 @pytest.fixture(scope="module")
 def planted(tmp_path_factory) -> Measurements:
     """The planted cohort (hidden facet contact, ligament tension, neutral zone; noise 0.05)."""
-    from femcal.pipeline import run_plant
+    from femcal.stages.plant import run_plant
 
     out = tmp_path_factory.mktemp("planted")
     path = run_plant(
@@ -351,7 +351,7 @@ def _write_long(path: Path, meas: Measurements, rom: np.ndarray) -> Path:
 
 
 def _run(registry, measurements, out):
-    from femcal.pipeline import run_calibrate
+    from femcal.stages.calibrate import run_calibrate
 
     return run_calibrate(
         measurements=measurements,

@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from femcal.errors import InputDataError
 from femcal.schema import PARAMETER_UNITS
@@ -359,6 +358,8 @@ class ParameterSpace:
     @classmethod
     def from_bounds_csv(cls, path: str | Path) -> ParameterSpace:
         """Read the study's ParameterBounds.csv (header = names, row 1 = min, row 2 = max)."""
+        import pandas as pd  # here only: the CLI's first checks stay light
+
         path = Path(path)
         try:
             table = pd.read_csv(path)

@@ -12,8 +12,8 @@ import yaml
 
 from femcal.cli import main
 from femcal.errors import InputDataError, ModelRegistryError
-from femcal.pipeline import run_calibrate
 from femcal.schema import LOAD_CASES
+from femcal.stages.calibrate import run_calibrate
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
@@ -292,7 +292,7 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     registry, small_surrogate, truth, monkeypatch
 ):
     from femcal.moments import MomentPolicy
-    from femcal.pipeline import run_diagnose
+    from femcal.stages.diagnose import run_diagnose
 
     common = dict(
         out_dir=registry / "diag",

@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from femcal.pipeline import run_calibrate
 from femcal.schema import LOAD_CASES
+from femcal.stages.calibrate import run_calibrate
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,

@@ -21,9 +21,9 @@ import yaml
 from fe_helpers import COARSE, MOMENTS, requires_ccx
 
 from femcal.fe.campaign import CampaignStore, job_hash, make_jobs, run_campaign, settings_hash
-from femcal.pipeline import fe_space
 from femcal.prepare import read_split
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
+from femcal.stages.simulate import fe_space
 
 from synth import study_space
 

@@ -1,0 +1,451 @@
+"""Stage ``calibrate@<dataset>``: every specimen of a measurement file against the pinned surrogate.
+
+The surrogate ``dvc.lock`` pins (``calibrate.model_uri``: ``models/surrogate-large``)
+calibrates each ``calibrate.datasets`` entry, with the effects listed there; the held-out
+surrogate re-evaluates the result. ``femcal calibrate`` outside DVC takes the same settings
+with command-line overrides (another file, model, method, effects, output folder).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from femcal.config import section
+from femcal.errors import ConfigError
+from femcal.paths import setting_path, setting_uri
+from femcal.stages.common import (
+    calibration_options,
+    check_measurements,
+    check_outputs,
+    describe_user_effects,
+    effect_modules,
+    load_user_effects,
+    moment_settings,
+    out_label,
+    path_setting,
+    tracking,
+    write_metrics,
+)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CalibrateSettings:
+    """The ``calibrate`` and ``moments`` sections, one dataset, and the command line's overrides.
+
+    Built by :meth:`from_params`, which also checks the output folder, the metrics file and
+    the measurement file (the first errors, before anything heavy is imported).
+    """
+
+    measurements: Path
+    out_dir: Path
+    method: str
+    model_uri: str
+    holdout_uri: str | None
+    start_bank: Path | None
+    options: Mapping[str, Any]
+    seed: int
+    error_growth: float
+    max_log_ratio: float
+    chunk_size: int | None = None
+    plots: str = "all"
+    max_plots: int | None = None
+    progress: bool = False
+    effects: Sequence[str] = ()
+    effect_modules: Sequence[Path] = ()
+    metrics_file: str | None = None
+    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> CalibrateSettings:
+        where = args.get("params") or params.get("_path", "params.yaml")
+        cfg = section(params, "calibrate")
+        method = args.get("method") or section(params, "calibrate", "method")
+        model_uri = args.get("model_uri") or setting_uri(
+            params, section(params, "calibrate", "model_uri")
+        )
+        if args.get("model_version") or args.get("model_alias"):
+            name = section(params, "mlflow", "model_name")
+            ref = (
+                f"/{args['model_version']}"
+                if args.get("model_version")
+                else f"@{args['model_alias']}"
+            )
+            model_uri = f"models:/{name}{ref}"
+        holdout_uri = None
+        if not args.get("no_holdout"):
+            holdout_uri = args.get("holdout_uri") or (
+                setting_uri(params, cfg["holdout_uri"]) if cfg.get("holdout_uri") else None
+            )
+        options = dict((cfg.get("options") or {}).get(method) or {})
+        if isinstance(options.get("model_uri"), str):  # the inverse network's folder or URI
+            options["model_uri"] = setting_uri(params, options["model_uri"])
+        bank = setting_path(params, cfg["start_bank"]) if cfg.get("start_bank") else None
+        max_plots = cfg.get("max_plots")
+        datasets = cfg.get("datasets") or {}
+        dataset, given = args.get("dataset"), args.get("measurements")
+        if dataset and dataset not in datasets:
+            raise ConfigError(
+                f"Unknown dataset '{dataset}'; calibrate.datasets in {where} has "
+                f"{sorted(datasets)}."
+            )
+        name = dataset or (None if given else next(iter(datasets), None))
+        if not given and name is None:
+            raise ConfigError(
+                "Give --measurements FILE, or list calibrate.datasets in params.yaml."
+            )
+        entry = datasets.get(name) if name else None
+        if isinstance(entry, dict):
+            if "measurements" not in entry:
+                raise ConfigError(
+                    f"calibrate.datasets.{name} in {where} has no 'measurements'; give the "
+                    "file or folder, e.g. {measurements: data/planted/measurements.csv, "
+                    "effects: []}."
+                )
+            entry_path, entry_effects = entry["measurements"], list(entry.get("effects") or [])
+        else:
+            entry_path, entry_effects = entry, []
+        if args.get("effects") is not None:
+            effects = [e.strip() for e in args["effects"].split(",") if e.strip()]
+        elif given:
+            effects = []
+        else:
+            effects = entry_effects
+        measurements = Path(given) if given else setting_path(params, entry_path)
+        out = args.get("out") or str(
+            path_setting(params, "calibrate", "out_dir") / (name or "custom")
+        )
+        check_outputs(  # before anything heavy is imported
+            out,
+            label=out_label(args.get("out"), "calibrate.out_dir"),
+            metrics_file=args.get("metrics_file"),
+        )
+        check_measurements(measurements)
+        return cls(
+            measurements=measurements,
+            out_dir=Path(out),
+            method=method,
+            model_uri=model_uri,
+            holdout_uri=holdout_uri,
+            start_bank=bank,
+            options=options,
+            seed=int(args["seed"] if args.get("seed") is not None else cfg.get("seed", 0)),
+            **moment_settings(params),
+            chunk_size=cfg.get("chunk_size"),
+            plots=args.get("plots") or ("all" if cfg.get("plots", True) else "none"),
+            max_plots=None if max_plots is None else int(max_plots),
+            progress=bool(args.get("progress")),
+            effects=tuple(effects),
+            effect_modules=effect_modules(params, args.get("effects_module")),
+            metrics_file=args.get("metrics_file"),
+            params=params,
+        )
+
+
+def run(settings: CalibrateSettings) -> dict[str, Any]:
+    """Load the user's effects, calibrate, write the outputs and the DVC metrics (when asked).
+
+    Returns the summary figures (``summary.json``) with the method, model and output folder.
+    """
+    from femcal.headlines import calibration_headline
+
+    names = load_user_effects(settings.effect_modules)
+    tracking(settings.params)
+    _, figures = run_calibrate(
+        measurements=settings.measurements,
+        out_dir=settings.out_dir,
+        method=settings.method,
+        model_uri=settings.model_uri,
+        holdout_uri=settings.holdout_uri,
+        start_bank=settings.start_bank,
+        options=settings.options,
+        seed=settings.seed,
+        error_growth=settings.error_growth,
+        max_log_ratio=settings.max_log_ratio,
+        chunk_size=settings.chunk_size,
+        plots=settings.plots,
+        max_plots=settings.max_plots,
+        progress=settings.progress,
+        effects=settings.effects,
+    )
+    # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
+    write_metrics(settings.metrics_file, calibration_headline(figures))
+    return dict(
+        figures,
+        method=settings.method,
+        model_uri=settings.model_uri,
+        out=str(settings.out_dir),
+        user_effects=names,
+        user_effect_paths=[str(p) for p in settings.effect_modules],
+    )
+
+
+def describe(figures: Mapping[str, Any]) -> list[str]:
+    out = figures["out"]
+    held = (
+        f", held-out surrogate MAE {figures['holdout_mae_deg']:.4f} deg"
+        if "holdout_mae_deg" in figures
+        else ""
+    )
+    lines = describe_user_effects(figures["user_effects"], figures["user_effect_paths"])
+    lines.append(
+        f"calibrated {figures['n_specimens']} specimens with {figures['method']} against "
+        f"{figures['model_uri']} in {figures['seconds']:.2f} s: MAE {figures['mae_deg']:.4f} deg, "
+        f"mean R² {figures['r2_mean']:.4f}, {figures['n_outside_bounds']} outside the bounds"
+        f"{held}" + fit_warnings(figures, out)
+    )
+    if figures["n_plotted"] < figures["n_specimens"]:
+        lines.append(
+            f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)"
+        )
+    lines.append(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
+    return lines
+
+
+def fit_warnings(figures: dict, out: str) -> str:
+    """The calibration line's tail for fits that are no plain success ("" for none)."""
+    n = figures["n_specimens"]
+    parts = []
+    if figures.get("n_r2_negative"):
+        parts.append(
+            f"WARNING: {figures['n_r2_negative']} of {n} specimens fit worse than their mean "
+            f"(R² < 0): see {out}/metrics.csv (column flag)"
+        )
+    if figures.get("n_outside_envelope"):
+        parts.append(
+            f"WARNING: {figures['n_outside_envelope']} of {n} specimens have points outside "
+            f"every curve the model can produce: see {out}/metrics.csv (column reachability)"
+        )
+    return "".join(f"\n{p}" for p in parts)
+
+
+def run_calibrate(
+    *,
+    measurements: Path,
+    out_dir: Path,
+    method: str,
+    model_uri: str,
+    holdout_uri: str | None,
+    start_bank: Path | None,
+    options: Mapping[str, Any],
+    seed: int,
+    error_growth: float,
+    max_log_ratio: float,
+    chunk_size: int | None = None,
+    plots: bool | str = True,
+    max_plots: int | None = None,
+    progress: bool = False,
+    effects: Sequence[str] = (),
+):
+    """Calibrate every specimen of a measurement file against the registered surrogate.
+
+    ``plots``: "all" (True) writes the per-specimen PNGs and the summary page, "summary" the
+    summary page only, "none" (False) no figure
+    (:func:`femcal.calibration.report.write_outputs`). The time of each phase (reading and
+    loading, calibration, outputs, MLflow logging) is logged at DEBUG level (``femcal -v``).
+
+    ``effects`` lists physical effects (:mod:`femcal.effects`) added to the disc: their
+    parameters are calibrated jointly with the material parameters.
+
+    Reads the measurements, loads the surrogate (and the held-out surrogate): a model folder
+    (``models/surrogate-large``, the one ``dvc.lock`` pins) or an MLflow model URI. Checks the
+    moments with the moment policy (:class:`femcal.moments.MomentPolicy` of ``error_growth``
+    and ``max_log_ratio``, params.yaml ``moments``), calibrates the batch
+    with each point weighted by ``1 / sd(M)^2`` of the surrogate's error at its moment (times
+    the measurement's own weight), writes ``out_dir`` (see
+    :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
+    per-specimen tables and every output file as artifacts. The run's tags
+    ``femcal.model.*`` and ``femcal.holdout.*`` name each surrogate: its URI, the SHA-256 of its
+    files and its registered version when known (:class:`femcal.tracking.ModelSource`).
+
+    ``out_dir`` is all or nothing (:mod:`femcal.outputs`): it is checked before anything
+    else, the files are written into a staging folder beside it, only those are logged to
+    MLflow, and the folder moves into place when complete (an earlier femcal output there is
+    moved aside; a folder with files femcal did not write is refused).
+
+    Returns
+    -------
+    result : CalibrationResult
+    figures : dict
+        The summary figures (also in ``out_dir/summary.json``).
+    """
+    from femcal.outputs import check_destination
+
+    check_destination(out_dir)  # a bad output folder is the first error, not the last
+    from femcal.calibration.report import plot_mode
+
+    plots = plot_mode(plots)  # a wrong value before the calibration
+    clock = time.perf_counter()
+    timings: dict[str, float] = {}
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = round(now - clock, 3)
+        clock = now
+
+    import mlflow
+
+    from femcal.calibration import SurrogateCurveModel, calibrate
+    from femcal.calibration.report import write_outputs
+    from femcal.measurements import read_measurements
+    from femcal.moments import MomentPolicy
+    from femcal.outputs import staged_output
+    from femcal.reachability import assess_reachability
+    from femcal.tracking import load_surrogate, open_model
+
+    meas = read_measurements(measurements)
+    source = open_model(model_uri)
+    surrogate = load_surrogate(source)
+    policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
+    policy.check(meas)
+    weight = meas.weight * policy.weights(meas.moments)  # (n, 4, m): 1 / sd(M)^2, relative
+    from femcal.effects.composite import EffectModel
+
+    model = SurrogateCurveModel(surrogate, meas.moments)
+    if effects:
+        model = EffectModel(model, list(effects))
+    # Before the fit: can the model produce these curves at all? (raises or warns)
+    reach = assess_reachability(
+        meas, model, sigma_model=policy.sigma_surrogate(meas.moments), reference=start_bank
+    )
+    opts = calibration_options(method, options, surrogate=surrogate, start_bank=start_bank)
+    holdout = None
+    holdout_source = open_model(holdout_uri) if holdout_uri else None
+    if holdout_source is not None:
+        holdout = SurrogateCurveModel(load_surrogate(holdout_source), meas.moments)
+        if effects:
+            holdout = EffectModel(holdout, list(effects))
+    lap("imports, reading, models, reachability")
+    result = calibrate(
+        model,
+        meas.rom_deg,
+        specimens=meas.specimens,
+        weight=weight,
+        method=method,
+        seed=seed,
+        chunk_size=chunk_size,
+        progress=progress,
+        options=opts,
+    )
+    lap("calibration")
+    missing = meas.missing_load_cases()
+    label = "+".join([method, *effects])
+    # Outputs staged beside out_dir (a kill leaves nothing at out_dir); the MLflow run covers
+    # writing them, gets exactly the staged files, and the move into place happens inside it.
+    with (
+        staged_output(out_dir, command="calibrate") as stage,
+        mlflow.start_run(run_name=f"calibrate-{label}") as run,
+    ):
+        stage.note(mlflow_run_id=run.info.run_id)
+        mlflow.set_tag("femcal.stage", "calibrate")
+        figures = write_outputs(
+            result,
+            stage.path,
+            holdout=holdout,
+            plots=plots,
+            max_plots=max_plots,
+            reachability=reach.notes(),
+            progress=progress,
+        )
+        lap(f"outputs (tables, plots: {plots})")
+        logged = {
+            "method": method,
+            "effects": ",".join(effects) or "none",
+            "measurements": str(measurements),
+            "n_specimens": meas.n_specimens,
+            "moments": ",".join(f"{m:g}" for m in meas.moments),
+            "model_uri": model_uri,
+            "holdout_uri": holdout_uri or "",
+            "seed": seed,
+            "chunk_size": chunk_size or 0,
+            "moments.error_growth": error_growth,
+            "moments.max_log_ratio": max_log_ratio,
+        }
+        for key, value in opts.items():
+            if key != "start_bank" and not hasattr(value, "predict"):
+                logged[f"option.{key}"] = value
+        if "start_bank" in opts:
+            logged["option.start_bank"] = f"{start_bank} ({len(opts['start_bank'])} configs)"
+        for tag, src in (("model", source), ("holdout", holdout_source)):
+            if src is not None:
+                mlflow.set_tags(src.tags(tag))
+                if src.version:
+                    logged[f"{tag}_version"] = src.version
+        mlflow.log_params(logged)
+        mlflow.log_metrics({k: float(v) for k, v in figures.items() if isinstance(v, (int, float))})
+        if missing:
+            mlflow.set_tag("femcal.missing_load_cases", json.dumps(missing)[:5000])
+        import pandas as pd
+
+        metrics_df = pd.read_csv(stage.path / "metrics.csv")
+        metrics_df["missing_load_cases"] = metrics_df["missing_load_cases"].fillna("")
+        mlflow.log_table(metrics_df, artifact_file="tables/metrics.json")
+        mlflow.log_table(result.parameters_frame(), artifact_file="tables/parameters.json")
+        compare_with_previous(measurements, logged, figures, stage.path)
+        stage.finalize()
+        log_artifacts(stage.path, "calibration", progress=progress)  # this run's files
+        stage.commit()
+    lap("MLflow logging")
+    logger.debug("calibrate timings: %s", ", ".join(f"{k} {v:.2f} s" for k, v in timings.items()))
+    return result, figures
+
+
+def log_artifacts(folder: Path, artifact_path: str, *, progress: bool = False) -> None:
+    """``mlflow.log_artifacts(folder, artifact_path)`` file by file, with a progress bar.
+
+    The same artifact layout: ``<artifact_path>/<path of the file in folder>``.
+    """
+    import mlflow
+
+    files: Any = sorted(p for p in Path(folder).rglob("*") if p.is_file())
+    if progress and len(files) > 1:
+        from tqdm.auto import tqdm
+
+        files = tqdm(files, desc="MLflow artifacts", unit="file")
+    for path in files:
+        parent = path.parent.relative_to(folder).as_posix()
+        mlflow.log_artifact(
+            str(path), f"{artifact_path}/{parent}" if parent != "." else artifact_path
+        )
+
+
+def compare_with_previous(
+    measurements: Path, logged: Mapping[str, Any], figures: Mapping[str, Any], out_dir: Path
+) -> None:
+    """Before and after: the latest earlier calibration of the same file with other effects."""
+    import mlflow
+
+    from femcal.compare import comparison_frame, previous_calibration, write_comparison
+
+    this = mlflow.active_run().info.run_id
+    prev = previous_calibration(
+        measurements=str(measurements), effects=logged["effects"], exclude_run_id=this
+    )
+    if prev is None:
+        return
+    after = {k: v for k, v in figures.items() if isinstance(v, (int, float))}
+    frame = comparison_frame(prev.data.metrics, after)
+    write_comparison(
+        frame,
+        out_dir,
+        before={
+            "run_id": prev.info.run_id,
+            "effects": prev.data.params.get("effects", ""),
+            "model": prev.data.params.get("model_version", ""),
+        },
+        after={
+            "run_id": this,
+            "effects": logged["effects"],
+            "model": logged.get("model_version", ""),
+        },
+    )
+    mlflow.set_tag("femcal.compared_to", prev.info.run_id)
+    logger.info("Compared with run %s: %s", prev.info.run_id, out_dir / "comparison.md")

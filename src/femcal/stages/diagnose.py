@@ -1,0 +1,263 @@
+"""Stage ``diagnose``: where the disc model fails on a cohort, and which effect is missing."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from femcal.config import section
+from femcal.paths import setting_path, setting_uri
+from femcal.stages.common import (
+    check_measurements,
+    check_outputs,
+    describe_user_effects,
+    effect_modules,
+    load_user_effects,
+    moment_settings,
+    out_label,
+    path_setting,
+    tracking,
+    training_configurations,
+    write_metrics,
+)
+
+
+@dataclass(frozen=True)
+class DiagnoseSettings:
+    """The ``diagnose`` and ``moments`` sections, and the command line's overrides.
+
+    Built by :meth:`from_params`, which also checks the output folder, the metrics file and
+    the measurement file before anything heavy is imported.
+    """
+
+    measurements: Path
+    out_dir: Path
+    model_uri: str
+    noise_deg: float | None
+    candidates: Sequence[str] | None
+    start_bank: Path | None
+    min_delta: float
+    alpha: float
+    max_effects: int
+    seed: int
+    error_growth: float
+    max_log_ratio: float
+    plots: bool = True
+    max_plots: int | None = None
+    effect_modules: Sequence[Path] = ()
+    metrics_file: str | None = None
+    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> DiagnoseSettings:
+        cfg = section(params, "diagnose")
+        noise = args["noise_deg"] if args.get("noise_deg") is not None else cfg.get("noise_deg")
+        bank = section(params, "calibrate").get("start_bank")
+        out = args.get("out") or path_setting(params, "diagnose", "out_dir")
+        check_outputs(  # before anything heavy is imported
+            out,
+            label=out_label(args.get("out"), "diagnose.out_dir"),
+            metrics_file=args.get("metrics_file"),
+        )
+        measurements = (
+            Path(args["measurements"])
+            if args.get("measurements")
+            else path_setting(params, "diagnose", "measurements")
+        )
+        check_measurements(measurements)
+        return cls(
+            measurements=measurements,
+            out_dir=Path(out),
+            model_uri=args.get("model_uri")
+            or setting_uri(params, section(params, "calibrate", "model_uri")),
+            noise_deg=None if noise is None else float(noise),
+            candidates=cfg.get("candidates"),
+            start_bank=setting_path(params, bank) if bank else None,
+            min_delta=float(cfg.get("min_delta", 10.0)),
+            alpha=float(cfg.get("alpha", 0.01)),
+            max_effects=int(cfg.get("max_effects", 3)),
+            seed=int(cfg.get("seed", 0)),
+            **moment_settings(params),
+            plots=bool(cfg.get("plots", True)),
+            max_plots=cfg.get("max_plots"),
+            effect_modules=effect_modules(params, args.get("effects_module")),
+            metrics_file=args.get("metrics_file"),
+            params=params,
+        )
+
+
+def run(settings: DiagnoseSettings) -> dict[str, Any]:
+    """Load the user's effects, diagnose, write the outputs and the DVC metrics (when asked).
+
+    Returns ``summary.json``'s figures with the :class:`~femcal.diagnose.Diagnosis`.
+    """
+    from femcal.headlines import diagnosis_headline
+
+    names = load_user_effects(settings.effect_modules)
+    tracking(settings.params)
+    diag, summary = run_diagnose(
+        measurements=settings.measurements,
+        out_dir=settings.out_dir,
+        model_uri=settings.model_uri,
+        noise_deg=settings.noise_deg,
+        candidates=settings.candidates,
+        start_bank=settings.start_bank,
+        min_delta=settings.min_delta,
+        alpha=settings.alpha,
+        max_effects=settings.max_effects,
+        seed=settings.seed,
+        error_growth=settings.error_growth,
+        max_log_ratio=settings.max_log_ratio,
+        plots=settings.plots,
+        max_plots=settings.max_plots,
+    )
+    # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
+    write_metrics(settings.metrics_file, diagnosis_headline(summary))
+    return dict(
+        summary,
+        diagnosis=diag,
+        user_effects=names,
+        user_effect_paths=[str(p) for p in settings.effect_modules],
+    )
+
+
+def describe(figures: Mapping[str, Any]) -> list[str]:
+    diag = figures["diagnosis"]
+    lines = describe_user_effects(figures["user_effects"], figures["user_effect_paths"])
+    lines.append(
+        f"diagnosed {figures['n_specimens']} specimens in {diag.seconds:.1f} s (noise sigma "
+        f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "
+        f"{diag.cohort_verdict()}"
+    )
+    counts = diag.effect_counts()
+    found = diag.found_effects()
+    if found:
+        lines.append(
+            f"effects found: {', '.join(f'{k} ({counts[k]})' for k in found)}; to add them, list "
+            f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml and run "
+            "`dvc repro` (or: femcal calibrate --measurements FILE --effects "
+            f"{','.join(found)})"
+        )
+    if counts.get("unexplained"):
+        lines.append(
+            f"unexplained: {counts['unexplained']} specimens are not explained within the noise "
+            "by the disc and the registered effects; summary.md and plots/ describe what is "
+            "missing (load cases, laxity or stiffening, from which moment, how large). Write "
+            "it as an effect (README: 'a new effect') and pass --effects-module FILE."
+        )
+    return lines
+
+
+def run_diagnose(
+    *,
+    measurements: Path,
+    out_dir: Path,
+    model_uri: str,
+    noise_deg: float | None,
+    candidates: Sequence[str] | None,
+    start_bank: Path | None,
+    min_delta: float,
+    seed: int,
+    error_growth: float,
+    max_log_ratio: float,
+    alpha: float = 0.01,
+    max_effects: int = 3,
+    plots: bool = True,
+    max_plots: int | None = None,
+):
+    """Diagnose every specimen of a measurement file; write DIR; log one MLflow run.
+
+    The moments are checked with the moment policy (:class:`femcal.moments.MomentPolicy` of
+    ``error_growth`` and ``max_log_ratio``, params.yaml ``moments``), and the surrogate's own
+    error at each moment (shape (m,), larger beyond the trained range) is part of the noise.
+
+    ``out_dir`` is all or nothing, as for :func:`run_calibrate` (:mod:`femcal.outputs`).
+    ``model_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI; the
+    run's tags ``femcal.model.*`` name it (URI, SHA-256 of its files, registered version).
+    """
+    from femcal.outputs import check_destination
+
+    check_destination(out_dir)  # a bad output folder is the first error, not the last
+    import mlflow
+
+    from femcal.calibration import SurrogateCurveModel
+    from femcal.diagnose import diagnose
+    from femcal.diagnose_report import write_diagnosis
+    from femcal.effects import available_effects
+    from femcal.effects.composite import EffectModel
+    from femcal.measurements import read_measurements
+    from femcal.moments import MomentPolicy
+    from femcal.outputs import staged_output
+    from femcal.reachability import assess_reachability
+    from femcal.tracking import load_surrogate, open_model
+
+    meas = read_measurements(measurements)
+    source = open_model(model_uri)
+    surrogate = load_surrogate(source)
+    policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
+    policy.check(meas)
+    # Before the fit: can the disc, with every candidate effect, produce these curves at all?
+    assess_reachability(
+        meas,
+        EffectModel(
+            SurrogateCurveModel(surrogate, meas.moments), list(candidates or available_effects())
+        ),
+        sigma_model=policy.sigma_surrogate(meas.moments),
+        reference=start_bank,
+        noise_deg=noise_deg,
+    )
+    diag = diagnose(
+        SurrogateCurveModel(surrogate, meas.moments),
+        meas.rom_deg,
+        specimens=meas.specimens,
+        noise_deg=noise_deg,
+        surrogate_error_deg=policy.sigma_surrogate(meas.moments),
+        candidates=candidates,
+        start_bank=training_configurations(start_bank) if start_bank else None,
+        min_delta=min_delta,
+        alpha=alpha,
+        max_effects=max_effects,
+        seed=seed,
+    )
+    with (
+        staged_output(out_dir, command="diagnose") as stage,
+        mlflow.start_run(run_name="diagnose") as run,
+    ):
+        stage.note(mlflow_run_id=run.info.run_id)
+        mlflow.set_tag("femcal.stage", "diagnose")
+        mlflow.set_tags(source.tags("model"))
+        summary = write_diagnosis(diag, meas.rom_deg, stage.path, plots=plots, max_plots=max_plots)
+        mlflow.log_params(
+            {
+                "measurements": str(measurements),
+                "model_uri": model_uri,
+                "noise_deg": "estimated" if noise_deg is None else noise_deg,
+                "candidates": ",".join(candidates or []) or "all",
+                "min_delta": min_delta,
+                "alpha": alpha,
+                "max_effects": max_effects,
+                "cohort_verdict": diag.cohort_verdict(),
+                "moments.error_growth": error_growth,
+                "moments.max_log_ratio": max_log_ratio,
+            }
+        )
+        mlflow.log_metrics(
+            {
+                "sigma_deg": diag.sigma_deg,
+                "noise_deg": diag.noise_deg,
+                "seconds": diag.seconds,
+                # MLflow metric names take no "+": one count per effect (and "unexplained"),
+                # and one per verdict with "+" spelt "__".
+                **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
+                **{
+                    f"n_verdict_{k.replace('+', '__')}": float(v)
+                    for k, v in diag.verdicts().items()
+                },
+            }
+        )
+        stage.finalize()
+        mlflow.log_artifacts(str(stage.path), artifact_path="diagnosis")  # this run's files
+        stage.commit()
+    return diag, summary

@@ -1,0 +1,223 @@
+"""Stage ``simulate`` (fe/dvc.yaml): an FE campaign on Dask, written in the study's layout."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from femcal.config import section
+from femcal.paths import setting_path, store_path
+from femcal.space import ParameterSpace
+from femcal.stages.common import check_outputs, fe_runtime, out_label, path_setting, write_metrics
+
+#: The summary keys the stage's DVC metrics file holds.
+METRICS_KEYS = (
+    "n_configurations",
+    "n_jobs",
+    "n_ok",
+    "n_failed",
+    "failure_rate",
+    "cpu_seconds_per_configuration",
+    "cpu_seconds_total",
+    "failure_reasons",
+)
+
+
+@dataclass(frozen=True)
+class SimulateSettings:
+    """The ``fe`` section of fe/params.yaml, with the command line's overrides."""
+
+    solver: str
+    settings: Mapping[str, Any]
+    bounds: Any
+    splits: Mapping[str, int]
+    seed: int
+    load_cases: Sequence[str]
+    moments: Sequence[float]
+    store: Path
+    out_dir: Path
+    scheduler_address: str | None
+    n_workers: int
+    scratch_dir: Path | None = None
+    progress: bool = False
+    metrics_file: str | None = None
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> SimulateSettings:
+        cfg = section(params, "fe")
+        out = Path(args["out"]) if args.get("out") else path_setting(params, "fe", "out_dir")
+        check_outputs(  # before the campaign
+            out,
+            label=out_label(args.get("out"), "fe.out_dir"),
+            metrics_file=args.get("metrics_file"),
+        )
+        address, n_workers = fe_runtime(params)
+        scratch = cfg.get("scratch_dir")
+        return cls(
+            solver=section(params, "fe", "solver"),
+            settings=dict(cfg.get("settings") or {}),
+            bounds=section(params, "fe", "bounds"),
+            splits=section(params, "fe", "splits"),
+            seed=int(section(params, "fe", "seed")),
+            load_cases=list(section(params, "fe", "load_cases")),
+            moments=[float(m) for m in section(params, "fe", "moments")],
+            store=Path(args["store"])
+            if args.get("store")
+            else store_path(params, section(params, "fe", "store")),
+            out_dir=out,
+            scheduler_address=address,
+            n_workers=n_workers,
+            scratch_dir=setting_path(params, scratch) if scratch else None,
+            progress=bool(args.get("progress")),
+            metrics_file=args.get("metrics_file"),
+        )
+
+
+def run(settings: SimulateSettings) -> dict[str, Any]:
+    """Run the campaign and write the dataset; returns the campaign's result and summary."""
+    result, summary = run_simulate(
+        solver=settings.solver,
+        settings=settings.settings,
+        bounds=settings.bounds,
+        splits=settings.splits,
+        seed=settings.seed,
+        load_cases=settings.load_cases,
+        moments=settings.moments,
+        store=settings.store,
+        out_dir=settings.out_dir,
+        scheduler_address=settings.scheduler_address,
+        n_workers=settings.n_workers,
+        scratch_dir=settings.scratch_dir,
+        progress=settings.progress,
+    )
+    # only when asked (the DVC stage)
+    write_metrics(settings.metrics_file, {k: summary[k] for k in METRICS_KEYS})
+    return {"result": result, "summary": summary, "out": str(settings.out_dir)}
+
+
+def describe(figures: Mapping[str, Any]) -> list[str]:
+    result, summary = figures["result"], figures["summary"]
+    cpu = summary["cpu_seconds_per_configuration"]
+    lines = [
+        f"FE campaign: {result.n_jobs} jobs ({summary['n_configurations']} configurations x 4 "
+        f"load cases), {result.n_skipped} already in {result.store}, {result.n_run} run now on "
+        f"{result.n_workers or 0} workers in {result.wall_seconds:.1f} s",
+        f"failure rate {summary['failure_rate']:.3f} ({summary['n_failed']} failed); CPU "
+        f"seconds per configuration: mean {cpu['mean']:.2f}, max {cpu['max']:.2f}; solver "
+        f"{', '.join(summary['solver_versions'])}",
+    ]
+    for f in summary["failures"]:
+        lines.append(
+            f"  failed: config {f['config_id']} ({f['split']} row {f['row']}) {f['load_case']}: "
+            f"{f['reason']}"
+        )
+    lines.append(f"dataset: {figures['out']} (the study's layout; runs.csv, campaign.json)")
+    return lines
+
+
+def fe_space(bounds: Any) -> ParameterSpace:
+    """The sampling box of an FE campaign from ``fe.bounds``.
+
+    Parameters
+    ----------
+    bounds : str, Path or mapping
+        A ParameterBounds.csv file (the study's layout), or a mapping ``name -> [lower,
+        upper]`` in physical units (the study's 13 parameters, in the study's order).
+    """
+    from femcal.errors import ConfigError
+
+    if isinstance(bounds, (str, Path)):
+        return ParameterSpace.from_bounds_csv(Path(bounds))
+    if not isinstance(bounds, Mapping) or not bounds:
+        raise ConfigError(
+            "fe.bounds must be a ParameterBounds.csv path or a mapping name -> [lower, upper]; "
+            f"got {bounds!r}."
+        )
+    try:
+        lower = [float(v[0]) for v in bounds.values()]
+        upper = [float(v[1]) for v in bounds.values()]
+    except (TypeError, ValueError, IndexError, KeyError):
+        raise ConfigError(
+            "fe.bounds: every entry must be [lower, upper] (two numbers); fix the bounds."
+        ) from None
+    return ParameterSpace(list(bounds), lower, upper)
+
+
+def run_simulate(
+    *,
+    solver: str,
+    settings: Mapping[str, Any],
+    bounds: Any,
+    splits: Mapping[str, int],
+    seed: int,
+    load_cases: Sequence[str],
+    moments: Sequence[float],
+    store: Path,
+    out_dir: Path,
+    scheduler_address: str | None = None,
+    n_workers: int = 2,
+    scratch_dir: Path | None = None,
+    progress: bool = False,
+):
+    """The FE campaign (Dask, durable store, resume) and its dataset in the study's layout.
+
+    Returns
+    -------
+    result : CampaignResult
+    summary : dict
+        The dataset's ``campaign.json`` (counts, failure rate and reasons, CPU seconds per
+        configuration, solver version, wall seconds, workers).
+
+    ``out_dir`` is all or nothing (:func:`femcal.fe.dataset.write_dataset`), and checked
+    before the campaign runs.
+    """
+    from femcal.outputs import check_destination
+
+    check_destination(out_dir)
+    from femcal.errors import ConfigError
+    from femcal.fe.campaign import run_campaign, settings_hash, split_design
+    from femcal.fe.dataset import write_dataset
+    from femcal.schema import LOAD_CASES
+
+    if sorted(load_cases) != sorted(LOAD_CASES):
+        raise ConfigError(
+            f"fe.load_cases is {list(load_cases)}; a dataset in the study's layout needs all "
+            f"four load cases {list(LOAD_CASES)}."
+        )
+    space = fe_space(bounds)
+    design_df = split_design(space, splits, seed)
+    result = run_campaign(
+        solver,
+        settings,
+        design_df,
+        store=store,
+        names=space.names,
+        load_cases=LOAD_CASES,
+        moments=moments,
+        scheduler_address=scheduler_address,
+        n_workers=n_workers,
+        scratch_dir=scratch_dir,
+        progress=progress,
+    )
+    summary = write_dataset(
+        design_df,
+        result.records.to_dict(orient="records"),
+        out_dir,
+        space=space,
+        moments=moments,
+        campaign_info={
+            "solver": solver,
+            "settings": dict(settings),
+            "settings_hash": settings_hash(solver, settings),
+            "seed": int(seed),
+            "splits": {k: int(v) for k, v in splits.items()},
+            "store": str(store),
+            "jobs_run_now": result.n_run,
+            "jobs_resumed_from_store": result.n_skipped,
+            "wall_seconds_this_run": round(result.wall_seconds, 2),
+            "n_workers": result.n_workers,
+        },
+    )
+    return result, summary

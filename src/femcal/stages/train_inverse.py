@@ -1,0 +1,154 @@
+"""Stage ``train-inverse``: the study's inverse network on samples of the surrogate, under Optuna.
+
+Registered as ``inverse.register_as``; ``models/inverse`` is the logged MLflow model.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from femcal.config import section
+from femcal.paths import setting_path, setting_uri
+from femcal.stages.common import export_folder, optuna_storage, tracking
+
+
+@dataclass(frozen=True)
+class TrainInverseSettings:
+    """The ``inverse`` section of params.yaml."""
+
+    surrogate_uri: str
+    moments: Sequence[float]
+    out_dir: Path
+    metrics_path: Path
+    settings: Mapping[str, Any]
+    storage: str
+    study_name: str
+    seed: int
+    register_as: str | None
+    progress: bool = False
+    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_params(
+        cls, params: Mapping[str, Any], args: Mapping[str, Any]
+    ) -> TrainInverseSettings:
+        cfg = section(params, "inverse")
+        return cls(
+            surrogate_uri=setting_uri(params, section(params, "inverse", "surrogate_uri")),
+            moments=[float(m) for m in section(params, "inverse", "moments")],
+            out_dir=setting_path(params, "models/inverse"),
+            metrics_path=setting_path(params, "reports/train-inverse.json"),
+            settings=cfg,
+            storage=optuna_storage(params),
+            study_name=str(cfg.get("study_name", "ivd-inverse")),
+            seed=int(cfg.get("seed", 0)),
+            register_as=cfg.get("register_as"),
+            progress=bool(args.get("progress")),
+            params=params,
+        )
+
+
+def run(settings: TrainInverseSettings) -> dict[str, Any]:
+    """Train, register and export; returns the validation errors, trials and seconds."""
+    tracking(settings.params)
+    result = run_train_inverse(
+        surrogate_uri=settings.surrogate_uri,
+        moments=settings.moments,
+        out_dir=settings.out_dir,
+        metrics_path=settings.metrics_path,
+        settings=settings.settings,
+        storage=settings.storage,
+        study_name=settings.study_name,
+        seed=settings.seed,
+        register_as=settings.register_as,
+        progress=settings.progress,
+    )
+    return {
+        "val_mae": result.val_mae,
+        "val_rom_mae_deg": result.val_rom_mae_deg,
+        "n_trials": result.n_trials,
+        "seconds": result.seconds,
+        "version": result.version,
+    }
+
+
+def describe(figures: Mapping[str, Any]) -> list[str]:
+    reg = f"; registered as version {figures['version']}" if figures["version"] else ""
+    return [
+        f"inverse model: validation MAE {figures['val_mae']:.4f} (unit box), "
+        f"{figures['val_rom_mae_deg']:.4f} deg through the surrogate, {figures['n_trials']} "
+        f"trials in {figures['seconds']:.0f} s{reg}"
+    ]
+
+
+def run_train_inverse(
+    *,
+    surrogate_uri: str,
+    moments: Sequence[float],
+    out_dir: Path,
+    metrics_path: Path,
+    settings: Mapping[str, Any],
+    storage: str,
+    study_name: str,
+    seed: int,
+    register_as: str | None,
+    progress: bool = False,
+):
+    """Train the study's inverse network on samples of the surrogate; register it.
+
+    ``surrogate_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI;
+    the training run's tags ``femcal.surrogate.*`` name it (URI, SHA-256, registered
+    version). ``out_dir`` receives the logged MLflow model file for file, as for
+    :func:`run_train`.
+    """
+    import mlflow
+
+    from femcal.calibration import SurrogateCurveModel
+    from femcal.inverse import train_inverse
+    from femcal.tracking import load_surrogate, open_model
+
+    source = open_model(surrogate_uri)
+    surrogate = load_surrogate(source)
+    result = train_inverse(
+        SurrogateCurveModel(surrogate, moments),
+        n_samples=int(settings.get("n_samples", 50_000)),
+        search_space=settings.get("search_space") or {},
+        fixed=settings.get("fixed") or {},
+        n_trials=int(settings.get("n_trials", 0)),
+        storage=storage,
+        study_name=study_name,
+        seed=seed,
+        register_as=register_as,
+        run_name="train-inverse",
+        progress=progress,
+    )
+    client = mlflow.MlflowClient()
+    for key, value in source.tags("surrogate").items():
+        client.set_tag(result.run_id, key, value)
+    export_folder(result, out_dir, register_as)
+    metrics_path.parent.mkdir(parents=True, exist_ok=True)
+    metrics_path.write_text(
+        json.dumps(
+            {
+                "val_mae_unit": result.val_mae,
+                "val_rom_mae_deg": result.val_rom_mae_deg,
+                "n_trials": result.n_trials,
+                "seconds": round(result.seconds, 1),
+                "mlflow_run_id": result.run_id,
+                "registered_version": result.version,
+                "promoted": result.promoted,
+                "surrogate_uri": surrogate_uri,
+                "surrogate_sha256": source.sha256,
+                "surrogate_version": source.version,
+                "best_params": result.best_params,
+            },
+            indent=2,
+            default=str,
+        )
+        + "\n"
+    )
+    return result

@@ -1,0 +1,221 @@
+"""Stage ``validate`` (fe/dvc.yaml): calibrated parameters re-simulated in FE; the IDP check."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from femcal.config import section
+from femcal.paths import store_path
+from femcal.stages.common import (
+    check_outputs,
+    fe_runtime,
+    out_label,
+    path_setting,
+    tracking,
+    write_metrics,
+)
+
+#: The summary keys the stage's DVC metrics file holds.
+METRICS_KEYS = (
+    "n_specimens",
+    "fe_mae_deg",
+    "surrogate_mae_deg",
+    "fe_vs_surrogate_mae_deg",
+    "fe_mae_deg_per_load_case",
+    "idp",
+    "n_fe_failed_jobs",
+)
+
+
+@dataclass(frozen=True)
+class ValidateSettings:
+    """The ``validate`` and ``fe`` sections of fe/params.yaml, with the command line's overrides."""
+
+    calibration_dir: Path
+    measurements: Path
+    solver: str
+    settings: Mapping[str, Any]
+    forces: Sequence[float]
+    literature: Mapping[str, Any]
+    store: Path
+    out_dir: Path
+    scheduler_address: str | None
+    n_workers: int
+    progress: bool = False
+    metrics_file: str | None = None
+    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> ValidateSettings:
+        cfg = section(params, "validate")
+        fe = section(params, "fe")
+        out = Path(args["out"]) if args.get("out") else path_setting(params, "validate", "out_dir")
+        check_outputs(  # before the FE campaign
+            out,
+            label=out_label(args.get("out"), "validate.out_dir"),
+            metrics_file=args.get("metrics_file"),
+        )
+        address, n_workers = fe_runtime(params)
+        return cls(
+            calibration_dir=(
+                Path(args["calibration"])
+                if args.get("calibration")
+                else path_setting(params, "validate", "calibration_dir")
+            ),
+            measurements=(
+                Path(args["measurements"])
+                if args.get("measurements")
+                else path_setting(params, "validate", "measurements")
+            ),
+            solver=section(params, "fe", "solver"),
+            settings=dict(fe.get("settings") or {}),
+            forces=[float(f) for f in cfg.get("forces") or []],
+            literature=cfg.get("idp_literature") or {},
+            store=(
+                Path(args["store"])
+                if args.get("store")
+                else store_path(params, section(params, "validate", "store"))
+            ),
+            out_dir=out,
+            scheduler_address=address,
+            n_workers=n_workers,
+            progress=bool(args.get("progress")),
+            metrics_file=args.get("metrics_file"),
+            params=params,
+        )
+
+
+def run(settings: ValidateSettings) -> dict[str, Any]:
+    """Re-simulate and compare; returns the validation summary."""
+    from femcal.fe.validate import json_safe
+
+    tracking(settings.params)
+    result = run_validate(
+        calibration_dir=settings.calibration_dir,
+        measurements=settings.measurements,
+        solver=settings.solver,
+        settings=settings.settings,
+        forces=settings.forces,
+        literature=settings.literature,
+        store=settings.store,
+        out_dir=settings.out_dir,
+        scheduler_address=settings.scheduler_address,
+        n_workers=settings.n_workers,
+        progress=settings.progress,
+    )
+    s = result.summary
+    # only when asked (the DVC stage)
+    write_metrics(settings.metrics_file, json_safe({k: s[k] for k in METRICS_KEYS}))
+    return {"summary": s, "out": str(settings.out_dir)}
+
+
+def describe(figures: Mapping[str, Any]) -> list[str]:
+    s, out = figures["summary"], figures["out"]
+    lines = [
+        f"validated {s['n_specimens']} calibrated specimens with the FE model: MAE vs the "
+        f"measurement {s['fe_mae_deg']:.4f} deg through FE, {s['surrogate_mae_deg']:.4f} deg "
+        f"through the surrogate (FE vs surrogate {s['fe_vs_surrogate_mae_deg']:.4f} deg); "
+        f"{s['n_fe_failed_jobs']} FE jobs failed"
+    ]
+    for row in s["idp"]:
+        lit = row["literature"]
+        verdict = (
+            f", {row['n_in_range']}/{s['n_specimens']} in the literature range "
+            f"[{lit['low_mpa']:g}, {lit['high_mpa']:g}] MPa"
+            if lit
+            else ""
+        )
+        lines.append(
+            f"  IDP at {row['force_n']:g} N: {row['idp_mpa_min']:.3f}-{row['idp_mpa_max']:.3f} "
+            f"MPa{verdict}"
+        )
+    lines.append(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv")
+    return lines
+
+
+def run_validate(
+    *,
+    calibration_dir: Path,
+    measurements: Path,
+    solver: str,
+    settings: Mapping[str, Any],
+    forces: Sequence[float],
+    literature: Mapping[Any, Any],
+    store: Path,
+    out_dir: Path,
+    scheduler_address: str | None = None,
+    n_workers: int = 2,
+    progress: bool = False,
+):
+    """FE re-simulation of a calibration (the study's step 4); tables in ``out_dir``; MLflow.
+
+    Returns
+    -------
+    ValidationResult
+        See :func:`femcal.fe.validate.validate_calibration`. ``out_dir`` is all or nothing,
+        as for :func:`run_calibrate` (:mod:`femcal.outputs`).
+    """
+    from femcal.outputs import check_destination, staged_output
+
+    check_destination(out_dir)  # before the FE campaign
+    import mlflow
+
+    from femcal.fe.validate import literature_ranges, validate_calibration
+
+    ranges = literature_ranges(literature)
+    # The FE campaign runs before the MLflow run starts (a bad input makes no FAILED run);
+    # its tables are staged, and move into place inside the run that logs them.
+    with staged_output(out_dir, command="validate") as stage:
+        result = validate_calibration(
+            calibration_dir=calibration_dir,
+            measurements=measurements,
+            solver=solver,
+            settings=settings,
+            forces=forces,
+            literature=ranges,
+            store=store,
+            out_dir=stage.path,
+            scheduler_address=scheduler_address,
+            n_workers=n_workers,
+            progress=progress,
+        )
+        s = result.summary
+        with mlflow.start_run(run_name="validate") as run:
+            stage.note(mlflow_run_id=run.info.run_id)
+            mlflow.set_tag("femcal.stage", "validate")
+            mlflow.log_params(
+                {
+                    "calibration_dir": str(calibration_dir),
+                    "measurements": str(measurements),
+                    "solver": solver,
+                    "settings": json.dumps(dict(settings), sort_keys=True)[:500],
+                    "forces_n": ",".join(f"{f:g}" for f in forces),
+                    "solver_versions": ",".join(s["solver_versions"]),
+                    "n_specimens": s["n_specimens"],
+                }
+            )
+            metrics = {
+                "fe_mae_deg": s["fe_mae_deg"],
+                "surrogate_mae_deg": s["surrogate_mae_deg"],
+                "fe_vs_surrogate_mae_deg": s["fe_vs_surrogate_mae_deg"],
+                "n_fe_failed_jobs": s["n_fe_failed_jobs"],
+                "fe_cpu_seconds_total": s["fe_cpu_seconds_total"],
+            }
+            for lc, v in s["fe_mae_deg_per_load_case"].items():
+                metrics[f"fe_mae_deg_{lc}"] = v
+            for row in s["idp"]:
+                metrics[f"idp_mpa_mean_{row['force_n']:g}N"] = row["idp_mpa_mean"]
+                if row["n_in_range"] is not None:
+                    metrics[f"idp_n_in_range_{row['force_n']:g}N"] = row["n_in_range"]
+            mlflow.log_metrics({k: float(v) for k, v in metrics.items() if np.isfinite(float(v))})
+            mlflow.log_table(result.table, artifact_file="tables/validation.json")
+            stage.finalize()
+            mlflow.log_artifacts(str(stage.path), artifact_path="validation")  # this run's files
+            stage.commit()
+    return result
