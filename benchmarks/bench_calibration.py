@@ -34,8 +34,9 @@ import torch
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import coverage, holdout_scores, identifiability
 from femcal.config import load_params, section
+from femcal.datasets import load_split
 from femcal.measurements import read_measurements
-from femcal.stages.common import calibration_options, load_split
+from femcal.stages.calibrate import calibration_options
 from femcal.tracking import configure_tracking, load_surrogate, resolve_model_version
 
 REPO = Path(__file__).resolve().parents[1]

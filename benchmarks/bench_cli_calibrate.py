@@ -52,7 +52,7 @@ MD_PATH = REPO / "reports" / "bench_cli_calibrate.md"
 #: Phases of the profile: label -> (file suffix, function name) whose cumulative times add up.
 PHASES = {
     "whole CLI (main)": [("femcal/cli.py", "main")],
-    "tracking setup (mlflow import, store, killed runs)": [("femcal/stages/common.py", "tracking")],
+    "tracking setup (mlflow import, store, killed runs)": [("femcal/stages/store.py", "tracking")],
     "read measurements": [("femcal/measurements.py", "read_measurements")],
     "load models (with torch/Lightning imports)": [("femcal/tracking.py", "load_surrogate")],
     "reachability check": [("femcal/reachability.py", "assess_reachability")],

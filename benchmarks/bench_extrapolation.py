@@ -16,7 +16,7 @@ trained on     tested at   L
 =============  ==========  ===========================
 
 and at its trained moments (the in-range error). Error sd = MAE * sqrt(pi / 2) (Gaussian
-errors; the conversion femcal.stages.common uses for the validation error), the ratio = sd at ``M``
+errors; the conversion femcal.stages.train uses for the validation error), the ratio = sd at ``M``
 over the in-range sd of the same model (pooled over its trained moments). One-parameter growth
 models are fitted to the ratios (least squares) and translated to the 1..5 Nm champion, next to
 a colleague's measurement of the champion on the study's held-out 0.5-10 Nm FE curves.
@@ -46,8 +46,8 @@ import pandas as pd
 import torch
 
 from femcal.config import load_params, section
+from femcal.datasets import load_split
 from femcal.moments import MomentPolicy, log_distance
-from femcal.stages.common import load_split
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.train import ok_rows, surrogate_kwargs, validation_split
 

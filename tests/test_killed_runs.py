@@ -108,7 +108,7 @@ def test_runs_of_a_killed_process_are_closed_as_killed(killed, store):
 
 
 def test_every_command_closes_them_at_its_start(killed, store, caplog):
-    from femcal.stages.common import tracking as _tracking
+    from femcal.stages.store import tracking as _tracking
 
     killed = killed[1]["b"]
     with caplog.at_level(logging.WARNING, logger="femcal.tracking_runs"):

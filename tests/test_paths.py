@@ -114,7 +114,7 @@ def test_the_cli_puts_the_mlflow_store_at_the_project_root(project, monkeypatch)
     import mlflow
 
     from femcal.config import load_params
-    from femcal.stages.common import tracking as _tracking
+    from femcal.stages.store import tracking as _tracking
 
     _, root, elsewhere = project
     (root / "params.yaml").write_text(

@@ -83,7 +83,7 @@ pytestmark = pytest.mark.skipif(
 @pytest.fixture(scope="module")
 def disc():
     """A small surrogate of the study's FE model (first 512 Large configurations)."""
-    from femcal.stages.common import load_split
+    from femcal.datasets import load_split
     from femcal.surrogates.nn import NeuralSurrogate
 
     table, space = load_split(PREPARED, "large")

@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from femcal.datasets import ok_rows
 from femcal.errors import ConfigError
-from femcal.schema import STATUS_OK
 from femcal.space import ParameterSpace
 from femcal.training.study import (
     TrialRun,
@@ -72,15 +72,6 @@ class TrainResult:
 def surrogate_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
     """Turn flat hyper-parameters (``width``, ``depth``) into NeuralSurrogate keywords."""
     return hidden_from_width_depth(params, width=256, depth=4)
-
-
-def ok_rows(table: pd.DataFrame) -> pd.DataFrame:
-    """Rows of a tidy table whose simulation succeeded (failed ones are kept in the data, not
-    trained on)."""
-    n_failed = int((table["status"] != STATUS_OK).sum())
-    if n_failed:
-        logger.info("Leaving %d failed simulation rows out of training.", n_failed)
-    return table[table["status"] == STATUS_OK].reset_index(drop=True)
 
 
 def validation_split(

@@ -11,8 +11,10 @@ from pathlib import Path
 from typing import Any
 
 from femcal.config import section
+from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import load_split, path_setting, tracking
+from femcal.stages.common import path_setting
+from femcal.stages.store import tracking
 
 logger = logging.getLogger(__name__)
 
@@ -76,8 +78,8 @@ def run_baselines(
     """Fit the study's model zoo on one split; save each fitted model; log each as a run."""
     import mlflow
 
+    from femcal.datasets import ok_rows
     from femcal.surrogates import make_surrogate
-    from femcal.train import ok_rows
 
     table, space = load_split(prepared_dir, split)
     data = ok_rows(table)

@@ -16,22 +16,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from femcal.config import section
+from femcal.datasets import training_configurations
 from femcal.errors import ConfigError
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
-    calibration_options,
     check_measurements,
     check_outputs,
-    describe_user_effects,
-    effect_modules,
-    load_user_effects,
     moment_settings,
     out_label,
     path_setting,
-    tracking,
     write_metrics,
 )
+from femcal.stages.store import tracking
+from femcal.stages.user_effects import describe_user_effects, effect_modules, load_user_effects
 
 logger = logging.getLogger(__name__)
 
@@ -449,3 +449,22 @@ def compare_with_previous(
     )
     mlflow.set_tag("femcal.compared_to", prev.info.run_id)
     logger.info("Compared with run %s: %s", prev.info.run_id, out_dir / "comparison.md")
+
+
+def calibration_options(
+    method: str, options: Mapping[str, Any], *, surrogate: Any, start_bank: Path | None
+) -> dict[str, Any]:
+    """A calibrator's options completed from the data and the surrogate.
+
+    For ``pgd``: the training configurations of ``start_bank`` (a prepared split) as starts,
+    and ``noise_deg`` from the surrogate's validation error (the surrogate's own error is part
+    of the noise of every RoM value; for Gaussian errors sd = MAE * sqrt(pi / 2)).
+    """
+    opts = dict(options)
+    if method == "pgd":
+        if start_bank is not None and "start_bank" not in opts:
+            opts["start_bank"] = training_configurations(start_bank)
+        val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
+        if "noise_deg" not in opts and np.isfinite(val):
+            opts["noise_deg"] = val * float(np.sqrt(np.pi / 2))
+    return opts

@@ -8,20 +8,18 @@ from pathlib import Path
 from typing import Any
 
 from femcal.config import section
+from femcal.datasets import training_configurations
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
     check_measurements,
     check_outputs,
-    describe_user_effects,
-    effect_modules,
-    load_user_effects,
     moment_settings,
     out_label,
     path_setting,
-    tracking,
-    training_configurations,
     write_metrics,
 )
+from femcal.stages.store import tracking
+from femcal.stages.user_effects import describe_user_effects, effect_modules, load_user_effects
 
 
 @dataclass(frozen=True)

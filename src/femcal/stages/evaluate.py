@@ -11,9 +11,11 @@ from typing import Any
 import numpy as np
 
 from femcal.config import section
+from femcal.datasets import load_split
 from femcal.evaluate import Score, score_model, write_reports
 from femcal.paths import setting_path
-from femcal.stages.common import load_split, path_setting, tracking
+from femcal.stages.common import path_setting
+from femcal.stages.store import tracking
 
 #: The training sets whose networks and baselines are compared.
 SPLITS = ("large", "small")

@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from femcal.config import section
-from femcal.stages.common import check_outputs, load_split, out_label, path_setting
+from femcal.datasets import load_split
+from femcal.stages.common import check_outputs, out_label, path_setting
 
 
 @dataclass(frozen=True)

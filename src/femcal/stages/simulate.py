@@ -10,7 +10,7 @@ from typing import Any
 from femcal.config import section
 from femcal.paths import setting_path, store_path
 from femcal.space import ParameterSpace
-from femcal.stages.common import check_outputs, fe_runtime, out_label, path_setting, write_metrics
+from femcal.stages.common import check_outputs, out_label, path_setting, write_metrics
 
 #: The summary keys the stage's DVC metrics file holds.
 METRICS_KEYS = (
@@ -221,3 +221,12 @@ def run_simulate(
         },
     )
     return result, summary
+
+
+def fe_runtime(params: Mapping[str, Any]) -> tuple[str | None, int]:
+    """Scheduler address (fe.scheduler_address, else FEMCAL_DASK_ADDRESS) and worker count."""
+    from femcal.fe.campaign import scheduler_address_from_env
+
+    cfg = section(params, "fe")
+    address = cfg.get("scheduler_address") or scheduler_address_from_env()
+    return address, int(cfg.get("n_workers", 2))

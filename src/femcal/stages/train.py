@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any
 
 from femcal.config import section
+from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import export_folder, load_split, optuna_storage, path_setting, tracking
+from femcal.stages.common import optuna_storage, path_setting
+from femcal.stages.store import export_folder, tracking
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,8 @@ from typing import Any
 
 from femcal.config import section
 from femcal.paths import setting_path, setting_uri
-from femcal.stages.common import export_folder, optuna_storage, tracking
+from femcal.stages.common import optuna_storage
+from femcal.stages.store import export_folder, tracking
 
 
 @dataclass(frozen=True)

@@ -12,14 +12,9 @@ import numpy as np
 
 from femcal.config import section
 from femcal.paths import store_path
-from femcal.stages.common import (
-    check_outputs,
-    fe_runtime,
-    out_label,
-    path_setting,
-    tracking,
-    write_metrics,
-)
+from femcal.stages.common import check_outputs, out_label, path_setting, write_metrics
+from femcal.stages.simulate import fe_runtime
+from femcal.stages.store import tracking
 
 #: The summary keys the stage's DVC metrics file holds.
 METRICS_KEYS = (

@@ -1,0 +1,53 @@
+"""The MLflow store the tracked stages log to, and the model folders they export from it."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from femcal.config import section
+from femcal.paths import store_path
+
+
+def tracking(params: Mapping[str, Any]) -> None:
+    """Point MLflow at the store; tag this process's runs; close runs of killed processes.
+
+    ``mlflow.store_dir`` is relative to the repository's root (:func:`femcal.paths.store_path`).
+    """
+    from femcal.tracking import configure_tracking, ensure_experiment
+    from femcal.tracking_runs import close_killed_runs, tag_runs_with_process
+
+    store = store_path(params, section(params, "mlflow", "store_dir"))
+    configure_tracking(store_dir=store)
+    experiment = ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
+    tag_runs_with_process()  # pid + host on every run this command starts
+    close_killed_runs([experiment])  # logs each run it closes as KILLED
+
+
+def export_folder(result, out_dir: Path, registered_model: str | None) -> None:
+    """The logged MLflow model of a training ``result`` (``model_uri``, ``run_id``, ``version``,
+    ``promoted``) exported to ``out_dir``, which appears complete or not at all."""
+    import mlflow
+
+    from femcal.tracking import export_model
+
+    tmp = out_dir.with_name(out_dir.name + ".tmp")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    export_model(
+        result.model_uri,
+        tmp,
+        record={
+            "tracking_uri": mlflow.get_tracking_uri(),
+            "run_id": result.run_id,
+            "model_uri": result.model_uri,
+            "registered_model": registered_model,
+            "version": result.version,
+            "promoted": result.promoted,
+        },
+    )
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    tmp.rename(out_dir)
