@@ -1,0 +1,332 @@
+"""Parsing the cells of a measurement file: numbers, headers, load cases, curves, and the
+problems collected per file."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from femcal.errors import InputDataError
+from femcal.measurements.data import (
+    _MAX_LISTED,
+    Measurements,
+    _listing,
+)
+from femcal.schema import LOAD_CASES, canonical_load_case
+
+#: Required columns of the long layout, in the order of :meth:`Measurements.to_long`.
+LONG_COLUMNS: tuple[str, ...] = ("specimen", "load_case", "moment_nm", "rom_deg")
+
+
+#: Optional columns of the long layout.
+LONG_OPTIONAL_COLUMNS: tuple[str, ...] = ("weight", "idp_mpa")
+
+
+#: Columns in front of the moment columns in the wide layout.
+WIDE_COLUMNS: tuple[str, ...] = ("specimen", "load_case")
+
+
+#: Largest magnitude accepted in a 0 Nm (unloaded) column; such a column must be "all 0".
+ZERO_MOMENT_ATOL = 1e-6
+
+
+_MISSING_TOKENS = frozenset({"", "nan", "na", "n/a", "null", "none", "-nan"})
+
+
+_LOAD_CASE_HELP = (
+    f"use one of {', '.join(LOAD_CASES)} (common spellings such as 'lateral bending', "
+    "'axial_rotation' or 'Lateral-Bending' are accepted)"
+)
+
+
+_LAYOUTS_HELP = (
+    "Expected one of: (1) the long layout, columns "
+    f"{', '.join(LONG_COLUMNS)} and optionally {', '.join(LONG_OPTIONAL_COLUMNS)}, one row "
+    "per measured point; (2) the wide layout, columns specimen, load_case followed by one "
+    "column per moment in Nm (e.g. 1,2,3,4,5), one row per specimen and load case; (3) a "
+    "folder holding the study's ROM_Results_<LoadCase>*.csv files (header 0,1,2,3,4,5, one "
+    "row per specimen)"
+)
+
+
+# ----------------------------------------------------------------- file reading
+@dataclass(frozen=True)
+class _Point:
+    """One measured point read from a file."""
+
+    specimen: str
+    load_case: int
+    moment: float
+    rom: float
+    weight: float
+    idp: float
+    line: int
+
+
+class _Problems:
+    """Collects the problems of one file and raises them together."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.items: list[tuple[int, str]] = []
+
+    def add(self, line: int, text: str) -> None:
+        self.items.append((line, text))
+
+    def raise_if_any(self) -> None:
+        if not self.items:
+            return
+        items = sorted(self.items, key=lambda item: item[0])
+        shown = "\n".join(f"  - {text}" for _, text in items[:_MAX_LISTED])
+        more = f"\n  (and {len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
+        noun = "problem" if len(items) == 1 else "problems"
+        raise InputDataError(
+            f"{self.source}: {len(items)} {noun} in the measurement file:\n{shown}{more}"
+        )
+
+
+def _parse_number(text: str) -> float | None:
+    """A finite float, None for a missing-value token, NaN when ``text`` is not a number."""
+    if text.lower() in _MISSING_TOKENS:
+        return None
+    if "_" in text:  # float() accepts 1_000; a measurement file should not
+        return math.nan
+    try:
+        value = float(text)
+    except ValueError:
+        return math.nan
+    return value if math.isfinite(value) else math.nan
+
+
+def _is_number(text: str) -> bool:
+    value = _parse_number(text)
+    return value is not None and not math.isnan(value)
+
+
+def _not_a_number(text: str) -> str:
+    hint = " with a decimal point, not a comma" if "," in text else ""
+    return f"{text!r} is not a finite number; write a plain number{hint} such as 2.5"
+
+
+def _read_records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+    """Read a delimited text file.
+
+    Returns
+    -------
+    header_line : int
+        1-based line number of the header (the first non-blank line).
+    header : list of str
+        Header cells, stripped; trailing empty cells are dropped.
+    records : list of (int, list of str)
+        Data records after the header with their 1-based line number and stripped cells;
+        blank lines are kept as empty lists.
+    """
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise InputDataError(
+            f"{path} is not UTF-8 text (a spreadsheet workbook?); save it as a CSV file with "
+            "UTF-8 encoding ('CSV UTF-8' in spreadsheet programs)."
+        ) from None
+    except OSError as exc:
+        raise InputDataError(
+            f"{path} could not be read ({exc.strerror or exc}); check the path and the file "
+            "permissions."
+        ) from None
+    first = next((line for line in text.splitlines() if line.strip()), None)
+    if first is None:
+        raise InputDataError(
+            f"{path} is empty; it needs a header line and one line per measurement. "
+            f"{_LAYOUTS_HELP}."
+        )
+    delimiter = max((",", ";", "\t"), key=first.count)
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    records: list[tuple[int, list[str]]] = []
+    try:
+        for cells in reader:
+            cells = [c.strip() for c in cells]
+            records.append((reader.line_num, [] if not any(cells) else cells))
+    except csv.Error as exc:
+        raise InputDataError(
+            f"{path}, near line {reader.line_num}: not a valid CSV line ({exc}); check the "
+            'quotes ("...") around that line.'
+        ) from None
+    start = next(i for i, (_, cells) in enumerate(records) if cells)
+    header_line, header = records[start]
+    while header and not header[-1]:
+        header = header[:-1]
+    return header_line, header, records[start + 1 :]
+
+
+def _fit_to_header(
+    cells: list[str], width: int, line: int, problems: _Problems
+) -> list[str] | None:
+    """Pad a record to the header width; None (and a problem) when it has extra cells."""
+    extra = [c for c in cells[width:] if c]
+    if extra:
+        problems.add(
+            line,
+            f"line {line}: {len(cells)} cells but the header has {width} columns (extra "
+            f"{_listing([repr(c) for c in extra])}); remove the extra cells, or quote values "
+            "that contain the separator.",
+        )
+        return None
+    return (cells + [""] * width)[:width]
+
+
+def _normalised_header(path: Path, header: list[str], header_line: int) -> list[str]:
+    names = [c.lower() for c in header]
+    empty = [j + 1 for j, c in enumerate(names) if not c]
+    if empty:
+        raise InputDataError(
+            f"{path}, line {header_line}: header columns {empty} have no name; name every "
+            f"column. {_LAYOUTS_HELP}."
+        )
+    repeated = sorted({c for c in names if names.count(c) > 1})
+    if repeated:
+        raise InputDataError(
+            f"{path}, line {header_line}: repeated columns {repeated} (names are "
+            "case-insensitive); keep each column once."
+        )
+    return names
+
+
+def _load_case(text: str, line: int, column: str, problems: _Problems) -> int | None:
+    name = canonical_load_case(text) if text else None
+    if name is None:
+        got = "an empty load case" if not text else f"unknown load case {text!r}"
+        problems.add(line, f"line {line}, column '{column}': {got}; {_LOAD_CASE_HELP}.")
+        return None
+    return LOAD_CASES.index(name)
+
+
+def _specimen(text: str, line: int, column: str, problems: _Problems) -> str | None:
+    if not text:
+        problems.add(
+            line, f"line {line}, column '{column}': empty specimen name; name the specimen."
+        )
+        return None
+    return text
+
+
+def _assemble(
+    source: str,
+    points: list[_Point],
+    order: list[str],
+    rows_of: dict[str, list[int]],
+    *,
+    with_idp: bool,
+    problems: _Problems,
+) -> Measurements:
+    """Check per-specimen weights, then build the arrays (raises collected problems)."""
+    problems.raise_if_any()  # row problems first: a broken row is not an "empty" specimen
+    weights: dict[str, list[float]] = {name: [] for name in order}
+    for p in points:
+        weights[p.specimen].append(p.weight)
+    for name in order:
+        own = weights[name]
+        lines = _listing([str(x) for x in rows_of.get(name, [])])
+        line0 = (rows_of.get(name) or [0])[0]
+        if not own:
+            problems.add(
+                line0,
+                f"specimen {name!r} (lines {lines}) has no measured value; fill in its values "
+                "or delete its rows.",
+            )
+        elif not any(w > 0 for w in own):
+            problems.add(
+                line0,
+                f"specimen {name!r} (lines {lines}): all weights are 0, so it would not take "
+                "part in the fit; give at least one of its points a positive weight or delete "
+                "its rows.",
+            )
+    problems.raise_if_any()
+    if not points:
+        raise InputDataError(f"{source} holds no measured value; {_LAYOUTS_HELP}.")
+    moments = np.unique(np.array([p.moment for p in points]))
+    index = {name: i for i, name in enumerate(order)}
+    shape = (len(order), len(LOAD_CASES), moments.size)
+    rom = np.full(shape, np.nan)
+    weight = np.zeros(shape)
+    idp = np.full(shape, np.nan) if with_idp else None
+    for p in points:
+        cell = (index[p.specimen], p.load_case, int(np.searchsorted(moments, p.moment)))
+        rom[cell] = p.rom
+        weight[cell] = p.weight
+        if idp is not None:
+            idp[cell] = p.idp
+    return Measurements(tuple(order), moments, rom, weight, idp, source)
+
+
+def _moment_columns(
+    path: Path, header: Sequence[str], header_line: int, *, hint: str
+) -> np.ndarray:
+    """Parse moment headers (Nm, >= 0, unique); raises on the first problem."""
+    moments = np.empty(len(header))
+    for j, text in enumerate(header):
+        value = _parse_number(text)
+        if value is None or math.isnan(value):
+            raise InputDataError(
+                f"{path}, line {header_line}: column {text!r} is not a moment in Nm; {hint}"
+            )
+        if value < 0:
+            raise InputDataError(
+                f"{path}, line {header_line}: column {text!r} is a negative moment; give "
+                "moments as magnitudes in Nm (the direction is the load case)."
+            )
+        moments[j] = value
+    for j in range(len(moments)):
+        same = [header[i] for i in range(j) if moments[i] == moments[j]]
+        if same:
+            raise InputDataError(
+                f"{path}, line {header_line}: columns {same[0]!r} and {header[j]!r} are the "
+                "same moment; keep one column per moment."
+            )
+    return moments
+
+
+def _curve(
+    cells: Sequence[str],
+    moments: np.ndarray,
+    header: Sequence[str],
+    line: int,
+    problems: _Problems,
+) -> np.ndarray:
+    """Values of one row of moment columns, NaN where empty; 0 Nm columns checked, dropped.
+
+    Returns
+    -------
+    ndarray, shape (k,)
+        Values at the positive moments (``moments > 0``), NaN where not measured.
+    """
+    out: list[float] = []
+    for text, moment, name in zip(cells, moments, header):
+        value = _parse_number(text)
+        where = f"line {line}, column {name!r}"
+        if value is not None and math.isnan(value):
+            problems.add(line, f"{where}: {_not_a_number(text)}, or leave it empty.")
+            value = None
+        elif value is None or moment == 0:
+            if value is not None and abs(value) >= ZERO_MOMENT_ATOL:
+                problems.add(
+                    line,
+                    f"{where}: {text} at 0 Nm; the unloaded state must be 0 (it is not a data "
+                    "point). Set it to 0 or delete the column; check that the columns are not "
+                    "shifted.",
+                )
+        elif value < 0:
+            problems.add(
+                line,
+                f"{where}: negative RoM {text}. RoM is a magnitude: give the absolute value "
+                f"({abs(value):g}); the direction is given by the load case.",
+            )
+            value = None
+        if moment > 0:
+            out.append(math.nan if value is None else value)
+    return np.array(out, dtype=np.float64)
