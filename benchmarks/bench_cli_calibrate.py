@@ -55,7 +55,7 @@ PHASES = {
     "tracking setup (mlflow import, store, killed runs)": [("femcal/stages/store.py", "tracking")],
     "read measurements": [("femcal/measurements.py", "read_measurements")],
     "load models (with torch/Lightning imports)": [("femcal/tracking.py", "load_surrogate")],
-    "reachability check": [("femcal/reachability.py", "assess_reachability")],
+    "reachability check": [("femcal/reachability/__init__.py", "assess_reachability")],
     "calibrate (pgd)": [("femcal/calibration/base.py", "calibrate")],
     "write outputs (tables + plots)": [("femcal/calibration/report.py", "write_outputs")],
     "per-specimen plots": [
