@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from femcal.fe.campaign import CampaignResult, design, run_campaign
+from femcal.fe.campaign import CampaignResult, run_campaign
+from femcal.fe.design import design
 from femcal.stages.simulate import fe_space
 
 #: The study's ParameterBounds.csv.

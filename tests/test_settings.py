@@ -938,7 +938,7 @@ def test_calibrator_tables_match_the_calibrators():
 def test_registry_tables_match_the_registries():
     from femcal.fe import available_solvers
     from femcal.fe.calculix import CalculixDisc
-    from femcal.fe.campaign import SPLIT_SAMPLING
+    from femcal.fe.design import SPLIT_SAMPLING
     from femcal.fe.geometry import MESH_PRESETS, DiscGeometry
     from femcal.prepare import SPLITS as PREPARED
     from femcal.settings import (

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 from fe_helpers import COARSE, MOMENTS, SPLITS
 
-from femcal.fe.campaign import CampaignResult, run_campaign, split_design
+from femcal.fe.campaign import CampaignResult, run_campaign
+from femcal.fe.design import split_design
 
 from synth import study_space
 

@@ -17,12 +17,9 @@ import yaml
 from fe_helpers import COARSE, MOMENTS, requires_ccx
 
 from femcal.errors import ConfigError, InputDataError
-from femcal.fe.campaign import (
-    CampaignStore,
-    design,
-    run_campaign,
-    split_design,
-)
+from femcal.fe.campaign import run_campaign
+from femcal.fe.design import design, split_design
+from femcal.fe.store import CampaignStore
 from femcal.prepare import read_split
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES, STATUS_FAILED, STATUS_OK
 

@@ -20,7 +20,8 @@ import pytest
 import yaml
 from fe_helpers import COARSE, MOMENTS, requires_ccx
 
-from femcal.fe.campaign import CampaignStore, job_hash, make_jobs, run_campaign, settings_hash
+from femcal.fe.campaign import run_campaign
+from femcal.fe.store import CampaignStore, job_hash, make_jobs, settings_hash
 from femcal.prepare import read_split
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.stages.simulate import fe_space
@@ -62,7 +63,7 @@ def _write_params(tmp_path: Path, n_configs: int) -> Path:
 
 def _expected_hashes(params: Path) -> set[str]:
     """The job hashes of the campaign ``params`` describes, from femcal's own job keys."""
-    from femcal.fe.campaign import split_design
+    from femcal.fe.design import split_design
 
     fe = yaml.safe_load(params.read_text())["fe"]
     space = fe_space(fe["bounds"])

@@ -10,8 +10,9 @@ import pytest
 from fe_helpers import MOMENTS, requires_ccx
 
 from femcal.errors import InputDataError
-from femcal.fe.campaign import run_campaign, split_design
+from femcal.fe.campaign import run_campaign
 from femcal.fe.dataset import write_dataset
+from femcal.fe.design import split_design
 from femcal.prepare import SPLITS, prepare_dataset, read_split
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES, STATUS_FAILED, STATUS_OK
 

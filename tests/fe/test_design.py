@@ -11,7 +11,7 @@ import pytest
 from scipy.stats import qmc
 
 from femcal.errors import ConfigError
-from femcal.fe.campaign import SPLIT_SAMPLING, design, latin_hypercube, split_design
+from femcal.fe.design import SPLIT_SAMPLING, design, latin_hypercube, split_design
 from femcal.schema import PARAMETER_NAMES
 
 from synth import study_space

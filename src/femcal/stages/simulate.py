@@ -177,8 +177,10 @@ def run_simulate(
 
     check_destination(out_dir)
     from femcal.errors import ConfigError
-    from femcal.fe.campaign import run_campaign, settings_hash, split_design
+    from femcal.fe.campaign import run_campaign
     from femcal.fe.dataset import write_dataset
+    from femcal.fe.design import split_design
+    from femcal.fe.store import settings_hash
     from femcal.schema import LOAD_CASES
 
     if sorted(load_cases) != sorted(LOAD_CASES):

@@ -1,0 +1,278 @@
+"""The campaign store: one JSON line per finished job, keyed by a hash of its inputs, so that a
+killed campaign resumes without recomputing or duplicating anything."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import logging
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from femcal.errors import ConfigError, InputDataError
+from femcal.fe.base import COMPRESSION, FEJob
+from femcal.schema import STATUS_OK
+
+logger = logging.getLogger(__name__)
+
+#: Version of the store's record layout.
+STORE_VERSION = 1
+
+
+# ------------------------------------------------------------------------- job keys
+def _canonical(value: Any) -> Any:
+    """JSON-ready, deterministic form (floats by repr, mappings sorted)."""
+    if isinstance(value, Mapping):
+        return {str(k): _canonical(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def settings_hash(solver: str, settings: Mapping[str, Any]) -> str:
+    """SHA-256 of the solver name and its adapter settings (everything that shapes a deck)."""
+    text = json.dumps(_canonical({"solver": solver, "settings": dict(settings)}), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def job_hash(job: FEJob, settings_digest: str) -> str:
+    """SHA-256 identifying a job's inputs: configuration, load case, levels and settings."""
+    text = json.dumps(
+        _canonical(
+            {
+                "config_id": int(job.config_id),
+                "parameters": dict(job.parameters),
+                "load_case": job.load_case,
+                "levels": list(job.levels),
+                "settings": settings_digest,
+            }
+        ),
+        sort_keys=True,
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def make_jobs(
+    design_df: pd.DataFrame,
+    names: Sequence[str],
+    *,
+    load_cases: Sequence[str],
+    moments: Sequence[float],
+    forces: Sequence[float] = (),
+) -> list[FEJob]:
+    """The jobs of a design: every configuration under every load case.
+
+    Parameters
+    ----------
+    design_df : pandas.DataFrame, shape (n, >= 1 + d)
+        ``config_id`` and the parameters ``names``.
+    names : sequence of str, length d
+    load_cases : sequence of str
+        Pure-moment load cases (levels = ``moments``, Nm) and/or ``"Compression"`` (levels =
+        ``forces``, N).
+    moments, forces : sequence of float
+
+    Returns
+    -------
+    list of FEJob, length n * len(load_cases)
+        Configuration-major order.
+    """
+    missing = [c for c in ("config_id", *names) if c not in design_df.columns]
+    if missing:
+        raise InputDataError(
+            f"The design lacks the columns {missing}; it needs config_id and every parameter."
+        )
+    if design_df["config_id"].duplicated().any():
+        raise InputDataError("The design repeats config_id values; each configuration once.")
+    if COMPRESSION in load_cases and not len(forces):
+        raise ConfigError(f"Load case {COMPRESSION} needs forces (N); none given.")
+    jobs = []
+    for row in design_df.itertuples(index=False):
+        rec = row._asdict()
+        params = {n: float(rec[n]) for n in names}
+        for lc in load_cases:
+            levels = forces if lc == COMPRESSION else moments
+            jobs.append(
+                FEJob(
+                    config_id=int(rec["config_id"]),
+                    parameters=params,
+                    load_case=str(lc),
+                    levels=tuple(float(v) for v in levels),
+                )
+            )
+    return jobs
+
+
+# ---------------------------------------------------------------------------- store
+def _nan_to_none(values: Sequence[float]) -> list[float | None]:
+    return [None if (v is None or not math.isfinite(float(v))) else float(v) for v in values]
+
+
+class CampaignStore:
+    """An append-only JSON-lines file of finished jobs (one record per line).
+
+    Parameters
+    ----------
+    path : Path
+        The ``.jsonl`` file; created with its folder when first written.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._fh: Any = None
+
+    # reading ---------------------------------------------------------------
+    def read(self) -> list[dict]:
+        """All records, in file order; a torn last line (killed writer) is skipped.
+
+        Raises
+        ------
+        InputDataError
+            A line other than the last is not a JSON record (the file was edited or
+            corrupted): the message names the file and line.
+        """
+        if not self.path.is_file():
+            return []
+        raw = self.path.read_bytes()
+        lines = raw.split(b"\n")
+        records: list[dict] = []
+        for i, line in enumerate(lines):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+                if not isinstance(rec, dict) or "job_hash" not in rec:
+                    raise ValueError("not a job record")
+            except ValueError:
+                last = i == len(lines) - 1 or all(not x.strip() for x in lines[i + 1 :])
+                if last:
+                    logger.warning(
+                        "%s: ignoring a torn last line (%d bytes; a writer was killed while "
+                        "appending); that job will run again.",
+                        self.path,
+                        len(line),
+                    )
+                    continue
+                raise InputDataError(
+                    f"{self.path}, line {i + 1}: not a job record of a campaign store. The "
+                    "file was edited or corrupted; delete that line (the job will run again) "
+                    "or restore the file."
+                ) from None
+            records.append(rec)
+        return records
+
+    def finished(self, *, include_failed: bool = True) -> dict[str, dict]:
+        """The last record of every stored job, keyed by job hash."""
+        out: dict[str, dict] = {}
+        for rec in self.read():
+            if include_failed or rec.get("status") == STATUS_OK:
+                out[rec["job_hash"]] = rec
+        return out
+
+    # writing ---------------------------------------------------------------
+    @contextlib.contextmanager
+    def writer(self) -> Iterator[CampaignStore]:
+        """Open for appending: an exclusive lock, and a torn last line cut off first.
+
+        Raises
+        ------
+        ConfigError
+            Another process holds the store open for writing.
+        """
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(self.path, "a+b")  # noqa: SIM115 - closed below
+        try:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ConfigError(
+                    f"The campaign store {self.path} is in use by another campaign process; "
+                    "wait for it to finish, or give this campaign another store path."
+                ) from None
+            self._repair(fh)
+            self._fh = fh
+            yield self
+        finally:
+            self._fh = None
+            fh.close()  # releases the lock
+
+    def _repair(self, fh: Any) -> None:
+        fh.seek(0, os.SEEK_END)
+        size = fh.tell()
+        if size == 0:
+            return
+        fh.seek(max(0, size - 1))
+        if fh.read(1) == b"\n":
+            return
+        fh.seek(0)
+        data = fh.read()
+        keep = data.rfind(b"\n") + 1
+        logger.warning(
+            "%s: cutting off a torn last line (%d bytes) left by a killed writer.",
+            self.path,
+            size - keep,
+        )
+        fh.truncate(keep)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+    def append(self, record: Mapping[str, Any]) -> None:
+        """Append one record durably (``write``, ``flush``, ``os.fsync``)."""
+        if self._fh is None:
+            raise RuntimeError("CampaignStore.append outside `with store.writer():`")
+        line = json.dumps(record, allow_nan=False, separators=(",", ":"), default=str)
+        self._fh.write(line.encode() + b"\n")
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+
+def records_frame(records: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
+    """Store records as a table (one row per job; arrays kept as lists)."""
+    columns = [
+        "config_id",
+        "load_case",
+        "status",
+        "reason",
+        "levels",
+        "rom_deg",
+        "idp_mpa",
+        "solver",
+        "solver_version",
+        "deck_hash",
+        "attempts",
+        "cpu_seconds",
+        "worker_cpu_seconds",
+        "wall_seconds",
+        "worker",
+        "host",
+        "finished_at",
+        "job_hash",
+        "settings_hash",
+        "campaign_run",
+    ]
+    df = pd.DataFrame([{c: r.get(c) for c in columns} for r in records], columns=columns)
+    if len(df):
+        df["config_id"] = df["config_id"].astype(np.int64)
+    return df
+
+
+def load_records(store: str | Path, hashes: Sequence[str] | None = None) -> list[dict]:
+    """Stored records (the last one per job), optionally only those of ``hashes`` in order."""
+    stored = CampaignStore(store).finished()
+    if hashes is None:
+        return list(stored.values())
+    return [stored[h] for h in hashes if h in stored]
