@@ -278,3 +278,14 @@ def test_romnet_inputs_bit_identical_to_the_trained_map() -> None:
         again(torch.zeros(3, dtype=torch.long), torch.ones(3), x[:3]),
         net(torch.zeros(3, dtype=torch.long), torch.ones(3), x[:3]),
     )
+
+
+def test_pickle_keeps_the_definition_and_reads_old_states(mixed: ParameterSpace) -> None:
+    import pickle
+
+    assert pickle.loads(pickle.dumps(mixed)) == mixed
+    # a state saved before scales existed (e.g. in a baseline's skops file): all linear
+    old = ParameterSpace.__new__(ParameterSpace)
+    old.__setstate__({"names": ("a",), "lower": [0.0], "upper": [2.0], "units": ("1",)})
+    assert old.scales == ("linear",)
+    np.testing.assert_allclose(old.to_unit([[1.0]]), [[0.5]])

@@ -168,6 +168,27 @@ class ParameterSpace:
     def __hash__(self) -> int:
         return hash((self.names, self.scales, self.lower.tobytes(), self.upper.tobytes()))
 
+    def __getstate__(self) -> dict:
+        # What defines the space (pickle, skops): the derived arrays and caches are rebuilt.
+        return {
+            "names": self.names,
+            "lower": self.lower,
+            "upper": self.upper,
+            "units": self.units,
+            "scales": self.scales,
+        }
+
+    def __setstate__(self, state: dict) -> None:
+        # A space saved before scales existed (a baseline's skops file) is all linear.
+        ParameterSpace.__init__(
+            self,
+            state["names"],
+            state["lower"],
+            state["upper"],
+            state.get("units"),
+            state.get("scales") or None,
+        )
+
     # ------------------------------------------------------------ derived spaces
     def with_scales(self, scales: Sequence[str]) -> ParameterSpace:
         """The same box with other scales, one per parameter."""
