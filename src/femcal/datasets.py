@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from femcal.schema import STATUS_OK
 from femcal.space import ParameterSpace
+
+if TYPE_CHECKING:  # pandas is imported by the readers, not by the CLI's first checks
+    import pandas as pd
 
 logger = logging.getLogger(__name__)
 

@@ -53,13 +53,8 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.model import CurveModel, SurrogateCurveModel
-from femcal.calibration.pgd import (
-    effect_bank,
-    gauss_newton,
-    nearest_starts,
-    pgd,
-    single_effect_starts,
-)
+from femcal.calibration.pgd import gauss_newton, pgd
+from femcal.calibration.starts import effect_bank, nearest_starts, single_effect_starts
 from femcal.discrepancy import (
     dense_grid,
     describe,
@@ -254,7 +249,7 @@ def _grid(
     grid_shapes: bool = False,
 ) -> tuple[slice, torch.Tensor]:
     """Starts (g, p) for effect ``new`` of ``model`` and its slice
-    (:func:`femcal.calibration.pgd.single_effect_starts`)."""
+    (:func:`femcal.calibration.starts.single_effect_starts`)."""
     k = model.effect_names.index(new)
     return model._slices[k], single_effect_starts(
         model.effects[k], levels, shape_starts, grid_shapes
@@ -430,7 +425,7 @@ def diagnose(
         (measured in reports/bench_diagnose.md).
     shape_starts : int
         A new effect also starts from this many points of a Sobol design over all of its
-        parameters (:func:`femcal.calibration.pgd.shape_design`); measured: 16 of them found
+        parameters (:func:`femcal.calibration.starts.shape_design`); measured: 16 of them found
         less than ``grid_shapes``.
     discrepancy : bool
         Fit the GP discrepancy and describe what is missing.
@@ -438,7 +433,8 @@ def diagnose(
         Points of the continuous curves (log-spaced over the measured moments).
     bank_starts : int
         A single effect's fit also starts from the ``bank_starts`` disc-and-effect combinations
-        (of ``bank_samples`` drawn from ``start_bank``, :func:`femcal.calibration.pgd.effect_bank`)
+        (of ``bank_samples`` drawn from ``start_bank``,
+        :func:`femcal.calibration.starts.effect_bank`)
         nearest each specimen's curves.
     bank_samples : int
     backward : bool

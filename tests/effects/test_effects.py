@@ -200,7 +200,7 @@ def test_make_cohort_is_seeded_and_balanced():
 
 
 def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
-    from femcal.calibration.pgd import effect_starts
+    from femcal.calibration.starts import effect_starts
 
     model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
     starts = effect_starts(model, (0.2, 0.8))
@@ -217,7 +217,7 @@ def test_effect_starts_hold_the_weak_end_and_one_grid_per_effect(surrogate):
 
 
 def test_shape_starts_cover_every_parameter_of_each_effect_seeded(surrogate):
-    from femcal.calibration.pgd import effect_starts, shape_design
+    from femcal.calibration.starts import effect_starts, shape_design
 
     model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact", "neutral_zone"])
     starts = effect_starts(model, (0.2, 0.8), shape_starts=8)
@@ -266,7 +266,7 @@ def test_adding_an_unneeded_effect_does_not_worsen_the_fit(surrogate):
 
 
 def test_effect_bank_is_seeded_inside_the_box_and_mixes_effects_on_and_off(surrogate):
-    from femcal.calibration.pgd import effect_bank
+    from femcal.calibration.starts import effect_bank
 
     base = SurrogateCurveModel(surrogate, np.arange(1.0, 5.01))
     model = EffectModel(base, ["facet_contact", "neutral_zone"])
