@@ -72,9 +72,9 @@ from femcal.datasets import load_split, training_configurations
 from femcal.diagnose import diagnose
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
-from femcal.prepare import wide_rom
 from femcal.schema import LOAD_CASES
 from femcal.stages.calibrate import calibration_options
+from femcal.tidy import wide_rom
 from femcal.tracking import configure_tracking, load_surrogate, resolve_model_version
 
 REPO = Path(__file__).resolve().parents[1]

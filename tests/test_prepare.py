@@ -11,17 +11,10 @@ import pandas as pd
 import pytest
 
 from femcal.errors import ConfigError, InputDataError
-from femcal.prepare import (
-    SPLITS,
-    load_tidy,
-    prepare_dataset,
-    read_split,
-    tidy_columns,
-    to_wide,
-    wide_rom,
-)
+from femcal.prepare import SPLITS, prepare_dataset, read_split
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.space import ParameterSpace
+from femcal.tidy import load_tidy, tidy_columns, to_wide, wide_rom
 
 N = 5  # configurations in the default synthetic split
 ROM_FLEX = "ROM_Results_Flexion_wMoment.csv"

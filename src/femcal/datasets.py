@@ -26,7 +26,7 @@ SPACE_FILE = "parameter_space.json"
 
 def load_split(prepared_dir: Path, split: str):
     """Read a prepared split and the parameter space."""
-    from femcal.prepare import load_tidy
+    from femcal.tidy import load_tidy
 
     space = ParameterSpace.from_json(prepared_dir / SPACE_FILE)
     return load_tidy(prepared_dir / f"{split}.csv", space), space
@@ -43,7 +43,7 @@ def ok_rows(table: pd.DataFrame) -> pd.DataFrame:
 
 def training_configurations(path: Path) -> np.ndarray:
     """Distinct converged configurations (physical units) of a prepared split, shape (N, d)."""
-    from femcal.prepare import load_tidy
+    from femcal.tidy import load_tidy
 
     space = ParameterSpace.from_json(path.parent / SPACE_FILE)
     table = ok_rows(load_tidy(path, space))

@@ -14,7 +14,9 @@ from fe_helpers import requires_ccx
 
 from femcal.errors import InputDataError, SolverError
 from femcal.fe import COMPRESSION, FEJob, available_solvers, get_solver, simulate
-from femcal.fe.calculix import FIBRE_ABORT, CalculixDisc, read_dat, region_materials
+from femcal.fe.calculix import FIBRE_ABORT, CalculixDisc
+from femcal.fe.dat import read_dat
+from femcal.fe.materials import region_materials
 from femcal.schema import LOAD_CASES
 
 BOUNDS = {

@@ -96,13 +96,11 @@ import shutil
 import subprocess
 import threading
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from femcal.errors import ConfigError, InputDataError, SolverError
+from femcal.errors import ConfigError, SolverError
 from femcal.fe.base import (
     COMPRESSION,
     FEJob,
@@ -111,7 +109,9 @@ from femcal.fe.base import (
     RunOutcome,
     register_solver,
 )
+from femcal.fe.dat import read_dat
 from femcal.fe.geometry import DiscGeometry, DiscMesh
+from femcal.fe.materials import region_materials, validate_parameters
 from femcal.schema import PARAMETER_NAMES, STATUS_FAILED, STATUS_OK
 
 logger = logging.getLogger(__name__)
@@ -141,176 +141,6 @@ SINGLE_THREAD_ENV: dict[str, str] = {
     "CCX_NPROC_RESULTS": "1",
     "CCX_NPROC_STIFFNESS": "1",
 }
-
-_HEADER = re.compile(
-    r"^\s*(?P<kind>displacements|stresses)\b.*?\bfor set\s+(?P<set>\S+)\s+and time\s+"
-    r"(?P<time>\S+)",
-    re.IGNORECASE,
-)
-_FORTRAN_EXPONENT = re.compile(r"(?<=[0-9.])([+-]\d{2,3})$")
-
-
-@dataclass
-class DatResults:
-    """What :func:`read_dat` finds in a CalculiX ``.dat`` file.
-
-    Attributes
-    ----------
-    rotations : dict of float to ndarray of shape (3,)
-        Time -> rotation vector of the rigid body's rotation node in radians.
-    idp : dict of float to float
-        Time -> ``-mean(trace(sigma) / 3)`` over the printed integration points, in MPa.
-    """
-
-    rotations: dict[float, np.ndarray]
-    idp: dict[float, float]
-
-
-def _to_float(token: str) -> float:
-    try:
-        return float(token)
-    except ValueError:
-        # Fortran drops the "E" of three-digit exponents: 0.1234567-100.
-        return float(_FORTRAN_EXPONENT.sub(r"E\1", token))
-
-
-def read_dat(path: Path, rotation_set: str = "ROTNODE", stress_set: str = "CENTRAL") -> DatResults:
-    """Read the rotation-node displacements and central stresses of a ``.dat`` file.
-
-    Parameters
-    ----------
-    path : Path
-        The solver's ``.dat`` file (missing file: no results).
-    rotation_set, stress_set : str
-        Node set of the rotation node and element set of the IDP elements.
-
-    Returns
-    -------
-    DatResults
-    """
-    rotations: dict[float, np.ndarray] = {}
-    stresses: dict[float, list[list[float]]] = {}
-    path = Path(path)
-    if not path.is_file():
-        return DatResults(rotations, {})
-    current: tuple[str, str, float] | None = None
-    for line in path.read_text(errors="replace").splitlines():
-        header = _HEADER.match(line)
-        if header:
-            current = (
-                header["kind"].lower(),
-                header["set"].upper(),
-                _to_float(header["time"]),
-            )
-            continue
-        fields = line.split()
-        if current is None or not fields:
-            continue
-        kind, name, t = current
-        try:
-            values = [_to_float(v) for v in fields]
-        except ValueError:
-            current = None
-            continue
-        if kind == "displacements" and name == rotation_set.upper() and len(values) >= 4:
-            rotations[t] = np.array(values[1:4])
-        elif kind == "stresses" and name == stress_set.upper() and len(values) >= 8:
-            stresses.setdefault(t, []).append(values[2:8])
-    idp = {t: float(-np.mean(np.asarray(s)[:, :3].sum(axis=1) / 3.0)) for t, s in stresses.items()}
-    return DatResults(rotations, idp)
-
-
-def validate_parameters(parameters: Mapping[str, float], where: str = "FE job") -> dict[str, float]:
-    """Check the study's 13 parameters: present, finite, physically admissible.
-
-    Parameters
-    ----------
-    parameters : mapping of str to float
-    where : str
-        Named in the error message (e.g. the job's key).
-
-    Returns
-    -------
-    dict of str to float
-        The 13 parameters as floats (other keys are dropped).
-
-    Raises
-    ------
-    InputDataError
-        Naming the offending parameter and the fix.
-    """
-    out: dict[str, float] = {}
-    for name in PARAMETER_NAMES:
-        if name not in parameters:
-            raise InputDataError(
-                f"{where}: parameter {name!r} is missing; give all 13 parameters "
-                f"({', '.join(PARAMETER_NAMES)})."
-            )
-        try:
-            value = float(parameters[name])
-        except (TypeError, ValueError):
-            raise InputDataError(
-                f"{where}: parameter {name!r} = {parameters[name]!r} is not a number; "
-                "give a finite float."
-            ) from None
-        if not math.isfinite(value):
-            raise InputDataError(
-                f"{where}: parameter {name!r} = {value!r} is not finite; give a finite float "
-                "(failed or missing design rows must be dropped before simulation)."
-            )
-        out[name] = value
-    positive = ("C10Nucleus", "C10Annulus", "K1Annulus", "K2Annulus")
-    for name in positive:
-        if out[name] <= 0:
-            raise InputDataError(
-                f"{where}: parameter {name!r} = {out[name]} must be > 0 (study bounds: "
-                "ParameterBounds.csv)."
-            )
-    if out["C01Nucleus"] < 0:
-        raise InputDataError(f"{where}: parameter 'C01Nucleus' = {out['C01Nucleus']} must be >= 0.")
-    if not 0.0 <= out["Kappa"] < 1.0 / 3.0:
-        raise InputDataError(
-            f"{where}: parameter 'Kappa' = {out['Kappa']} must lie in [0, 1/3) (fibre dispersion)."
-        )
-    for name in ("K1Circ", "K2Circ", "K1Rad", "K2Rad"):
-        if out[name] <= -1.0:
-            raise InputDataError(
-                f"{where}: parameter {name!r} = {out[name]} must be > -1 (relative variation; "
-                "study bounds -0.2..0)."
-            )
-    return out
-
-
-def region_materials(
-    parameters: Mapping[str, float], n_rings: int, n_regions: int, kappa: str = "scale"
-) -> dict[tuple[int, int], tuple[float, float, float]]:
-    """Fibre constants ``(k1, k2, alpha_deg)`` per annulus ring and region.
-
-    Parameters
-    ----------
-    parameters : mapping of str to float
-        The study's 13 parameters (validated).
-    n_rings, n_regions : int
-        Rings (0 = outer) and circumferential regions per side (0 = anterior).
-    kappa : {"scale", "ignore"}
-        Treatment of the fibre dispersion (module docstring).
-
-    Returns
-    -------
-    dict of (ring, region) to (k1, k2, alpha_deg)
-    """
-    p = parameters
-    factor = (1.0 - 3.0 * p["Kappa"]) ** 2 if kappa == "scale" else 1.0
-    out = {}
-    for ring in range(n_rings):
-        r = ring / (n_rings - 1) if n_rings > 1 else 0.0
-        for region in range(n_regions):
-            c = region / (n_regions - 1)
-            k1 = p["K1Annulus"] * (1 + p["K1Circ"] * c) * (1 + p["K1Rad"] * r) * factor
-            k2 = p["K2Annulus"] * (1 + p["K2Circ"] * c) * (1 + p["K2Rad"] * r) * factor
-            alpha = p["FiberAngle"] * (1 + p["FiberAngleCirc"] * c) * (1 + p["FiberAngleRad"] * r)
-            out[ring, region] = (k1, k2, alpha)
-    return out
 
 
 def _fmt(value: float) -> str:

@@ -259,7 +259,7 @@ def reference_curves(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     InputDataError
         The file cannot be read, lacks a column, or is not a complete grid.
     """
-    from femcal.prepare import to_wide
+    from femcal.tidy import to_wide
 
     columns = ["config_id", "load_case", "moment_nm", "rom_deg", "status"]
     try:

@@ -77,7 +77,7 @@ def run_plant(
 
     check_destination(out_dir)
     from femcal.effects.planted import make_cohort
-    from femcal.prepare import wide_rom
+    from femcal.tidy import wide_rom
 
     test, _ = load_split(prepared_dir, "test")
     _, fe_moments, fe_rom = wide_rom(test)
