@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from femcal.calibration import CurveModel, SurrogateCurveModel
-from femcal.discrepancy import (
+from femcal.diagnose.discrepancy import (
     _covariance,
     _kernel,
     describe,
@@ -121,7 +121,7 @@ def test_fit_is_deterministic(base):
 
 
 def test_ml_amplitude_is_zero_for_noise_and_grows_with_a_smooth_misfit():
-    from femcal.discrepancy import ml_amplitude
+    from femcal.diagnose.discrepancy import ml_amplitude
 
     rng = np.random.default_rng(3)
     n, m = 200, len(MOMENTS)
@@ -155,7 +155,7 @@ def test_ml_fit_compares_models_by_their_marginal_likelihood(base):
 
 
 def test_ml_amplitude_respects_a_cap_per_load_case():
-    from femcal.discrepancy import ml_amplitude
+    from femcal.diagnose.discrepancy import ml_amplitude
 
     rng = np.random.default_rng(4)
     n, m = 50, len(MOMENTS)

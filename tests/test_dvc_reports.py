@@ -85,7 +85,7 @@ def _stand_in(header: str, rows: list[str]) -> str:
 
 
 #: What `calibrate@test` and `diagnose` write (the columns of femcal.calibration.report and
-#: femcal.diagnose_report), a few rows each.
+#: femcal.diagnose.report), a few rows each.
 _STAND_INS = {
     "reports/calibration/test/curves.csv": _stand_in(
         "specimen,load_case,moment_nm,measured_rom_deg,calibrated_rom_deg,holdout_rom_deg",

@@ -182,7 +182,7 @@ def run_diagnose(
 
     from femcal.calibration import SurrogateCurveModel
     from femcal.diagnose import diagnose
-    from femcal.diagnose_report import write_diagnosis
+    from femcal.diagnose.report import write_diagnosis
     from femcal.effects import available_effects
     from femcal.effects.composite import EffectModel
     from femcal.measurements import read_measurements

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.report import safe_file_name
-from femcal.diagnose import NONE, Diagnosis, SpecimenDiagnosis
+from femcal.diagnose.result import NONE, Diagnosis, SpecimenDiagnosis
 from femcal.schema import LOAD_CASES
 
 #: Load-case names in plots.

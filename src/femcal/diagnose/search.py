@@ -31,8 +31,8 @@ For every specimen:
    (alone, or after the effects that helped: ``facet_contact+unexplained``); ``none`` only when
    the disc alone explains the data;
 4. **what is missing**: a smooth Gaussian-process discrepancy in rotation per load case, fitted
-   jointly with the chosen model (:mod:`femcal.discrepancy`), described in words (load cases,
-   laxity or stiffening, from which moment, how large) and compared with each registered
+   jointly with the chosen model (:mod:`femcal.diagnose.discrepancy`), described in words (load
+   cases, laxity or stiffening, from which moment, how large) and compared with each registered
    effect's signature;
 5. **what to measure next**: when the runner-up model is within ``min_delta`` of the best, the
    load case and moment where their predictions differ most, in sigma.
@@ -45,23 +45,33 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 import torch
 
 from femcal.calibration.base import CalibrationProblem
-from femcal.calibration.model import CurveModel, SurrogateCurveModel
-from femcal.calibration.pgd import gauss_newton, pgd
-from femcal.calibration.starts import effect_bank, nearest_starts, single_effect_starts
-from femcal.discrepancy import (
-    dense_grid,
-    describe,
-    discrepancy_posterior,
+from femcal.calibration.model import CurveModel
+from femcal.calibration.pgd import pgd
+from femcal.calibration.starts import effect_bank, nearest_starts
+from femcal.diagnose.assemble import _assemble  # noqa: F401
+from femcal.diagnose.discrepancy import (
     fit_discrepancy,
-    runs_p_value,
-    similarity,
+)
+from femcal.diagnose.explain import (
+    _adequate_quick,
+)
+from femcal.diagnose.fits import (
+    _chi2,
+    _columns,
+    _Fit,
+    _fit_from,
+    _grid,
+    _solutions,
+    _starts,
+    _weights,
+)
+from femcal.diagnose.result import (
+    Diagnosis,
 )
 from femcal.effects.base import available_effects, get_effect
 from femcal.effects.composite import EffectModel
@@ -69,292 +79,6 @@ from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
 
 logger = logging.getLogger(__name__)
-
-NONE = "none"
-UNEXPLAINED = "unexplained"
-#: Similarity (cosine, in sigma units) above which a discrepancy "resembles" an effect.
-RESEMBLES = 0.8
-
-
-def verdict_label(effects: Sequence[str], adequate: bool) -> str:
-    """``none``, ``unexplained``, ``a+b`` or ``a+b+unexplained``."""
-    parts = list(effects)
-    if not adequate:
-        parts.append(UNEXPLAINED)
-    return "+".join(parts) if parts else NONE
-
-
-def model_label(effects: Sequence[str]) -> str:
-    """A fitted model's name in rankings and plots: ``none`` (the disc alone) or ``a+b``."""
-    return "+".join(effects) if effects else NONE
-
-
-@dataclass
-class SpecimenDiagnosis:
-    """Diagnosis of one specimen (see :func:`diagnose`).
-
-    Attributes
-    ----------
-    verdict : str
-        ``none``, ``unexplained``, the effects found joined by ``+``, possibly ending in
-        ``+unexplained``.
-    effects : list of str
-        The registered effects found, in the order forward selection added them.
-    adequate : bool
-        The final model explains the data within the noise.
-    ranking : list of dict
-        Every model fitted (``effect`` = its label, ``effects``, ``mae_deg``, ``criterion``
-        (BIC), ``parameters`` of its effects ± sd), best first.
-    residuals : ndarray, shape (4, m)
-        Disc-alone residuals, measured - model (deg, NaN where not measured).
-    final_residuals : ndarray, shape (4, m)
-        The same for the final model.
-    curves : dict
-        ``moments`` (q,) over the specimen's own measured range and the continuous curves
-        (4, q) of the disc alone (``none``) and of the final model (its label).
-    discrepancy : dict or None
-        ``mean``, ``sd`` (4, q) on ``curves["moments"]``, ``mae_deg`` (model + discrepancy),
-        ``amplitude_deg``, ``description`` (sentences), ``similarity`` (effect -> cosine),
-        ``resembles`` (an effect name or None), ``model`` (the label it sits on).
-    next_measurement : dict or None
-        Where the two closest explanations differ most.
-    """
-
-    specimen: str
-    verdict: str
-    baseline_mae_deg: float
-    ranking: list[dict[str, Any]]
-    residuals: np.ndarray
-    failures: dict[str, Any] = field(default_factory=dict)
-    effects: list[str] = field(default_factory=list)
-    adequate: bool = True
-    adequacy: dict[str, Any] = field(default_factory=dict)
-    final_mae_deg: float = float("nan")
-    final_residuals: np.ndarray | None = None
-    curves: dict[str, Any] = field(default_factory=dict)
-    discrepancy: dict[str, Any] | None = None
-    next_measurement: dict[str, Any] | None = None
-
-    @property
-    def discrepancy_mae_deg(self) -> float | None:
-        return None if self.discrepancy is None else self.discrepancy["mae_deg"]
-
-    @property
-    def final_label(self) -> str:
-        return model_label(self.effects)
-
-    def to_dict(self) -> dict[str, Any]:
-        disc = None
-        if self.discrepancy is not None:
-            disc = {
-                k: v
-                for k, v in self.discrepancy.items()
-                if k not in ("mean", "sd") and not isinstance(v, np.ndarray)
-            }
-        return {
-            "specimen": self.specimen,
-            "verdict": self.verdict,
-            "effects": list(self.effects),
-            "adequate": bool(self.adequate),
-            "adequacy": self.adequacy,
-            "baseline_mae_deg": self.baseline_mae_deg,
-            "final_mae_deg": self.final_mae_deg,
-            "ranking": self.ranking,
-            "discrepancy": disc,
-            "next_measurement": self.next_measurement,
-            "failures": self.failures,
-        }
-
-
-@dataclass
-class Diagnosis:
-    """Diagnosis of a cohort.
-
-    ``sigma_deg`` is the noise sd inside the surrogate's trained moments; ``sigma_by_moment``
-    (m,) the sd at each moment of the grid (larger where the surrogate extrapolates).
-    """
-
-    specimens: list[SpecimenDiagnosis]
-    sigma_deg: float
-    noise_deg: float
-    noise_sd_deg: float
-    surrogate_error_deg: float
-    moments: np.ndarray
-    seconds: float
-    sigma_by_moment: np.ndarray | None = None
-    alpha: float = 0.01
-
-    def verdicts(self) -> dict[str, int]:
-        out: dict[str, int] = {}
-        for s in self.specimens:
-            out[s.verdict] = out.get(s.verdict, 0) + 1
-        return out
-
-    def effect_counts(self) -> dict[str, int]:
-        """How many specimens name each registered effect, and ``unexplained``."""
-        out: dict[str, int] = {}
-        for s in self.specimens:
-            for e in [*s.effects, *([] if s.adequate else [UNEXPLAINED])]:
-                out[e] = out.get(e, 0) + 1
-        return out
-
-    def found_effects(self) -> list[str]:
-        """Registered effects named for at least one specimen, most frequent first."""
-        counts = {k: v for k, v in self.effect_counts().items() if k != UNEXPLAINED}
-        return sorted(counts, key=lambda k: (-counts[k], k))
-
-    def cohort_verdict(self) -> str:
-        """The most frequent verdict other than ``none`` if it covers at least a quarter of
-        the cohort, else ``none``."""
-        counts = {k: v for k, v in self.verdicts().items() if k != NONE}
-        if not counts:
-            return NONE
-        best = max(counts, key=counts.get)
-        return best if counts[best] >= 0.25 * len(self.specimens) else NONE
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "sigma_deg": self.sigma_deg,
-            "sigma_by_moment": None
-            if self.sigma_by_moment is None
-            else [float(s) for s in self.sigma_by_moment],
-            "noise_deg": self.noise_deg,
-            "noise_sd_deg": self.noise_sd_deg,
-            "surrogate_error_deg": self.surrogate_error_deg,
-            "alpha": self.alpha,
-            "cohort_verdict": self.cohort_verdict(),
-            "verdicts": self.verdicts(),
-            "effects": self.effect_counts(),
-            "seconds": self.seconds,
-            "specimens": [s.to_dict() for s in self.specimens],
-        }
-
-
-# ------------------------------------------------------------------------ fitting helpers
-def _weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """Relative weights 1/sigma^2 of every point (the optimiser normalises them)."""
-    return np.broadcast_to((sigma.min() / sigma) ** 2, shape)
-
-
-def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    r = (measured - pred.double().numpy()) / sigma
-    return np.nansum(r**2, axis=(1, 2))
-
-
-def _grid(
-    model: EffectModel,
-    new: str,
-    levels: Sequence[float],
-    shape_starts: int = 0,
-    grid_shapes: bool = False,
-) -> tuple[slice, torch.Tensor]:
-    """Starts (g, p) for effect ``new`` of ``model`` and its slice
-    (:func:`femcal.calibration.starts.single_effect_starts`)."""
-    k = model.effect_names.index(new)
-    return model._slices[k], single_effect_starts(
-        model.effects[k], levels, shape_starts, grid_shapes
-    )
-
-
-def _starts(
-    model: EffectModel,
-    prev: Sequence[str],
-    v_prev: torch.Tensor,
-    new: str,
-    levels,
-    shape_starts: int = 0,
-    grid_shapes: bool = False,
-) -> torch.Tensor:
-    """Starts (n * g, dim): the previous solution (disc + its effects) and a grid for ``new``."""
-    n = v_prev.shape[0]
-    sl_new, grid = _grid(model, new, levels, shape_starts, grid_shapes)
-    g = len(grid)
-    v0 = torch.empty((n, g, model.dim))
-    v0[:, :, : model.n_disc] = v_prev[:, None, : model.n_disc]
-    prev_model_slices = _slices_of(prev)
-    for name, sl in zip(model.effect_names, model._slices):
-        if name == new:
-            v0[:, :, sl] = grid[None]
-        else:
-            a, b = prev_model_slices[name]
-            v0[:, :, sl] = v_prev[:, None, model.n_disc + a : model.n_disc + b]
-    return v0.reshape(n * g, model.dim)
-
-
-def _slices_of(effects: Sequence[str]) -> dict[str, tuple[int, int]]:
-    """Offsets of each effect's parameters after the disc's, in an EffectModel of ``effects``."""
-    out, start = {}, 0
-    for name in effects:
-        p = len(get_effect(name).parameters)
-        out[name] = (start, start + p)
-        start += p
-    return out
-
-
-def _solutions(per_spec: list[dict], rows, effects: tuple[str, ...]) -> torch.Tensor:
-    """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
-    return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
-
-
-def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[int]:
-    """Columns of an EffectModel of ``effects`` that an EffectModel of ``rest`` keeps."""
-    offsets = _slices_of(effects)
-    return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
-
-
-def _hat_trace_and_cov(jac: torch.Tensor, mask: np.ndarray, sigma: np.ndarray):
-    """Effective number of parameters and the parameter covariance (unit box prior).
-
-    ``jac`` (n, 4, m, d); returns trace (n,) and covariance (n, d, d) in unit coordinates.
-    """
-    n = jac.shape[0]
-    d = jac.shape[-1]
-    j = jac.double().numpy() / np.broadcast_to(sigma, mask.shape)[..., None]
-    j = np.where(mask[..., None], np.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
-    j = j.reshape(n, -1, d)
-    info = np.einsum("npi,npj->nij", j, j)
-    cov = np.linalg.inv(info + np.eye(d))
-    trace = np.einsum("nij,nji->n", info, cov)
-    return trace, cov
-
-
-def _chi2_sf(x: float, k: float) -> float:
-    """Survival function of the chi-square distribution (SciPy)."""
-    from scipy.stats import chi2
-
-    return float(chi2.sf(x, max(k, 1.0)))
-
-
-@dataclass
-class _Fit:
-    effects: tuple[str, ...]
-    model: Any
-    v: torch.Tensor  # (r, dim) for the specimens ``rows``
-    rows: np.ndarray  # specimen indices
-    pred: torch.Tensor  # (r, 4, m)
-    chi2: np.ndarray  # (r,)
-    k: int
-    trace: np.ndarray | None = None  # (r,) effective number of parameters
-    cov: np.ndarray | None = None  # (r, dim, dim) parameter covariance, unit coordinates
-    finite: np.ndarray | None = None  # (r,) the Jacobian is finite
-
-
-def _fit_from(
-    model, measured, weight, sigma, rows: np.ndarray, v0: torch.Tensor, g: int, max_iter: int
-):
-    """Gauss-Newton from ``g`` starts per specimen of ``rows``; the best start per specimen."""
-    problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
-    r = len(rows)
-    idx = torch.arange(r).repeat_interleave(g)
-    keep = {"keep_after": 3, "keep": 2} if g > 2 else {}
-    v, _, _ = gauss_newton(problem, v0, idx, max_iter=max_iter, loss="l2", tol=1e-6, **keep)
-    with torch.no_grad():
-        pred = model.curves(v)
-    chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), sigma)
-    chi2 = np.nan_to_num(chi2, nan=np.inf, posinf=np.inf).reshape(r, g)
-    best = chi2.argmin(1)
-    flat = torch.as_tensor(np.arange(r) * g + best)
-    return v[flat], pred[flat], chi2[np.arange(r), best]
 
 
 # ------------------------------------------------------------------------------ diagnose
@@ -835,314 +559,30 @@ def diagnose(
         ensure_fitted()
         pending = still
 
-    # 3. Adequacy of the final models (and of the disc alone), with the exact Jacobian.
-    out: list[SpecimenDiagnosis] = []
-    finals: dict[tuple[str, ...], list[int]] = {}
-    for i in range(n):
-        finals.setdefault(chosen[i], []).append(i)
-    # One Jacobian per fitted batch (all its specimens at once): effective parameters and
-    # the parameter covariance of every model in every ranking.
-    done: set[int] = set()
-    for i in range(n):
-        for f, _ in per_spec[i].values():
-            if id(f) not in done:
-                done.add(id(f))
-                _, jac = f.model.curves_jacobian(f.v)
-                f.trace, f.cov = _hat_trace_and_cov(jac, mask[f.rows], sigma)
-                f.finite = torch.isfinite(jac).reshape(len(f.rows), -1).all(1).numpy()
-
-    adequacy: list[dict[str, Any]] = []
-    f0 = fits[()]
-    for i in range(n):
-        f, pos = per_spec[i][chosen[i]]
-        res = measured[i] - f.pred[pos].double().numpy()
-        adequacy.append(
-            {
-                "final": _adequacy(res, sigma, float(n_points[i] - f.trace[pos]), alpha),
-                "disc_alone": _adequacy(
-                    measured[i] - pred0[i].double().numpy(),
-                    sigma,
-                    float(n_points[i] - f0.trace[i]),
-                    alpha,
-                ),
-            }
-        )
-
-    # 4. The discrepancy on top of each final model.
-    dense = dense_grid(moments, curve_points)
-    disc_info: list[dict[str, Any] | None] = [None] * n
-    if discrepancy:
-        signatures = _signatures(per_spec, candidates, pred0, n)
-        for effects, members in finals.items():
-            rows = np.asarray(members)
-            model = base if not effects else effect_model(effects)
-            v = _solutions(per_spec, rows, effects)
-            dfit = fit_discrepancy(model, v, measured[rows], sigma_m)
-            mean, sd = discrepancy_posterior(dfit, moments, dense, mask[rows])
-            for pos, i in enumerate(rows):
-                own = _own_range(dense, moments, mask[i])
-                mu = np.where(own, mean[pos], np.nan)
-                sdev = np.where(own, sd[pos], np.nan)
-                sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma)
-                best_sim = max(sim, key=sim.get) if sim else None
-                resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
-                text = describe(dense, mu, sdev, float(sigma_m.min()))
-                disc_info[i] = {
-                    "model": model_label(effects),
-                    "mean": mu,
-                    "sd": sdev,
-                    "mae_deg": float(dfit.mae_deg[pos]),
-                    "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
-                    "description": text,
-                    "summary": _summary(text, resembles, sim),
-                    "similarity": sim,
-                    "resembles": resembles,
-                }
-
-    # 5. Continuous curves, rankings, what to measure next.
-    dense_base = _dense_base(base, dense)
-    curves0 = _dense_curves(dense_base, (), v_disc)
-    final_curves: dict[int, np.ndarray] = {}
-    for effects, members in finals.items():
-        if not effects:
-            for i in members:
-                final_curves[i] = curves0[i]
-            continue
-        v = _solutions(per_spec, members, effects)
-        cv = _dense_curves(dense_base, effects, v)
-        for pos, i in enumerate(members):
-            final_curves[i] = cv[pos]
-    sigma_dense = np.interp(np.log(dense), np.log(moments), sigma_m)
-    mae0 = np.nanmean(np.abs(measured - pred0.double().numpy()).reshape(n, -1), axis=1)
-    unit_disc = base.space.to_unit(base.to_physical(v_disc.double().numpy()))
-    for i, spec in enumerate(specimens):
-        ranking = _ranking(per_spec[i], i, measured, sigma, log_n, base)
-        effects = list(chosen[i])
-        adequate = bool(adequacy[i]["final"]["adequate"])
-        f, pos = per_spec[i][chosen[i]]
-        final_res = measured[i] - f.pred[pos].double().numpy()
-        own = _own_range(dense, moments, mask[i])
-        curves = {
-            "moments": dense,
-            NONE: np.where(own, curves0[i], np.nan),
-        }
-        if effects:
-            curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
-        nxt = _next_measurement(
-            ranking, per_spec[i], dense_base, dense, sigma_dense, min_delta, chosen[i]
-        )
-        resid = measured[i] - pred0[i].double().numpy()
-        out.append(
-            SpecimenDiagnosis(
-                specimen=str(spec),
-                verdict=verdict_label(effects, adequate),
-                baseline_mae_deg=float(mae0[i]),
-                ranking=ranking,
-                residuals=resid,
-                failures=_failures(resid, sigma, moments, unit_disc[i], base.space.names),
-                effects=effects,
-                adequate=adequate,
-                adequacy=adequacy[i],
-                final_mae_deg=float(np.nanmean(np.abs(final_res))),
-                final_residuals=final_res,
-                curves=curves,
-                discrepancy=disc_info[i],
-                next_measurement=nxt,
-            )
-        )
-    return Diagnosis(
-        specimens=out,
-        sigma_deg=float(sigma_m.min()),
-        noise_deg=noise_used,
-        noise_sd_deg=float(noise_sd),
-        surrogate_error_deg=float(sur.min()),
+    return _assemble(
+        base=base,
+        specimens=specimens,
+        candidates=candidates,
+        measured=measured,
+        mask=mask,
+        n_points=n_points,
+        log_n=log_n,
+        sigma=sigma,
+        sigma_m=sigma_m,
+        sur=sur,
         moments=moments,
-        seconds=time.perf_counter() - t0,
-        sigma_by_moment=sigma_m,
+        chosen=chosen,
+        per_spec=per_spec,
+        fits=fits,
+        pred0=pred0,
+        v_disc=v_disc,
+        effect_model=effect_model,
         alpha=alpha,
+        min_delta=min_delta,
+        discrepancy=discrepancy,
+        curve_points=curve_points,
+        noise_used=noise_used,
+        noise_sd=noise_sd,
+        t0=t0,
+        n=n,
     )
-
-
-# ------------------------------------------------------------------------- adequacy
-def _adequacy(res: np.ndarray, sigma: np.ndarray, dof: float, alpha: float) -> dict[str, Any]:
-    """Chi-square and runs tests of residuals (4, m) against the noise."""
-    z = res / sigma
-    chi2 = float(np.nansum(z**2))
-    dof = max(dof, 1.0)
-    p_chi2 = _chi2_sf(chi2, dof)
-    p_runs = runs_p_value(res)
-    # Runs of one sign only matter where the residuals are not small against the noise: a
-    # smooth surrogate error well inside sigma makes runs, not missing physics.
-    runs_bad = p_runs < alpha and chi2 > dof
-    return {
-        "chi2": chi2,
-        "dof": dof,
-        "p_chi2": p_chi2,
-        "p_runs": p_runs,
-        "adequate": bool(p_chi2 >= alpha and not runs_bad),
-    }
-
-
-def _adequate_quick(fit: _Fit, pos: int, i: int, measured, sigma, n_points, alpha) -> bool:
-    """Adequacy during forward selection (degrees of freedom: n - k/2, no Jacobian)."""
-    res = measured[i] - fit.pred[pos].double().numpy()
-    return bool(_adequacy(res, sigma, float(n_points[i] - fit.k / 2), alpha)["adequate"])
-
-
-# ------------------------------------------------------------------------ reporting
-def _ranking(
-    fits: dict, i: int, measured: np.ndarray, sigma: np.ndarray, log_n: np.ndarray, base
-) -> list[dict[str, Any]]:
-    """Every model fitted for specimen ``i``: MAE, BIC and effect parameters ± sd."""
-    rows = []
-    for effects, (f, pos) in fits.items():
-        pred = f.pred[pos].double().numpy()
-        mae = float(np.nanmean(np.abs(measured[i] - pred)))
-        entry = {
-            "effect": model_label(effects),
-            "effects": list(effects),
-            "mae_deg": mae,
-            "criterion": float(f.chi2[pos] + f.k * log_n[i]),
-            "parameters": {},
-        }
-        if effects:
-            model = f.model
-            vi = f.v[pos : pos + 1]
-            finite = bool(f.finite[pos])
-            cov = f.cov[pos : pos + 1]
-            x = model.to_physical(vi.double().numpy())[0]
-            col = base.dim
-            for e in model.effects:
-                for par in e.parameters:
-                    sd_u = float(np.sqrt(max(cov[0, col, col], 0.0))) if finite else float("nan")
-                    if par.log:
-                        scale = x[col] * np.log(par.upper / par.lower)
-                    else:
-                        scale = par.upper - par.lower
-                    entry["parameters"][par.name] = {
-                        "value": float(x[col]),
-                        "sd": sd_u * scale,
-                        "unit": par.unit,
-                    }
-                    col += 1
-        rows.append(entry)
-    rows.sort(key=lambda r: r["criterion"])
-    return rows
-
-
-def _signatures(per_spec, candidates, pred0: torch.Tensor, n: int) -> list[dict[str, np.ndarray]]:
-    """What each single effect adds to the disc-alone fit, per specimen (4, m)."""
-    out = []
-    for i in range(n):
-        sig = {}
-        for name in candidates:
-            if (name,) in per_spec[i]:
-                f, pos = per_spec[i][(name,)]
-                sig[name] = (f.pred[pos] - pred0[i]).double().numpy()
-        out.append(sig)
-    return out
-
-
-def _summary(text: list[str], resembles: str | None, sim: dict[str, float]) -> str:
-    if not text:
-        return "nothing missing beyond the noise"
-    lcs = [t.split(":")[0] for t in text]
-    what = "; ".join(text)
-    if resembles:
-        tail = f"resembles the signature of {resembles} (similarity {sim[resembles]:.2f})"
-    elif sim:
-        best = max(sim, key=sim.get)
-        tail = (
-            f"resembles no registered effect (closest: {best}, similarity {sim[best]:.2f}): "
-            "a candidate for a new effect"
-        )
-    else:
-        tail = "no registered effect to compare with"
-    return f"missing in {', '.join(lcs)}: {what}. It {tail}."
-
-
-def _own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Bool (4, q): the dense moments within each load case's own measured range."""
-    out = np.zeros((len(LOAD_CASES), len(dense)), dtype=bool)
-    for j in range(len(LOAD_CASES)):
-        got = moments[mask[j]]
-        if got.size:
-            out[j] = (dense >= got.min() * (1 - 1e-9)) & (dense <= got.max() * (1 + 1e-9))
-    return out
-
-
-def _dense_base(base, dense: np.ndarray):
-    surrogate = getattr(base, "surrogate", None)
-    if surrogate is None:
-        return None
-    return SurrogateCurveModel(surrogate, dense, space=base.space)
-
-
-def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.ndarray:
-    if dense_base is None:
-        return np.full((v.shape[0], len(LOAD_CASES), 1), np.nan)
-    model = dense_base if not effects else EffectModel(dense_base, list(effects))
-    with torch.no_grad():
-        return model.curves(v).double().numpy()
-
-
-def _next_measurement(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen):
-    """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most."""
-    if len(ranking) < 2 or dense_base is None:
-        return None
-    best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
-    rivals = [r for r in ranking if r is not best]
-    second = min(rivals, key=lambda r: abs(r["criterion"] - best["criterion"]))
-    gap = abs(second["criterion"] - best["criterion"])
-    if gap >= min_delta:
-        return None
-    curves = []
-    for r in (best, second):
-        f, pos = fits[tuple(r["effects"])]
-        curves.append(_dense_curves(dense_base, tuple(r["effects"]), f.v[pos : pos + 1])[0])
-    diff = (curves[0] - curves[1]) / sigma_dense[None, :]
-    if not np.isfinite(diff).any():
-        return None
-    j, k = np.unravel_index(np.nanargmax(np.abs(diff)), diff.shape)
-    return {
-        "between": [best["effect"], second["effect"]],
-        "criterion_gap": float(gap),
-        "load_case": LOAD_CASES[j],
-        "moment_nm": float(dense[k]),
-        "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
-        "difference_sigma": float(abs(diff[j, k])),
-    }
-
-
-def _failures(
-    resid: np.ndarray, sigma: np.ndarray, moments: np.ndarray, x_unit: np.ndarray, names
-) -> dict[str, Any]:
-    """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds."""
-    z = resid / sigma
-    out: dict[str, Any] = {"beyond_2_sigma": [], "sign_pattern": {}, "on_bounds": []}
-    for j, lc in enumerate(LOAD_CASES):
-        ok = np.isfinite(z[j])
-        if not ok.any():
-            continue
-        bad = ok & (np.abs(z[j]) > 2)
-        if bad.any():
-            out["beyond_2_sigma"].append(
-                {
-                    "load_case": lc,
-                    "moments_nm": moments[bad].tolist(),
-                    "max_abs_z": float(np.max(np.abs(z[j][ok]))),
-                }
-            )
-        out["sign_pattern"][lc] = "".join("+" if v > 0 else "-" for v in resid[j][ok])
-    out["on_bounds"] = [n for n, u in zip(names, x_unit) if u < 1e-3 or u > 1 - 1e-3]
-    return out
-
-
-__all__ = [
-    "NONE",
-    "UNEXPLAINED",
-    "Diagnosis",
-    "SpecimenDiagnosis",
-    "diagnose",
-    "verdict_label",
-]

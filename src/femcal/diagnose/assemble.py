@@ -1,0 +1,199 @@
+"""The last steps of a diagnosis: adequacy of the chosen models, the discrepancy and what is
+missing, continuous curves, rankings and what to measure next."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from femcal.diagnose.discrepancy import (
+    dense_grid,
+    describe,
+    discrepancy_posterior,
+    fit_discrepancy,
+    similarity,
+)
+from femcal.diagnose.explain import (
+    _adequacy,
+    _dense_base,
+    _dense_curves,
+    _failures,
+    _next_measurement,
+    _own_range,
+    _ranking,
+    _signatures,
+    _summary,
+)
+from femcal.diagnose.fits import (
+    _hat_trace_and_cov,
+    _solutions,
+)
+from femcal.diagnose.result import (
+    NONE,
+    RESEMBLES,
+    Diagnosis,
+    SpecimenDiagnosis,
+    model_label,
+    verdict_label,
+)
+
+
+def _assemble(
+    *,
+    base,
+    specimens,
+    candidates,
+    measured,
+    mask,
+    n_points,
+    log_n,
+    sigma,
+    sigma_m,
+    sur,
+    moments,
+    chosen,
+    per_spec,
+    fits,
+    pred0,
+    v_disc,
+    effect_model,
+    alpha,
+    min_delta,
+    discrepancy,
+    curve_points,
+    noise_used,
+    noise_sd,
+    t0,
+    n,
+) -> Diagnosis:
+    """Steps 3-5 of :func:`diagnose` for the models it chose: adequacy, the discrepancy and
+    what is missing, continuous curves, rankings and what to measure next."""
+    # 3. Adequacy of the final models (and of the disc alone), with the exact Jacobian.
+    out: list[SpecimenDiagnosis] = []
+    finals: dict[tuple[str, ...], list[int]] = {}
+    for i in range(n):
+        finals.setdefault(chosen[i], []).append(i)
+    # One Jacobian per fitted batch (all its specimens at once): effective parameters and
+    # the parameter covariance of every model in every ranking.
+    done: set[int] = set()
+    for i in range(n):
+        for f, _ in per_spec[i].values():
+            if id(f) not in done:
+                done.add(id(f))
+                _, jac = f.model.curves_jacobian(f.v)
+                f.trace, f.cov = _hat_trace_and_cov(jac, mask[f.rows], sigma)
+                f.finite = torch.isfinite(jac).reshape(len(f.rows), -1).all(1).numpy()
+
+    adequacy: list[dict[str, Any]] = []
+    f0 = fits[()]
+    for i in range(n):
+        f, pos = per_spec[i][chosen[i]]
+        res = measured[i] - f.pred[pos].double().numpy()
+        adequacy.append(
+            {
+                "final": _adequacy(res, sigma, float(n_points[i] - f.trace[pos]), alpha),
+                "disc_alone": _adequacy(
+                    measured[i] - pred0[i].double().numpy(),
+                    sigma,
+                    float(n_points[i] - f0.trace[i]),
+                    alpha,
+                ),
+            }
+        )
+
+    # 4. The discrepancy on top of each final model.
+    dense = dense_grid(moments, curve_points)
+    disc_info: list[dict[str, Any] | None] = [None] * n
+    if discrepancy:
+        signatures = _signatures(per_spec, candidates, pred0, n)
+        for effects, members in finals.items():
+            rows = np.asarray(members)
+            model = base if not effects else effect_model(effects)
+            v = _solutions(per_spec, rows, effects)
+            dfit = fit_discrepancy(model, v, measured[rows], sigma_m)
+            mean, sd = discrepancy_posterior(dfit, moments, dense, mask[rows])
+            for pos, i in enumerate(rows):
+                own = _own_range(dense, moments, mask[i])
+                mu = np.where(own, mean[pos], np.nan)
+                sdev = np.where(own, sd[pos], np.nan)
+                sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma)
+                best_sim = max(sim, key=sim.get) if sim else None
+                resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
+                text = describe(dense, mu, sdev, float(sigma_m.min()))
+                disc_info[i] = {
+                    "model": model_label(effects),
+                    "mean": mu,
+                    "sd": sdev,
+                    "mae_deg": float(dfit.mae_deg[pos]),
+                    "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
+                    "description": text,
+                    "summary": _summary(text, resembles, sim),
+                    "similarity": sim,
+                    "resembles": resembles,
+                }
+
+    # 5. Continuous curves, rankings, what to measure next.
+    dense_base = _dense_base(base, dense)
+    curves0 = _dense_curves(dense_base, (), v_disc)
+    final_curves: dict[int, np.ndarray] = {}
+    for effects, members in finals.items():
+        if not effects:
+            for i in members:
+                final_curves[i] = curves0[i]
+            continue
+        v = _solutions(per_spec, members, effects)
+        cv = _dense_curves(dense_base, effects, v)
+        for pos, i in enumerate(members):
+            final_curves[i] = cv[pos]
+    sigma_dense = np.interp(np.log(dense), np.log(moments), sigma_m)
+    mae0 = np.nanmean(np.abs(measured - pred0.double().numpy()).reshape(n, -1), axis=1)
+    unit_disc = base.space.to_unit(base.to_physical(v_disc.double().numpy()))
+    for i, spec in enumerate(specimens):
+        ranking = _ranking(per_spec[i], i, measured, sigma, log_n, base)
+        effects = list(chosen[i])
+        adequate = bool(adequacy[i]["final"]["adequate"])
+        f, pos = per_spec[i][chosen[i]]
+        final_res = measured[i] - f.pred[pos].double().numpy()
+        own = _own_range(dense, moments, mask[i])
+        curves = {
+            "moments": dense,
+            NONE: np.where(own, curves0[i], np.nan),
+        }
+        if effects:
+            curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
+        nxt = _next_measurement(
+            ranking, per_spec[i], dense_base, dense, sigma_dense, min_delta, chosen[i]
+        )
+        resid = measured[i] - pred0[i].double().numpy()
+        out.append(
+            SpecimenDiagnosis(
+                specimen=str(spec),
+                verdict=verdict_label(effects, adequate),
+                baseline_mae_deg=float(mae0[i]),
+                ranking=ranking,
+                residuals=resid,
+                failures=_failures(resid, sigma, moments, unit_disc[i], base.space.names),
+                effects=effects,
+                adequate=adequate,
+                adequacy=adequacy[i],
+                final_mae_deg=float(np.nanmean(np.abs(final_res))),
+                final_residuals=final_res,
+                curves=curves,
+                discrepancy=disc_info[i],
+                next_measurement=nxt,
+            )
+        )
+    return Diagnosis(
+        specimens=out,
+        sigma_deg=float(sigma_m.min()),
+        noise_deg=noise_used,
+        noise_sd_deg=float(noise_sd),
+        surrogate_error_deg=float(sur.min()),
+        moments=moments,
+        seconds=time.perf_counter() - t0,
+        sigma_by_moment=sigma_m,
+        alpha=alpha,
+    )

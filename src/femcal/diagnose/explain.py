@@ -1,0 +1,198 @@
+"""What a diagnosis says of each specimen besides its verdict: adequacy tests, the ranking of
+models, what each effect adds, where the disc fails, and what to measure next."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from femcal.calibration.model import SurrogateCurveModel
+from femcal.diagnose.discrepancy import (
+    runs_p_value,
+)
+from femcal.diagnose.fits import (
+    _chi2_sf,
+    _Fit,
+)
+from femcal.diagnose.result import (
+    model_label,
+)
+from femcal.effects.composite import EffectModel
+from femcal.schema import LOAD_CASES
+
+
+# ------------------------------------------------------------------------- adequacy
+def _adequacy(res: np.ndarray, sigma: np.ndarray, dof: float, alpha: float) -> dict[str, Any]:
+    """Chi-square and runs tests of residuals (4, m) against the noise."""
+    z = res / sigma
+    chi2 = float(np.nansum(z**2))
+    dof = max(dof, 1.0)
+    p_chi2 = _chi2_sf(chi2, dof)
+    p_runs = runs_p_value(res)
+    # Runs of one sign only matter where the residuals are not small against the noise: a
+    # smooth surrogate error well inside sigma makes runs, not missing physics.
+    runs_bad = p_runs < alpha and chi2 > dof
+    return {
+        "chi2": chi2,
+        "dof": dof,
+        "p_chi2": p_chi2,
+        "p_runs": p_runs,
+        "adequate": bool(p_chi2 >= alpha and not runs_bad),
+    }
+
+
+def _adequate_quick(fit: _Fit, pos: int, i: int, measured, sigma, n_points, alpha) -> bool:
+    """Adequacy during forward selection (degrees of freedom: n - k/2, no Jacobian)."""
+    res = measured[i] - fit.pred[pos].double().numpy()
+    return bool(_adequacy(res, sigma, float(n_points[i] - fit.k / 2), alpha)["adequate"])
+
+
+# ------------------------------------------------------------------------ reporting
+def _ranking(
+    fits: dict, i: int, measured: np.ndarray, sigma: np.ndarray, log_n: np.ndarray, base
+) -> list[dict[str, Any]]:
+    """Every model fitted for specimen ``i``: MAE, BIC and effect parameters ± sd."""
+    rows = []
+    for effects, (f, pos) in fits.items():
+        pred = f.pred[pos].double().numpy()
+        mae = float(np.nanmean(np.abs(measured[i] - pred)))
+        entry = {
+            "effect": model_label(effects),
+            "effects": list(effects),
+            "mae_deg": mae,
+            "criterion": float(f.chi2[pos] + f.k * log_n[i]),
+            "parameters": {},
+        }
+        if effects:
+            model = f.model
+            vi = f.v[pos : pos + 1]
+            finite = bool(f.finite[pos])
+            cov = f.cov[pos : pos + 1]
+            x = model.to_physical(vi.double().numpy())[0]
+            col = base.dim
+            for e in model.effects:
+                for par in e.parameters:
+                    sd_u = float(np.sqrt(max(cov[0, col, col], 0.0))) if finite else float("nan")
+                    if par.log:
+                        scale = x[col] * np.log(par.upper / par.lower)
+                    else:
+                        scale = par.upper - par.lower
+                    entry["parameters"][par.name] = {
+                        "value": float(x[col]),
+                        "sd": sd_u * scale,
+                        "unit": par.unit,
+                    }
+                    col += 1
+        rows.append(entry)
+    rows.sort(key=lambda r: r["criterion"])
+    return rows
+
+
+def _signatures(per_spec, candidates, pred0: torch.Tensor, n: int) -> list[dict[str, np.ndarray]]:
+    """What each single effect adds to the disc-alone fit, per specimen (4, m)."""
+    out = []
+    for i in range(n):
+        sig = {}
+        for name in candidates:
+            if (name,) in per_spec[i]:
+                f, pos = per_spec[i][(name,)]
+                sig[name] = (f.pred[pos] - pred0[i]).double().numpy()
+        out.append(sig)
+    return out
+
+
+def _summary(text: list[str], resembles: str | None, sim: dict[str, float]) -> str:
+    if not text:
+        return "nothing missing beyond the noise"
+    lcs = [t.split(":")[0] for t in text]
+    what = "; ".join(text)
+    if resembles:
+        tail = f"resembles the signature of {resembles} (similarity {sim[resembles]:.2f})"
+    elif sim:
+        best = max(sim, key=sim.get)
+        tail = (
+            f"resembles no registered effect (closest: {best}, similarity {sim[best]:.2f}): "
+            "a candidate for a new effect"
+        )
+    else:
+        tail = "no registered effect to compare with"
+    return f"missing in {', '.join(lcs)}: {what}. It {tail}."
+
+
+def _own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Bool (4, q): the dense moments within each load case's own measured range."""
+    out = np.zeros((len(LOAD_CASES), len(dense)), dtype=bool)
+    for j in range(len(LOAD_CASES)):
+        got = moments[mask[j]]
+        if got.size:
+            out[j] = (dense >= got.min() * (1 - 1e-9)) & (dense <= got.max() * (1 + 1e-9))
+    return out
+
+
+def _dense_base(base, dense: np.ndarray):
+    surrogate = getattr(base, "surrogate", None)
+    if surrogate is None:
+        return None
+    return SurrogateCurveModel(surrogate, dense, space=base.space)
+
+
+def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.ndarray:
+    if dense_base is None:
+        return np.full((v.shape[0], len(LOAD_CASES), 1), np.nan)
+    model = dense_base if not effects else EffectModel(dense_base, list(effects))
+    with torch.no_grad():
+        return model.curves(v).double().numpy()
+
+
+def _next_measurement(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen):
+    """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most."""
+    if len(ranking) < 2 or dense_base is None:
+        return None
+    best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
+    rivals = [r for r in ranking if r is not best]
+    second = min(rivals, key=lambda r: abs(r["criterion"] - best["criterion"]))
+    gap = abs(second["criterion"] - best["criterion"])
+    if gap >= min_delta:
+        return None
+    curves = []
+    for r in (best, second):
+        f, pos = fits[tuple(r["effects"])]
+        curves.append(_dense_curves(dense_base, tuple(r["effects"]), f.v[pos : pos + 1])[0])
+    diff = (curves[0] - curves[1]) / sigma_dense[None, :]
+    if not np.isfinite(diff).any():
+        return None
+    j, k = np.unravel_index(np.nanargmax(np.abs(diff)), diff.shape)
+    return {
+        "between": [best["effect"], second["effect"]],
+        "criterion_gap": float(gap),
+        "load_case": LOAD_CASES[j],
+        "moment_nm": float(dense[k]),
+        "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
+        "difference_sigma": float(abs(diff[j, k])),
+    }
+
+
+def _failures(
+    resid: np.ndarray, sigma: np.ndarray, moments: np.ndarray, x_unit: np.ndarray, names
+) -> dict[str, Any]:
+    """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds."""
+    z = resid / sigma
+    out: dict[str, Any] = {"beyond_2_sigma": [], "sign_pattern": {}, "on_bounds": []}
+    for j, lc in enumerate(LOAD_CASES):
+        ok = np.isfinite(z[j])
+        if not ok.any():
+            continue
+        bad = ok & (np.abs(z[j]) > 2)
+        if bad.any():
+            out["beyond_2_sigma"].append(
+                {
+                    "load_case": lc,
+                    "moments_nm": moments[bad].tolist(),
+                    "max_abs_z": float(np.max(np.abs(z[j][ok]))),
+                }
+            )
+        out["sign_pattern"][lc] = "".join("+" if v > 0 else "-" for v in resid[j][ok])
+    out["on_bounds"] = [n for n, u in zip(names, x_unit) if u < 1e-3 or u > 1 - 1e-3]
+    return out

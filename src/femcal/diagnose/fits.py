@@ -1,0 +1,144 @@
+"""Fitting a model to many specimens at once: starts, Gauss-Newton from them, the chi-square,
+the hat trace and the parameter covariance."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from femcal.calibration.base import CalibrationProblem
+from femcal.calibration.pgd import gauss_newton
+from femcal.calibration.starts import single_effect_starts
+from femcal.effects.base import get_effect
+from femcal.effects.composite import EffectModel
+
+
+# ------------------------------------------------------------------------ fitting helpers
+def _weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Relative weights 1/sigma^2 of every point (the optimiser normalises them)."""
+    return np.broadcast_to((sigma.min() / sigma) ** 2, shape)
+
+
+def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    r = (measured - pred.double().numpy()) / sigma
+    return np.nansum(r**2, axis=(1, 2))
+
+
+def _grid(
+    model: EffectModel,
+    new: str,
+    levels: Sequence[float],
+    shape_starts: int = 0,
+    grid_shapes: bool = False,
+) -> tuple[slice, torch.Tensor]:
+    """Starts (g, p) for effect ``new`` of ``model`` and its slice
+    (:func:`femcal.calibration.starts.single_effect_starts`)."""
+    k = model.effect_names.index(new)
+    return model._slices[k], single_effect_starts(
+        model.effects[k], levels, shape_starts, grid_shapes
+    )
+
+
+def _starts(
+    model: EffectModel,
+    prev: Sequence[str],
+    v_prev: torch.Tensor,
+    new: str,
+    levels,
+    shape_starts: int = 0,
+    grid_shapes: bool = False,
+) -> torch.Tensor:
+    """Starts (n * g, dim): the previous solution (disc + its effects) and a grid for ``new``."""
+    n = v_prev.shape[0]
+    sl_new, grid = _grid(model, new, levels, shape_starts, grid_shapes)
+    g = len(grid)
+    v0 = torch.empty((n, g, model.dim))
+    v0[:, :, : model.n_disc] = v_prev[:, None, : model.n_disc]
+    prev_model_slices = _slices_of(prev)
+    for name, sl in zip(model.effect_names, model._slices):
+        if name == new:
+            v0[:, :, sl] = grid[None]
+        else:
+            a, b = prev_model_slices[name]
+            v0[:, :, sl] = v_prev[:, None, model.n_disc + a : model.n_disc + b]
+    return v0.reshape(n * g, model.dim)
+
+
+def _slices_of(effects: Sequence[str]) -> dict[str, tuple[int, int]]:
+    """Offsets of each effect's parameters after the disc's, in an EffectModel of ``effects``."""
+    out, start = {}, 0
+    for name in effects:
+        p = len(get_effect(name).parameters)
+        out[name] = (start, start + p)
+        start += p
+    return out
+
+
+def _solutions(per_spec: list[dict], rows, effects: tuple[str, ...]) -> torch.Tensor:
+    """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
+    return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
+
+
+def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[int]:
+    """Columns of an EffectModel of ``effects`` that an EffectModel of ``rest`` keeps."""
+    offsets = _slices_of(effects)
+    return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
+
+
+def _hat_trace_and_cov(jac: torch.Tensor, mask: np.ndarray, sigma: np.ndarray):
+    """Effective number of parameters and the parameter covariance (unit box prior).
+
+    ``jac`` (n, 4, m, d); returns trace (n,) and covariance (n, d, d) in unit coordinates.
+    """
+    n = jac.shape[0]
+    d = jac.shape[-1]
+    j = jac.double().numpy() / np.broadcast_to(sigma, mask.shape)[..., None]
+    j = np.where(mask[..., None], np.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    j = j.reshape(n, -1, d)
+    info = np.einsum("npi,npj->nij", j, j)
+    cov = np.linalg.inv(info + np.eye(d))
+    trace = np.einsum("nij,nji->n", info, cov)
+    return trace, cov
+
+
+def _chi2_sf(x: float, k: float) -> float:
+    """Survival function of the chi-square distribution (SciPy)."""
+    from scipy.stats import chi2
+
+    return float(chi2.sf(x, max(k, 1.0)))
+
+
+@dataclass
+class _Fit:
+    effects: tuple[str, ...]
+    model: Any
+    v: torch.Tensor  # (r, dim) for the specimens ``rows``
+    rows: np.ndarray  # specimen indices
+    pred: torch.Tensor  # (r, 4, m)
+    chi2: np.ndarray  # (r,)
+    k: int
+    trace: np.ndarray | None = None  # (r,) effective number of parameters
+    cov: np.ndarray | None = None  # (r, dim, dim) parameter covariance, unit coordinates
+    finite: np.ndarray | None = None  # (r,) the Jacobian is finite
+
+
+def _fit_from(
+    model, measured, weight, sigma, rows: np.ndarray, v0: torch.Tensor, g: int, max_iter: int
+):
+    """Gauss-Newton from ``g`` starts per specimen of ``rows``; the best start per specimen."""
+    problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
+    r = len(rows)
+    idx = torch.arange(r).repeat_interleave(g)
+    keep = {"keep_after": 3, "keep": 2} if g > 2 else {}
+    v, _, _ = gauss_newton(problem, v0, idx, max_iter=max_iter, loss="l2", tol=1e-6, **keep)
+    with torch.no_grad():
+        pred = model.curves(v)
+    chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), sigma)
+    chi2 = np.nan_to_num(chi2, nan=np.inf, posinf=np.inf).reshape(r, g)
+    best = chi2.argmin(1)
+    flat = torch.as_tensor(np.arange(r) * g + best)
+    return v[flat], pred[flat], chi2[np.arange(r), best]

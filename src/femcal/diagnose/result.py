@@ -1,0 +1,172 @@
+"""A diagnosis' result: the verdict of each specimen and the cohort's."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+NONE = "none"
+
+
+UNEXPLAINED = "unexplained"
+
+
+#: Similarity (cosine, in sigma units) above which a discrepancy "resembles" an effect.
+RESEMBLES = 0.8
+
+
+def verdict_label(effects: Sequence[str], adequate: bool) -> str:
+    """``none``, ``unexplained``, ``a+b`` or ``a+b+unexplained``."""
+    parts = list(effects)
+    if not adequate:
+        parts.append(UNEXPLAINED)
+    return "+".join(parts) if parts else NONE
+
+
+def model_label(effects: Sequence[str]) -> str:
+    """A fitted model's name in rankings and plots: ``none`` (the disc alone) or ``a+b``."""
+    return "+".join(effects) if effects else NONE
+
+
+@dataclass
+class SpecimenDiagnosis:
+    """Diagnosis of one specimen (see :func:`diagnose`).
+
+    Attributes
+    ----------
+    verdict : str
+        ``none``, ``unexplained``, the effects found joined by ``+``, possibly ending in
+        ``+unexplained``.
+    effects : list of str
+        The registered effects found, in the order forward selection added them.
+    adequate : bool
+        The final model explains the data within the noise.
+    ranking : list of dict
+        Every model fitted (``effect`` = its label, ``effects``, ``mae_deg``, ``criterion``
+        (BIC), ``parameters`` of its effects ± sd), best first.
+    residuals : ndarray, shape (4, m)
+        Disc-alone residuals, measured - model (deg, NaN where not measured).
+    final_residuals : ndarray, shape (4, m)
+        The same for the final model.
+    curves : dict
+        ``moments`` (q,) over the specimen's own measured range and the continuous curves
+        (4, q) of the disc alone (``none``) and of the final model (its label).
+    discrepancy : dict or None
+        ``mean``, ``sd`` (4, q) on ``curves["moments"]``, ``mae_deg`` (model + discrepancy),
+        ``amplitude_deg``, ``description`` (sentences), ``similarity`` (effect -> cosine),
+        ``resembles`` (an effect name or None), ``model`` (the label it sits on).
+    next_measurement : dict or None
+        Where the two closest explanations differ most.
+    """
+
+    specimen: str
+    verdict: str
+    baseline_mae_deg: float
+    ranking: list[dict[str, Any]]
+    residuals: np.ndarray
+    failures: dict[str, Any] = field(default_factory=dict)
+    effects: list[str] = field(default_factory=list)
+    adequate: bool = True
+    adequacy: dict[str, Any] = field(default_factory=dict)
+    final_mae_deg: float = float("nan")
+    final_residuals: np.ndarray | None = None
+    curves: dict[str, Any] = field(default_factory=dict)
+    discrepancy: dict[str, Any] | None = None
+    next_measurement: dict[str, Any] | None = None
+
+    @property
+    def discrepancy_mae_deg(self) -> float | None:
+        return None if self.discrepancy is None else self.discrepancy["mae_deg"]
+
+    @property
+    def final_label(self) -> str:
+        return model_label(self.effects)
+
+    def to_dict(self) -> dict[str, Any]:
+        disc = None
+        if self.discrepancy is not None:
+            disc = {
+                k: v
+                for k, v in self.discrepancy.items()
+                if k not in ("mean", "sd") and not isinstance(v, np.ndarray)
+            }
+        return {
+            "specimen": self.specimen,
+            "verdict": self.verdict,
+            "effects": list(self.effects),
+            "adequate": bool(self.adequate),
+            "adequacy": self.adequacy,
+            "baseline_mae_deg": self.baseline_mae_deg,
+            "final_mae_deg": self.final_mae_deg,
+            "ranking": self.ranking,
+            "discrepancy": disc,
+            "next_measurement": self.next_measurement,
+            "failures": self.failures,
+        }
+
+
+@dataclass
+class Diagnosis:
+    """Diagnosis of a cohort.
+
+    ``sigma_deg`` is the noise sd inside the surrogate's trained moments; ``sigma_by_moment``
+    (m,) the sd at each moment of the grid (larger where the surrogate extrapolates).
+    """
+
+    specimens: list[SpecimenDiagnosis]
+    sigma_deg: float
+    noise_deg: float
+    noise_sd_deg: float
+    surrogate_error_deg: float
+    moments: np.ndarray
+    seconds: float
+    sigma_by_moment: np.ndarray | None = None
+    alpha: float = 0.01
+
+    def verdicts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for s in self.specimens:
+            out[s.verdict] = out.get(s.verdict, 0) + 1
+        return out
+
+    def effect_counts(self) -> dict[str, int]:
+        """How many specimens name each registered effect, and ``unexplained``."""
+        out: dict[str, int] = {}
+        for s in self.specimens:
+            for e in [*s.effects, *([] if s.adequate else [UNEXPLAINED])]:
+                out[e] = out.get(e, 0) + 1
+        return out
+
+    def found_effects(self) -> list[str]:
+        """Registered effects named for at least one specimen, most frequent first."""
+        counts = {k: v for k, v in self.effect_counts().items() if k != UNEXPLAINED}
+        return sorted(counts, key=lambda k: (-counts[k], k))
+
+    def cohort_verdict(self) -> str:
+        """The most frequent verdict other than ``none`` if it covers at least a quarter of
+        the cohort, else ``none``."""
+        counts = {k: v for k, v in self.verdicts().items() if k != NONE}
+        if not counts:
+            return NONE
+        best = max(counts, key=counts.get)
+        return best if counts[best] >= 0.25 * len(self.specimens) else NONE
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "sigma_deg": self.sigma_deg,
+            "sigma_by_moment": None
+            if self.sigma_by_moment is None
+            else [float(s) for s in self.sigma_by_moment],
+            "noise_deg": self.noise_deg,
+            "noise_sd_deg": self.noise_sd_deg,
+            "surrogate_error_deg": self.surrogate_error_deg,
+            "alpha": self.alpha,
+            "cohort_verdict": self.cohort_verdict(),
+            "verdicts": self.verdicts(),
+            "effects": self.effect_counts(),
+            "seconds": self.seconds,
+            "specimens": [s.to_dict() for s in self.specimens],
+        }
