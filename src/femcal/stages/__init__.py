@@ -53,6 +53,10 @@ def stage_module(command: str) -> ModuleType:
 
 
 def settings_class(module: ModuleType) -> type:
-    """The settings dataclass of a stage module (the one class named ``*Settings``)."""
-    (cls,) = [v for k, v in vars(module).items() if k.endswith("Settings") and isinstance(v, type)]
+    """The settings dataclass of a stage module (the one ``*Settings`` class it defines)."""
+    (cls,) = [
+        v
+        for k, v in vars(module).items()
+        if k.endswith("Settings") and isinstance(v, type) and v.__module__ == module.__name__
+    ]
     return cls

@@ -13,14 +13,14 @@ from typing import Any
 from femcal.config import section
 from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import path_setting
+from femcal.stages.common import StageSettings, path_setting
 from femcal.stages.store import tracking
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class BaselinesSettings:
+class BaselinesSettings(StageSettings):
     """The ``baselines`` section of params.yaml for one split."""
 
     prepared_dir: Path
@@ -48,14 +48,7 @@ class BaselinesSettings:
 def run(settings: BaselinesSettings) -> dict[str, Any]:
     """Fit every model; returns ``{"split", "seconds": {model: fit seconds}}``."""
     tracking(settings.params)
-    seconds = run_baselines(
-        prepared_dir=settings.prepared_dir,
-        split=settings.split,
-        out_dir=settings.out_dir,
-        models=settings.models,
-        seed=settings.seed,
-        n_jobs=settings.n_jobs,
-    )
+    seconds = run_baselines(**settings.call_args())
     return {"split": settings.split, "seconds": seconds}
 
 

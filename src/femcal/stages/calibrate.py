@@ -23,6 +23,7 @@ from femcal.datasets import training_configurations
 from femcal.errors import ConfigError
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
+    StageSettings,
     check_measurements,
     check_outputs,
     moment_settings,
@@ -37,7 +38,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class CalibrateSettings:
+class CalibrateSettings(StageSettings):
     """The ``calibrate`` and ``moments`` sections, one dataset, and the command line's overrides.
 
     Built by :meth:`from_params`, which also checks the output folder, the metrics file and
@@ -158,23 +159,7 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
 
     names = load_user_effects(settings.effect_modules)
     tracking(settings.params)
-    _, figures = run_calibrate(
-        measurements=settings.measurements,
-        out_dir=settings.out_dir,
-        method=settings.method,
-        model_uri=settings.model_uri,
-        holdout_uri=settings.holdout_uri,
-        start_bank=settings.start_bank,
-        options=settings.options,
-        seed=settings.seed,
-        error_growth=settings.error_growth,
-        max_log_ratio=settings.max_log_ratio,
-        chunk_size=settings.chunk_size,
-        plots=settings.plots,
-        max_plots=settings.max_plots,
-        progress=settings.progress,
-        effects=settings.effects,
-    )
+    _, figures = run_calibrate(**settings.call_args())
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, calibration_headline(figures))
     return dict(

@@ -12,6 +12,7 @@ import json
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,23 @@ from femcal.errors import ConfigError, InputDataError
 from femcal.paths import setting_path, store_url
 
 logger = logging.getLogger(__name__)
+
+#: Settings that belong to the stage (its params.yaml, metrics file, the user's effect files),
+#: not to the library function it calls.
+STAGE_ONLY = ("params", "metrics_file", "effect_modules")
+
+
+@dataclass(frozen=True)
+class StageSettings:
+    """Base of every stage's settings dataclass.
+
+    A stage's fields are the keywords of the library function it calls (``run_calibrate``,
+    ``run_train``, ...), plus :data:`STAGE_ONLY`; :meth:`call_args` gives those keywords.
+    """
+
+    def call_args(self) -> dict[str, Any]:
+        """The library function's keywords: every field but :data:`STAGE_ONLY`."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in STAGE_ONLY}
 
 
 def path_setting(params: Mapping[str, Any], *keys: str) -> Path:

@@ -11,6 +11,7 @@ from femcal.config import section
 from femcal.datasets import training_configurations
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
+    StageSettings,
     check_measurements,
     check_outputs,
     moment_settings,
@@ -23,7 +24,7 @@ from femcal.stages.user_effects import describe_user_effects, effect_modules, lo
 
 
 @dataclass(frozen=True)
-class DiagnoseSettings:
+class DiagnoseSettings(StageSettings):
     """The ``diagnose`` and ``moments`` sections, and the command line's overrides.
 
     Built by :meth:`from_params`, which also checks the output folder, the metrics file and
@@ -95,22 +96,7 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
 
     names = load_user_effects(settings.effect_modules)
     tracking(settings.params)
-    diag, summary = run_diagnose(
-        measurements=settings.measurements,
-        out_dir=settings.out_dir,
-        model_uri=settings.model_uri,
-        noise_deg=settings.noise_deg,
-        candidates=settings.candidates,
-        start_bank=settings.start_bank,
-        min_delta=settings.min_delta,
-        alpha=settings.alpha,
-        max_effects=settings.max_effects,
-        seed=settings.seed,
-        error_growth=settings.error_growth,
-        max_log_ratio=settings.max_log_ratio,
-        plots=settings.plots,
-        max_plots=settings.max_plots,
-    )
+    diag, summary = run_diagnose(**settings.call_args())
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, diagnosis_headline(summary))
     return dict(

@@ -14,7 +14,7 @@ from femcal.config import section
 from femcal.datasets import load_split
 from femcal.evaluate import Score, score_model, write_reports
 from femcal.paths import setting_path
-from femcal.stages.common import path_setting
+from femcal.stages.common import StageSettings, path_setting
 from femcal.stages.store import tracking
 
 #: The training sets whose networks and baselines are compared.
@@ -22,7 +22,7 @@ SPLITS = ("large", "small")
 
 
 @dataclass(frozen=True)
-class EvaluateSettings:
+class EvaluateSettings(StageSettings):
     """Where the models and reports are (the project's layout, at the project root)."""
 
     prepared_dir: Path
@@ -60,18 +60,7 @@ class EvaluateSettings:
 def run(settings: EvaluateSettings) -> dict[str, Any]:
     """Score and write the reports; returns ``{"sections": {title: [Score, ...]}}``."""
     tracking(settings.params)
-    sections = run_evaluate(
-        prepared_dir=settings.prepared_dir,
-        surrogate_dirs=settings.surrogate_dirs,
-        baseline_dirs=settings.baseline_dirs,
-        baseline_models=settings.baseline_models,
-        interpolation_path=settings.interpolation_path,
-        markdown=settings.markdown,
-        json_path=settings.json_path,
-        table_path=settings.table_path,
-        predictions_path=settings.predictions_path,
-        curves_path=settings.curves_path,
-    )
+    sections = run_evaluate(**settings.call_args())
     return {"sections": sections}
 
 

@@ -14,12 +14,12 @@ from femcal.config import section
 from femcal.datasets import load_split
 from femcal.evaluate import Score, score_model
 from femcal.paths import setting_path
-from femcal.stages.common import path_setting
+from femcal.stages.common import StageSettings, path_setting
 from femcal.stages.store import tracking
 
 
 @dataclass(frozen=True)
-class InterpolateSettings:
+class InterpolateSettings(StageSettings):
     """The ``interpolation`` section, with the Large network's fixed recipe and seeds."""
 
     prepared_dir: Path
@@ -54,18 +54,7 @@ class InterpolateSettings:
 def run(settings: InterpolateSettings) -> dict[str, Any]:
     """Train and score; returns ``{"mae_deg": {model: MAE at the unseen moments}}``."""
     tracking(settings.params)
-    scores = run_interpolation(
-        prepared_dir=settings.prepared_dir,
-        out_path=settings.out_path,
-        train_moments=settings.train_moments,
-        test_moments=settings.test_moments,
-        fixed=settings.fixed,
-        final_members=settings.final_members,
-        baselines=settings.baselines,
-        seed=settings.seed,
-        val_fraction=settings.val_fraction,
-        n_jobs=settings.n_jobs,
-    )
+    scores = run_interpolation(**settings.call_args())
     return {"mae_deg": {s.model: s.scores["mae"] for s in scores}}
 
 

@@ -11,11 +11,11 @@ import numpy as np
 
 from femcal.config import section
 from femcal.datasets import load_split
-from femcal.stages.common import check_outputs, out_label, path_setting
+from femcal.stages.common import StageSettings, check_outputs, out_label, path_setting
 
 
 @dataclass(frozen=True)
-class PlantSettings:
+class PlantSettings(StageSettings):
     """The ``plant`` section of params.yaml (the output folder checked by :meth:`from_params`)."""
 
     prepared_dir: Path
@@ -45,14 +45,7 @@ class PlantSettings:
 
 def run(settings: PlantSettings) -> dict[str, Any]:
     """Plant the cohort; returns ``{"path": measurements.csv}``."""
-    path = run_plant(
-        prepared_dir=settings.prepared_dir,
-        out_dir=settings.out_dir,
-        n_per_class=settings.n_per_class,
-        moments=settings.moments,
-        noise_deg=settings.noise_deg,
-        seed=settings.seed,
-    )
+    path = run_plant(**settings.call_args())
     return {"path": path}
 
 

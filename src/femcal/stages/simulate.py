@@ -10,7 +10,13 @@ from typing import Any
 from femcal.config import section
 from femcal.paths import setting_path, store_path
 from femcal.space import ParameterSpace
-from femcal.stages.common import check_outputs, out_label, path_setting, write_metrics
+from femcal.stages.common import (
+    StageSettings,
+    check_outputs,
+    out_label,
+    path_setting,
+    write_metrics,
+)
 
 #: The summary keys the stage's DVC metrics file holds.
 METRICS_KEYS = (
@@ -26,7 +32,7 @@ METRICS_KEYS = (
 
 
 @dataclass(frozen=True)
-class SimulateSettings:
+class SimulateSettings(StageSettings):
     """The ``fe`` section of fe/params.yaml, with the command line's overrides."""
 
     solver: str
@@ -77,21 +83,7 @@ class SimulateSettings:
 
 def run(settings: SimulateSettings) -> dict[str, Any]:
     """Run the campaign and write the dataset; returns the campaign's result and summary."""
-    result, summary = run_simulate(
-        solver=settings.solver,
-        settings=settings.settings,
-        bounds=settings.bounds,
-        splits=settings.splits,
-        seed=settings.seed,
-        load_cases=settings.load_cases,
-        moments=settings.moments,
-        store=settings.store,
-        out_dir=settings.out_dir,
-        scheduler_address=settings.scheduler_address,
-        n_workers=settings.n_workers,
-        scratch_dir=settings.scratch_dir,
-        progress=settings.progress,
-    )
+    result, summary = run_simulate(**settings.call_args())
     # only when asked (the DVC stage)
     write_metrics(settings.metrics_file, {k: summary[k] for k in METRICS_KEYS})
     return {"result": result, "summary": summary, "out": str(settings.out_dir)}

@@ -14,12 +14,12 @@ from typing import Any
 from femcal.config import section
 from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import optuna_storage, path_setting
+from femcal.stages.common import StageSettings, optuna_storage, path_setting
 from femcal.stages.store import export_folder, tracking
 
 
 @dataclass(frozen=True)
-class TrainSettings:
+class TrainSettings(StageSettings):
     """One ``train.<split>`` section of params.yaml, with the shared train settings."""
 
     prepared_dir: Path
@@ -60,20 +60,7 @@ class TrainSettings:
 def run(settings: TrainSettings) -> dict[str, Any]:
     """Train and export; returns the validation MAE, trials, seconds and registry outcome."""
     tracking(settings.params)
-    result = run_train(
-        prepared_dir=settings.prepared_dir,
-        split=settings.split,
-        out_dir=settings.out_dir,
-        metrics_path=settings.metrics_path,
-        settings=settings.settings,
-        storage=settings.storage,
-        study_name=settings.study_name,
-        seed=settings.seed,
-        val_fraction=settings.val_fraction,
-        model_name=settings.model_name,
-        progress=settings.progress,
-        data_split=settings.data_split,
-    )
+    result = run_train(**settings.call_args())
     return {
         "split": settings.split,
         "val_mae_deg": result.val_mae_deg,

@@ -13,12 +13,12 @@ from typing import Any
 
 from femcal.config import section
 from femcal.paths import setting_path, setting_uri
-from femcal.stages.common import optuna_storage
+from femcal.stages.common import StageSettings, optuna_storage
 from femcal.stages.store import export_folder, tracking
 
 
 @dataclass(frozen=True)
-class TrainInverseSettings:
+class TrainInverseSettings(StageSettings):
     """The ``inverse`` section of params.yaml."""
 
     surrogate_uri: str
@@ -56,18 +56,7 @@ class TrainInverseSettings:
 def run(settings: TrainInverseSettings) -> dict[str, Any]:
     """Train, register and export; returns the validation errors, trials and seconds."""
     tracking(settings.params)
-    result = run_train_inverse(
-        surrogate_uri=settings.surrogate_uri,
-        moments=settings.moments,
-        out_dir=settings.out_dir,
-        metrics_path=settings.metrics_path,
-        settings=settings.settings,
-        storage=settings.storage,
-        study_name=settings.study_name,
-        seed=settings.seed,
-        register_as=settings.register_as,
-        progress=settings.progress,
-    )
+    result = run_train_inverse(**settings.call_args())
     return {
         "val_mae": result.val_mae,
         "val_rom_mae_deg": result.val_rom_mae_deg,

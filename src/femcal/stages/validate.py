@@ -12,7 +12,13 @@ import numpy as np
 
 from femcal.config import section
 from femcal.paths import store_path
-from femcal.stages.common import check_outputs, out_label, path_setting, write_metrics
+from femcal.stages.common import (
+    StageSettings,
+    check_outputs,
+    out_label,
+    path_setting,
+    write_metrics,
+)
 from femcal.stages.simulate import fe_runtime
 from femcal.stages.store import tracking
 
@@ -29,7 +35,7 @@ METRICS_KEYS = (
 
 
 @dataclass(frozen=True)
-class ValidateSettings:
+class ValidateSettings(StageSettings):
     """The ``validate`` and ``fe`` sections of fe/params.yaml, with the command line's overrides."""
 
     calibration_dir: Path
@@ -91,19 +97,7 @@ def run(settings: ValidateSettings) -> dict[str, Any]:
     from femcal.fe.validate import json_safe
 
     tracking(settings.params)
-    result = run_validate(
-        calibration_dir=settings.calibration_dir,
-        measurements=settings.measurements,
-        solver=settings.solver,
-        settings=settings.settings,
-        forces=settings.forces,
-        literature=settings.literature,
-        store=settings.store,
-        out_dir=settings.out_dir,
-        scheduler_address=settings.scheduler_address,
-        n_workers=settings.n_workers,
-        progress=settings.progress,
-    )
+    result = run_validate(**settings.call_args())
     s = result.summary
     # only when asked (the DVC stage)
     write_metrics(settings.metrics_file, json_safe({k: s[k] for k in METRICS_KEYS}))
