@@ -15,7 +15,8 @@ from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates import make_surrogate
 from femcal.surrogates.nn import NeuralSurrogate
-from femcal.surrogates.romnet import RomLightningModule, RomNet
+from femcal.surrogates.romnet import RomNet
+from femcal.surrogates.romnet_training import RomLightningModule
 
 SPACE = ParameterSpace(["stiff", "angle", "frac"], [0.5, -1.0, 0.0], [2.0, 0.0, 1.0])
 MOMENTS = np.arange(1.0, 6.0)

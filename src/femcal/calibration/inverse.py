@@ -12,18 +12,28 @@ module checks that a calibration problem suits a fitted :class:`~femcal.inverse.
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from femcal.calibration.base import CalibrationProblem, Solution, register_calibrator
 from femcal.errors import ConfigError, InputDataError
-from femcal.inverse.model import FIX_PGD, InverseModel
-from femcal.inverse.store import DEFAULT_INVERSE_URI, load_inverse
 from femcal.schema import LOAD_CASES
+
+if TYPE_CHECKING:  # the inverse package (and Lightning) loads only when this method runs
+    from femcal.inverse.model import InverseModel
 
 __all__ = ["InverseModel", "check_problem", "inverse"]
 
 logger = logging.getLogger(__name__)
+
+
+def __getattr__(name: str) -> Any:
+    if name == "InverseModel":  # named by inverse models logged before femcal.inverse existed
+        from femcal.inverse.model import InverseModel
+
+        return InverseModel
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def check_problem(problem: CalibrationProblem, model: InverseModel) -> None:
@@ -36,6 +46,8 @@ def check_problem(problem: CalibrationProblem, model: InverseModel) -> None:
     ConfigError
         Another parameter box or dimension.
     """
+    from femcal.inverse.model import FIX_PGD
+
     grid = problem.model.moments.double().numpy()
     trained = np.asarray(model.moments_, dtype=float)
     if grid.shape != trained.shape or not np.allclose(grid, trained, rtol=1e-6, atol=1e-9):
@@ -79,7 +91,7 @@ def inverse(
     *,
     rng: np.random.Generator,
     model: InverseModel | None = None,
-    model_uri: str = DEFAULT_INVERSE_URI,
+    model_uri: str | None = None,
 ) -> Solution:
     """The study's inverse-model baseline: parameters from the targets in one forward pass.
 
@@ -93,15 +105,19 @@ def inverse(
     model : InverseModel, optional
         A fitted inverse model; loaded from ``model_uri`` when omitted (pass it to keep the
         loading out of the timing and to load it once for several chunks).
-    model_uri : str
-        MLflow model URI of the registered inverse model.
+    model_uri : str, optional
+        MLflow model URI or folder of the inverse model (default: the registered champion,
+        :data:`femcal.inverse.store.DEFAULT_INVERSE_URI`).
 
     Returns
     -------
     Solution
         ``x`` (n, d) in physical units inside the box, ``nit = 1``, ``success`` all True.
     """
+    from femcal.inverse.store import DEFAULT_INVERSE_URI, load_inverse
+
     if model is None:
+        model_uri = model_uri or DEFAULT_INVERSE_URI
         logger.info("Loading the inverse model %s", model_uri)
         model = load_inverse(model_uri)
     model.check_fitted()

@@ -30,11 +30,10 @@ import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
-import pytorch_lightning as pl
 import torch
 from sklearn.base import BaseEstimator, RegressorMixin
 
@@ -46,12 +45,12 @@ from femcal.surrogates.romnet import (
     ACTIVATIONS,
     LOSSES,
     LR_SCHEDULES,
-    RomLightningModule,
     RomNet,
-    pack_blocks,
 )
 from femcal.training import persist
-from femcal.training.lightning import BestWeights, batch_loader, cpu_trainer, quiet_lightning
+
+if TYPE_CHECKING:
+    import pytorch_lightning as pl
 
 log = logging.getLogger(__name__)
 
@@ -283,6 +282,17 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         NeuralSurrogate
             ``self``.
         """
+        # Lightning is imported only to train: loading and calibrating never need it.
+        import pytorch_lightning as pl
+
+        from femcal.surrogates.romnet_training import RomLightningModule, pack_blocks
+        from femcal.training.lightning import (
+            BestWeights,
+            batch_loader,
+            cpu_trainer,
+            quiet_lightning,
+        )
+
         self._check_settings()
         lc, moment, params = self._rows(X)
         y = self._targets(y, len(lc), "y")
