@@ -70,18 +70,17 @@ def _ranking(
             vi = f.v[pos : pos + 1]
             finite = bool(f.finite[pos])
             cov = f.cov[pos : pos + 1]
-            x = model.to_physical(vi.double().numpy())[0]
+            v64 = np.clip(vi.double().numpy(), 0.0, 1.0)
+            x = model.to_physical(v64)[0]
+            # d x / d v of the model's one transform: a unit-box sd in physical units
+            dxdv = model.unit_space.from_unit_jacobian(v64)[0]
             col = base.dim
             for e in model.effects:
                 for par in e.parameters:
                     sd_u = float(np.sqrt(max(cov[0, col, col], 0.0))) if finite else float("nan")
-                    if par.log:
-                        scale = x[col] * np.log(par.upper / par.lower)
-                    else:
-                        scale = par.upper - par.lower
                     entry["parameters"][par.name] = {
                         "value": float(x[col]),
-                        "sd": sd_u * scale,
+                        "sd": sd_u * float(dxdv[col]),
                         "unit": par.unit,
                     }
                     col += 1
