@@ -9,8 +9,9 @@ noise sd 0.05 deg:
 * ``hidden``: :func:`hidden_cohorts.make_hidden_cohort`: laws unlike femcal's, the combinations
   facet + ligament and neutral zone + facet, an out-of-library softening (truth
   ``unexplained``) and ``none``, 8 specimens per class, protocols 1..5 Nm x 0.5, 1.25..5 Nm
-  and 1.25..7.5 Nm x 1.25 mixed in one file (NaN where not measured). Seeds 0, 1 and 2025
-  tune; seed 4711 is held out and runs only with ``--holdout``.
+  and 1.25..7.5 Nm x 1.25 mixed in one file (NaN where not measured). Seeds 0, 1, 2025 and
+  4711 tune (:data:`hidden_cohorts.TUNING_SEEDS`); :data:`hidden_cohorts.HOLDOUT_SEED` is held
+  out and runs only with ``--holdout``.
 
 The surrogate is the registered champion; its own error enters sigma per moment as in the
 diagnose stage (:meth:`femcal.moments.MomentPolicy.sigma_surrogate` with params.yaml
@@ -44,6 +45,7 @@ Usage (from the project root, after ``make repro``)::
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import platform
@@ -61,6 +63,7 @@ from hidden_cohorts import CLASSES as HIDDEN_CLASSES
 from hidden_cohorts import (
     HOLDOUT_SEED,
     PROTOCOLS,
+    TUNING_SEEDS,
     expected_effects,
     make_hidden_cohort,
     stratified,
@@ -242,6 +245,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
         start_bank=ctx["start_bank"],
         min_delta=ctx["min_delta"],
         seed=cohort["seed"],
+        **ctx["options"],
     )
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     verdicts = np.array([s.verdict for s in diag.specimens], dtype=object)
@@ -443,7 +447,23 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument(
         "--model-uri", default=None, help="the surrogate (default: params.yaml calibrate.model_uri)"
     )
+    ap.add_argument(
+        "--diagnose-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a keyword of femcal.diagnose.diagnose for an ablation (a Python literal), repeatable",
+    )
     args = ap.parse_args(argv)
+    options = {}
+    for item in args.diagnose_option:
+        key, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--diagnose-option: expected KEY=VALUE, got {item!r}")
+        try:
+            options[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            ap.error(f"--diagnose-option {key}: {value!r} is not a Python literal")
     kinds = [k.strip() for k in args.cohorts.split(",") if k.strip()]
     for k in kinds:
         if k not in ("three", "hidden"):
@@ -490,6 +510,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "start_bank": training_configurations(bank_path),
         "candidates": section(params, "diagnose", "candidates"),
         "min_delta": float(section(params, "diagnose", "min_delta")),
+        "options": options,
         "cal_opts": calibration_options(
             "pgd",
             section(params, "calibrate", "options", "pgd"),
@@ -525,6 +546,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         if policy is None
         else {"growth": policy.growth, "max_log_ratio": policy.max_log_ratio},
         "max_specimens": args.max_specimens,
+        "diagnose_options": options,
         "noise_deg": plant["noise_deg"],
     }
     write(rows, meta, args.out)
@@ -562,10 +584,15 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
             if meta["max_specimens"]
             else ""
         )
+        + (
+            f"Ablation: diagnose({', '.join(f'{k}={v!r}' for k, v in opts.items())}). "
+            if (opts := meta.get("diagnose_options"))
+            else ""
+        )
         + "`three` = femcal.effects.planted.make_cohort (femcal's own formulas, 1..5 Nm); "
         "`hidden` = benchmarks/hidden_cohorts.py (other laws, combinations, an out-of-library "
-        "softening, 1..5 / 1.25..5 / 1.25..7.5 Nm protocols); seeds 0, 1, 2025 tune, seed "
-        f"{HOLDOUT_SEED} is held out. "
+        "softening, 1..5 / 1.25..5 / 1.25..7.5 Nm protocols); seeds "
+        f"{', '.join(map(str, TUNING_SEEDS))} tune, seed {HOLDOUT_SEED} is held out. "
         "`benchmarks/bench_diagnose.py` wrote this file.",
         "",
         "## The issue's bars",
