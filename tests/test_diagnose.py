@@ -225,3 +225,71 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, surrogate_error_deg=-0.1)
+
+
+def test_a_miss_confined_to_one_load_case_fails_the_per_load_case_test():
+    """Three load cases within the noise (alternating +-0.8 sigma) and one missed by 1.7 sigma
+    at every point: the pooled chi-square (p ~ 0.06) and runs tests pass, the per-load-case
+    test (Bonferroni alpha / 4) does not."""
+    from femcal.diagnose.explain import _adequacy
+
+    sigma = np.full((4, 9), 0.05)
+    res = 0.8 * 0.05 * np.where(np.arange(9) % 2, 1.0, -1.0) * np.ones((4, 1))
+    res[1] = 1.7 * 0.05
+    dof = 36 - 6.5
+    pooled = _adequacy(res, sigma, dof, 0.01)
+    per_lc = _adequacy(res, sigma, dof, 0.01, per_load_case=True)
+    assert pooled["adequate"] and pooled["p_chi2"] > 0.01
+    assert not per_lc["adequate"]
+    assert np.argmin(per_lc["p_chi2_load_case"]) == 1
+    assert min(per_lc["p_chi2_load_case"]) < 0.01 / 4
+    # the same residuals spread over every load case: nothing to flag per load case
+    res[1] = res[0]
+    assert _adequacy(res, sigma, dof, 0.01, per_load_case=True)["adequate"]
+
+
+def test_the_search_asks_the_final_adequacy_question_once_the_fit_has_its_trace():
+    """With the hat matrix's trace the search's test uses the final test's degrees of freedom
+    (n - trace), not n - k/2: a short protocol's 16 points and 15 parameters passed a model
+    during the search (dof 8.5) that the final test (dof ~7) rejected."""
+    import torch
+
+    from femcal.diagnose.explain import _adequacy, _adequate_quick
+    from femcal.diagnose.fits import _Fit
+
+    sigma = np.full((4, 4), 0.05)
+    measured = np.zeros((1, 4, 4))
+    pred = torch.full((1, 4, 4), 0.05 * np.sqrt(19.2 / 16))  # chi2 = 19.2 on 16 points
+    fit = _Fit(("x",), None, torch.zeros(1, 15), np.array([0]), pred, np.array([19.2]), 15)
+    n_points = np.array([16.0])
+    assert _adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)  # dof 8.5: p ~ 0.02
+    fit.trace = np.array([9.0])  # dof 7
+    assert not _adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)
+    assert not _adequacy(measured[0] - pred[0].numpy(), sigma, 7.0, 0.01)["adequate"]
+
+
+def test_refining_a_combination_never_makes_a_fit_worse(world):
+    """The extra rounds keep a specimen's first fit unless a restart lowers its chi-square, and
+    leave alone the fits that already explain the data."""
+    import torch
+
+    from femcal.diagnose.fits import _chi2, _fit_from, _weights
+    from femcal.diagnose.search import _refine_combination
+    from femcal.effects.composite import EffectModel
+
+    base, rom, _, _ = world
+    model = EffectModel(base, ["facet_contact", "ligament_tension"])
+    sigma = np.full((4, len(MOMENTS)), NOISE)
+    weight = np.ascontiguousarray(_weights(sigma[0], rom.shape))
+    rows = np.arange(len(rom))
+    n_points = np.full(len(rom), float(rom[0].size))
+    v0 = torch.full((len(rom), model.dim), 0.5)  # one poor start: the middle of the box
+    v, pred, chi2 = _fit_from(model, rom, weight, sigma, rows, v0, 1, 3)
+    v2, pred2, chi2_2 = _refine_combination(
+        model, rom, weight, sigma, rows, v, pred, chi2, n_points, (0.15, 0.5, 0.85), 1, 10
+    )
+    assert np.all(chi2_2 <= chi2)
+    assert np.any(chi2_2 < 0.5 * chi2)  # three Gauss-Newton steps from the middle are not done
+    np.testing.assert_allclose(_chi2(pred2, rom, sigma), chi2_2, rtol=1e-5)
+    same = chi2_2 == chi2
+    assert torch.equal(v2[torch.as_tensor(same)], v[torch.as_tensor(same)])

@@ -7,7 +7,6 @@ import time
 from typing import Any
 
 import numpy as np
-import torch
 
 from femcal.diagnose.discrepancy import (
     dense_grid,
@@ -28,7 +27,6 @@ from femcal.diagnose.explain import (
     _summary,
 )
 from femcal.diagnose.fits import (
-    _hat_trace_and_cov,
     _solutions,
 )
 from femcal.diagnose.result import (
@@ -78,14 +76,9 @@ def _assemble(
         finals.setdefault(chosen[i], []).append(i)
     # One Jacobian per fitted batch (all its specimens at once): effective parameters and
     # the parameter covariance of every model in every ranking.
-    done: set[int] = set()
     for i in range(n):
         for f, _ in per_spec[i].values():
-            if id(f) not in done:
-                done.add(id(f))
-                _, jac = f.model.curves_jacobian(f.v)
-                f.trace, f.cov = _hat_trace_and_cov(jac, mask[f.rows], sigma)
-                f.finite = torch.isfinite(jac).reshape(len(f.rows), -1).all(1).numpy()
+            f.ensure_trace(mask, sigma)
 
     adequacy: list[dict[str, Any]] = []
     f0 = fits[()]

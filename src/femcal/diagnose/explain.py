@@ -24,29 +24,56 @@ from femcal.schema import LOAD_CASES
 
 
 # ------------------------------------------------------------------------- adequacy
-def _adequacy(res: np.ndarray, sigma: np.ndarray, dof: float, alpha: float) -> dict[str, Any]:
-    """Chi-square and runs tests of residuals (4, m) against the noise."""
+def _adequacy(
+    res: np.ndarray, sigma: np.ndarray, dof: float, alpha: float, per_load_case: bool = False
+) -> dict[str, Any]:
+    """Chi-square and runs tests of residuals (4, m) against the noise.
+
+    With ``per_load_case``, also a chi-square test in each load case (Bonferroni: level
+    ``alpha / 4``, the model's effective parameters shared out by the load case's points): an
+    effect missing in one or two load cases drowns in the pooled test when the others fit well.
+    """
     z = res / sigma
     chi2 = float(np.nansum(z**2))
+    n = int(np.isfinite(z).sum())
     dof = max(dof, 1.0)
     p_chi2 = _chi2_sf(chi2, dof)
     p_runs = runs_p_value(res)
     # Runs of one sign only matter where the residuals are not small against the noise: a
     # smooth surrogate error well inside sigma makes runs, not missing physics.
     runs_bad = p_runs < alpha and chi2 > dof
-    return {
-        "chi2": chi2,
-        "dof": dof,
-        "p_chi2": p_chi2,
-        "p_runs": p_runs,
-        "adequate": bool(p_chi2 >= alpha and not runs_bad),
-    }
+    out = {"chi2": chi2, "dof": dof, "p_chi2": p_chi2, "p_runs": p_runs}
+    lc_bad = False
+    if per_load_case and n:
+        used = n - dof  # effective parameters
+        p_lc = []
+        for row in z:
+            ok = np.isfinite(row)
+            n_j = int(ok.sum())
+            if n_j < 2:
+                p_lc.append(1.0)
+                continue
+            p_lc.append(_chi2_sf(float(np.sum(row[ok] ** 2)), n_j - used * n_j / n))
+        out["p_chi2_load_case"] = p_lc
+        lc_bad = min(p_lc) < alpha / len(p_lc)
+    out["adequate"] = bool(p_chi2 >= alpha and not runs_bad and not lc_bad)
+    return out
 
 
-def _adequate_quick(fit: _Fit, pos: int, i: int, measured, sigma, n_points, alpha) -> bool:
-    """Adequacy during forward selection (degrees of freedom: n - k/2, no Jacobian)."""
+def _adequate_quick(
+    fit: _Fit, pos: int, i: int, measured, sigma, n_points, alpha, per_load_case: bool = False
+) -> bool:
+    """Adequacy during the search: the final test's degrees of freedom (``n - trace`` of the
+    hat matrix, one Jacobian per fitted batch) where the fit has them, else ``n - k/2``.
+
+    The search and the verdict must ask the same question: with ``n - k/2`` a short protocol
+    (16 points, 15 parameters) passed a model during the search that the final test rejected,
+    and the verdict said ``+unexplained`` where the next effect had never been tried.
+    """
     res = measured[i] - fit.pred[pos].double().numpy()
-    return bool(_adequacy(res, sigma, float(n_points[i] - fit.k / 2), alpha)["adequate"])
+    used = fit.k / 2 if fit.trace is None else float(fit.trace[pos])
+    dof = float(n_points[i] - used)
+    return bool(_adequacy(res, sigma, dof, alpha, per_load_case)["adequate"])
 
 
 # ------------------------------------------------------------------------ reporting

@@ -125,6 +125,15 @@ class _Fit:
     cov: np.ndarray | None = None  # (r, dim, dim) parameter covariance, unit coordinates
     finite: np.ndarray | None = None  # (r,) the Jacobian is finite
 
+    def ensure_trace(self, mask: np.ndarray, sigma: np.ndarray) -> None:
+        """Effective parameters, covariance and finiteness from one Jacobian of the batch
+        (once; ``mask`` (n, 4, m) of the whole cohort, ``sigma`` (4, m))."""
+        if self.trace is not None:
+            return
+        _, jac = self.model.curves_jacobian(self.v)
+        self.trace, self.cov = _hat_trace_and_cov(jac, mask[self.rows], sigma)
+        self.finite = torch.isfinite(jac).reshape(len(self.rows), -1).all(1).numpy()
+
 
 def _fit_from(
     model, measured, weight, sigma, rows: np.ndarray, v0: torch.Tensor, g: int, max_iter: int
