@@ -18,10 +18,10 @@ import pytest
 import yaml
 
 from femcal.schema import LOAD_CASES
-from femcal.stages.calibrate import (
+from femcal.stages.calibrate import run_calibrate
+from femcal.stages.tracking_process import (
     TrackingProcess,
     log_calibration,
-    run_calibrate,
     start_calibration_run,
 )
 from femcal.tracking import (

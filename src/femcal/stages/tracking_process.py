@@ -1,0 +1,347 @@
+"""The calibration's MLflow run, in this process or in a child process of the command line.
+
+``femcal calibrate`` logs from a child process started first (:class:`TrackingProcess`): it
+imports MLflow, opens the store and runs the calls while the command imports torch and
+calibrates on the other core. Library callers log in-process (:class:`LocalTracking`). Each step
+of the run is a function of picklable arguments (:data:`TRACKING_CALLS`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import pickle
+import sys
+from collections import deque
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from femcal.stages.store import tracking
+
+logger = logging.getLogger(__name__)
+
+
+def log_artifacts(folder: Path, artifact_path: str, *, progress: bool = False) -> None:
+    """``mlflow.log_artifacts(folder, artifact_path)`` file by file, with a progress bar.
+
+    The same artifact layout: ``<artifact_path>/<path of the file in folder>``.
+    """
+    import mlflow
+
+    files: Any = sorted(p for p in Path(folder).rglob("*") if p.is_file())
+    if progress and len(files) > 1:
+        from tqdm.auto import tqdm
+
+        files = tqdm(files, desc="MLflow artifacts", unit="file")
+    for path in files:
+        parent = path.parent.relative_to(folder).as_posix()
+        mlflow.log_artifact(
+            str(path), f"{artifact_path}/{parent}" if parent != "." else artifact_path
+        )
+
+
+def compare_with_previous(
+    measurements: Path, logged: Mapping[str, Any], figures: Mapping[str, Any], out_dir: Path
+) -> None:
+    """Before and after: the latest earlier calibration of the same file with other effects."""
+    import mlflow
+
+    from femcal.compare import comparison_frame, previous_calibration, write_comparison
+
+    this = mlflow.active_run().info.run_id
+    prev = previous_calibration(
+        measurements=str(measurements), effects=logged["effects"], exclude_run_id=this
+    )
+    if prev is None:
+        return
+    after = {k: v for k, v in figures.items() if isinstance(v, (int, float))}
+    frame = comparison_frame(prev.data.metrics, after)
+    write_comparison(
+        frame,
+        out_dir,
+        before={
+            "run_id": prev.info.run_id,
+            "effects": prev.data.params.get("effects", ""),
+            "model": prev.data.params.get("model_version", ""),
+        },
+        after={
+            "run_id": this,
+            "effects": logged["effects"],
+            "model": logged.get("model_version", ""),
+        },
+    )
+    mlflow.set_tag("femcal.compared_to", prev.info.run_id)
+    logger.info("Compared with run %s: %s", prev.info.run_id, out_dir / "comparison.md")
+
+
+# --------------------------------------------------------------------------- the MLflow run
+# The calibration's run in steps, each a function of picklable arguments: it runs where the
+# tracking store is configured, in this process (LocalTracking) or in the tracking process of
+# the command line (TrackingProcess).
+
+
+def start_calibration_run(run_name: str) -> str:
+    """Start the calibration's MLflow run (tagged ``femcal.stage = calibrate``); its id."""
+    import mlflow
+
+    run = mlflow.start_run(run_name=run_name)
+    mlflow.set_tag("femcal.stage", "calibrate")
+    return run.info.run_id
+
+
+def log_calibration(
+    *,
+    tags: Mapping[str, str],
+    params: Mapping[str, Any],
+    metrics: Mapping[str, float],
+    parameters: Any,
+    measurements: Path,
+    figures: Mapping[str, Any],
+    out_dir: Path,
+) -> None:
+    """Tags, parameters, metrics and the two tables of the active run; the comparison with
+    the previous calibration of the same file (written into ``out_dir``)."""
+    import mlflow
+    import pandas as pd
+
+    mlflow.set_tags(dict(tags))
+    mlflow.log_params(dict(params))
+    mlflow.log_metrics(dict(metrics))
+    metrics_df = pd.read_csv(Path(out_dir) / "metrics.csv")
+    metrics_df["missing_load_cases"] = metrics_df["missing_load_cases"].fillna("")
+    mlflow.log_table(metrics_df, artifact_file="tables/metrics.json")
+    mlflow.log_table(parameters, artifact_file="tables/parameters.json")
+    compare_with_previous(measurements, params, figures, out_dir)
+
+
+def end_calibration_run(status: str, run_id: str | None = None) -> None:
+    """End the run ``run_id`` (None: the active one) with ``status`` (FINISHED, FAILED), if it
+    is the active run."""
+    import mlflow
+
+    active = mlflow.active_run()
+    if active is not None and run_id in (None, active.info.run_id):
+        mlflow.end_run(status=status)
+
+
+class LocalTracking:
+    """The calibration's MLflow calls in this process: the store and experiment MLflow is
+    pointed at (the library's default; the caller configures them).
+
+    :meth:`submit` runs the call at once (its error is raised there); :meth:`result` returns
+    the results in the order submitted.
+    """
+
+    def __init__(self) -> None:
+        self._results: deque[Any] = deque()
+        self._run_id: str | None = None
+
+    def submit(self, fn: Callable[..., Any], /, **kwargs: Any) -> None:
+        value = fn(**kwargs)
+        if fn is start_calibration_run:
+            self._run_id = value
+        self._results.append(value)
+
+    def result(self) -> Any:
+        return self._results.popleft()
+
+    def call(self, fn: Callable[..., Any], /, **kwargs: Any) -> Any:
+        self.submit(fn, **kwargs)
+        return self.result()
+
+    def check(self) -> None:
+        """Nothing to check: a store error is raised by the call that meets it."""
+
+    def use_store_here(self) -> None:
+        """The store is this process's already."""
+
+    def abort(self) -> None:
+        """End the run this tracker started (if it is still active) as FAILED."""
+        self._results.clear()
+        if self._run_id is not None:
+            end_calibration_run("FAILED", self._run_id)
+
+
+#: The calls a :class:`TrackingProcess` makes on request, by name.
+TRACKING_CALLS: dict[str, Callable[..., Any]] = {
+    f.__name__: f
+    for f in (start_calibration_run, log_calibration, log_artifacts, end_calibration_run)
+}
+
+
+class TrackingProcess:
+    """MLflow in a child process: its imports, the store and the calibration's run.
+
+    Started first, the child imports MLflow, points it at the store of ``params``
+    (:func:`femcal.stages.store.tracking`: the store, the experiment, killed runs closed) while
+    this process imports torch, reads and calibrates: on two cores that time is hidden. The
+    calls of :data:`TRACKING_CALLS` then run in the child, in the order submitted; their
+    errors are raised here (the child's traceback as a note), a store error at the first
+    :meth:`check` or :meth:`result` after it. The run is tagged with the child's process
+    (:func:`femcal.tracking_runs.tag_runs_with_process`): a killed command leaves it RUNNING,
+    and the next command closes it as KILLED, as before.
+
+    Use as a context manager: leaving it stops the child (a run still open ends FAILED).
+    """
+
+    #: Seconds to wait for the child to end after the last call.
+    JOIN_TIMEOUT = 60.0
+
+    def __init__(self, params: Mapping[str, Any]) -> None:
+        import multiprocessing
+
+        # What both processes import, once, before the fork: the child inherits it (this
+        # femcal's model loading and MLflow glue), so the two cores share no import twice.
+        import femcal.tracking  # noqa: F401
+
+        methods = multiprocessing.get_all_start_methods()
+        # fork: nothing heavy is imported yet, and the child inherits the logging setup and
+        # the environment; spawn elsewhere.
+        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+        self._conn, child = ctx.Pipe()
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        self._process = ctx.Process(
+            target=_serve_tracking,
+            args=(child, dict(params), _log_levels()),
+            name="femcal-mlflow",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        self._pending = 1  # the setup's answer: the tracking URI
+        self._tracking_uri: str | None = None
+        self._ready = False
+
+    def __enter__(self) -> TrackingProcess:
+        return self
+
+    def __exit__(self, exc_type: Any, *_: Any) -> None:
+        self.close(failed=exc_type is not None)
+
+    # -- calls
+    def submit(self, fn: Callable[..., Any], /, **kwargs: Any) -> None:
+        if TRACKING_CALLS.get(fn.__name__) is not fn:
+            raise ValueError(f"{fn.__name__} is not one of {sorted(TRACKING_CALLS)}.")
+        self._conn.send((fn.__name__, kwargs))
+        self._pending += 1
+
+    def result(self) -> Any:
+        """The result of the oldest call not yet answered (its error raised here)."""
+        self._wait_ready()
+        return self._receive()
+
+    def call(self, fn: Callable[..., Any], /, **kwargs: Any) -> Any:
+        self.submit(fn, **kwargs)
+        return self.result()
+
+    def check(self) -> None:
+        """Raise the store's error now if the child has already met one."""
+        if not self._ready and self._conn.poll():
+            self._wait_ready()
+
+    def use_store_here(self) -> None:
+        """Point this process's MLflow at the child's store (to download ``models:/`` URIs)."""
+        import mlflow
+
+        self._wait_ready()
+        mlflow.set_tracking_uri(self._tracking_uri)
+        mlflow.set_registry_uri(self._tracking_uri)
+
+    def abort(self) -> None:
+        """End the child's open run (if any) as FAILED; the answers still due are dropped."""
+        try:
+            self._wait_ready()
+        except Exception:  # noqa: BLE001 - the store never came up: no run to end
+            return
+        try:
+            while self._pending:
+                with contextlib.suppress(Exception):
+                    self._receive()
+            self.call(end_calibration_run, status="FAILED")
+        except Exception as exc:  # noqa: BLE001 - the error being handled is the caller's
+            logger.warning("Could not end the MLflow run as FAILED: %s", exc)
+
+    def close(self, *, failed: bool = False) -> None:
+        """Stop the child (ending an open run as FAILED first when ``failed``)."""
+        if failed:
+            self.abort()
+        try:
+            self._conn.send(None)
+        except OSError:
+            pass  # already gone
+        self._process.join(self.JOIN_TIMEOUT)
+        if self._process.is_alive():  # pragma: no cover - a hung store
+            logger.warning("The MLflow process %s did not stop; terminated.", self._process.pid)
+            self._process.terminate()
+            self._process.join()
+        self._conn.close()
+
+    # -- internals
+    def _wait_ready(self) -> None:
+        if not self._ready:
+            self._tracking_uri = self._receive()
+            self._ready = True
+
+    def _receive(self) -> Any:
+        try:
+            kind, value, trace = self._conn.recv()
+        except EOFError:
+            self._pending = 0
+            self._process.join(5)
+            raise RuntimeError(
+                f"The MLflow process (pid {self._process.pid}) ended unexpectedly (exit code "
+                f"{self._process.exitcode}); the calibration's run was not logged."
+            ) from None
+        self._pending -= 1
+        if kind == "error":
+            if trace and hasattr(value, "add_note"):
+                value.add_note(f"In the MLflow process:\n{trace}")
+            raise value
+        return value
+
+
+def _log_levels() -> tuple[int, int]:
+    """The levels of the root and ``femcal`` loggers (for a spawned child)."""
+    return logging.getLogger().level, logging.getLogger("femcal").level
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """``exc`` if it survives pickling, else a RuntimeError with its type and message."""
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:  # noqa: BLE001 - any unpicklable exception
+        return RuntimeError(f"{type(exc).__name__}: {exc}")
+    return exc
+
+
+def _serve_tracking(conn: Any, params: Mapping[str, Any], levels: tuple[int, int]) -> None:
+    """The child of :class:`TrackingProcess`: set up the store, then run the calls sent."""
+    import signal
+    import traceback
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the parent ends the run
+    if not logging.getLogger().handlers:  # spawned: the parent's logging setup
+        logging.basicConfig(level=levels[0], format="%(levelname)s %(name)s: %(message)s")
+        logging.getLogger("femcal").setLevel(levels[1])
+    try:
+        import mlflow
+
+        tracking(params)
+        conn.send(("ok", mlflow.get_tracking_uri(), None))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent
+        conn.send(("error", _portable(exc), traceback.format_exc()))
+        return
+    while True:
+        try:
+            request = conn.recv()
+        except EOFError:  # the parent is gone: its run stays RUNNING, closed later as KILLED
+            return
+        if request is None:
+            return
+        name, kwargs = request
+        try:
+            conn.send(("ok", TRACKING_CALLS[name](**kwargs), None))
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent
+            conn.send(("error", _portable(exc), traceback.format_exc()))
