@@ -142,6 +142,7 @@ def diagnose(
     shape_starts: int = 0,
     load_case_test: bool = False,
     combination_rounds: int = 1,
+    exact_dof: bool = True,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -240,6 +241,9 @@ def diagnose(
         ``pgd`` does): from the first effect's solution the second effect's grid alone left
         the first stuck where it had bent without the second (hidden cohort 4711 H038: facet +
         ligament at MAE 0.064 deg, ``pgd`` 0.028 deg).
+    exact_dof : bool
+        The search's adequacy test takes the final test's degrees of freedom (``n - trace`` of
+        the hat matrix, a Jacobian per fitted batch), else ``n - k/2``.
     seed : int
 
     Returns
@@ -408,7 +412,8 @@ def diagnose(
                 # only has to beat it by ``min_delta_inadequate`` (the elimination below keeps
                 # an effect only if it pays beyond a smooth discrepancy).
                 need = min_delta
-                cur_fit.ensure_trace(mask, sigma)
+                if exact_dof:
+                    cur_fit.ensure_trace(mask, sigma)
                 if current and not _adequate_quick(
                     cur_fit, cur_pos, i, measured, sigma, n_points, alpha, load_case_test
                 ):
@@ -421,7 +426,8 @@ def diagnose(
         still = []
         for i in improved:
             f, pos = per_spec[i][chosen[i]]
-            f.ensure_trace(mask, sigma)
+            if exact_dof:
+                f.ensure_trace(mask, sigma)
             if not stop_when_adequate or not _adequate_quick(
                 f, pos, i, measured, sigma, n_points, alpha, load_case_test
             ):
@@ -482,7 +488,8 @@ def diagnose(
     # model leaves unexplained: effects that merely let the disc bend towards physics nobody
     # registered are dropped (backward elimination, BIC of the GLS fit with that GP).
     for i in range(n):
-        per_spec[i][chosen[i]][0].ensure_trace(mask, sigma)
+        if exact_dof:
+            per_spec[i][chosen[i]][0].ensure_trace(mask, sigma)
     pending = [
         i
         for i in range(n)
