@@ -45,3 +45,18 @@ def tidy_table(n_configs: int, seed: int, moments=(1, 2, 3, 4, 5)) -> pd.DataFra
                     }
                 )
     return pd.DataFrame(rows)
+
+
+def long_csv(path, curves: np.ndarray, moments=(1, 2, 3, 4, 5)):
+    """Write RoM curves (n, 4, m) as a long measurement CSV (``spec-<i>``; NaN points left out)."""
+    rows = [
+        (f"spec-{i}", lc, m, spec[j, k])
+        for i, spec in enumerate(curves)
+        for j, lc in enumerate(LOAD_CASES)
+        for k, m in enumerate(moments)
+        if np.isfinite(spec[j, k])
+    ]
+    pd.DataFrame(rows, columns=["specimen", "load_case", "moment_nm", "rom_deg"]).to_csv(
+        path, index=False
+    )
+    return path

@@ -13,14 +13,12 @@ import sys
 from pathlib import Path
 
 import mlflow
-import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
 from femcal.cli import main
 from femcal.outputs import read_marker
-from femcal.schema import LOAD_CASES
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
@@ -28,21 +26,10 @@ from femcal.tracking import (
     register_and_promote,
 )
 
+from synth import long_csv
+
 ROOT = Path(__file__).resolve().parents[2]
 MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
-
-
-def _long_csv(path: Path, curves: np.ndarray, moments=(1, 2, 3, 4, 5)) -> Path:
-    rows = [
-        (f"spec-{i}", lc, m, spec[j, k])
-        for i, spec in enumerate(curves)
-        for j, lc in enumerate(LOAD_CASES)
-        for k, m in enumerate(moments)
-    ]
-    pd.DataFrame(rows, columns=["specimen", "load_case", "moment_nm", "rom_deg"]).to_csv(
-        path, index=False
-    )
-    return path
 
 
 def _params(tmp: Path, *, plots: bool) -> dict:
@@ -98,7 +85,7 @@ def project(settings, small_surrogate, truth):
     with mlflow.start_run():
         info = log_surrogate(small_surrogate, small_surrogate.space)
     register_and_promote(info.model_uri, name="ivd-rom-surrogate", val_metric=0.1)
-    _long_csv(settings / "meas.csv", truth[1][:2])
+    long_csv(settings / "meas.csv", truth[1][:2])
     yield settings
     mlflow.set_tracking_uri(None)
 

@@ -12,7 +12,6 @@ import yaml
 
 from femcal.cli import main
 from femcal.errors import InputDataError, ModelRegistryError
-from femcal.schema import LOAD_CASES
 from femcal.stages.calibrate import run_calibrate
 from femcal.tracking import (
     configure_tracking,
@@ -20,6 +19,8 @@ from femcal.tracking import (
     log_surrogate,
     register_and_promote,
 )
+
+from synth import long_csv
 
 #: The moment policy's settings (params.yaml ``moments``).
 MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
@@ -38,24 +39,11 @@ def registry(tmp_path, monkeypatch, small_surrogate):
     mlflow.set_tracking_uri(None)
 
 
-def _long_csv(path, curves, moments=(1, 2, 3, 4, 5)):
-    rows = []
-    for i, spec in enumerate(curves):
-        for j, lc in enumerate(LOAD_CASES):
-            for k, m in enumerate(moments):
-                if np.isfinite(spec[j, k]):
-                    rows.append((f"spec-{i}", lc, m, spec[j, k]))
-    pd.DataFrame(rows, columns=["specimen", "load_case", "moment_nm", "rom_deg"]).to_csv(
-        path, index=False
-    )
-    return path
-
-
 def test_run_calibrate_logs_one_run_with_tables(registry, truth):
     tmp = registry
     curves = truth[1].copy()
     curves[1, 0] = np.nan  # spec-1 has no flexion
-    meas = _long_csv(tmp / "meas.csv", curves)
+    meas = long_csv(tmp / "meas.csv", curves)
     result, figures = run_calibrate(
         measurements=meas,
         out_dir=tmp / "out",
@@ -87,7 +75,7 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
 def test_run_calibrate_shows_plotting_and_logging_progress(registry, truth, capsys):
     """On a terminal (progress=True): bars over the plots and the files logged to MLflow."""
     run_calibrate(
-        measurements=_long_csv(registry / "meas.csv", truth[1][:3]),
+        measurements=long_csv(registry / "meas.csv", truth[1][:3]),
         out_dir=registry / "out",
         method="pgd",
         model_uri="models:/ivd-rom-surrogate@champion",
@@ -112,7 +100,7 @@ def test_run_calibrate_shows_plotting_and_logging_progress(registry, truth, caps
 
 
 def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
-    meas = _long_csv(registry / "m.csv", truth[1][:1], moments=(1, 2, 3, 4, 9))
+    meas = long_csv(registry / "m.csv", truth[1][:1], moments=(1, 2, 3, 4, 9))
     with pytest.raises(
         InputDataError,
         match=r"m\.csv: measured moments 9 Nm are too far outside the surrogate's trained moment "
@@ -134,7 +122,7 @@ def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
 def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypatch):
     tmp = registry
     monkeypatch.chdir(tmp)
-    meas = _long_csv(tmp / "meas.csv", truth[1][:2])
+    meas = long_csv(tmp / "meas.csv", truth[1][:2])
     params = {
         "mlflow": {
             "store_dir": str(tmp / "mlruns"),
@@ -190,7 +178,7 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
 
 
 def test_missing_registered_model(registry, truth):
-    meas = _long_csv(registry / "m.csv", truth[1][:1])
+    meas = long_csv(registry / "m.csv", truth[1][:1])
     with pytest.raises(
         ModelRegistryError, match="Could not load the model 'models:/nope@champion'"
     ):
@@ -217,7 +205,7 @@ def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
     model = EffectModel(SurrogateCurveModel(small_surrogate, moments), ["facet_contact"])
     x = small_surrogate.space.sample_uniform(4, np.random.default_rng(2))
     curves = model.predict(np.concatenate([x, [[0.5, 2.0]] * 4], axis=1))
-    meas = _long_csv(tmp / "meas.csv", curves, moments)
+    meas = long_csv(tmp / "meas.csv", curves, moments)
     common = dict(
         measurements=meas,
         method="pgd",
@@ -254,7 +242,7 @@ def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, mon
 
     moments = (1.25, 2.5, 5.0, 7.5)
     x = small_surrogate.space.sample_uniform(2, np.random.default_rng(4))
-    meas = _long_csv(
+    meas = long_csv(
         registry / "vitro.csv", SurrogateCurveModel(small_surrogate, moments).predict(x), moments
     )
     seen = {}
@@ -309,7 +297,7 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     curves = np.concatenate([truth[1][:1], truth[1][:1, :, -1:]], axis=2)
     with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"):
         diag, summary = run_diagnose(
-            measurements=_long_csv(registry / "d.csv", curves, moments), **common
+            measurements=long_csv(registry / "d.csv", curves, moments), **common
         )
     policy = MomentPolicy.for_surrogate(
         small_surrogate, growth=MOMENTS["error_growth"], max_log_ratio=MOMENTS["max_log_ratio"]
@@ -319,6 +307,6 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     assert sigma.shape == (6,) and sur[-1] > sur[0] == sur[4] == pytest.approx(policy.error_deg)
     np.testing.assert_allclose(sigma, np.sqrt(0.05**2 + sur**2), rtol=1e-6)
     assert summary["n_specimens"] == 1 and (registry / "diag" / "diagnosis.json").exists()
-    far = _long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
+    far = long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
     with pytest.raises(InputDataError, match=r"far\.csv: measured moments 12 Nm are too far"):
         run_diagnose(measurements=far, **common)

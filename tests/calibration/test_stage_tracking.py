@@ -13,11 +13,9 @@ import subprocess
 import sys
 
 import mlflow
-import pandas as pd
 import pytest
 import yaml
 
-from femcal.schema import LOAD_CASES
 from femcal.stages.calibrate import run_calibrate
 from femcal.stages.tracking_process import (
     TrackingProcess,
@@ -31,6 +29,8 @@ from femcal.tracking import (
     folder_sha256,
     log_surrogate,
 )
+
+from synth import long_csv
 
 MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 #: Imported only to open MLflow's SQL store.
@@ -52,15 +52,7 @@ def project(tmp_path, monkeypatch, small_surrogate, truth):
             record={"run_id": run.info.run_id, "registered_model": None, "version": None},
         )
     mlflow.set_tracking_uri(None)
-    rows = [
-        (f"spec-{i}", lc, m, truth[1][i, j, k])
-        for i in range(3)
-        for j, lc in enumerate(LOAD_CASES)
-        for k, m in enumerate((1, 2, 3, 4, 5))
-    ]
-    pd.DataFrame(rows, columns=["specimen", "load_case", "moment_nm", "rom_deg"]).to_csv(
-        tmp_path / "meas.csv", index=False
-    )
+    long_csv(tmp_path / "meas.csv", truth[1][:3])
     params = {
         "mlflow": {
             "store_dir": str(tmp_path / "mlruns"),
