@@ -24,6 +24,7 @@ import torch
 from femcal.calibration.model import CurveModel
 from femcal.effects.base import Effect, get_effect
 from femcal.space import ParameterSpace
+from femcal.surrogates.romnet import forward_tangents
 
 logger = logging.getLogger(__name__)
 
@@ -88,12 +89,17 @@ class EffectModel:
         return torch.cat(parts, dim=1)
 
     # ------------------------------------------------------------ evaluation
-    def _disc(self, v_disc: torch.Tensor):
-        """Per-member coefficients (K, B, 4, p) and a function M (B, 4, m) -> (phi, dphi/dM)."""
+    def _disc(self, v_disc: torch.Tensor, coef: torch.Tensor | None = None):
+        """A function M (B, 4, m) -> (phi, dphi/dM) of the disc at ``v_disc`` (B, 13).
+
+        ``coef`` (K, B, 4, p): the members' coefficients when already computed (the Jacobian
+        passes them as a dual tensor, differentiated by :func:`forward_tangents`).
+        """
         net = self.net
         b = v_disc.shape[0]
         shape = (b, net.n_load_cases, net.moment_degree + 1)
-        coef = torch.stack([m(v_disc).reshape(shape) for m in net.members])
+        if coef is None:
+            coef = torch.stack([m(v_disc).reshape(shape) for m in net.members])
         powers = torch.arange(net.moment_degree + 1, dtype=v_disc.dtype)
 
         m_low = self.m_low
@@ -108,11 +114,12 @@ class EffectModel:
             mc = moment.clamp_min(m_low)
             z = (torch.log(mc) - net.moment_loc) / net.moment_scale  # (B, 4, m)
             basis = z[..., None] ** powers  # (B, 4, m, p)
-            scaled = (c[:, :, :, None, :] * basis).sum(-1)  # (K, B, 4, m)
+            # (B, 4, m, p) @ (K, B, 4, p, 1) -> (K, B, 4, m): one batched product per member.
+            scaled = (basis @ c[..., None])[..., 0]
             deg = net.to_degrees(scaled)
             # d z^j / dz = j z^(j-1): the basis shifted by one power.
             dbasis = torch.cat([torch.zeros_like(basis[..., :1]), basis[..., :-1]], -1) * powers
-            dz = (c[:, :, :, None, :] * dbasis).sum(-1) / (net.moment_scale * mc)
+            dz = (dbasis @ c[..., None])[..., 0] / (net.moment_scale * mc)
             slope = deg * net.y_scale * dz if net.log_target else net.y_scale * dz
             deg, slope = deg.mean(0), slope.mean(0)
             low = moment < m_low
@@ -152,15 +159,22 @@ class EffectModel:
             md0 = torch.exp(0.5 * (lo + hi))
             return torch.where(lc_mask[None, :, None], md0, applied)
 
-    def curves(self, v: torch.Tensor, *, share: torch.Tensor | None = None) -> torch.Tensor:
+    def curves(
+        self,
+        v: torch.Tensor,
+        *,
+        share: torch.Tensor | None = None,
+        coef: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Composite RoM curves, shape (n, dim) -> (n, 4, m); differentiable in ``v``.
 
         ``share`` (n, 4, m): the disc's share of the moment from :meth:`_disc_share` at the
         same ``v`` (computed here when omitted; the Jacobian passes it, bisected once per row).
+        ``coef`` (K, n, 4, p): the disc members' coefficients at ``v`` (see :meth:`_disc`).
         """
         self.n_evaluations += int(v.shape[0])
         b = v.shape[0]
-        phi_disc = self._disc(v[:, : self.n_disc])
+        phi_disc = self._disc(v[:, : self.n_disc], coef)
         applied = self.moments.to(v.dtype).expand(b, 4, -1)
         params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
         parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
@@ -208,6 +222,7 @@ class EffectModel:
         import torch.autograd.forward_ad as fwad
 
         b, d = v.shape
+        net, nd = self.net, self.n_disc
         # Chunks of at most _JAC_ROWS dual rows bound the memory of the temporaries.
         step = max(1, _JAC_ROWS // d)
         values, jacs = [], []
@@ -218,8 +233,24 @@ class EffectModel:
             primal = vc.repeat_interleave(d, 0)
             tangent = torch.eye(d, dtype=v.dtype).repeat(n, 1)
             share = self._disc_share(vc).repeat_interleave(d, 0)  # bisected once per row
+            # The disc network's coefficients and their d/dv by explicit forward tangents
+            # (n rows, not n * d dual rows through every layer: forward-mode AD of the MLP
+            # costs far more per operation); row i * d + j carries d coef_i / d v_j.
+            shape = (n * d, net.n_load_cases, net.moment_degree + 1)
+            coef, dcoef = [], []
+            with torch.no_grad():
+                for member in net.members:
+                    h, t = forward_tangents(member, vc[:, :nd])  # (n, out), (n, nd, out)
+                    full = t.new_zeros((n, d, t.shape[-1]))
+                    full[:, :nd] = t
+                    coef.append(h.repeat_interleave(d, 0).reshape(shape))
+                    dcoef.append(full.reshape(shape))
             with fwad.dual_level():
-                out = self.curves(fwad.make_dual(primal, tangent), share=share)
+                out = self.curves(
+                    fwad.make_dual(primal, tangent),
+                    share=share,
+                    coef=fwad.make_dual(torch.stack(coef), torch.stack(dcoef)),
+                )
                 val, jac = fwad.unpack_dual(out)
             shape = (n, d, *val.shape[1:])
             if jac is None:  # no path from v to the curves
