@@ -571,6 +571,10 @@ class TrackingProcess:
     def __init__(self, params: Mapping[str, Any]) -> None:
         import multiprocessing
 
+        # What both processes import, once, before the fork: the child inherits it (this
+        # femcal's model loading and MLflow glue), so the two cores share no import twice.
+        import femcal.tracking  # noqa: F401
+
         methods = multiprocessing.get_all_start_methods()
         # fork: nothing heavy is imported yet, and the child inherits the logging setup and
         # the environment; spawn elsewhere.
