@@ -226,6 +226,30 @@ def test_builtin_modules_are_imported_on_first_use_only(site, hub):
     assert hub.names() == ["alpha", "beta"] and hub.create("beta") == "beta"
 
 
+def test_one_builtin_module_is_imported_alone_for_a_look_up_that_knows_it(site, hub):
+    for name in ("alpha", "beta"):
+        write(
+            site / f"regtest_{name}.py",
+            f"""
+            from regtest_hub import REG
+
+            @REG.register("{name}")
+            class {name.title()}:
+                pass
+            """,
+        )
+    hub.builtins = ("regtest_alpha", "regtest_beta")
+    assert hub.import_builtin("regtest_beta") is True
+    assert "regtest_beta" in sys.modules and "regtest_alpha" not in sys.modules
+    assert [name for name, _ in hub.items(load=False)] == ["beta"]
+    # Not a built-in module (or a package's wildcard): nothing is imported.
+    write(site / "regtest_gamma.py", "raise RuntimeError('imported')\n")
+    assert hub.import_builtin("regtest_gamma") is False
+    assert widgets(builtins=("regtest_pkg.*",)).import_builtin("regtest_pkg.alpha") is False
+    assert "regtest_gamma" not in sys.modules and "regtest_alpha" not in sys.modules
+    assert [name for name, _ in hub.items()] == ["beta", "alpha"]  # then the whole registry
+
+
 # ---------------------------------------------------------------- entry-point plugins
 MODULE_PLUGIN = """
 from regtest_hub import REG

@@ -244,3 +244,37 @@ def test_broken_entry_point_plugin_is_named(tmp_path, monkeypatch, clean_registr
     monkeypatch.syspath_prepend(str(tmp_path))
     with pytest.raises(ConfigError, match=r"plugin 'demo = femcal_plugin_demo:Missing'.*failed"):
         trusted_surrogate_classes()
+
+
+def test_a_model_folder_loads_without_mlflow_or_the_model_zoo(store, fitted, tmp_path):
+    """``femcal calibrate`` on models/surrogate-large: the network's loader alone."""
+    import subprocess
+
+    from femcal.tracking import export_model
+
+    model, frame = fitted
+    with mlflow.start_run():
+        info = log_surrogate(model, study_space())
+    folder = export_model(info.model_uri, tmp_path / "surrogate-large", record={})
+    heavy = ("mlflow", "lightgbm", "sklearn.compose", "femcal.surrogates.baselines")
+    code = (
+        "import sys\n"
+        "from femcal.tracking import load_surrogate, open_model\n"
+        f"source = open_model({str(folder)!r})\n"
+        "model = load_surrogate(source)\n"
+        "print(type(model).__name__, source.sha256[:8])\n"
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == "[]", proc.stdout
+    assert proc.stdout.startswith("NeuralSurrogate")
+    # A class femcal's network module does not register is refused, as before.
+    with pytest.raises(
+        UntrustedArtifactError,
+        match=r"names the class 'femcal\.surrogates\.nn:RomNet', which is not a registered",
+    ):
+        trusted_surrogate_class("femcal.surrogates.nn:RomNet", source="model/femcal_loader.json")
+    # The model zoo's classes still resolve (their module imported alone).
+    spec = "femcal.surrogates.baselines:LinearSurrogate"
+    assert trusted_surrogate_class(spec, source="x").__name__ == "LinearSurrogate"

@@ -249,9 +249,14 @@ class Registry(Generic[T]):
         self.load()
         return sorted(self._entries)
 
-    def items(self) -> list[tuple[str, T]]:
-        """``(name, object)`` pairs, in registration order."""
-        self.load()
+    def items(self, *, load: bool = True) -> list[tuple[str, T]]:
+        """``(name, object)`` pairs, in registration order.
+
+        ``load=False``: those registered so far, without importing the built-in modules or
+        loading the plugins (see :meth:`import_builtin`).
+        """
+        if load:
+            self.load()
         return list(self._entries.items())
 
     def __contains__(self, name: object) -> bool:
@@ -277,6 +282,23 @@ class Registry(Generic[T]):
         return f"Unknown {self.what} {shown}; choose one of {choices}.{guess}{fix}"
 
     # ------------------------------------------------------------------ loading
+    def import_builtin(self, module: str) -> bool:
+        """Import one built-in module (its decorators register), not the others or plugins.
+
+        For a look-up that knows where its object is defined (a saved model names its class
+        as ``"module:QualName"``): only that module's imports are paid.
+
+        Returns
+        -------
+        bool
+            Whether ``module`` is one of the built-in modules named in ``builtins`` (a
+            ``"package.*"`` entry does not name its modules); False imports nothing.
+        """
+        if module not in self.builtins or module.endswith(".*"):
+            return False
+        importlib.import_module(module)
+        return True
+
     def load(self) -> None:
         """Import the built-in modules and load the plugins, once (idempotent).
 

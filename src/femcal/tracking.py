@@ -14,7 +14,9 @@ A logged surrogate is a complete MLflow model (logged from code by
 rebuild its environment. The train stage exports it to ``models/surrogate-<split>``
 (:func:`export_model`), the folder DVC versions: :func:`open_model` and :func:`load_surrogate`
 take that folder as well as a registry URI, and :class:`ModelSource` names what was loaded
-(content hash, registered version) for the runs that use it.
+(content hash, registered version) for the runs that use it. Loading a folder imports no
+MLflow (the loader record is read by :mod:`femcal.training.loader`): ``femcal calibrate``
+leaves MLflow to its tracking process.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import pandas as pd
 from femcal.errors import ConfigError, ModelRegistryError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
-from femcal.training.pyfunc import LOADER_FILE, FemcalPyfunc, log_model_from_code, trusted_loader
+from femcal.training.loader import LOADER_FILE, trusted_loader
 
 logger = logging.getLogger(__name__)
 
@@ -229,9 +231,15 @@ def ensure_experiment(name: str, *, store_dir: str | Path = DEFAULT_STORE_DIR) -
 
 
 # --------------------------------------------------------------------------- pyfunc flavour
-#: The pyfunc class of the surrogates logged before :mod:`femcal.training.pyfunc` (their
-#: ``pyfunc_model.py`` imports it from here); they still load.
-SurrogatePyfunc = FemcalPyfunc
+def __getattr__(name: str) -> Any:
+    """``SurrogatePyfunc``: the pyfunc class of the surrogates logged before
+    :mod:`femcal.training.pyfunc` (their ``pyfunc_model.py`` imports it from here); they still
+    load. Imported on use: loading a model folder needs no MLflow."""
+    if name == "SurrogatePyfunc":
+        from femcal.training.pyfunc import FemcalPyfunc
+
+        return FemcalPyfunc
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def input_example(space: ParameterSpace, n_per_case: int = 1) -> pd.DataFrame:
@@ -259,6 +267,8 @@ def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model")
     mlflow.models.model.ModelInfo
         Its ``model_uri`` can be registered, and exported to a folder (:func:`export_model`).
     """
+    from femcal.training.pyfunc import log_model_from_code
+
     return log_model_from_code(surrogate, kind="surrogate", example=input_example(space), name=name)
 
 
@@ -504,9 +514,6 @@ def open_model(uri: str) -> ModelSource:
     ModelRegistryError
         The folder does not exist or is a file, or the URI cannot be resolved in the store.
     """
-    import mlflow
-    from mlflow.exceptions import MlflowException
-
     if is_local_model(uri):
         path = _local_path(uri) if uri.startswith("file:") else Path(uri)
         if path is None or not path.exists():
@@ -522,6 +529,9 @@ def open_model(uri: str) -> ModelSource:
                 "models:/ivd-rom-surrogate@champion."
             )
         return ModelSource(uri, path, folder_sha256(path), _recorded_version(path))
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
     try:
         local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri))
     except MlflowException as exc:

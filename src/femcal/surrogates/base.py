@@ -96,9 +96,14 @@ def trusted_surrogate_classes() -> dict[str, type]:
     Those of femcal's surrogate registry: the built-in surrogates, those installed through the
     ``femcal.surrogates`` entry points and those registered in this process.
     """
+    return _registered_classes(load=True)
+
+
+def _registered_classes(*, load: bool) -> dict[str, type]:
+    """Registered surrogate classes by ``"module:QualName"`` (``load=False``: those so far)."""
     return {
         f"{cls.__module__}:{cls.__qualname__}": cls
-        for _, cls in surrogate_registry.items()
+        for _, cls in surrogate_registry.items(load=load)
         if isinstance(cls, type)
     }
 
@@ -107,7 +112,9 @@ def trusted_surrogate_class(spec: Any, *, source: str) -> type:
     """The registered surrogate class ``spec`` (``"module:QualName"``) names, or an error.
 
     Nothing is imported on the file's say-so: ``spec`` is looked up among the registered
-    classes, so a saved model cannot make femcal import or call anything else.
+    classes, so a saved model cannot make femcal import or call anything else. A class of a
+    built-in module is looked up after importing that module alone (the neural surrogate's
+    loader imports no model zoo); any other after loading the whole registry.
 
     Parameters
     ----------
@@ -126,8 +133,14 @@ def trusted_surrogate_class(spec: Any, *, source: str) -> type:
     UntrustedArtifactError
         ``spec`` is not a registered surrogate class, or that class cannot ``load``.
     """
-    classes = trusted_surrogate_classes()
-    cls = classes.get(spec) if isinstance(spec, str) else None
+    named = isinstance(spec, str)
+    found: dict[str, type] = {}
+    if named and surrogate_registry.import_builtin(spec.partition(":")[0]):
+        # femcal's own module, imported alone: the network's loader needs no scikit-learn
+        # model zoo, no LightGBM, no plugin
+        found = _registered_classes(load=False)
+    classes = found if named and spec in found else _registered_classes(load=True)
+    cls = classes.get(spec) if named else None
     if cls is None:
         raise UntrustedArtifactError(
             f"{source} names the class {spec!r}, which is not a registered femcal surrogate; "

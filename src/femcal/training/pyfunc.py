@@ -17,8 +17,6 @@ Kinds (the artifact's name):
 
 from __future__ import annotations
 
-import importlib
-import json
 import shutil
 import tempfile
 from collections.abc import Callable
@@ -30,6 +28,13 @@ import numpy as np
 import pandas as pd
 
 from femcal.errors import ModelRegistryError
+from femcal.training.loader import (  # noqa: F401 - their home before loader.py
+    LOADER_FILE,
+    TRUSTED_CLASSES,
+    loader_spec,
+    trusted_loader,
+    write_loader,
+)
 
 #: femcal's dependencies a logged model does not need: the pipeline's tools.
 PIPELINE_ONLY_REQUIREMENTS = frozenset({"dvc", "optuna", "distributed", "dask"})
@@ -50,16 +55,8 @@ MODEL_REQUIREMENTS = (
     "pyyaml",
     "tqdm",
 )
-#: The file of a saved model folder that names its loader class.
-LOADER_FILE = "femcal_loader.json"
 #: The entry point MLflow runs when it loads a femcal model.
 ENTRY_POINT = Path(__file__).with_name("pyfunc_model.py")
-#: Model kinds: the function that returns the trusted class a loader record names
-#: (``"module:function"``, imported on use).
-TRUSTED_CLASSES: dict[str, str] = {
-    "surrogate": "femcal.surrogates.base:trusted_surrogate_class",
-    "inverse": "femcal.inverse.model:trusted_inverse_class",
-}
 
 
 def femcal_code(dest: Path) -> Path:
@@ -109,62 +106,6 @@ def model_requirements() -> list[str]:
             continue
         reqs[name] = f"{req.name}=={installed.split('+', 1)[0]}"
     return list(reqs.values())
-
-
-def loader_spec(obj: Any) -> str:
-    """``"module:QualName"`` of ``obj``'s class (what ``femcal_loader.json`` records)."""
-    cls = type(obj)
-    return f"{cls.__module__}:{cls.__qualname__}"
-
-
-def write_loader(folder: Path, obj: Any) -> Path:
-    """Write ``femcal_loader.json`` naming ``obj``'s class into ``folder``; returns the file."""
-    file = Path(folder) / LOADER_FILE
-    file.write_text(json.dumps({"loader": loader_spec(obj)}) + "\n")
-    return file
-
-
-def trusted_loader(file: Path, *, kind: str = "surrogate", uri: str | None = None) -> type:
-    """The trusted class a ``femcal_loader.json`` names (never imported from it).
-
-    Parameters
-    ----------
-    file : Path
-        The ``femcal_loader.json``.
-    kind : {"surrogate", "inverse"}
-        The kind of model; it decides which classes are trusted (for a surrogate, those of
-        femcal's surrogate registry, see :func:`femcal.surrogates.base.trusted_surrogate_class`).
-    uri : str, optional
-        The model URI it was downloaded from, for messages.
-
-    Returns
-    -------
-    type
-        The class; its ``load(folder)`` rebuilds the model from the folder's data files.
-
-    Raises
-    ------
-    ModelRegistryError
-        The file is not a loader record.
-    UntrustedArtifactError
-        It names a class femcal does not trust for ``kind``.
-    """
-    source = f"{file.name} of the model '{uri}'" if uri else str(file)
-    try:
-        record = json.loads(Path(file).read_text())
-        spec = record["loader"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ModelRegistryError(
-            f"{source}: not a femcal loader record ({type(exc).__name__}: {exc}); expected "
-            '{"loader": "module:Class"}. Log the model again with femcal.tracking.log_surrogate.'
-        ) from None
-    if kind not in TRUSTED_CLASSES:
-        raise ModelRegistryError(
-            f"{source}: unknown femcal model kind {kind!r}; expected one of "
-            f"{', '.join(TRUSTED_CLASSES)}."
-        )
-    module, function = TRUSTED_CLASSES[kind].split(":")
-    return getattr(importlib.import_module(module), function)(spec, source=source)
 
 
 def _predict_rom(model: Any, frame: pd.DataFrame) -> np.ndarray:
