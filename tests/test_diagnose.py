@@ -221,6 +221,8 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, shape_starts=-1)
     with pytest.raises(ConfigError, match=r"backward_delta must be in \[0, min_delta=10.0\]"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, backward_delta=11.0)
+    with pytest.raises(ConfigError, match="beam_delta must be >= 0"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, beam_delta=-1.0)
     with pytest.raises(ConfigError, match="min_delta_inadequate must be >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
@@ -293,3 +295,25 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
     np.testing.assert_allclose(_chi2(pred2, rom, sigma), chi2_2, rtol=1e-5)
     same = chi2_2 == chi2
     assert torch.equal(v2[torch.as_tensor(same)], v[torch.as_tensor(same)])
+
+
+def test_the_beam_extends_every_model_close_to_the_best(world):
+    """A wide beam fits every pair for a specimen that goes on to a second effect; the greedy
+    search (beam 0) only the pairs that extend its best single effect."""
+    base, rom, truth, _ = world
+    rows = np.flatnonzero(truth == "combination")[:3]
+    kw = dict(noise_deg=NOISE, max_effects=2, discrepancy=False, seed=0)
+    names = [f"S{i}" for i in rows]
+    wide = diagnose(base, rom[rows], specimens=names, beam_delta=1e9, **kw)
+    greedy = diagnose(base, rom[rows], specimens=names, beam_delta=0.0, **kw)
+    every = {("facet_contact", "ligament_tension"), ("facet_contact", "neutral_zone")}
+    every.add(("ligament_tension", "neutral_zone"))
+    reached = 0
+    for w, g in zip(wide.specimens, greedy.specimens):
+        pairs_w = {tuple(sorted(r["effects"])) for r in w.ranking if len(r["effects"]) == 2}
+        pairs_g = {tuple(sorted(r["effects"])) for r in g.ranking if len(r["effects"]) == 2}
+        if pairs_g:  # the greedy search went on to a second effect: so did the wide one
+            reached += 1
+            assert pairs_w == every, (w.specimen, pairs_w)
+            assert len(pairs_g) == 2 and len(set.intersection(*map(set, pairs_g))) == 1
+    assert reached >= 1
