@@ -10,8 +10,8 @@ noise sd 0.05 deg:
   facet + ligament and neutral zone + facet, an out-of-library softening (truth
   ``unexplained``) and ``none``, 8 specimens per class, protocols 1..5 Nm x 0.5, 1.25..5 Nm
   and 1.25..7.5 Nm x 1.25 mixed in one file (NaN where not measured). Seeds 0, 1, 2025 and
-  4711 tune (:data:`hidden_cohorts.TUNING_SEEDS`); :data:`hidden_cohorts.HOLDOUT_SEED` is held
-  out and runs only with ``--holdout``.
+  4711 tune (:data:`hidden_cohorts.TUNING_SEEDS`); :data:`hidden_cohorts.HOLDOUT_SEEDS` are held
+  out and run only with ``--holdout``.
 
 The surrogate is the registered champion; its own error enters sigma per moment as in the
 diagnose stage (:meth:`femcal.moments.MomentPolicy.sigma_surrogate` with params.yaml
@@ -61,7 +61,7 @@ import pandas as pd
 import torch
 from hidden_cohorts import CLASSES as HIDDEN_CLASSES
 from hidden_cohorts import (
-    HOLDOUT_SEED,
+    HOLDOUT_SEEDS,
     PROTOCOLS,
     TUNING_SEEDS,
     expected_effects,
@@ -361,7 +361,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
     return {
         "kind": cohort["kind"],
         "seed": cohort["seed"],
-        "holdout": cohort["kind"] == "hidden" and cohort["seed"] == HOLDOUT_SEED,
+        "holdout": cohort["kind"] == "hidden" and cohort["seed"] in HOLDOUT_SEEDS,
         "n_specimens": n,
         "moments": [float(m) for m in moments],
         "sigma_deg": float(diag.sigma_deg),
@@ -440,7 +440,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--cohorts", default="three,hidden", help="comma-separated: three, hidden")
     ap.add_argument("--seeds", default="0,1", help="tuning seeds of every cohort kind")
     ap.add_argument(
-        "--holdout", action="store_true", help=f"also the held-out hidden cohort {HOLDOUT_SEED}"
+        "--holdout",
+        action="store_true",
+        help=f"also the held-out hidden cohorts {', '.join(map(str, HOLDOUT_SEEDS))}",
     )
     ap.add_argument("--max-specimens", type=int, default=None, help="per cohort (quick runs)")
     ap.add_argument("--out", type=Path, default=REPO / "reports", help="report folder")
@@ -469,8 +471,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         if k not in ("three", "hidden"):
             ap.error(f"--cohorts: unknown kind '{k}' (three, hidden)")
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    if HOLDOUT_SEED in seeds and not args.holdout:
-        ap.error(f"seed {HOLDOUT_SEED} is the held-out cohort: run it with --holdout")
+    held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
+    if held and not args.holdout:
+        ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
     torch.manual_seed(0)
     params = load_params(REPO / "params.yaml")
     configure_tracking(store_dir=REPO / section(params, "mlflow", "store_dir"))
@@ -519,8 +522,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         ),
     }
     jobs = [(k, s) for k in kinds for s in seeds]
-    if args.holdout and "hidden" in kinds and HOLDOUT_SEED not in seeds:
-        jobs.append(("hidden", HOLDOUT_SEED))
+    if args.holdout and "hidden" in kinds:
+        jobs += [("hidden", s) for s in HOLDOUT_SEEDS if s not in seeds]
     rows = []
     for kind, seed in jobs:
         if kind == "three":
@@ -592,7 +595,8 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         + "`three` = femcal.effects.planted.make_cohort (femcal's own formulas, 1..5 Nm); "
         "`hidden` = benchmarks/hidden_cohorts.py (other laws, combinations, an out-of-library "
         "softening, 1..5 / 1.25..5 / 1.25..7.5 Nm protocols); seeds "
-        f"{', '.join(map(str, TUNING_SEEDS))} tune, seed {HOLDOUT_SEED} is held out. "
+        f"{', '.join(map(str, TUNING_SEEDS))} tune, "
+        f"seeds {', '.join(map(str, HOLDOUT_SEEDS))} are held out. "
         "`benchmarks/bench_diagnose.py` wrote this file.",
         "",
         "## The issue's bars",
