@@ -17,6 +17,7 @@ from femcal.measurements.data import (
     _MAX_LISTED,
     Measurements,
     _listing,
+    _repeated,
 )
 from femcal.schema import LOAD_CASES, canonical_load_case
 
@@ -188,7 +189,7 @@ def _normalised_header(path: Path, header: list[str], header_line: int) -> list[
             f"{path}, line {header_line}: header columns {empty} have no name; name every "
             f"column. {_LAYOUTS_HELP}."
         )
-    repeated = sorted({c for c in names if names.count(c) > 1})
+    repeated = _repeated(names)
     if repeated:
         raise InputDataError(
             f"{path}, line {header_line}: repeated columns {repeated} (names are "
