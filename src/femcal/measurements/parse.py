@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -179,6 +179,80 @@ def _fit_to_header(
         )
         return None
     return (cells + [""] * width)[:width]
+
+
+class _DataRows:
+    """The data rows of one file and what a reader collects from them.
+
+    Parameters
+    ----------
+    path : Path
+        The file (named in the problems).
+    records : list of (int, list of str)
+        ``(line, cells)`` after the header (see :func:`_read_records`).
+    width : int
+        Columns of the header.
+
+    Attributes
+    ----------
+    problems : _Problems
+        The problems of the file's rows.
+    points : list of _Point
+        The measured points read (the reader appends them).
+    order : list of str
+        Specimens in order of first appearance.
+    rows_of : dict of str to list of int
+        Each specimen's lines.
+    """
+
+    def __init__(self, path: Path, records: list[tuple[int, list[str]]], width: int) -> None:
+        self.path = path
+        self.records = records
+        self.width = width
+        self.problems = _Problems(str(path))
+        self.points: list[_Point] = []
+        self.order: list[str] = []
+        self.rows_of: dict[str, list[int]] = {}
+
+    def __iter__(self) -> Iterator[tuple[int, list[str]]]:
+        """``(line, cells)`` of every non-empty row padded to the header; a row with extra
+        cells is a problem and skipped."""
+        for line, raw in self.records:
+            if not raw:
+                continue
+            cells = _fit_to_header(raw, self.width, line, self.problems)
+            if cells is not None:
+                yield line, cells
+
+    def add_row(self, specimen: str, line: int) -> None:
+        """Count ``line`` as a row of ``specimen`` (a new specimen goes last in ``order``)."""
+        if specimen not in self.rows_of:
+            self.order.append(specimen)
+            self.rows_of[specimen] = []
+        self.rows_of[specimen].append(line)
+
+    def measurements(self, header_line: int, *, one_row_per: str, with_idp: bool) -> Measurements:
+        """The points as :class:`Measurements` (see :func:`_assemble`).
+
+        Raises
+        ------
+        InputDataError
+            The file has no data rows (``one_row_per`` says what a row holds), or the problems
+            collected.
+        """
+        if not self.order and not self.problems.items:
+            raise InputDataError(
+                f"{self.path} has a header (line {header_line}) but no data rows; add one row "
+                f"per {one_row_per}."
+            )
+        return _assemble(
+            str(self.path),
+            self.points,
+            self.order,
+            self.rows_of,
+            with_idp=with_idp,
+            problems=self.problems,
+        )
 
 
 def _normalised_header(path: Path, header: list[str], header_line: int) -> list[str]:
