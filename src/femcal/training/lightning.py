@@ -204,11 +204,8 @@ def fit_on_cpu(
     patience: int,
     min_delta: float = 0.0,
     read: ValueReader | None = None,
-    max_epochs: int,
-    n_batches: int,
-    logger: Any = None,
     callbacks: Sequence[pl.Callback] = (),
-    progress: bool = False,
+    **trainer: Any,
 ) -> pl.Trainer:
     """Fit ``module`` with :func:`cpu_trainer`; with validation data, keep the best epoch.
 
@@ -230,8 +227,11 @@ def fit_on_cpu(
         Smallest change that counts as an improvement.
     read : callable, optional
         How :class:`BestWeights` reads the metric (default: the logged value).
-    max_epochs, n_batches, logger, callbacks, progress
-        See :func:`cpu_trainer`; ``callbacks`` come first.
+    callbacks : sequence of Lightning callbacks
+        Extra callbacks (e.g. Optuna pruning), before the two above.
+    **trainer
+        The other keywords of :func:`cpu_trainer` (``max_epochs``, ``n_batches``,
+        ``logger``, ``progress``).
 
     Returns
     -------
@@ -244,15 +244,9 @@ def fit_on_cpu(
         cbs.append(
             pl.callbacks.EarlyStopping(monitor, patience=patience, min_delta=min_delta, mode="min")
         )
-    trainer = cpu_trainer(
-        max_epochs=max_epochs,
-        n_batches=n_batches,
-        logger=logger,
-        callbacks=cbs,
-        progress=progress,
-    )
-    trainer.fit(module, train_dataloaders=train_loader, val_dataloaders=val_loader)
-    return trainer
+    fitted = cpu_trainer(callbacks=cbs, **trainer)
+    fitted.fit(module, train_dataloaders=train_loader, val_dataloaders=val_loader)
+    return fitted
 
 
 @contextlib.contextmanager
