@@ -167,12 +167,15 @@ def mirror_from_env(environ: Mapping[str, str] = os.environ) -> Path | None:
     value = environ.get(MIRROR_ENV_VAR, "").strip()
     if not value:
         return None
-    path = Path(value).expanduser()
+    return _mirror_folder(Path(value).expanduser(), f"{MIRROR_ENV_VAR}={value!r}")
+
+
+def _mirror_folder(path: Path, named: str) -> Path:
+    """``path`` if it is a directory; ``named`` says where it came from in the error."""
     if not path.is_dir():
         raise DataSourceError(
-            f"{MIRROR_ENV_VAR}={value!r} is not a directory. Set {MIRROR_ENV_VAR} to the folder "
-            "holding Large/, Small/ and Test/ of the study's dataset, or unset it to download "
-            "the files."
+            f"{named} is not a directory. Give (or set {MIRROR_ENV_VAR} to) the folder holding "
+            "Large/, Small/ and Test/ of the study's dataset, or unset it to download the files."
         )
     return path
 
@@ -333,12 +336,7 @@ def fetch_dataset(
 
     if mirror is not None:
         mirror = Path(mirror).expanduser()
-        if not mirror.is_dir():
-            raise DataSourceError(
-                f"The mirror {mirror} is not a directory. Give (or set {MIRROR_ENV_VAR} to) "
-                "the folder holding Large/, Small/ and Test/ of the study's dataset, or unset "
-                "it to download the files."
-            )
+        _mirror_folder(mirror, f"The mirror {mirror}")
         urls = {rel: str(mirror.joinpath(*PurePosixPath(rel).parts)) for rel, _, _ in entries}
         downloader = _Recording(_MirrorCopy(mirror))
     else:

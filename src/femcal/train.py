@@ -23,6 +23,7 @@ import pandas as pd
 from femcal.datasets import ok_rows
 from femcal.errors import ConfigError
 from femcal.space import ParameterSpace
+from femcal.training.final import log_history, register_final, training_run
 from femcal.training.study import (
     TrialRun,
     hidden_from_width_depth,
@@ -147,7 +148,7 @@ def train_surrogate(
     import mlflow
 
     from femcal.surrogates.nn import NeuralSurrogate
-    from femcal.tracking import log_surrogate, register_run_model
+    from femcal.tracking import log_surrogate
 
     t0 = time.perf_counter()
     if n_trials < 0 or final_members < 1:
@@ -163,19 +164,16 @@ def train_surrogate(
         study_name, search_space=search_space, fixed=fixed, data_id=table_fingerprint(table)
     )
 
-    with mlflow.start_run(run_name=run_name) as parent:
-        mlflow.log_params(
-            {
-                "n_trials": n_trials,
-                "final_members": final_members,
-                "seed": seed,
-                "val_fraction": val_fraction,
-                "n_train_configs": train_df["config_id"].nunique(),
-                "n_val_configs": val_df["config_id"].nunique(),
-                "optuna_study": full_name,
-            }
-        )
-        mlflow.set_tag("femcal.stage", "train")
+    params = {
+        "n_trials": n_trials,
+        "final_members": final_members,
+        "seed": seed,
+        "val_fraction": val_fraction,
+        "n_train_configs": train_df["config_id"].nunique(),
+        "n_val_configs": val_df["config_id"].nunique(),
+        "optuna_study": full_name,
+    }
+    with training_run(run_name, "train", params) as parent:
 
         def train_trial(trial: TrialRun) -> float:
             model = NeuralSurrogate(
@@ -206,24 +204,19 @@ def train_surrogate(
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
         model = NeuralSurrogate(space, **final_kw, n_members=final_members, seed=seed)
         model.fit(X_tr, y_tr, X_val=X_va, y_val=y_va, progress=progress)
-        for row in model.history_:
-            step = int(row["epoch"])
-            member = int(row.get("member", 0))
-            for key in ("train_loss", "val_loss", "val_mae_deg"):
-                if key in row and row[key] is not None and np.isfinite(row[key]):
-                    mlflow.log_metric(f"final.member{member}.{key}", float(row[key]), step=step)
+        log_history(model.history_, ("train_loss", "val_loss", "val_mae_deg"), by_member=True)
         val_mae = float(np.mean(np.abs(model.predict(X_va) - y_va)))
         mlflow.log_metric("val_mae_deg", val_mae)
 
         info = log_surrogate(model, space)
-        version, promoted = register_run_model(
+        version, promoted, seconds = register_final(
             info.model_uri,
             register_as,
             val_metric=val_mae,
-            tags={"optuna_study": full_name, "train_run_id": parent.info.run_id},
+            study=full_name,
+            run_id=parent.info.run_id,
+            started=t0,
         )
-        seconds = time.perf_counter() - t0
-        mlflow.log_metric("train_seconds", seconds)
         return TrainResult(
             surrogate=model,
             best_params=best_params,

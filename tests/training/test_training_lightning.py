@@ -11,6 +11,7 @@ from femcal.training.lightning import (
     BestWeights,
     batch_loader,
     cpu_trainer,
+    fit_on_cpu,
     quiet_lightning,
 )
 
@@ -93,3 +94,42 @@ def test_quiet_lightning_restores_torch_state() -> None:
     with quiet_lightning():
         torch.use_deterministic_algorithms(not before)
     assert torch.are_deterministic_algorithms_enabled() == before
+
+
+def test_fit_on_cpu_stops_early_and_keeps_the_best_epoch() -> None:
+    x, y = _data()
+    train = batch_loader((x, y), 16, torch.Generator().manual_seed(0))
+    with quiet_lightning(), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)
+        module = _Regression()
+        trainer = fit_on_cpu(
+            module,
+            train,
+            batch_loader((x, y), 64, None),
+            monitor="val_mae",
+            patience=1,
+            min_delta=10.0,  # no epoch improves by 10: stop after patience + 1 epochs
+            max_epochs=20,
+            n_batches=4,
+        )
+    assert trainer.current_epoch == 2
+    with torch.no_grad():
+        restored = float((module.net(x).squeeze(-1) - y).abs().mean())
+    assert restored == min(module.val_maes)
+
+
+def test_fit_on_cpu_without_validation_runs_every_epoch() -> None:
+    x, y = _data()
+    with quiet_lightning():
+        module = _Regression()
+        trainer = fit_on_cpu(
+            module,
+            batch_loader((x, y), 16, None),
+            None,
+            monitor="val_mae",
+            patience=1,
+            max_epochs=3,
+            n_batches=4,
+        )
+    assert trainer.current_epoch == 3
+    assert module.val_maes == []

@@ -30,7 +30,7 @@ from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import ACTIVATIONS
 from femcal.training import persist
-from femcal.training.lightning import BestWeights, batch_loader, cpu_trainer, quiet_lightning
+from femcal.training.lightning import batch_loader, fit_on_cpu, quiet_lightning
 
 log = logging.getLogger(__name__)
 
@@ -345,27 +345,20 @@ class InverseModel(BaseEstimator):
             train_loader = batch_loader(
                 train_t, int(self.batch_size), torch.Generator().manual_seed(seed)
             )
-            cbs: list[pl.Callback] = [*callbacks]
-            val_loader = None
-            if has_val:
-                val_loader = batch_loader(val_t, EVAL_BATCH, None)
-                cbs.append(BestWeights("val_mae", read=last_val_mae))
-                cbs.append(
-                    pl.callbacks.EarlyStopping(
-                        "val_mae",
-                        patience=int(self.patience),
-                        min_delta=float(self.min_delta),
-                        mode="min",
-                    )
-                )
-            trainer = cpu_trainer(
+            fit_on_cpu(
+                module,
+                train_loader,
+                batch_loader(val_t, EVAL_BATCH, None) if has_val else None,
+                monitor="val_mae",
+                patience=int(self.patience),
+                min_delta=float(self.min_delta),
+                read=last_val_mae,
                 max_epochs=int(self.max_epochs),
                 n_batches=n_batches,
                 logger=logger,
-                callbacks=cbs,
+                callbacks=callbacks,
                 progress=progress,
             )
-            trainer.fit(module, train_dataloaders=train_loader, val_dataloaders=val_loader)
 
         self.net_ = persist.freeze(net)
         self.moments_ = m

@@ -21,6 +21,7 @@ import numpy as np
 from femcal.errors import ConfigError
 from femcal.inverse.data import make_inverse_dataset, rom_mae_deg, surrogate_fingerprint
 from femcal.inverse.model import INVERSE_SETTINGS, InverseModel
+from femcal.training.final import log_history, register_final, training_run
 from femcal.training.study import (
     TrialRun,
     hidden_from_width_depth,
@@ -151,7 +152,6 @@ def train_inverse(
     import mlflow
 
     from femcal.inverse.store import log_inverse
-    from femcal.tracking import register_run_model
 
     t0 = time.perf_counter()
     search_space = dict(search_space or {})
@@ -181,21 +181,18 @@ def train_inverse(
         model = InverseModel(space, **inverse_kwargs(params), seed=fit_seed)
         return model.fit(X_tr, U_tr, moments=moments, X_val=X_va, U_val=U_va, **kw)
 
-    with mlflow.start_run(run_name=run_name) as parent:
-        mlflow.log_params(
-            {
-                "n_trials": n_trials,
-                "n_samples": n_samples,
-                "sampling": sampling,
-                "seed": seed,
-                "val_fraction": val_fraction,
-                "n_train": X_tr.shape[0],
-                "n_val": X_va.shape[0],
-                "moments": json.dumps(moments.tolist()),
-                "optuna_study": full_name,
-            }
-        )
-        mlflow.set_tag("femcal.stage", "train-inverse")
+    params = {
+        "n_trials": n_trials,
+        "n_samples": n_samples,
+        "sampling": sampling,
+        "seed": seed,
+        "val_fraction": val_fraction,
+        "n_train": X_tr.shape[0],
+        "n_val": X_va.shape[0],
+        "moments": json.dumps(moments.tolist()),
+        "optuna_study": full_name,
+    }
+    with training_run(run_name, "train-inverse", params) as parent:
         mlflow.log_metric("dataset_seconds", time.perf_counter() - t0)
 
         def train_trial(trial: TrialRun) -> float:
@@ -222,11 +219,7 @@ def train_inverse(
 
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
         model = fit(best_params, seed, progress=progress)
-        for row in model.history_:
-            for key in ("train_loss", "val_mae", "lr"):
-                value = row.get(key)
-                if value is not None and np.isfinite(value):
-                    mlflow.log_metric(f"final.{key}", float(value), step=int(row["epoch"]))
+        log_history(model.history_, ("train_loss", "val_mae", "lr"))
         val_mae = float(model.best_val_mae_)
         val_rom = rom_mae_deg(model, curve_model, X_va)
         mlflow.log_metrics({"val_mae": val_mae, "val_rom_mae_deg": val_rom})
@@ -235,18 +228,15 @@ def train_inverse(
             model.save(Path(tmp) / "inverse_model")
             mlflow.log_artifacts(str(Path(tmp) / "inverse_model"), artifact_path="inverse_model")
         info = log_inverse(model)
-        version, promoted = register_run_model(
+        version, promoted, seconds = register_final(
             info.model_uri,
             register_as,
             val_metric=val_rom,
-            tags={
-                "optuna_study": full_name,
-                "train_run_id": parent.info.run_id,
-                "val_mae_unit": repr(val_mae),
-            },
+            study=full_name,
+            run_id=parent.info.run_id,
+            started=t0,
+            tags={"val_mae_unit": repr(val_mae)},
         )
-        seconds = time.perf_counter() - t0
-        mlflow.log_metric("train_seconds", seconds)
         return InverseTrainResult(
             model=model,
             best_params=best_params,

@@ -44,6 +44,7 @@ from femcal.measurements.parse import (
     WIDE_COLUMNS,
     _assemble,
     _curve,
+    _DataRows,
     _fit_to_header,
     _is_number,
     _load_case,
@@ -86,23 +87,13 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
             "Rename or delete them (a misspelt 'weight' would otherwise be ignored)."
         )
     col = {c: j for j, c in enumerate(names)}
-    problems = _Problems(str(path))
-    points: list[_Point] = []
-    order: list[str] = []
-    rows_of: dict[str, list[int]] = {}
+    rows = _DataRows(path, records, len(names))
+    problems = rows.problems
     seen: dict[tuple[str, int, float], int] = {}
-    for line, raw in records:
-        if not raw:
-            continue
-        cells = _fit_to_header(raw, len(names), line, problems)
-        if cells is None:
-            continue
+    for line, cells in rows:
         specimen = _specimen(cells[col["specimen"]], line, "specimen", problems)
-        if specimen is not None and specimen not in rows_of:
-            order.append(specimen)
-            rows_of[specimen] = []
         if specimen is not None:
-            rows_of[specimen].append(line)
+            rows.add_row(specimen, line)
         lc = _load_case(cells[col["load_case"]], line, "load_case", problems)
 
         values: dict[str, float] = {"weight": 1.0, "idp_mpa": math.nan}
@@ -157,7 +148,7 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
             )
             continue
         seen[key] = line
-        points.append(
+        rows.points.append(
             _Point(
                 specimen,
                 lc,
@@ -168,14 +159,7 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
                 line,
             )
         )
-    if not order and not problems.items:
-        raise InputDataError(
-            f"{path} has a header (line {header_line}) but no data rows; add one row per "
-            "measured point."
-        )
-    return _assemble(
-        str(path), points, order, rows_of, with_idp="idp_mpa" in col, problems=problems
-    )
+    return rows.measurements(header_line, one_row_per="measured point", with_idp="idp_mpa" in col)
 
 
 def _read_wide(path: Path, header_line: int, header: list[str], records: list) -> Measurements:
@@ -213,26 +197,16 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
             "applied moment in Nm (e.g. 1,2,3,4,5)."
         )
     loaded = moments[moments > 0]
-    problems = _Problems(str(path))
-    points: list[_Point] = []
-    order: list[str] = []
-    rows_of: dict[str, list[int]] = {}
+    rows = _DataRows(path, records, len(names))
+    problems = rows.problems
     seen: dict[tuple[str, int], int] = {}
-    for line, raw in records:
-        if not raw:
-            continue
-        cells = _fit_to_header(raw, len(names), line, problems)
-        if cells is None:
-            continue
+    for line, cells in rows:
         specimen = _specimen(cells[col["specimen"]], line, header[col["specimen"]], problems)
         lc = _load_case(cells[col["load_case"]], line, header[col["load_case"]], problems)
         values = _curve([cells[j] for j in moment_idx], moments, moment_header, line, problems)
         if specimen is None:
             continue
-        if specimen not in rows_of:
-            order.append(specimen)
-            rows_of[specimen] = []
-        rows_of[specimen].append(line)
+        rows.add_row(specimen, line)
         if lc is None:
             continue
         if (specimen, lc) in seen:
@@ -243,17 +217,12 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
             )
             continue
         seen[specimen, lc] = line
-        points += [
+        rows.points += [
             _Point(specimen, lc, float(mom), float(v), 1.0, math.nan, line)
             for mom, v in zip(loaded, values)
             if not math.isnan(v)
         ]
-    if not order and not problems.items:
-        raise InputDataError(
-            f"{path} has a header (line {header_line}) but no data rows; add one row per "
-            "specimen and load case."
-        )
-    return _assemble(str(path), points, order, rows_of, with_idp=False, problems=problems)
+    return rows.measurements(header_line, one_row_per="specimen and load case", with_idp=False)
 
 
 def _failed_tail(values: np.ndarray) -> np.ndarray:

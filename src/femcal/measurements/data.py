@@ -131,7 +131,7 @@ class Measurements:
         """
         names = [specimens] if isinstance(specimens, str) else [str(s) for s in specimens]
         unknown = [s for s in names if s not in self.specimens]
-        repeated = sorted({s for s in names if names.count(s) > 1})
+        repeated = _repeated(names)
         if not names or unknown or repeated:
             problem = (
                 "no specimen was requested"
@@ -164,6 +164,11 @@ def _listing(items: Sequence[str], total: int | None = None) -> str:
     shown = ", ".join(items[:_MAX_LISTED])
     more = f" (and {total - _MAX_LISTED} more)" if total > _MAX_LISTED else ""
     return shown + more
+
+
+def _repeated(items: Sequence[str]) -> list[str]:
+    """The items that appear more than once, sorted."""
+    return sorted({s for s in items if items.count(s) > 1})
 
 
 def _float_array(value: object, name: str, source: str) -> np.ndarray:
@@ -204,7 +209,7 @@ def _validated(
             raise InputDataError(
                 f"{src}: specimen at position {pos} has an empty name; give every specimen a name."
             )
-    repeated = sorted({s for s in names if names.count(s) > 1})
+    repeated = _repeated(names)
     if repeated:
         raise InputDataError(
             f"{src}: repeated specimen names {repeated}; each specimen must appear once "
@@ -234,6 +239,12 @@ def _validated(
         ]
         return _listing(items, len(cells))
 
+    def refuse(bad: np.ndarray, values: np.ndarray, problem: str, advice: str) -> None:
+        """Raise when the mask ``bad`` holds a cell: ``problem``, the cells, then ``advice``."""
+        cells = np.argwhere(bad)
+        if cells.size:
+            raise InputDataError(f"{src}: {problem} {where(cells, values)}{advice}")
+
     def shaped(value: object, name: str) -> np.ndarray:
         arr = _float_array(value, name, src)
         if arr.shape != shape:
@@ -245,18 +256,18 @@ def _validated(
         return arr
 
     rom = shaped(rom_deg, "rom_deg")
-    bad = np.argwhere(np.isinf(rom))
-    if bad.size:
-        raise InputDataError(
-            f"{src}: rom_deg has infinite values at {where(bad, rom)}; use finite degrees, "
-            "or NaN where not measured."
-        )
-    bad = np.argwhere(rom < 0)
-    if bad.size:
-        raise InputDataError(
-            f"{src}: rom_deg has negative values at {where(bad, rom)}. RoM is a magnitude: "
-            "give absolute values (the direction is given by the load case)."
-        )
+    refuse(
+        np.isinf(rom),
+        rom,
+        "rom_deg has infinite values at",
+        "; use finite degrees, or NaN where not measured.",
+    )
+    refuse(
+        rom < 0,
+        rom,
+        "rom_deg has negative values at",
+        ". RoM is a magnitude: give absolute values (the direction is given by the load case).",
+    )
     measured = ~np.isnan(rom)
 
     if weight is None:
@@ -265,29 +276,29 @@ def _validated(
             "which defaults to 1.0 where measured)."
         )
     w = shaped(weight, "weight")
-    bad = np.argwhere(measured & ~np.isfinite(w))
-    if bad.size:
-        raise InputDataError(
-            f"{src}: weight is missing or infinite at measured points {where(bad, w)}; give "
-            "every measured point a finite weight >= 0."
-        )
-    bad = np.argwhere(measured & (w < 0))
-    if bad.size:
-        raise InputDataError(
-            f"{src}: weight has negative values at {where(bad, w)}; weights must be >= 0 "
-            "(0 leaves a point out of the fit)."
-        )
+    refuse(
+        measured & ~np.isfinite(w),
+        w,
+        "weight is missing or infinite at measured points",
+        "; give every measured point a finite weight >= 0.",
+    )
+    refuse(
+        measured & (w < 0),
+        w,
+        "weight has negative values at",
+        "; weights must be >= 0 (0 leaves a point out of the fit).",
+    )
     w = np.where(measured, w, 0.0)
 
     idp: np.ndarray | None = None
     if idp_mpa is not None:
         idp = shaped(idp_mpa, "idp_mpa")
-        bad = np.argwhere(measured & ~np.isfinite(idp))
-        if bad.size:
-            raise InputDataError(
-                f"{src}: idp_mpa is missing or infinite at measured points {where(bad, idp)}; "
-                "give the IDP of every measured point, or pass idp_mpa=None."
-            )
+        refuse(
+            measured & ~np.isfinite(idp),
+            idp,
+            "idp_mpa is missing or infinite at measured points",
+            "; give the IDP of every measured point, or pass idp_mpa=None.",
+        )
         idp = np.where(measured, idp, np.nan)
 
     empty = [names[i] for i in range(n) if not measured[i].any()]

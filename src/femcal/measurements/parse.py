@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +17,7 @@ from femcal.measurements.data import (
     _MAX_LISTED,
     Measurements,
     _listing,
+    _repeated,
 )
 from femcal.schema import LOAD_CASES, canonical_load_case
 
@@ -180,6 +181,80 @@ def _fit_to_header(
     return (cells + [""] * width)[:width]
 
 
+class _DataRows:
+    """The data rows of one file and what a reader collects from them.
+
+    Parameters
+    ----------
+    path : Path
+        The file (named in the problems).
+    records : list of (int, list of str)
+        ``(line, cells)`` after the header (see :func:`_read_records`).
+    width : int
+        Columns of the header.
+
+    Attributes
+    ----------
+    problems : _Problems
+        The problems of the file's rows.
+    points : list of _Point
+        The measured points read (the reader appends them).
+    order : list of str
+        Specimens in order of first appearance.
+    rows_of : dict of str to list of int
+        Each specimen's lines.
+    """
+
+    def __init__(self, path: Path, records: list[tuple[int, list[str]]], width: int) -> None:
+        self.path = path
+        self.records = records
+        self.width = width
+        self.problems = _Problems(str(path))
+        self.points: list[_Point] = []
+        self.order: list[str] = []
+        self.rows_of: dict[str, list[int]] = {}
+
+    def __iter__(self) -> Iterator[tuple[int, list[str]]]:
+        """``(line, cells)`` of every non-empty row padded to the header; a row with extra
+        cells is a problem and skipped."""
+        for line, raw in self.records:
+            if not raw:
+                continue
+            cells = _fit_to_header(raw, self.width, line, self.problems)
+            if cells is not None:
+                yield line, cells
+
+    def add_row(self, specimen: str, line: int) -> None:
+        """Count ``line`` as a row of ``specimen`` (a new specimen goes last in ``order``)."""
+        if specimen not in self.rows_of:
+            self.order.append(specimen)
+            self.rows_of[specimen] = []
+        self.rows_of[specimen].append(line)
+
+    def measurements(self, header_line: int, *, one_row_per: str, with_idp: bool) -> Measurements:
+        """The points as :class:`Measurements` (see :func:`_assemble`).
+
+        Raises
+        ------
+        InputDataError
+            The file has no data rows (``one_row_per`` says what a row holds), or the problems
+            collected.
+        """
+        if not self.order and not self.problems.items:
+            raise InputDataError(
+                f"{self.path} has a header (line {header_line}) but no data rows; add one row "
+                f"per {one_row_per}."
+            )
+        return _assemble(
+            str(self.path),
+            self.points,
+            self.order,
+            self.rows_of,
+            with_idp=with_idp,
+            problems=self.problems,
+        )
+
+
 def _normalised_header(path: Path, header: list[str], header_line: int) -> list[str]:
     names = [c.lower() for c in header]
     empty = [j + 1 for j, c in enumerate(names) if not c]
@@ -188,7 +263,7 @@ def _normalised_header(path: Path, header: list[str], header_line: int) -> list[
             f"{path}, line {header_line}: header columns {empty} have no name; name every "
             f"column. {_LAYOUTS_HELP}."
         )
-    repeated = sorted({c for c in names if names.count(c) > 1})
+    repeated = _repeated(names)
     if repeated:
         raise InputDataError(
             f"{path}, line {header_line}: repeated columns {repeated} (names are "

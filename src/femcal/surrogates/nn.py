@@ -283,15 +283,8 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
             ``self``.
         """
         # Lightning is imported only to train: loading and calibrating never need it.
-        import pytorch_lightning as pl
-
         from femcal.surrogates.romnet_training import RomLightningModule, pack_blocks
-        from femcal.training.lightning import (
-            BestWeights,
-            batch_loader,
-            cpu_trainer,
-            quiet_lightning,
-        )
+        from femcal.training.lightning import batch_loader, fit_on_cpu, quiet_lightning
 
         self._check_settings()
         lc, moment, params = self._rows(X)
@@ -354,25 +347,21 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
                     )
                     gen = torch.Generator().manual_seed(member_seed)
                     train_loader = batch_loader(train_blocks, int(self.batch_size), gen)
-                    cbs: list[pl.Callback] = [*callbacks]
                     val_loader = None
-                    if val_blocks is not None:
-                        n_val = int(val_blocks[0].shape[0])
-                        val_loader = batch_loader(val_blocks, n_val, None)
-                        cbs.append(BestWeights("val_mae_deg"))
-                        cbs.append(
-                            pl.callbacks.EarlyStopping(
-                                "val_mae_deg", patience=int(self.patience), mode="min"
-                            )
-                        )
-                    trainer = cpu_trainer(
+                    if val_blocks is not None:  # one batch: all validation blocks
+                        val_loader = batch_loader(val_blocks, int(val_blocks[0].shape[0]), None)
+                    fit_on_cpu(
+                        module,
+                        train_loader,
+                        val_loader,
+                        monitor="val_mae_deg",
+                        patience=int(self.patience),
                         max_epochs=int(self.max_epochs),
                         n_batches=n_batches,
                         logger=logger,
-                        callbacks=cbs,
+                        callbacks=callbacks,
                         progress=progress,
                     )
-                    trainer.fit(module, train_dataloaders=train_loader, val_dataloaders=val_loader)
                 states.append(net.members[0].state_dict())
                 history.extend({"member": k, **row} for row in module.history)
                 last = module.history[-1] if module.history else {}

@@ -2,7 +2,8 @@
 
 Every model trains on CPU tensors held in memory: :func:`batch_loader` hands whole batches
 (one indexing per tensor, no per-sample collation), :func:`cpu_trainer` builds the Trainer
-both models use, :class:`BestWeights` keeps the best validation epoch's weights,
+both models use, :func:`fit_on_cpu` fits a module on it (best weights and early stopping
+when there is validation data), :class:`BestWeights` keeps the best validation epoch's weights,
 :class:`OptunaPruning` reports to an Optuna trial and :func:`quiet_lightning` silences
 Lightning's info logs while restoring torch's global state.
 """
@@ -192,6 +193,60 @@ def cpu_trainer(
         deterministic=True,
         log_every_n_steps=min(50, n_batches),
     )
+
+
+def fit_on_cpu(
+    module: pl.LightningModule,
+    train_loader: torch.utils.data.DataLoader,
+    val_loader: torch.utils.data.DataLoader | None,
+    *,
+    monitor: str,
+    patience: int,
+    min_delta: float = 0.0,
+    read: ValueReader | None = None,
+    callbacks: Sequence[pl.Callback] = (),
+    **trainer: Any,
+) -> pl.Trainer:
+    """Fit ``module`` with :func:`cpu_trainer`; with validation data, keep the best epoch.
+
+    With ``val_loader``, :class:`BestWeights` on ``monitor`` and Lightning's early stopping
+    (``patience`` epochs without an improvement of more than ``min_delta``) follow
+    ``callbacks``.
+
+    Parameters
+    ----------
+    module : LightningModule
+        The module to train (in place).
+    train_loader, val_loader : DataLoader
+        Training batches; validation batches or None (no validation, no early stopping).
+    monitor : str
+        The logged validation metric to minimise.
+    patience : int
+        Epochs without improvement before stopping.
+    min_delta : float
+        Smallest change that counts as an improvement.
+    read : callable, optional
+        How :class:`BestWeights` reads the metric (default: the logged value).
+    callbacks : sequence of Lightning callbacks
+        Extra callbacks (e.g. Optuna pruning), before the two above.
+    **trainer
+        The other keywords of :func:`cpu_trainer` (``max_epochs``, ``n_batches``,
+        ``logger``, ``progress``).
+
+    Returns
+    -------
+    Trainer
+        The fitted Trainer.
+    """
+    cbs: list[pl.Callback] = [*callbacks]
+    if val_loader is not None:
+        cbs.append(BestWeights(monitor, read=read))
+        cbs.append(
+            pl.callbacks.EarlyStopping(monitor, patience=patience, min_delta=min_delta, mode="min")
+        )
+    fitted = cpu_trainer(callbacks=cbs, **trainer)
+    fitted.fit(module, train_dataloaders=train_loader, val_dataloaders=val_loader)
+    return fitted
 
 
 @contextlib.contextmanager
