@@ -93,6 +93,23 @@ def test_composite_jacobian_matches_finite_differences(surrogate):
         torch.testing.assert_close(jac[..., i], fd, rtol=1e-5, atol=1e-7)
 
 
+def test_the_jacobian_reuses_the_shares_of_the_last_curves_call_exactly(surrogate):
+    # Gauss-Newton evaluates the curves at a new point, then the Jacobian there: the disc's
+    # share of the moment solved for the curves is reused, row by row: the same values up to
+    # float32 rounding (a batch of another size may round a product's last bit otherwise).
+    base = SurrogateCurveModel(surrogate, MOMENTS)
+    v = torch.rand(6, EffectModel(base, BUILTIN).dim, generator=torch.Generator().manual_seed(4))
+    fresh = EffectModel(base, BUILTIN)
+    want_f, want_j = fresh.curves_jacobian(v[2:])
+    warm = EffectModel(base, BUILTIN)
+    with torch.no_grad():
+        warm.curves(v[:4])  # rows 2, 3 solved here; rows 4, 5 not
+    got_f, got_j = warm.curves_jacobian(v[2:])
+    torch.testing.assert_close(got_f, want_f, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(got_j, want_j, rtol=1e-5, atol=1e-5)
+    assert warm.n_evaluations - 4 == fresh.n_evaluations  # the cache changes no count
+
+
 def test_the_jacobian_is_finite_far_from_contact(surrogate):
     # A gap far beyond the rotations (unit 1 = 6 deg) puts the facet ramp in softplus
     # underflow; the derivative in the exponent must still be finite (0, not 0 * log 0).

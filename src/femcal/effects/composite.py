@@ -64,6 +64,9 @@ class EffectModel:
         #: The joint coordinates ``v``: the disc network's input space, then each effect's.
         self.unit_space = ParameterSpace.concat(base.unit_space, *effect_spaces)
         self.n_evaluations = 0
+        # The disc's share at the rows of the last :meth:`curves` call, by the rows' bytes: a
+        # Gauss-Newton step evaluates the curves at the new point, then its Jacobian there.
+        self._shares: dict[bytes, torch.Tensor] = {}
         #: Lowest trained moment: below it the disc curve is continued as a power law.
         self.m_low = float(getattr(base.surrogate, "moment_range_", (1.0, 5.0))[0])
 
@@ -159,6 +162,21 @@ class EffectModel:
             md0 = torch.exp(0.5 * (lo + hi))
             return torch.where(lc_mask[None, :, None], md0, applied)
 
+    def _share_of(self, v: torch.Tensor) -> torch.Tensor:
+        """:meth:`_disc_share` at ``v`` (n, dim); the rows that the last :meth:`curves` call
+        solved are taken from there (the solve is row by row: the same values up to float32
+        rounding)."""
+        keys = [r.tobytes() for r in v.detach().to(torch.float32).numpy()]
+        known = [self._shares.get(k) for k in keys]
+        missing = [i for i, s in enumerate(known) if s is None]
+        if len(missing) == len(keys):
+            return self._disc_share(v)
+        if missing:
+            solved = self._disc_share(v[missing])
+            for j, i in enumerate(missing):
+                known[i] = solved[j]
+        return torch.stack(known)
+
     def curves(
         self,
         v: torch.Tensor,
@@ -190,7 +208,12 @@ class EffectModel:
                     total = total + e.moment(phi, pp) * e.load_case_mask()[None, :, None]
                 return total
 
-            md0 = self._disc_share(v) if share is None else share
+            if share is None:
+                md0 = self._disc_share(v)
+                rows = v.detach().to(torch.float32).numpy()
+                self._shares = {r.tobytes(): md0[i] for i, r in enumerate(rows)}
+            else:
+                md0 = share
             # One Newton step with the graph: exact implicit gradient at the solution.
             phi0, slope = phi_disc(md0)
             phi_req = phi0.detach().requires_grad_(True)
@@ -232,7 +255,7 @@ class EffectModel:
             self.n_evaluations += n * d
             primal = vc.repeat_interleave(d, 0)
             tangent = torch.eye(d, dtype=v.dtype).repeat(n, 1)
-            share = self._disc_share(vc).repeat_interleave(d, 0)  # bisected once per row
+            share = self._share_of(vc).repeat_interleave(d, 0)  # bisected once per row
             # The disc network's coefficients and their d/dv by explicit forward tangents
             # (n rows, not n * d dual rows through every layer: forward-mode AD of the MLP
             # costs far more per operation); row i * d + j carries d coef_i / d v_j.
