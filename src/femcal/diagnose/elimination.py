@@ -1,0 +1,205 @@
+"""Open-world elimination, step 2b of :func:`femcal.diagnose.diagnose`.
+
+Where the chosen effects still leave a specimen's data unexplained, each effect must pay beyond
+a smooth discrepancy (the Gaussian process of :mod:`femcal.diagnose.discrepancy`) sized for every
+model by its own marginal likelihood (or to the larger model's misfit): an effect that only let
+the disc bend towards physics nobody registered is dropped (backward elimination), one that
+explains its own load cases stays.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+
+from femcal.calibration.model import CurveModel
+from femcal.diagnose.discrepancy import fit_discrepancy
+from femcal.diagnose.explain import _adequate_quick
+from femcal.diagnose.fits import _columns, _Fit, _fit_from, _solutions
+from femcal.effects.base import get_effect
+
+logger = logging.getLogger(__name__)
+
+
+def open_world_elimination(
+    *,
+    base: CurveModel,
+    effect_model: Callable[[tuple[str, ...]], CurveModel],
+    specimens: Sequence[str],
+    measured: np.ndarray,
+    weight: np.ndarray,
+    mask: np.ndarray,
+    sigma: np.ndarray,
+    sigma_m: np.ndarray,
+    n_points: np.ndarray,
+    log_n: np.ndarray,
+    chosen: list[tuple[str, ...]],
+    per_spec: list[dict[tuple[str, ...], tuple[_Fit, int]]],
+    alpha: float,
+    min_delta: float,
+    max_effects: int,
+    max_iter: int,
+    gp_amplitude: str,
+    elimination_cap: float,
+    exact_dof: bool,
+) -> None:
+    """Drop, specimen by specimen, the effects that do not pay beyond a smooth discrepancy.
+
+    Updates ``chosen`` (per specimen, the effects kept) and ``per_spec`` (every fitted model
+    of every specimen: ``(fit, row in the fit)``) in place; the other arguments are those of
+    :func:`femcal.diagnose.diagnose` and its intermediate arrays: ``measured`` (n, 4, m) with
+    NaN where not measured, ``weight`` and ``mask`` of the same shape, ``sigma`` (4, m) and
+    ``sigma_m`` (m,) the noise with the surrogate's error, ``n_points`` and ``log_n`` (n,).
+    """
+    n = len(chosen)
+    # 2b. Open world: where the chosen effects still leave the data unexplained, keep an effect
+    # only if it pays beyond a smooth discrepancy (the GP of step 4) sized to what the chosen
+    # model leaves unexplained: effects that merely let the disc bend towards physics nobody
+    # registered are dropped (backward elimination, BIC of the GLS fit with that GP).
+    for i in range(n):
+        if exact_dof:
+            per_spec[i][chosen[i]][0].ensure_trace(mask, sigma)
+    pending = [
+        i
+        for i in range(n)
+        if chosen[i]
+        and not _adequate_quick(*per_spec[i][chosen[i]], i, measured, sigma, n_points, alpha)
+    ]
+    gls: dict[tuple[int, tuple[str, ...]], tuple[float, torch.Tensor]] = {}
+    gls_amp: dict[tuple[int, tuple[str, ...]], np.ndarray] = {}  # (4,) GP amplitude per LC
+    reached: dict[int, torch.Tensor] = {}  # where elimination left a specimen (unit coords)
+
+    def misfit_amplitude(i: int, effects: tuple[str, ...]) -> np.ndarray:
+        """Per load case (4,): the RMS misfit ``effects`` leave beyond the noise."""
+        f, pos = per_spec[i][effects]
+        r = np.where(mask[i], measured[i] - f.pred[pos].double().numpy(), 0.0)
+        noise = np.where(mask[i], sigma**2, 0.0).sum(1)
+        excess = ((r**2).sum(1) - noise) / np.maximum(mask[i].sum(1), 1)
+        return np.clip(np.sqrt(np.clip(excess, 0.0, None)), sigma_m.min(), 5.0)
+
+    def gls_fit(
+        effects: tuple[str, ...],
+        rows: list[int],
+        v: torch.Tensor,
+        amp,
+        again: bool = False,
+        cap: np.ndarray | None = None,
+    ) -> None:
+        """The GLS fit of ``effects`` with the GP from ``v`` (keeps the better with ``again``).
+
+        ``cap`` (len(rows), 4): the largest GP amplitude per load case (``inf``: free).
+        """
+        todo = [(k, i) for k, i in enumerate(rows) if again or (i, effects) not in gls]
+        if not todo:
+            return
+        idx = [k for k, _ in todo]
+        ids = np.asarray([i for _, i in todo])
+        model = base if not effects else effect_model(effects)
+        if gp_amplitude == "ml":
+            # Each model gets the discrepancy it needs (type-II maximum likelihood per load
+            # case) and pays for it in log det C: -2 log marginal likelihood.
+            fit = fit_discrepancy(
+                model,
+                v[idx],
+                measured[ids],
+                sigma_m,
+                amplitude_deg="ml",
+                amplitude_cap=None if cap is None else cap[idx],
+            )
+            score = fit.neg2_log_ml
+        else:
+            fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg=amp[idx])
+            score = fit.cost
+        for pos, i in enumerate(ids):
+            key = (int(i), effects)
+            if key not in gls or float(score[pos]) < gls[key][0]:
+                gls[key] = (float(score[pos]), fit.v[pos])
+                gls_amp[key] = fit.amplitude_deg[pos]
+
+    def ensure_fitted() -> None:
+        """Fit (without the GP) the models elimination reached that were never fitted."""
+        missing: dict[tuple[str, ...], list[int]] = {}
+        for i in range(n):
+            if chosen[i] not in per_spec[i]:
+                missing.setdefault(chosen[i], []).append(i)
+        for effects, members in missing.items():
+            rows = np.asarray(members)
+            model = effect_model(effects)
+            v0 = torch.stack([reached[i] for i in members])
+            v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, 1, max_iter)
+            fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
+            for pos, i in enumerate(rows):
+                per_spec[i][effects] = (fit, pos)
+
+    for _round in range(max_effects):
+        if not pending:
+            break
+        groups = {}
+        for i in pending:
+            groups.setdefault(chosen[i], []).append(i)
+        still = []
+        gls.clear()  # the GP's size changes with the model under test
+        for current, members in groups.items():
+            v_cur = _solutions(per_spec, members, current)
+            amp = np.array([misfit_amplitude(i, current) for i in members])
+            gls_fit(current, members, v_cur, amp)
+            v_gls = torch.stack([gls[(i, current)][1] for i in members])
+            for drop in current:
+                rest = tuple(e for e in current if e != drop)
+                cols = _columns(base.dim, current, rest)
+                # In the dropped effect's own load cases the discrepancy may be no larger than
+                # the model with the effect needed there: it may not take over what the effect
+                # explained; elsewhere it is free, so the disc can stop bending towards physics
+                # nobody registered (which is what a compensating effect was doing).
+                cap = None
+                if elimination_cap:
+                    own_lc = get_effect(drop).load_case_mask().numpy()
+                    cap = np.stack(
+                        [
+                            np.where(own_lc, elimination_cap * gls_amp[(i, current)], np.inf)
+                            for i in members
+                        ]
+                    )
+                gls_fit(rest, members, v_gls[:, cols], amp, cap=cap)
+                # The reduced model's own fit is a second start: from the larger model's
+                # parameters the disc may stay bent towards what the dropped effect did.
+                own = [i for i in members if rest in per_spec[i]]
+                if own:
+                    v_own = _solutions(per_spec, own, rest)
+                    sel = [members.index(i) for i in own]
+                    gls_fit(
+                        rest,
+                        own,
+                        v_own,
+                        amp[sel],
+                        again=True,
+                        cap=None if cap is None else cap[sel],
+                    )
+            k_cur = base.dim + sum(len(get_effect(e).parameters) for e in current)
+            for i in members:
+                here = gls[(i, current)][0] + k_cur * log_n[i]
+                losses = {}
+                for drop in current:
+                    rest = tuple(e for e in current if e != drop)
+                    k_rest = k_cur - len(get_effect(drop).parameters)
+                    losses[rest] = gls[(i, rest)][0] + k_rest * log_n[i] - here
+                rest = min(losses, key=losses.get)
+                logger.debug(
+                    "%s: GP-BIC loss of dropping from %s: %s", specimens[i], current, losses
+                )
+                if losses[rest] < min_delta:
+                    logger.info(
+                        "%s: %s does not pay beyond a smooth discrepancy (%.1f); dropped",
+                        specimens[i],
+                        set(current) - set(rest),
+                        losses[rest],
+                    )
+                    chosen[i] = rest
+                    reached[i] = gls[(i, rest)][1]
+                    if rest:
+                        still.append(i)
+        ensure_fitted()
+        pending = still
