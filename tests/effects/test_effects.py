@@ -110,6 +110,20 @@ def test_the_jacobian_reuses_the_shares_of_the_last_curves_call_exactly(surrogat
     assert warm.n_evaluations - 4 == fresh.n_evaluations  # the cache changes no count
 
 
+def test_the_share_cache_tells_apart_float64_rows_that_float32_would_merge(surrogate):
+    base = SurrogateCurveModel(surrogate, MOMENTS)
+    model = EffectModel(base, ["facet_contact"])
+    model.net = copy.deepcopy(model.net).double()
+    model.moments = model.moments.double()
+    v = torch.rand(2, model.dim, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    near = v + 1e-12  # the same float32 numbers, other float64 ones
+    assert torch.equal(near.float(), v.float())
+    model.curves(v)
+    assert model._share_of(near) is not None
+    keys = {r.tobytes() for r in near.numpy()}
+    assert not keys & set(model._shares)  # solved afresh, not taken from v's rows
+
+
 def test_the_jacobian_is_finite_far_from_contact(surrogate):
     # A gap far beyond the rotations (unit 1 = 6 deg) puts the facet ramp in softplus
     # underflow; the derivative in the exponent must still be finite (0, not 0 * log 0).

@@ -64,8 +64,9 @@ class EffectModel:
         #: The joint coordinates ``v``: the disc network's input space, then each effect's.
         self.unit_space = ParameterSpace.concat(base.unit_space, *effect_spaces)
         self.n_evaluations = 0
-        # The disc's share at the rows of the last :meth:`curves` call, by the rows' bytes: a
-        # Gauss-Newton step evaluates the curves at the new point, then its Jacobian there.
+        # The disc's share at the rows of the last :meth:`curves` call, by the rows' bytes (in
+        # their own dtype): a Gauss-Newton step evaluates the curves at the new point, then
+        # its Jacobian there.
         self._shares: dict[bytes, torch.Tensor] = {}
         #: Lowest trained moment: below it the disc curve is continued as a power law.
         self.m_low = float(getattr(base.surrogate, "moment_range_", (1.0, 5.0))[0])
@@ -166,7 +167,7 @@ class EffectModel:
         """:meth:`_disc_share` at ``v`` (n, dim); the rows that the last :meth:`curves` call
         solved are taken from there (the solve is row by row: the same values up to float32
         rounding)."""
-        keys = [r.tobytes() for r in v.detach().to(torch.float32).numpy()]
+        keys = [r.tobytes() for r in v.detach().cpu().numpy()]
         known = [self._shares.get(k) for k in keys]
         missing = [i for i, s in enumerate(known) if s is None]
         if len(missing) == len(keys):
@@ -210,7 +211,7 @@ class EffectModel:
 
             if share is None:
                 md0 = self._disc_share(v)
-                rows = v.detach().to(torch.float32).numpy()
+                rows = v.detach().cpu().numpy()
                 self._shares = {r.tobytes(): md0[i] for i, r in enumerate(rows)}
             else:
                 md0 = share
