@@ -1,0 +1,393 @@
+"""FE-in-the-loop refinement of calibrated parameters (output space mapping).
+
+A calibration through a surrogate lands where the surrogate matches the measurement, which is
+not always where the FE model does: near its solution the surrogate may be off by more than
+the noise, and FE then does not confirm the fit. :func:`refine_with_fe` closes that gap with
+a few FE runs per specimen:
+
+1. run FE at the current parameters ``x_k`` and measure the misfit against the measurement;
+2. stop where FE confirms the fit (its MAE is within ``tol_deg``) or the budget is spent;
+3. otherwise take a projected Levenberg-Marquardt step on the FE residual ``y - FE(x_k)``
+   with the surrogate's Jacobian at ``x_k``: the surrogate corrected by the misfit it has
+   there, ``s(x) + FE(x_k) - s(x_k)``, linearised (output space mapping, Bandler et al. 2004,
+   IEEE Trans. MTT 52:337);
+4. FE judges each new point: a point FE finds worse than the best so far is not taken, and
+   the next try from the best point is shorter (more damping); an accepted one lowers it;
+5. every FE run, taken or not, also corrects the Jacobian along its step (Broyden's rank-one
+   update of the surrogate's Jacobian), so the next steps use what FE has shown.
+
+The damping keeps the steps short along the directions the data do not identify (most of the
+disc's parameters, from RoM): solving the corrected problem to the end instead moves far
+along them, where the correction measured at ``x_k`` no longer holds, and FE refuses.
+Measured on the synthetic study (tests/fe/test_refine.py: a surrogate 0.12 deg off its true
+model at the calibrations, 8 specimens, 6 runs): the mean true-model error fell to 0.027 deg
+without the Broyden update and to 0.004 deg with it.
+
+The surrogate's Jacobian steers, FE decides: when the surrogate's sensitivities are right the
+iteration converges to a point where FE itself fits the measurement, not to one where the
+surrogate thinks it does. Each round costs one FE run (every load case of the measurement)
+per specimen that is not yet confirmed.
+
+The FE model enters as a function ``fe_curves(x, round) -> (k, 4, m)``, so any solver (or a
+store of earlier runs) can serve; :func:`campaign_curves` runs a campaign of the FE registry
+on Dask and keeps every run in a resumable store.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from femcal.errors import ConfigError, InputDataError
+from femcal.schema import LOAD_CASES, PARAMETER_NAMES
+
+logger = logging.getLogger(__name__)
+
+#: ``fe_curves(x, round)``: RoM in degrees, shape (k, 4, m), of the k parameter rows ``x``
+#: (k, d) in physical units, NaN where a run failed; ``round`` numbers the calls from 0.
+FECurves = Callable[[np.ndarray, int], np.ndarray]
+
+
+@dataclass
+class RefineResult:
+    """What :func:`refine_with_fe` returns for n specimens.
+
+    Attributes
+    ----------
+    specimens : tuple of str, length n
+    x_start : ndarray, shape (n, d)
+        The calibrated parameters refinement started from (physical units).
+    x : ndarray, shape (n, d)
+        The best parameters FE has seen for each specimen.
+    fe_curves : ndarray, shape (n, 4, m)
+        FE RoM in degrees at ``x`` (NaN where the run failed).
+    surrogate_curves : ndarray, shape (n, 4, m)
+        The uncorrected surrogate at ``x``.
+    fe_mae_start : ndarray, shape (n,)
+        FE-evaluated MAE of ``x_start`` against the measurement, degrees.
+    fe_mae_deg : ndarray, shape (n,)
+        FE-evaluated MAE of ``x`` (the FE-confirmed error).
+    fe_runs : ndarray of int, shape (n,)
+        FE runs spent on each specimen (the first, at ``x_start``, included).
+    confirmed : ndarray of bool, shape (n,)
+        FE confirms the fit: ``fe_mae_deg <= tol_deg``.
+    tol_deg : float
+    history : pandas.DataFrame
+        One row per FE run: ``specimen``, ``run`` (1 = the calibration), ``fe_mae_deg``,
+        ``surrogate_mae_deg`` (the uncorrected surrogate at the same point), ``accepted``
+        (FE found it better than every earlier point) and ``damping`` (of the step that led
+        there; NaN for the first run).
+    """
+
+    specimens: tuple[str, ...]
+    x_start: np.ndarray
+    x: np.ndarray
+    fe_curves: np.ndarray
+    surrogate_curves: np.ndarray
+    fe_mae_start: np.ndarray
+    fe_mae_deg: np.ndarray
+    fe_runs: np.ndarray
+    confirmed: np.ndarray
+    tol_deg: float
+    history: pd.DataFrame = field(repr=False)
+
+    def table(self, names: Sequence[str] = PARAMETER_NAMES) -> pd.DataFrame:
+        """One row per specimen: FE error before and after, runs, and both parameter sets."""
+        df = pd.DataFrame(
+            {
+                "specimen": list(self.specimens),
+                "fe_mae_deg_start": self.fe_mae_start,
+                "fe_mae_deg": self.fe_mae_deg,
+                "fe_runs": self.fe_runs,
+                "confirmed": self.confirmed,
+            }
+        )
+        for j, name in enumerate(names):
+            df[f"{name}_start"] = self.x_start[:, j]
+            df[name] = self.x[:, j]
+        return df
+
+    def summary(self) -> dict[str, Any]:
+        """The headline figures (JSON-ready)."""
+        finite = np.isfinite(self.fe_mae_deg)
+        return {
+            "n_specimens": len(self.specimens),
+            "fe_mae_deg_start": _nanmean(self.fe_mae_start),
+            "fe_confirmed_mae_deg": _nanmean(self.fe_mae_deg),
+            "fe_confirmed_mae_deg_max": float(np.max(self.fe_mae_deg[finite]))
+            if finite.any()
+            else float("nan"),
+            "n_confirmed": int(self.confirmed.sum()),
+            "tol_deg": self.tol_deg,
+            "fe_runs_total": int(self.fe_runs.sum()),
+            "fe_runs_per_specimen_max": int(self.fe_runs.max()) if self.fe_runs.size else 0,
+            "fe_runs_per_specimen_mean": float(self.fe_runs.mean()) if self.fe_runs.size else 0,
+        }
+
+
+def _nanmean(v: np.ndarray) -> float:
+    return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+
+
+def _mae(pred: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """MAE (n,) over the points both have; inf where FE gave none of the measured points."""
+    diff = np.abs(pred - measured)
+    count = np.isfinite(diff).sum(axis=(1, 2))
+    total = np.nansum(diff, axis=(1, 2))
+    return np.where(count > 0, total / np.maximum(count, 1), np.inf)
+
+
+def refine_with_fe(
+    model: Any,
+    measured: np.ndarray,
+    x0: np.ndarray,
+    fe_curves: FECurves,
+    *,
+    specimens: Sequence[str] | None = None,
+    weight: np.ndarray | None = None,
+    max_fe_runs: int = 5,
+    tol_deg: float = 0.05,
+    damping: float = 0.01,
+) -> RefineResult:
+    """Refine calibrated parameters until the FE model itself confirms the fit.
+
+    Parameters
+    ----------
+    model : CurveModel
+        The surrogate on the measurement's moment grid (:class:`~femcal.calibration.
+        SurrogateCurveModel`), whose Jacobian steers the steps.
+    measured : ndarray, shape (n, 4, m)
+        Measured RoM in degrees, NaN where not measured.
+    x0 : ndarray, shape (n, d)
+        Calibrated parameters (physical units) to start from.
+    fe_curves : callable
+        ``fe_curves(x, round) -> (k, 4, m)``: the FE model's RoM at the rows of ``x``
+        (:data:`FECurves`, e.g. :func:`campaign_curves`).
+    specimens : sequence of str, length n, optional
+        Names (default "0", "1", ...).
+    weight : ndarray, shape (n, 4, m), optional
+        Weights of the corrected Gauss-Newton fit (e.g. the moment policy's); default 1.
+    max_fe_runs : int
+        FE runs per specimen at most, the first (at ``x0``) included; 1 only validates.
+    tol_deg : float
+        A specimen is confirmed, and stops, once its FE-evaluated MAE is at most this (the
+        noise of the measurement is the natural choice).
+    damping : float
+        Levenberg-Marquardt damping of the first step, relative to the diagonal of the
+        Gauss-Newton matrix; divided by 3 after a step FE accepts, multiplied by 4 after one
+        it refuses.
+
+    Returns
+    -------
+    RefineResult
+
+    Raises
+    ------
+    InputDataError
+        When the shapes of ``measured``, ``x0`` or ``fe_curves``' answer do not agree.
+    ConfigError
+        When ``max_fe_runs < 1`` or ``tol_deg <= 0``.
+    """
+    if int(max_fe_runs) < 1:
+        raise ConfigError(f"max_fe_runs must be >= 1 (1 only validates); got {max_fe_runs!r}.")
+    if not tol_deg > 0:
+        raise ConfigError(f"tol_deg must be > 0 degrees; got {tol_deg!r}.")
+    y = np.asarray(measured, dtype=float)
+    x0 = np.asarray(x0, dtype=float)
+    n, d = x0.shape[0], model.dim
+    shape = (n, len(LOAD_CASES), len(model.moments))
+    if y.shape != shape or x0.shape != (n, d):
+        raise InputDataError(
+            f"refine_with_fe: measured must have shape {shape} and x0 ({n}, {d}) for the "
+            f"model's {d} parameters and moment grid; got {y.shape} and {x0.shape}."
+        )
+    names = tuple(str(i) for i in range(n)) if specimens is None else tuple(map(str, specimens))
+    if len(names) != n:
+        raise InputDataError(f"refine_with_fe: {len(names)} specimen names for {n} specimens.")
+    w = np.ones_like(y) if weight is None else np.asarray(weight, dtype=float)
+
+    def surrogate(v: torch.Tensor) -> np.ndarray:
+        with torch.no_grad():
+            return model.curves(v).double().numpy()
+
+    def run_fe(x: np.ndarray, round_: int) -> np.ndarray:
+        out = np.asarray(fe_curves(x, round_), dtype=float)
+        if out.shape != (x.shape[0], *shape[1:]):
+            raise InputDataError(
+                f"refine_with_fe: fe_curves returned shape {out.shape} for {x.shape[0]} "
+                f"rows; expected {(x.shape[0], *shape[1:])}."
+            )
+        return out
+
+    v_best = model.from_physical(x0).float()  # (n, d) unit coordinates, inside the box
+    x_start = model.to_physical(v_best.double().numpy())
+    fe_best = run_fe(x_start, 0)
+    s_best = surrogate(v_best)
+    mae_best = _mae(fe_best, y)
+    mae_start = mae_best.copy()
+    runs = np.ones(n, dtype=int)
+    rows: list[dict[str, Any]] = [
+        {
+            "specimen": names[i],
+            "run": 1,
+            "fe_mae_deg": mae_best[i],
+            "surrogate_mae_deg": _mae(s_best[i : i + 1], y[i : i + 1])[0],
+            "accepted": True,
+            "damping": float("nan"),
+        }
+        for i in range(n)
+    ]
+    lam = np.full(n, float(damping))
+    need_jac = np.ones(n, dtype=bool)
+    jac = torch.zeros((n, y[0].size, d))
+    broyden = torch.zeros((n, y[0].size, d))  # what FE taught about the Jacobian
+    for round_ in range(1, int(max_fe_runs)):
+        active = np.flatnonzero(mae_best > tol_deg)
+        if active.size == 0:
+            break
+        fresh = active[need_jac[active]]
+        if fresh.size:
+            _, jf = model.curves_jacobian(v_best[fresh])
+            jac[fresh] = jf.reshape(fresh.size, -1, d).float()
+            need_jac[fresh] = False
+        # The FE residual at the best point; points FE or the measurement lack weigh 0.
+        r = y[active] - fe_best[active]
+        wa = np.where(np.isfinite(r), w[active], 0.0).reshape(active.size, -1)
+        r = np.nan_to_num(r).reshape(active.size, -1)
+        step = _lm_step(
+            jac[active] + broyden[active],
+            torch.tensor(r, dtype=torch.float32),
+            torch.tensor(wa, dtype=torch.float32),
+            v_best[active],
+            torch.tensor(lam[active], dtype=torch.float32),
+        )
+        v_try = (v_best[active] + step).clamp(0.0, 1.0)
+        x_try = model.to_physical(v_try.double().numpy())
+        fe_try = run_fe(x_try, round_)
+        s_try = surrogate(v_try)
+        mae_try = _mae(fe_try, y[active])
+        runs[active] += 1
+        better = mae_try < mae_best[active]
+        # Broyden's rank-one update: the Jacobian along the step as FE measured it.
+        dv = v_try - v_best[active]
+        dfe = torch.tensor(np.nan_to_num(fe_try - fe_best[active]), dtype=torch.float32)
+        jb = jac[active] + broyden[active]
+        miss = dfe.reshape(active.size, -1) - (jb @ dv[..., None])[..., 0]
+        norm2 = (dv * dv).sum(1).clamp_min(1e-12)
+        broyden[active] += miss[:, :, None] * dv[:, None, :] / norm2[:, None, None]
+        for j, i in enumerate(active):
+            rows.append(
+                {
+                    "specimen": names[i],
+                    "run": int(runs[i]),
+                    "fe_mae_deg": mae_try[j],
+                    "surrogate_mae_deg": _mae(s_try[j : j + 1], y[i : i + 1])[0],
+                    "accepted": bool(better[j]),
+                    "damping": float(lam[i]),
+                }
+            )
+        won, lost = active[better], active[~better]
+        v_best[won] = v_try[better]
+        fe_best[won], s_best[won], mae_best[won] = fe_try[better], s_try[better], mae_try[better]
+        need_jac[won] = True
+        lam[won] = np.maximum(lam[won] / 3.0, 1e-6)  # FE agreed: bolder next time
+        lam[lost] *= 4.0  # FE found it worse: a shorter step from the same point
+        logger.info(
+            "FE refinement round %d: %d specimens run, %d improved; FE-confirmed MAE %.4f deg "
+            "(%d of %d within %.3g deg).",
+            round_,
+            active.size,
+            won.size,
+            _nanmean(np.where(np.isfinite(mae_best), mae_best, np.nan)),
+            int((mae_best <= tol_deg).sum()),
+            n,
+            tol_deg,
+        )
+    mae_best = np.where(np.isfinite(mae_best), mae_best, np.nan)
+    return RefineResult(
+        specimens=names,
+        x_start=x_start,
+        x=model.to_physical(v_best.double().numpy()),
+        fe_curves=fe_best,
+        surrogate_curves=s_best,
+        fe_mae_start=np.where(np.isfinite(mae_start), mae_start, np.nan),
+        fe_mae_deg=mae_best,
+        fe_runs=runs,
+        confirmed=mae_best <= tol_deg,
+        tol_deg=float(tol_deg),
+        history=pd.DataFrame(rows),
+    )
+
+
+def _lm_step(
+    jac: torch.Tensor, r: torch.Tensor, w: torch.Tensor, v: torch.Tensor, lam: torch.Tensor
+) -> torch.Tensor:
+    """Projected Levenberg-Marquardt steps, shape (b, d), in unit coordinates.
+
+    ``jac`` (b, p, d), residuals ``r`` and weights ``w`` (b, p), the points ``v`` (b, d) and
+    the dampings ``lam`` (b,). A variable at a bound whose step would leave the box is frozen
+    (as in :func:`femcal.calibration.pgd.gauss_newton`).
+    """
+    jtw = jac.transpose(1, 2) * w[:, None, :]
+    hess = jtw @ jac
+    grad = (jtw @ r[..., None])[..., 0]  # the descent direction J^T W r
+    blocked = ((v <= 0) & (grad < 0)) | ((v >= 1) & (grad > 0))
+    free = (~blocked).to(v.dtype)
+    hf = hess * free[:, :, None] * free[:, None, :]
+    diag = torch.diagonal(hf, dim1=1, dim2=2)
+    eye = torch.eye(v.shape[1], dtype=v.dtype)
+    system = hf + torch.diag_embed(lam[:, None] * (diag + 1e-6) + 1e-9)
+    system = system + eye * (1 - free)[:, None, :]
+    return torch.linalg.solve(system, (grad * free)[..., None])[..., 0]
+
+
+def campaign_curves(
+    solver: str,
+    settings: Mapping[str, Any],
+    *,
+    store: str | Path,
+    moments: Sequence[float],
+    scheduler_address: str | None = None,
+    n_workers: int = 2,
+    progress: bool = False,
+) -> FECurves:
+    """An :data:`FECurves` that runs the FE registry's ``solver`` as a campaign.
+
+    Every call is one campaign of the rows of ``x`` x the four load cases at ``moments``, on
+    Dask, recorded in ``store`` (a rerun replays finished runs from it). A failed run gives
+    NaN from the last level it reached.
+    """
+    from femcal.fe.campaign import run_campaign
+
+    levels = [float(m) for m in moments]
+
+    def fe(x: np.ndarray, round_: int) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        design = pd.DataFrame(x, columns=list(PARAMETER_NAMES))
+        design.insert(0, "config_id", np.arange(x.shape[0], dtype=np.int64))
+        campaign = run_campaign(
+            solver,
+            settings,
+            design,
+            store=store,
+            load_cases=LOAD_CASES,
+            moments=levels,
+            scheduler_address=scheduler_address,
+            n_workers=n_workers,
+            progress=progress,
+        )
+        out = np.full((x.shape[0], len(LOAD_CASES), len(levels)), np.nan)
+        for rec in campaign.records.itertuples(index=False):
+            values = [np.nan if v is None else float(v) for v in rec.rom_deg]
+            out[int(rec.config_id), LOAD_CASES.index(rec.load_case)] = values
+        logger.debug("FE round %d: %d configurations", round_, x.shape[0])
+        return out
+
+    return fe
