@@ -616,8 +616,8 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
             r"fe\.bounds\.Kappa: expected \[lower, upper\] with lower < upper, got \[0\.33, 0\.0\]",
         ),
         (
-            "    max_attempts: 2",
-            "    max_attempt: 2",
+            "    max_attempts: 3",
+            "    max_attempt: 3",
             r"fe\.settings\.max_attempt: unknown CalculixDisc keyword; did you mean "
             r"fe\.settings\.max_attempts\?",
         ),
@@ -633,7 +633,7 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
             r"fe\.settings\.geometry\.n_regions: expected an integer >= 3, got 2",
         ),
         (
-            "    timeout_s: 30",
+            "    timeout_s: 90",
             "    timeout_s: -1",
             r"fe\.settings\.timeout_s: expected a number > 0 or null, got -1 \(int\)",
         ),
@@ -644,9 +644,19 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
             r"got 'login-node:8786': no protocol; write tcp://login-node:8786",
         ),
         (
-            "splits: {large: 64,",
-            "splits: {larg: 64,",
+            "splits: {large: 512,",
+            "splits: {larg: 512,",
             r"fe\.splits\.larg: unknown split; did you mean fe\.splits\.large\?",
+        ),
+        (
+            "    max_fe_runs: 5",
+            "    max_fe_runs: 0",
+            r"validate\.refine\.max_fe_runs: expected an integer >= 1, got 0",
+        ),
+        (
+            "    tol_deg: 0.05",
+            "    tol_deg: 0",
+            r"validate\.refine\.tol_deg: expected a number > 0, got 0",
         ),
         (
             "  solver: calculix ",

@@ -40,6 +40,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     params_path = root / "fe" / "params.yaml"
     params = yaml.safe_load(params_path.read_text())
     params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
+    params["fe"]["moments"] = [1, 2, 3, 4, 5]  # the shipped 0.5..10 Nm grid costs 2-3x more
+    params["validate"]["refine"]["max_fe_runs"] = 2  # one refinement step per specimen
     # A loaded CI machine must not turn slow runs into timeouts (failures are tested elsewhere).
     params["fe"]["settings"]["timeout_s"] = 300
     params["train"]["large"].update({"final_members": 1})
@@ -77,6 +79,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     assert summary["n_fe_failed_jobs"] >= int((~reached).sum())
     metrics = json.loads((fe / "reports/validate.json").read_text())
     assert metrics["n_specimens"] == 2
+    assert 1 <= metrics["fe_runs_per_specimen_max"] <= 2
+    assert metrics["fe_confirmed_mae_deg"] <= metrics["fe_mae_deg_calibrated"] + 1e-12
 
     # One more Test configuration: the campaign resumes (44 jobs from the store, 4 new).
     params["fe"]["splits"]["test"] = 3

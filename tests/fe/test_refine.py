@@ -30,7 +30,7 @@ def model() -> SurrogateCurveModel:
     return SurrogateCurveModel(surrogate, MOMENTS)
 
 
-def true_curves(x: np.ndarray, round_: int = 0) -> np.ndarray:
+def true_curves(x: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
     """The synthetic study's model at physical parameters x (k, 13): (k, 4, 5) degrees."""
     u = study_space().to_unit(np.asarray(x, dtype=float))
     m = np.asarray(MOMENTS, dtype=float)
@@ -56,8 +56,8 @@ def test_refinement_brings_the_true_models_error_down(model, specimens):
     y, x0 = specimens
     calls = []
 
-    def fe(x, round_):
-        calls.append((round_, x.shape[0]))
+    def fe(x, ids):
+        calls.append(np.asarray(ids).tolist())
         return true_curves(x)
 
     res = refine_with_fe(model, y, x0, fe, max_fe_runs=5, tol_deg=0.01)
@@ -68,10 +68,11 @@ def test_refinement_brings_the_true_models_error_down(model, specimens):
     assert end < start / 5
     assert np.all(res.fe_mae_deg <= res.fe_mae_start + 1e-12)  # FE judges: never worse
     assert res.fe_runs.max() <= 5 and res.fe_runs.min() >= 1
-    assert [r for r, _ in calls] == list(range(len(calls)))  # rounds numbered from 0
-    assert calls[0][1] == 8 and sum(k for _, k in calls) == res.fe_runs.sum()
+    assert calls[0] == list(range(8)) and sum(map(len, calls)) == res.fe_runs.sum()
     # Confirmed specimens stop: only the others are run again.
-    assert all(k <= 8 for _, k in calls[1:])
+    confirmed_at = {i: r for i, r in zip(range(8), res.fe_runs)}
+    for k, ids in enumerate(calls[1:], start=2):
+        assert all(confirmed_at[i] >= k for i in ids)
     np.testing.assert_allclose(res.fe_curves, true_curves(res.x), atol=1e-9)
     table = res.table()
     assert list(table["fe_runs"]) == res.fe_runs.tolist()
@@ -113,7 +114,7 @@ def test_refine_errors(model, specimens):
     with pytest.raises(InputDataError, match=r"measured must have shape \(8, 4, 5\)"):
         refine_with_fe(model, y[:, :, :3], x0, true_curves)
     with pytest.raises(InputDataError, match=r"fe_curves returned shape \(8, 4, 3\)"):
-        refine_with_fe(model, y, x0, lambda x, r: true_curves(x)[:, :, :3])
+        refine_with_fe(model, y, x0, lambda x, ids: true_curves(x)[:, :, :3])
     with pytest.raises(InputDataError, match="2 specimen names for 8 specimens"):
         refine_with_fe(model, y, x0, true_curves, specimens=["a", "b"])
 
@@ -123,7 +124,7 @@ def test_campaign_curves_runs_calculix_and_replays_its_store(coarse_campaign, tm
     folder, design_df, result = coarse_campaign
     x = design_df[list(PARAMETER_NAMES)].to_numpy()[:1]
     fe = campaign_curves("calculix", COARSE, store=folder / "runs.jsonl", moments=MOMENTS)
-    curves = fe(x, 0)  # every job is in the session campaign's store: nothing runs
+    curves = fe(x, design_df["config_id"].to_numpy()[:1])  # in the store: nothing runs
     rec = result.records[result.records["config_id"] == int(design_df["config_id"].iloc[0])]
     for r in rec.itertuples():
         np.testing.assert_allclose(curves[0, LOAD_CASES.index(r.load_case)], r.rom_deg)

@@ -123,3 +123,97 @@ def test_validate_names_a_missing_calibration(tmp_path):
             store=tmp_path / "runs.jsonl",
             out_dir=tmp_path / "out",
         )
+
+
+@requires_ccx
+def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, monkeypatch):
+    """The stage with ``validate.refine``: FE runs per specimen within the budget, never a
+    worse FE error than the calibration's, the refinement's tables, and a rerun from the store.
+
+    The steering surrogate is the synthetic study's (not this FE model's), so its steps may be
+    refused: this test is about the stage, tests/fe/test_refine.py about the algorithm.
+    """
+    from femcal.surrogates.nn import NeuralSurrogate
+    from femcal.tracking import configure_tracking, ensure_experiment, export_model, log_surrogate
+
+    from synth import tidy_table
+
+    _, design_df, result = coarse_campaign
+    write_dataset(
+        design_df,
+        result.records.to_dict(orient="records"),
+        tmp_path / "ds",
+        space=study_space(),
+        moments=MOMENTS,
+    )
+    truth = design_df[design_df["split"] == "test"]
+    cal = tmp_path / "cal"
+    cal.mkdir()
+    params = truth[list(PARAMETER_NAMES)].assign(specimen="0")
+    params["C10Annulus"] *= 1.3  # a calibration FE does not confirm
+    params[["specimen", *PARAMETER_NAMES]].to_csv(cal / "parameters.csv", index=False)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    table = tidy_table(48, seed=3)
+    surrogate = NeuralSurrogate(
+        study_space(), hidden=(16,), max_epochs=5, patience=5, batch_size=16, seed=0
+    ).fit(table, table["rom_deg"].to_numpy())
+    configure_tracking(store_dir=tmp_path / "mlruns")
+    ensure_experiment("fe-test", store_dir=tmp_path / "mlruns")
+    try:
+        with mlflow.start_run():
+            info = log_surrogate(surrogate, surrogate.space)
+        export_model(info.model_uri, tmp_path / "model")
+        settings = {
+            "mlflow": {"store_dir": str(tmp_path / "mlruns"), "experiment": "fe-test"},
+            "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
+            "validate": {
+                "calibration_dir": str(cal),
+                "measurements": str(tmp_path / "ds" / "Test"),
+                "out_dir": str(tmp_path / "val"),
+                "store": str(tmp_path / "val-runs.jsonl"),
+                "refine": {"model_uri": str(tmp_path / "model"), "max_fe_runs": 2, "tol_deg": 1e-4},
+            },
+        }
+        (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
+        metrics = tmp_path / "validate.json"
+        stage = ["validate", "--metrics-file", str(metrics)]
+        assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
+        runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
+        assert runs["metrics.fe_runs_per_specimen_max"].iloc[0] == 2
+    finally:
+        mlflow.set_tracking_uri(None)
+    figures = json.loads(metrics.read_text())
+    assert figures["n_specimens"] == 1 and figures["fe_runs_per_specimen_max"] == 2
+    assert figures["fe_mae_deg_calibrated"] > 0.05  # the perturbed calibration misses
+    assert figures["fe_confirmed_mae_deg"] <= figures["fe_mae_deg_calibrated"]
+    refine = pd.read_csv(tmp_path / "val" / "refine.csv", dtype={"specimen": str})
+    assert refine["fe_runs"].tolist() == [2]
+    assert refine["C10Annulus_start"].iloc[0] == pytest.approx(params["C10Annulus"].iloc[0])
+    history = pd.read_csv(tmp_path / "val" / "refine_history.csv", dtype={"specimen": str})
+    assert history["run"].tolist() == [1, 2]
+    validation = pd.read_csv(tmp_path / "val" / "validation.csv", dtype={"specimen": str})
+    assert validation["fe_mae_deg"].iloc[0] == pytest.approx(figures["fe_confirmed_mae_deg"])
+    # Two refinement runs x 4 load cases; the validation of the best point replays its moment
+    # runs from the store (no compression forces here): 8 jobs, and a rerun adds none.
+    assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 8
+    assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
+    assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 8
+    mlflow.set_tracking_uri(None)
+
+
+def test_refinement_needs_its_surrogate(tmp_path):
+    from femcal.stages.validate import run_validate
+
+    with pytest.raises(ConfigError, match=r"refinement needs validate\.refine\.model_uri"):
+        run_validate(
+            calibration_dir=tmp_path,
+            measurements=tmp_path,
+            solver="calculix",
+            settings=COARSE,
+            forces=[],
+            literature={},
+            store=tmp_path / "runs.jsonl",
+            out_dir=tmp_path / "out",
+            max_fe_runs=3,
+        )

@@ -28,7 +28,7 @@ iteration converges to a point where FE itself fits the measurement, not to one 
 surrogate thinks it does. Each round costs one FE run (every load case of the measurement)
 per specimen that is not yet confirmed.
 
-The FE model enters as a function ``fe_curves(x, round) -> (k, 4, m)``, so any solver (or a
+The FE model enters as a function ``fe_curves(x, ids) -> (k, 4, m)``, so any solver (or a
 store of earlier runs) can serve; :func:`campaign_curves` runs a campaign of the FE registry
 on Dask and keeps every run in a resumable store.
 """
@@ -50,8 +50,9 @@ from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 
 logger = logging.getLogger(__name__)
 
-#: ``fe_curves(x, round)``: RoM in degrees, shape (k, 4, m), of the k parameter rows ``x``
-#: (k, d) in physical units, NaN where a run failed; ``round`` numbers the calls from 0.
+#: ``fe_curves(x, ids)``: RoM in degrees, shape (k, 4, m), of the k parameter rows ``x``
+#: (k, d) in physical units, NaN where a run failed; ``ids`` (k,) are the rows' specimens
+#: (positions 0..n-1, the same in every call: a store may key its runs by them).
 FECurves = Callable[[np.ndarray, int], np.ndarray]
 
 
@@ -168,7 +169,7 @@ def refine_with_fe(
     x0 : ndarray, shape (n, d)
         Calibrated parameters (physical units) to start from.
     fe_curves : callable
-        ``fe_curves(x, round) -> (k, 4, m)``: the FE model's RoM at the rows of ``x``
+        ``fe_curves(x, ids) -> (k, 4, m)``: the FE model's RoM at the rows of ``x``
         (:data:`FECurves`, e.g. :func:`campaign_curves`).
     specimens : sequence of str, length n, optional
         Names (default "0", "1", ...).
@@ -217,8 +218,8 @@ def refine_with_fe(
         with torch.no_grad():
             return model.curves(v).double().numpy()
 
-    def run_fe(x: np.ndarray, round_: int) -> np.ndarray:
-        out = np.asarray(fe_curves(x, round_), dtype=float)
+    def run_fe(x: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        out = np.asarray(fe_curves(x, ids), dtype=float)
         if out.shape != (x.shape[0], *shape[1:]):
             raise InputDataError(
                 f"refine_with_fe: fe_curves returned shape {out.shape} for {x.shape[0]} "
@@ -228,7 +229,7 @@ def refine_with_fe(
 
     v_best = model.from_physical(x0).float()  # (n, d) unit coordinates, inside the box
     x_start = model.to_physical(v_best.double().numpy())
-    fe_best = run_fe(x_start, 0)
+    fe_best = run_fe(x_start, np.arange(n))
     s_best = surrogate(v_best)
     mae_best = _mae(fe_best, y)
     mae_start = mae_best.copy()
@@ -270,7 +271,7 @@ def refine_with_fe(
         )
         v_try = (v_best[active] + step).clamp(0.0, 1.0)
         x_try = model.to_physical(v_try.double().numpy())
-        fe_try = run_fe(x_try, round_)
+        fe_try = run_fe(x_try, active)
         s_try = surrogate(v_try)
         mae_try = _mae(fe_try, y[active])
         runs[active] += 1
@@ -361,17 +362,20 @@ def campaign_curves(
     """An :data:`FECurves` that runs the FE registry's ``solver`` as a campaign.
 
     Every call is one campaign of the rows of ``x`` x the four load cases at ``moments``, on
-    Dask, recorded in ``store`` (a rerun replays finished runs from it). A failed run gives
+    Dask, recorded in ``store`` (a rerun replays finished runs from it). The configurations
+    are numbered by ``ids``, so a later campaign of the same parameters under the same
+    numbers (the validation of the refined specimens) finds them there. A failed run gives
     NaN from the last level it reached.
     """
     from femcal.fe.campaign import run_campaign
 
     levels = [float(m) for m in moments]
 
-    def fe(x: np.ndarray, round_: int) -> np.ndarray:
+    def fe(x: np.ndarray, ids: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=float)
         design = pd.DataFrame(x, columns=list(PARAMETER_NAMES))
-        design.insert(0, "config_id", np.arange(x.shape[0], dtype=np.int64))
+        design.insert(0, "config_id", np.asarray(ids, dtype=np.int64))
+        where = {int(c): j for j, c in enumerate(design["config_id"])}
         campaign = run_campaign(
             solver,
             settings,
@@ -386,8 +390,7 @@ def campaign_curves(
         out = np.full((x.shape[0], len(LOAD_CASES), len(levels)), np.nan)
         for rec in campaign.records.itertuples(index=False):
             values = [np.nan if v is None else float(v) for v in rec.rom_deg]
-            out[int(rec.config_id), LOAD_CASES.index(rec.load_case)] = values
-        logger.debug("FE round %d: %d configurations", round_, x.shape[0])
+            out[where[int(rec.config_id)], LOAD_CASES.index(rec.load_case)] = values
         return out
 
     return fe

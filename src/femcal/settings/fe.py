@@ -16,7 +16,7 @@ from femcal.settings._checks import Choice, Float, FnCheck, Int, KeyChoice, List
 from femcal.settings._messages import BAD, Context, Invalid, got, unknown_message, yaml_repr
 from femcal.settings._validate import MapOf, Section, optional, setting
 from femcal.settings.keywords import SOLVERS, SPLITS
-from femcal.settings.values import DASK_ADDRESS, MOMENTS, PATH
+from femcal.settings.values import DASK_ADDRESS, MODEL_URI, MOMENTS, PATH
 
 
 def _bounds(value: Any, path: tuple, ctx: Context) -> Any:
@@ -125,6 +125,23 @@ class IdpRange:
 
 
 @dataclass(frozen=True)
+class RefineSettings:
+    """``validate.refine``: FE-in-the-loop refinement of the calibration before validating it."""
+
+    _complete: ClassVar[bool] = True
+
+    model_uri: str = setting(
+        MODEL_URI, "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
+    )
+    max_fe_runs: int = setting(
+        Int(1), "FE runs per specimen at most, the first included (1: validate only)", 1
+    )
+    tol_deg: float = setting(
+        Float(0, lo_open=True), "FE-evaluated MAE at which a specimen is confirmed, deg", 0.05
+    )
+
+
+@dataclass(frozen=True)
 class ValidateSettings:
     """``validate``: FE re-simulation of the calibrated parameters and the IDP check."""
 
@@ -140,4 +157,7 @@ class ValidateSettings:
         MapOf(Section(IdpRange), Float(0, lo_open=True), what="force in N -> {low, mean, high}"),
         "literature IDP range per force: force in N -> {low, mean, high} in MPa",
         {},
+    )
+    refine: RefineSettings | None = optional(
+        Section(RefineSettings), "FE-in-the-loop refinement (null: validate the calibration as is)"
     )

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from femcal.config import section
+from femcal.errors import ConfigError
 from femcal.paths import store_path
 from femcal.stages.common import (
     StageSettings,
@@ -25,6 +26,10 @@ from femcal.stages.store import tracking
 #: The summary keys the stage's DVC metrics file holds.
 METRICS_KEYS = (
     "n_specimens",
+    "fe_confirmed_mae_deg",
+    "fe_mae_deg_calibrated",
+    "fe_runs_per_specimen_max",
+    "fe_runs_per_specimen_mean",
     "fe_mae_deg",
     "surrogate_mae_deg",
     "fe_vs_surrogate_mae_deg",
@@ -50,6 +55,9 @@ class ValidateSettings(StageSettings):
     n_workers: int
     progress: bool = False
     metrics_file: str | None = None
+    model_uri: str | None = None
+    max_fe_runs: int = 1
+    tol_deg: float = 0.05
     params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -63,6 +71,7 @@ class ValidateSettings(StageSettings):
             metrics_file=args.get("metrics_file"),
         )
         address, n_workers = fe_runtime(params)
+        refine = cfg.get("refine") or {}
         return cls(
             calibration_dir=(
                 Path(args["calibration"])
@@ -88,6 +97,9 @@ class ValidateSettings(StageSettings):
             n_workers=n_workers,
             progress=bool(args.get("progress")),
             metrics_file=args.get("metrics_file"),
+            model_uri=refine.get("model_uri"),
+            max_fe_runs=int(refine.get("max_fe_runs", 1)),
+            tol_deg=float(refine.get("tol_deg", 0.05)),
             params=params,
         )
 
@@ -106,7 +118,16 @@ def run(settings: ValidateSettings) -> dict[str, Any]:
 
 def describe(figures: Mapping[str, Any]) -> list[str]:
     s, out = figures["summary"], figures["out"]
-    lines = [
+    lines = []
+    if s.get("refine"):
+        r = s["refine"]
+        lines.append(
+            f"refined with FE in the loop: FE-evaluated MAE {r['fe_mae_deg_start']:.4f} -> "
+            f"{r['fe_confirmed_mae_deg']:.4f} deg, {r['n_confirmed']}/{r['n_specimens']} "
+            f"within {r['tol_deg']:g} deg, {r['fe_runs_per_specimen_max']} FE runs per "
+            f"specimen at most ({r['fe_runs_per_specimen_mean']:.1f} on average)"
+        )
+    lines += [
         f"validated {s['n_specimens']} calibrated specimens with the FE model: MAE vs the "
         f"measurement {s['fe_mae_deg']:.4f} deg through FE, {s['surrogate_mae_deg']:.4f} deg "
         f"through the surrogate (FE vs surrogate {s['fe_vs_surrogate_mae_deg']:.4f} deg); "
@@ -124,7 +145,8 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             f"  IDP at {row['force_n']:g} N: {row['idp_mpa_min']:.3f}-{row['idp_mpa_max']:.3f} "
             f"MPa{verdict}"
         )
-    lines.append(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv")
+    extra = f", {out}/refine.csv" if s.get("refine") else ""
+    lines.append(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv{extra}")
     return lines
 
 
@@ -141,8 +163,14 @@ def run_validate(
     scheduler_address: str | None = None,
     n_workers: int = 2,
     progress: bool = False,
+    model_uri: str | None = None,
+    max_fe_runs: int = 1,
+    tol_deg: float = 0.05,
 ):
     """FE re-simulation of a calibration (the study's step 4); tables in ``out_dir``; MLflow.
+
+    With ``max_fe_runs > 1`` the calibration is first refined with FE in the loop, steered by
+    the surrogate at ``model_uri`` (a model folder or a models:/ URI).
 
     Returns
     -------
@@ -158,6 +186,17 @@ def run_validate(
     from femcal.fe.validate import literature_ranges, validate_calibration
 
     ranges = literature_ranges(literature)
+    surrogate = None
+    if max_fe_runs > 1:
+        if not model_uri:
+            raise ConfigError(
+                f"validate.refine.max_fe_runs is {max_fe_runs}: FE-in-the-loop refinement "
+                "needs validate.refine.model_uri (the surrogate calibrated with, e.g. "
+                "models/surrogate-large); or set max_fe_runs: 1 to validate only."
+            )
+        from femcal.tracking import load_surrogate, open_model
+
+        surrogate = load_surrogate(open_model(model_uri))
     # The FE campaign runs before the MLflow run starts (a bad input makes no FAILED run);
     # its tables are staged, and move into place inside the run that logs them.
     with staged_output(out_dir, command="validate") as stage:
@@ -173,6 +212,9 @@ def run_validate(
             scheduler_address=scheduler_address,
             n_workers=n_workers,
             progress=progress,
+            surrogate=surrogate,
+            max_fe_runs=max_fe_runs,
+            tol_deg=tol_deg,
         )
         s = result.summary
         with mlflow.start_run(run_name="validate") as run:
@@ -191,6 +233,9 @@ def run_validate(
             )
             metrics = {
                 "fe_mae_deg": s["fe_mae_deg"],
+                "fe_confirmed_mae_deg": s["fe_confirmed_mae_deg"],
+                "fe_mae_deg_calibrated": s["fe_mae_deg_calibrated"],
+                "fe_runs_per_specimen_max": s["fe_runs_per_specimen_max"],
                 "surrogate_mae_deg": s["surrogate_mae_deg"],
                 "fe_vs_surrogate_mae_deg": s["fe_vs_surrogate_mae_deg"],
                 "n_fe_failed_jobs": s["n_fe_failed_jobs"],
