@@ -10,7 +10,7 @@ import pytest
 import pytorch_lightning as pl
 import torch
 
-from femcal.errors import InputDataError, SurrogateNotFittedError
+from femcal.errors import ConfigError, InputDataError, SurrogateNotFittedError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates import make_surrogate
@@ -225,3 +225,35 @@ def test_polynomial_degree_follows_the_training_moments():
     full = tidy_table(12, seed=0)
     model.fit(full, full["rom_deg"].to_numpy())
     assert model.net_.architecture()["moment_degree"] == 3
+
+
+def test_warm_start_fine_tunes_the_fitted_members(
+    fitted: NeuralSurrogate, data: tuple[pd.DataFrame, np.ndarray]
+) -> None:
+    X, y = data
+    X_new, y_new = make_data(12, seed=7)  # new configurations, as from new FE runs
+    model = copy.deepcopy(fitted).set_params(warm_start=True, max_epochs=1, learning_rate=1e-9)
+    before = fitted.predict(X_new)
+    model.fit(pd.concat([X, X_new]), np.concatenate([y, y_new]))
+    # One epoch at a negligible learning rate: the members are the fitted ones, and so are
+    # the scalings (a fresh fit of one epoch would predict nothing like them).
+    np.testing.assert_allclose(model.predict(X_new), before, rtol=1e-4)
+    fresh = copy.deepcopy(fitted).set_params(max_epochs=1, learning_rate=1e-9)
+    fresh.fit(pd.concat([X, X_new]), np.concatenate([y, y_new]))
+    assert (
+        np.abs(fresh.predict(X_new) - before).mean()
+        > 10 * np.abs(model.predict(X_new) - before).mean()
+    )
+    # Fine-tuning on the new runs lowers the error there.
+    tuned = copy.deepcopy(fitted).set_params(warm_start=True, max_epochs=20, learning_rate=3e-3)
+    tuned.fit(pd.concat([X, X_new]), np.concatenate([y, y_new]))
+    assert np.abs(tuned.predict(X_new) - y_new).mean() < np.abs(before - y_new).mean()
+
+
+def test_warm_start_refuses_a_changed_architecture(
+    fitted: NeuralSurrogate, data: tuple[pd.DataFrame, np.ndarray]
+) -> None:
+    X, y = data
+    model = copy.deepcopy(fitted).set_params(warm_start=True, hidden=(16,), max_epochs=1)
+    with pytest.raises(ConfigError, match=r"warm_start continues the fitted network, but hidden"):
+        model.fit(X, y)

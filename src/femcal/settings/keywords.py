@@ -82,6 +82,7 @@ _SURROGATE_REFUSED = {
     "n_members": "the ensemble size is train.<split>.final_members (trials train one member)",
     "seed": "set train.seed, or train.<split>.seed for one split",
     "space": "the parameter space comes from the prepared data",
+    "warm_start": "training starts anew; the FE pipeline's adaptive sampling fine-tunes",
 }
 
 #: InverseModel keywords settable in inverse.fixed / search_space (plus width, depth).

@@ -103,6 +103,11 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         Parameters with strictly positive bounds enter the network in log scale.
     lr_schedule : {"onecycle", "cosine", "constant"}
         Learning-rate schedule.
+    warm_start : bool
+        As in scikit-learn: a fitted model's next ``fit`` starts each member from its current
+        weights and keeps its output and moment scalings (fine-tuning on new FE runs, e.g.
+        with a smaller ``learning_rate`` and ``max_epochs`` set by ``set_params``); the
+        architecture and ``n_members`` must then be unchanged. False: every fit starts anew.
 
     Attributes
     ----------
@@ -137,6 +142,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         seed: int = 0,
         log_params: bool = True,
         lr_schedule: str = "onecycle",
+        warm_start: bool = False,
     ) -> None:
         self.space = space
         self.hidden = hidden
@@ -154,6 +160,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         self.seed = seed
         self.log_params = log_params
         self.lr_schedule = lr_schedule
+        self.warm_start = warm_start
 
     # --------------------------------------------------------------------- helpers
     def _init_args(self) -> dict[str, Any]:
@@ -246,6 +253,25 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
                 "NeuralSurrogate.load(path) first."
             )
 
+    def _warm_start_members(self, arch: dict[str, Any]) -> list[dict] | None:
+        """The fitted members' weights to start from (``warm_start``), else None."""
+        if not (self.warm_start and hasattr(self, "net_")):
+            return None
+        fitted = self.net_.architecture()
+        want = {**arch, "n_members": int(self.n_members)}
+        changed = [
+            k
+            for k in ("hidden", "activation", "n_members", "log_target", "log_params")
+            if fitted[k] != want[k]
+        ]
+        if changed:
+            raise ConfigError(
+                f"warm_start continues the fitted network, but {', '.join(changed)} changed "
+                f"(fitted: {', '.join(f'{k}={fitted[k]}' for k in changed)}); restore them, or "
+                "set warm_start=False to train anew."
+            )
+        return [{k: v.clone() for k, v in m.state_dict().items()} for m in self.net_.members]
+
     # ------------------------------------------------------------------------- fit
     def fit(
         self,
@@ -320,6 +346,11 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
             "log_params": bool(self.log_params),
             "moment_degree": self._moment_degree(moment),
         }
+        start = self._warm_start_members(arch)
+        if start is not None:  # the fitted model's scalings: its weights are in their units
+            net0 = self.net_
+            scales = {k: float(getattr(net0, k)) for k in scales}
+            arch["moment_degree"] = net0.moment_degree
 
         def scaled(values: np.ndarray) -> np.ndarray:
             tv = np.log(values) if self.log_target else values
@@ -338,6 +369,8 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
                 with torch.random.fork_rng(devices=[]):
                     torch.manual_seed(member_seed)
                     net = RomNet(self.space.lower, self.space.upper, n_members=1, **arch, **scales)
+                    if start is not None:
+                        net.members[0].load_state_dict(start[k])
                     module = RomLightningModule(
                         net,
                         loss=self.loss,
