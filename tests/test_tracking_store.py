@@ -25,8 +25,8 @@ from femcal.tracking import (
     load_surrogate,
     log_surrogate,
     register_and_promote,
-    relocate_store,
 )
+from femcal.tracking_store import relocate_store
 
 from synth import study_space, tidy_table
 

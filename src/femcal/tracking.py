@@ -6,7 +6,8 @@ shared server instead.
 
 MLflow records absolute artifact locations (experiments, runs, logged models, model versions).
 The default store follows its folder: every start resolves the locations that point into
-another folder's store (a copied or moved project) to this one (:func:`relocate_store`).
+another folder's store (a copied or moved project) to this one
+(:func:`femcal.tracking_store.relocate_store`).
 
 A logged surrogate is a complete MLflow model (logged from code by
 :mod:`femcal.training.pyfunc`, as the inverse model) that carries femcal's code
@@ -26,7 +27,6 @@ import json
 import logging
 import os
 import re
-import sqlite3
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,11 +38,11 @@ import pandas as pd
 from femcal.errors import ConfigError, ModelRegistryError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
+from femcal.tracking_store import DEFAULT_STORE_DIR, local_path, relocate_store
 from femcal.training.loader import LOADER_FILE, trusted_loader
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_STORE_DIR = Path("mlruns")
 DEFAULT_MODEL_NAME = "ivd-rom-surrogate"
 CHAMPION_ALIAS = "champion"
 #: Tag on a model version holding the validation metric used for promotion.
@@ -80,118 +80,6 @@ def configure_tracking(
     mlflow.set_registry_uri(uri)
     logger.info("MLflow tracking store: %s", uri)
     return uri
-
-
-#: Columns of MLflow's SQL store that hold artifact locations: (table, column).
-_LOCATION_COLUMNS: tuple[tuple[str, str], ...] = (
-    ("experiments", "artifact_location"),
-    ("runs", "artifact_uri"),
-    ("logged_models", "artifact_location"),
-    ("model_versions", "source"),
-    ("model_versions", "storage_location"),
-)
-
-
-def _local_path(location: str) -> Path | None:
-    """The local path of an artifact location (``file://`` URI or absolute path), or None."""
-    from urllib.parse import unquote, urlparse
-
-    if location.startswith("file:"):
-        return Path(unquote(urlparse(location).path))
-    if location.startswith("/"):
-        return Path(location)
-    return None
-
-
-def _foreign_roots(db: sqlite3.Connection, root: Path) -> list[Path]:
-    """Store folders other than ``root`` that this store's experiments keep artifacts in.
-
-    femcal creates experiments with the artifact root ``<store>/artifacts``; a store whose
-    experiments name ``<other>/artifacts``, with ``<other>`` a folder of the same name as
-    ``root``, was copied or moved from ``<other>``.
-    """
-    found = set()
-    for (location,) in db.execute("SELECT artifact_location FROM experiments"):
-        path = _local_path(str(location or ""))
-        if (
-            path is not None
-            and path.name == "artifacts"
-            and path.parent.name == root.name
-            and path.parent != root
-        ):
-            found.add(path.parent)
-    return sorted(found)
-
-
-def relocate_store(store_dir: str | Path = DEFAULT_STORE_DIR) -> dict[str, int]:
-    """Resolve a copied or moved default store's artifact locations to its own folder.
-
-    MLflow records absolute locations: the experiment's artifact root, every run's artifact
-    URI, every logged model's and model version's location. After ``cp -r`` or ``mv`` of a
-    project these still name the original folder, so runs would be written into it and
-    registered models read from it. This rewrites every location under another store folder
-    ``<other>`` (found from the experiments' ``<other>/artifacts`` roots) to the same place
-    under ``store_dir``, in one transaction, and does nothing when all point here already.
-
-    Parameters
-    ----------
-    store_dir : str or Path
-        The store folder holding ``mlflow.db`` and ``artifacts/``.
-
-    Returns
-    -------
-    dict of str to int
-        Rewritten values per ``"table.column"`` (empty when nothing pointed elsewhere).
-    """
-    root = Path(store_dir).resolve()
-    db_file = root / "mlflow.db"
-    if not db_file.is_file():
-        return {}
-    counts: dict[str, int] = {}
-    db = sqlite3.connect(db_file, timeout=60, isolation_level=None)
-    try:
-        try:
-            if not _foreign_roots(db, root):  # the usual case: a read, no lock taken
-                return {}
-            db.execute("BEGIN IMMEDIATE")  # one writer; re-read under the lock
-            olds = _foreign_roots(db, root)
-        except sqlite3.OperationalError:  # not (yet) an MLflow store: nothing to resolve
-            return {}
-        if not olds:  # another process resolved them while this one waited for the lock
-            return {}
-        pairs = []
-        for old in olds:
-            new = root
-            pairs += [(str(old), str(new)), (old.as_uri(), new.as_uri())]
-        for table, column in _LOCATION_COLUMNS:
-            columns = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
-            if column not in columns:
-                continue
-            for old_prefix, new_prefix in pairs:
-                n = len(old_prefix)
-                cur = db.execute(
-                    f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
-                    f"WHERE {column} = ? OR substr({column}, 1, ?) = ?",
-                    (new_prefix, n + 1, old_prefix, n + 1, old_prefix + "/"),
-                )
-                if cur.rowcount:
-                    key = f"{table}.{column}"
-                    counts[key] = counts.get(key, 0) + cur.rowcount
-        db.execute("COMMIT")
-    finally:
-        if db.in_transaction:
-            db.execute("ROLLBACK")
-        db.close()
-    logger.warning(
-        "The MLflow store %s was copied or moved from %s: %d recorded artifact locations now "
-        "point into %s (%s).",
-        root,
-        ", ".join(map(str, olds)),
-        sum(counts.values()),
-        root,
-        ", ".join(f"{k} {v}" for k, v in sorted(counts.items())),
-    )
-    return counts
 
 
 def _sqlite_folder(uri: str, *, default: Path) -> Path:
@@ -515,7 +403,7 @@ def open_model(uri: str) -> ModelSource:
         The folder does not exist or is a file, or the URI cannot be resolved in the store.
     """
     if is_local_model(uri):
-        path = _local_path(uri) if uri.startswith("file:") else Path(uri)
+        path = local_path(uri) if uri.startswith("file:") else Path(uri)
         if path is None or not path.exists():
             raise ModelRegistryError(
                 f"The model folder '{uri}' does not exist (looked in {Path.cwd()}). Fetch it "

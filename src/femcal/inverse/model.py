@@ -28,7 +28,7 @@ from femcal.errors import (
 from femcal.inverse.net import InverseLightningModule, InverseNet, last_val_mae
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
-from femcal.surrogates.romnet import ACTIVATIONS
+from femcal.surrogates.romnet import check_activation
 from femcal.training import persist
 from femcal.training.lightning import batch_loader, fit_on_cpu, quiet_lightning
 
@@ -181,10 +181,7 @@ class InverseModel(BaseEstimator):
         return args
 
     def _check_settings(self) -> None:
-        if self.activation not in ACTIVATIONS:
-            raise ConfigError(
-                f"Unknown activation '{self.activation}'; choose one of {', '.join(ACTIVATIONS)}."
-            )
+        check_activation(self.activation)
         problems = []
         hidden = list(self.hidden)
         if not hidden or any(int(h) < 1 for h in hidden):

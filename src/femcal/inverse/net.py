@@ -13,7 +13,7 @@ from torch import nn
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
-from femcal.surrogates.romnet import ACTIVATIONS
+from femcal.surrogates.romnet import ACTIVATIONS, check_activation
 
 
 def last_val_mae(trainer: pl.Trainer, module: pl.LightningModule) -> float | None:
@@ -57,10 +57,7 @@ class InverseNet(nn.Module):
         input_scale: Sequence[float] | np.ndarray | None = None,
     ) -> None:
         super().__init__()
-        if activation not in ACTIVATIONS:
-            raise ConfigError(
-                f"Unknown activation '{activation}'; choose one of {', '.join(ACTIVATIONS)}."
-            )
+        check_activation(activation)
         self.n_load_cases = len(LOAD_CASES)
         self.n_moments = int(n_moments)
         self.n_params = int(n_params)

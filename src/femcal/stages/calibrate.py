@@ -25,10 +25,8 @@ from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
     StageSettings,
     check_measurements,
-    check_outputs,
     moment_settings,
-    out_label,
-    path_setting,
+    output_folder,
     write_metrics,
 )
 from femcal.stages.tracking_process import (
@@ -127,18 +125,12 @@ class CalibrateSettings(StageSettings):
         else:
             effects = entry_effects
         measurements = Path(given) if given else setting_path(params, entry_path)
-        out = args.get("out") or str(
-            path_setting(params, "calibrate", "out_dir") / (name or "custom")
-        )
-        check_outputs(  # before anything heavy is imported
-            out,
-            label=out_label(args.get("out"), "calibrate.out_dir"),
-            metrics_file=args.get("metrics_file"),
-        )
+        # before anything heavy is imported
+        out = output_folder(params, args, "calibrate", subfolder=name or "custom")
         check_measurements(measurements)
         return cls(
             measurements=measurements,
-            out_dir=Path(out),
+            out_dir=out,
             method=method,
             model_uri=model_uri,
             holdout_uri=holdout_uri,

@@ -60,6 +60,51 @@ def out_label(given: str | None, setting: str) -> str:
     return "--out" if given else f"output folder ({setting})"
 
 
+def output_folder(
+    params: Mapping[str, Any],
+    args: Mapping[str, Any],
+    section_name: str,
+    *,
+    subfolder: str | None = None,
+) -> Path:
+    """A stage's output folder, checked with its metrics file before any heavy work.
+
+    Parameters
+    ----------
+    params : mapping
+        The parsed params.yaml.
+    args : mapping
+        The command line's settings: ``out`` (``--out``) and ``metrics_file``
+        (``--metrics-file``).
+    section_name : str
+        The params.yaml section whose ``out_dir`` is the default folder; messages name the
+        folder ``--out`` or ``<section_name>.out_dir`` (:func:`out_label`).
+    subfolder : str, optional
+        A folder below ``<section_name>.out_dir`` (not below ``--out``).
+
+    Returns
+    -------
+    Path
+        ``--out`` as given, else the setting (relative to the project root), with
+        ``subfolder``.
+
+    Raises
+    ------
+    OutputFolderError
+        The folder or the metrics file cannot receive the outputs (:func:`check_outputs`).
+    """
+    given = args.get("out")
+    out = Path(given) if given else path_setting(params, section_name, "out_dir")
+    if subfolder and not given:
+        out = out / subfolder
+    check_outputs(
+        out,
+        label=out_label(given, f"{section_name}.out_dir"),
+        metrics_file=args.get("metrics_file"),
+    )
+    return out
+
+
 def check_measurements(path: Path) -> None:
     """A missing measurement file or folder, reported before any heavy import."""
     if not path.exists():

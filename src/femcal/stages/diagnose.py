@@ -13,9 +13,8 @@ from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
     StageSettings,
     check_measurements,
-    check_outputs,
     moment_settings,
-    out_label,
+    output_folder,
     path_setting,
     write_metrics,
 )
@@ -54,12 +53,7 @@ class DiagnoseSettings(StageSettings):
         cfg = section(params, "diagnose")
         noise = args["noise_deg"] if args.get("noise_deg") is not None else cfg.get("noise_deg")
         bank = section(params, "calibrate").get("start_bank")
-        out = args.get("out") or path_setting(params, "diagnose", "out_dir")
-        check_outputs(  # before anything heavy is imported
-            out,
-            label=out_label(args.get("out"), "diagnose.out_dir"),
-            metrics_file=args.get("metrics_file"),
-        )
+        out = output_folder(params, args, "diagnose")  # before anything heavy is imported
         measurements = (
             Path(args["measurements"])
             if args.get("measurements")
@@ -68,7 +62,7 @@ class DiagnoseSettings(StageSettings):
         check_measurements(measurements)
         return cls(
             measurements=measurements,
-            out_dir=Path(out),
+            out_dir=out,
             model_uri=args.get("model_uri")
             or setting_uri(params, section(params, "calibrate", "model_uri")),
             noise_deg=None if noise is None else float(noise),

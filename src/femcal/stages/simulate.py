@@ -12,9 +12,7 @@ from femcal.paths import setting_path, store_path
 from femcal.space import ParameterSpace
 from femcal.stages.common import (
     StageSettings,
-    check_outputs,
-    out_label,
-    path_setting,
+    output_folder,
     write_metrics,
 )
 
@@ -53,12 +51,7 @@ class SimulateSettings(StageSettings):
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> SimulateSettings:
         cfg = section(params, "fe")
-        out = Path(args["out"]) if args.get("out") else path_setting(params, "fe", "out_dir")
-        check_outputs(  # before the campaign
-            out,
-            label=out_label(args.get("out"), "fe.out_dir"),
-            metrics_file=args.get("metrics_file"),
-        )
+        out = output_folder(params, args, "fe")  # before the campaign
         address, n_workers = fe_runtime(params)
         scratch = cfg.get("scratch_dir")
         return cls(

@@ -15,8 +15,7 @@ from femcal.errors import ConfigError
 from femcal.paths import store_path
 from femcal.stages.common import (
     StageSettings,
-    check_outputs,
-    out_label,
+    output_folder,
     path_setting,
     write_metrics,
 )
@@ -64,12 +63,7 @@ class ValidateSettings(StageSettings):
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> ValidateSettings:
         cfg = section(params, "validate")
         fe = section(params, "fe")
-        out = Path(args["out"]) if args.get("out") else path_setting(params, "validate", "out_dir")
-        check_outputs(  # before the FE campaign
-            out,
-            label=out_label(args.get("out"), "validate.out_dir"),
-            metrics_file=args.get("metrics_file"),
-        )
+        out = output_folder(params, args, "validate")  # before the FE campaign
         address, n_workers = fe_runtime(params)
         refine = cfg.get("refine") or {}
         return cls(

@@ -42,10 +42,11 @@ from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates.base import check_features, register_surrogate
 from femcal.surrogates.romnet import (
-    ACTIVATIONS,
+    ACTIVATIONS,  # noqa: F401 (re-exported: the activations NeuralSurrogate takes)
     LOSSES,
     LR_SCHEDULES,
     RomNet,
+    check_activation,
 )
 from femcal.training import persist
 
@@ -170,10 +171,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         return args
 
     def _check_settings(self) -> None:
-        if self.activation not in ACTIVATIONS:
-            raise ConfigError(
-                f"Unknown activation '{self.activation}'; choose one of {', '.join(ACTIVATIONS)}."
-            )
+        check_activation(self.activation)
         if self.loss not in LOSSES:
             raise ConfigError(f"Unknown loss '{self.loss}'; choose one of {', '.join(LOSSES)}.")
         if self.lr_schedule not in LR_SCHEDULES:

@@ -40,6 +40,25 @@ _LEGACY_BUFFERS = ("log_mask", "log_lower", "log_upper")
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 
 
+def check_activation(activation: str) -> None:
+    """Refuse an activation that is not one of :data:`ACTIVATIONS`.
+
+    Parameters
+    ----------
+    activation : str
+        The name of a hidden activation.
+
+    Raises
+    ------
+    ConfigError
+        ``activation`` is not a key of :data:`ACTIVATIONS`; the message lists them.
+    """
+    if activation not in ACTIVATIONS:
+        raise ConfigError(
+            f"Unknown activation '{activation}'; choose one of {', '.join(ACTIVATIONS)}."
+        )
+
+
 # ----------------------------------------------------------------------------- the torch model
 class RomNet(nn.Module):
     """Differentiable RoM model: (load case, moment, physical parameters) -> RoM in degrees.
@@ -117,10 +136,7 @@ class RomNet(nn.Module):
             or not bool(torch.all(lower_t < upper_t))
         ):
             raise ConfigError("RomNet needs 1-D bounds of equal length with lower < upper.")
-        if activation not in ACTIVATIONS:
-            raise ConfigError(
-                f"Unknown activation '{activation}'; choose one of {', '.join(ACTIVATIONS)}."
-            )
+        check_activation(activation)
         if n_members < 1 or moment_degree < 0 or not 0.0 <= dropout < 1.0:
             raise ConfigError(
                 "RomNet needs n_members >= 1, moment_degree >= 0 and 0 <= dropout < 1; got "
