@@ -184,6 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
     p.add_argument("--store", help="campaign store, JSON lines (default: fe.store)")
     _add_metrics_file(p)
+    p = command("adapt", help="adaptive FE sampling; fine-tuned challenger vs the champion")
+    _add_metrics_file(p)
     p = command("validate", help="FE re-simulation of calibrated parameters; IDP check")
     p.add_argument("--calibration", help="calibration folder (default: validate.calibration_dir)")
     p.add_argument("--measurements", help="measurements calibrated to (validate.measurements)")

@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from fe_helpers import COARSE, requires_ccx
+from fe_helpers import MOMENTS as FE_MOMENTS
 
 from femcal.errors import ConfigError, InputDataError
 from femcal.fe.adaptive import adapt_surrogate, curves_to_rows, ensemble_spread
@@ -143,3 +145,82 @@ def test_adapt_errors(surrogate):
         adapt_surrogate(surrogate, targets=np.zeros((1, 4, 5)), rounds=0, **good)
     with pytest.raises(InputDataError, match=r"targets must have shape \(n, 4, 5\)"):
         adapt_surrogate(surrogate, targets=np.zeros((1, 4, 3)), **good)
+
+
+@requires_ccx
+def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
+    coarse_campaign, tmp_path, monkeypatch
+):
+    """``femcal adapt`` on the session's real CalculiX campaign: one round, MLflow for real."""
+    import json
+
+    import mlflow
+    import yaml
+
+    from femcal.cli import main
+    from femcal.fe.dataset import write_dataset
+    from femcal.prepare import prepare_dataset
+    from femcal.tracking import configure_tracking, ensure_experiment, export_model, log_surrogate
+
+    _, design_df, result = coarse_campaign
+    write_dataset(
+        design_df,
+        result.records.to_dict(orient="records"),
+        tmp_path / "ds",
+        space=study_space(),
+        moments=FE_MOMENTS,
+    )
+    prepare_dataset(tmp_path / "ds", tmp_path / "prepared")
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    X, y = rows(tidy_table(48, seed=3))
+    surrogate = NeuralSurrogate(
+        study_space(), hidden=(16,), max_epochs=5, patience=5, n_members=2
+    ).fit(X, y)
+    configure_tracking(store_dir=tmp_path / "mlruns")
+    ensure_experiment("fe-test", store_dir=tmp_path / "mlruns")
+    try:
+        with mlflow.start_run():
+            info = log_surrogate(surrogate, surrogate.space)
+        export_model(info.model_uri, tmp_path / "large")
+        params = {
+            "mlflow": {
+                "store_dir": str(tmp_path / "mlruns"),
+                "experiment": "fe-test",
+                "model_name": "fe-sur",
+            },
+            "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
+            "adapt": {
+                "model_uri": str(tmp_path / "large"),
+                "targets": str(tmp_path / "ds" / "Test"),
+                "train": str(tmp_path / "prepared" / "large.csv"),
+                "heldout": str(tmp_path / "prepared" / "small.csv"),
+                "out_model": str(tmp_path / "champion"),
+                "out_dir": str(tmp_path / "adapt"),
+                "store": str(tmp_path / "adapt-runs.jsonl"),
+                "rounds": 1,
+                "n_explore": 1,
+                "n_candidates": 8,
+                "finetune": {"max_epochs": 2, "patience": 2},
+                "calibrate_options": {"n_starts": 1, "max_iter": 3},
+            },
+        }
+        (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+        metrics = tmp_path / "adapt.json"
+        argv = ["--params", str(tmp_path / "params.yaml"), "adapt", "--metrics-file", str(metrics)]
+        assert main(argv) == 0
+        client = mlflow.MlflowClient()
+        challenger = client.get_model_version_by_alias("fe-sur", "challenger")
+    finally:
+        mlflow.set_tracking_uri(None)
+    figures = json.loads(metrics.read_text())
+    assert figures["n_rounds"] == 1 and figures["n_new_configurations"] == 2  # 1 target + 1
+    assert figures["challenger_version"] == str(challenger.version)
+    assert figures["promoted"] == (
+        figures["challenger_heldout_mae_deg"] < figures["champion_heldout_mae_deg"]
+    )
+    assert (tmp_path / "champion" / "MLmodel").is_file()
+    runs = pd.read_csv(tmp_path / "adapt" / "runs.csv")
+    assert runs["reason"].tolist() == ["calibration", "disagreement"]
+    # Two new configurations x four load cases, in the stage's own store.
+    assert len((tmp_path / "adapt-runs.jsonl").read_text().splitlines()) == 8

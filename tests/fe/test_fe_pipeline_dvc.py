@@ -42,9 +42,13 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
     params["fe"]["moments"] = [1, 2, 3, 4, 5]  # the shipped 0.5..10 Nm grid costs 2-3x more
     params["validate"]["refine"]["max_fe_runs"] = 2  # one refinement step per specimen
+    params["adapt"].update(
+        {"rounds": 1, "n_explore": 1, "n_candidates": 8, "finetune": {"max_epochs": 2}}
+    )
+    params["adapt"]["calibrate_options"] = {"n_starts": 2, "max_iter": 3}
     # A loaded CI machine must not turn slow runs into timeouts (failures are tested elsewhere).
     params["fe"]["settings"]["timeout_s"] = 300
-    params["train"]["large"].update({"final_members": 1})
+    params["train"]["large"].update({"final_members": 2})  # adapt needs an ensemble
     params["train"]["large"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
     params["calibrate"]["max_plots"] = 1
     params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
@@ -58,7 +62,7 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     _run([*git, "commit", "-qm", "copy"], root, env)
 
     first = _run([BIN / "dvc", "repro", "fe/dvc.yaml"], root, env)
-    for stage in ("simulate", "prepare", "train@large", "calibrate@fe-test", "validate"):
+    for stage in ("simulate", "prepare", "train@large", "adapt", "calibrate@fe-test", "validate"):
         assert f"Running stage 'fe/dvc.yaml:{stage}'" in first.stdout
     assert "Running stage 'fetch'" not in first.stdout  # the root pipeline is not run
     fe = root / "fe"
@@ -79,6 +83,9 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     assert summary["n_fe_failed_jobs"] >= int((~reached).sum())
     metrics = json.loads((fe / "reports/validate.json").read_text())
     assert metrics["n_specimens"] == 2
+    adapt = json.loads((fe / "reports/adapt.json").read_text())
+    assert adapt["n_rounds"] == 1 and adapt["n_new_configurations"] == 3  # 2 targets + 1
+    assert (fe / "models/surrogate-champion/MLmodel").is_file()
     assert 1 <= metrics["fe_runs_per_specimen_max"] <= 2
     assert metrics["fe_confirmed_mae_deg"] <= metrics["fe_mae_deg_calibrated"] + 1e-12
 

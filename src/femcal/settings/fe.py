@@ -15,7 +15,7 @@ from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.settings._checks import Choice, Float, FnCheck, Int, KeyChoice, ListOf
 from femcal.settings._messages import BAD, Context, Invalid, got, unknown_message, yaml_repr
 from femcal.settings._validate import MapOf, Section, optional, setting
-from femcal.settings.keywords import SOLVERS, SPLITS
+from femcal.settings.keywords import CALIBRATOR_OPTIONS, SOLVERS, SPLITS, SURROGATE_FIXED
 from femcal.settings.values import DASK_ADDRESS, MODEL_URI, MOMENTS, PATH
 
 
@@ -122,6 +122,31 @@ class IdpRange:
                 "mean",
                 (f"need low <= mean <= high; got {v['low']:g}, {v['mean']:g}, {v['high']:g}"),
             )
+
+
+@dataclass(frozen=True)
+class AdaptSettings:
+    """``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion."""
+
+    _complete: ClassVar[bool] = True
+
+    model_uri: str = setting(MODEL_URI, "the surrogate to adapt (a model folder or models:/ URI)")
+    targets: str = setting(PATH, "measurements whose calibrations steer the runs")
+    train: str = setting(PATH, "the surrogate's prepared training table")
+    heldout: str = setting(PATH, "prepared table of held-out FE configurations (the judge)")
+    out_model: str = setting(PATH, "folder of the champion's files (the winner)")
+    out_dir: str = setting(PATH, "folder of the rounds' tables")
+    store: str = setting(PATH, "campaign store of the new FE runs")
+    rounds: int = setting(Int(1), "rounds of FE runs and fine-tuning", 3)
+    n_explore: int = setting(Int(0), "configurations explored per round (ensemble spread)", 16)
+    n_candidates: int = setting(Int(1), "Latin-hypercube candidates ranked by spread", 2048)
+    finetune: dict = setting(
+        SURROGATE_FIXED, "NeuralSurrogate settings of the fine-tuning (warm start)", {}
+    )
+    calibrate_options: dict = setting(
+        CALIBRATOR_OPTIONS["pgd"], "pgd options of the rounds' calibrations", {}
+    )
+    seed: int = setting(Int(0), "seed of the candidates and calibrations", 0)
 
 
 @dataclass(frozen=True)

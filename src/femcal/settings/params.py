@@ -18,7 +18,7 @@ from typing import Any
 from femcal.errors import ConfigError
 from femcal.settings._messages import BAD, Context, Index, closest, unknown_message
 from femcal.settings._validate import Section, settings_of
-from femcal.settings.fe import FeSettings, ValidateSettings
+from femcal.settings.fe import AdaptSettings, FeSettings, ValidateSettings
 from femcal.settings.keywords import SOLVER_SETTINGS, SOLVERS
 from femcal.settings.root import (
     BaselinesSettings,
@@ -42,6 +42,7 @@ _BOTH = {"root": True, "fe": True}  # required in both files
 _ROOT = {"root": True, "fe": False}  # required in params.yaml, allowed in fe/params.yaml
 _OPTIONAL = {"root": False, "fe": False}  # allowed in both, required in neither
 _FE = {"fe": True}  # fe/params.yaml only
+_FE_OPTIONAL = {"fe": False}  # allowed in fe/params.yaml only, not required
 
 #: Sections of each file kind: section -> (class, required in a complete file).
 _SECTIONS: dict[str, tuple[type, dict[str, bool]]] = {
@@ -58,6 +59,7 @@ _SECTIONS: dict[str, tuple[type, dict[str, bool]]] = {
     "diagnose": (DiagnoseSettings, _ROOT),
     "fe": (FeSettings, _FE),
     "validate": (ValidateSettings, _FE),
+    "adapt": (AdaptSettings, _FE_OPTIONAL),
 }
 
 
@@ -89,6 +91,7 @@ class Settings:
     diagnose: DiagnoseSettings | None = None
     fe: FeSettings | None = None
     validate: ValidateSettings | None = None
+    adapt: AdaptSettings | None = None
 
 
 # ====================================================================== validation entry points

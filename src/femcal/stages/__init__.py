@@ -21,6 +21,7 @@ command            module                      stage (dvc.yaml / fe/dvc.yaml)
 ``plant``          :mod:`.plant`               plant
 ``diagnose``       :mod:`.diagnose`            diagnose
 ``simulate``       :mod:`.simulate`            simulate (fe/dvc.yaml)
+``adapt``          :mod:`.adapt`               adapt (fe/dvc.yaml)
 ``validate``       :mod:`.validate`            validate (fe/dvc.yaml)
 =================  ==========================  ==================================
 """
@@ -43,6 +44,7 @@ COMMANDS: dict[str, str] = {
     "plant": "plant",
     "diagnose": "diagnose",
     "simulate": "simulate",
+    "adapt": "adapt",
     "validate": "validate",
 }
 
