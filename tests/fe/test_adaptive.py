@@ -123,6 +123,16 @@ def test_ensemble_spread(surrogate):
         ensemble_spread(one, x, MOMENTS)
 
 
+def test_band_mae(surrogate):
+    from femcal.fe.adaptive import band_mae
+
+    X, y = rows(tidy_table(4, seed=1))
+    bands = band_mae(surrogate, X, y, bands=((0, 2), (2, 5), (5, 10)))
+    low = X["moment_nm"] <= 2
+    assert bands["0-2"] == pytest.approx(np.mean(np.abs(surrogate.predict(X[low]) - y[low])))
+    assert np.isnan(bands["5-10"])  # no rows beyond 5 Nm
+
+
 def test_curves_to_rows_keeps_the_reached_levels():
     x = study_space().sample_uniform(2, np.random.default_rng(0))
     curves = true_curves(x)
@@ -220,6 +230,7 @@ def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
         figures["challenger_heldout_mae_deg"] < figures["champion_heldout_mae_deg"]
     )
     assert (tmp_path / "champion" / "MLmodel").is_file()
+    assert set(figures["challenger_heldout_mae_deg_by_band"]) == {"0-5", "5-10"}
     runs = pd.read_csv(tmp_path / "adapt" / "runs.csv")
     assert runs["reason"].tolist() == ["calibration", "disagreement"]
     # Two new configurations x four load cases, in the stage's own store.

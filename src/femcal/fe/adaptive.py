@@ -143,6 +143,29 @@ class AdaptResult:
         }
 
 
+#: The moment bands of the held-out error: the study's range and beyond it.
+MOMENT_BANDS: tuple[tuple[float, float], ...] = ((0.0, 5.0), (5.0, 10.0))
+
+
+def band_mae(
+    surrogate: Any,
+    X: pd.DataFrame,
+    y: np.ndarray,
+    bands: Sequence[tuple[float, float]] = MOMENT_BANDS,
+) -> dict[str, float]:
+    """MAE in degrees of ``surrogate`` on rows ``X`` per moment band ``(lo, hi]``, in Nm.
+
+    Keys are ``"lo-hi"`` (e.g. ``"0-5"``, ``"5-10"``); a band without rows is NaN.
+    """
+    pred = surrogate.predict(X)
+    m = X["moment_nm"].to_numpy(dtype=float)
+    out = {}
+    for lo, hi in bands:
+        sel = (m > lo) & (m <= hi)
+        out[f"{lo:g}-{hi:g}"] = _mae(pred[sel], np.asarray(y)[sel]) if sel.any() else float("nan")
+    return out
+
+
 def _mae(a: np.ndarray, b: np.ndarray) -> float:
     d = np.abs(np.asarray(a, dtype=float) - np.asarray(b, dtype=float))
     return float(np.nanmean(d)) if np.isfinite(d).any() else float("nan")

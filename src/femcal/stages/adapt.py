@@ -99,13 +99,17 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         if figures["promoted"]
         else "the champion stays (the challenger did not beat it on held-out FE)"
     )
+    bands = ", ".join(
+        f"{band} Nm {figures['champion_heldout_mae_deg_by_band'][band]:.4f} -> {v:.4f}"
+        for band, v in figures["challenger_heldout_mae_deg_by_band"].items()
+    )
     return [
         f"adaptive sampling: {figures['n_rounds']} rounds, {figures['n_new_configurations']} "
         f"new FE configurations; surrogate error at the calibrated solutions, round by round: "
         f"{errs} deg",
         f"held-out FE MAE: champion {figures['champion_heldout_mae_deg']:.4f} deg, challenger "
         f"{figures['challenger_heldout_mae_deg']:.4f} deg: {verdict} (version "
-        f"{figures['challenger_version']})",
+        f"{figures['challenger_version']}); by moment band: {bands} deg",
         f"outputs: {figures['out_model']} (the champion's files), {figures['out_dir']}",
     ]
 
@@ -143,7 +147,7 @@ def run_adapt(
     from mlflow import MlflowClient
 
     from femcal.datasets import ok_rows
-    from femcal.fe.adaptive import adapt_surrogate
+    from femcal.fe.adaptive import adapt_surrogate, band_mae
     from femcal.fe.refine import campaign_curves
     from femcal.measurements import read_measurements
     from femcal.outputs import check_destination
@@ -244,6 +248,9 @@ def run_adapt(
             shutil.copytree(source.path, out_model)
         figures = {
             **result.summary(),
+            # the held-out FE error in the study's moment range and beyond it, both models
+            "champion_heldout_mae_deg_by_band": band_mae(surrogate, *heldout_rows),
+            "challenger_heldout_mae_deg_by_band": band_mae(result.surrogate, *heldout_rows),
             "champion_heldout_mae_deg": champion_mae,
             "challenger_heldout_mae_deg": challenger_mae,
             "challenger_version": str(mv.version),
