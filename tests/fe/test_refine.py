@@ -128,3 +128,26 @@ def test_campaign_curves_runs_calculix_and_replays_its_store(coarse_campaign, tm
     rec = result.records[result.records["config_id"] == int(design_df["config_id"].iloc[0])]
     for r in rec.itertuples():
         np.testing.assert_allclose(curves[0, LOAD_CASES.index(r.load_case)], r.rom_deg)
+
+
+def test_a_run_that_misses_measured_points_is_never_accepted(model, specimens):
+    """An FE run that stops early must not win by leaving the hard points out."""
+    y, x0 = specimens
+
+    calls = []
+
+    def failing(x, ids):
+        calls.append(ids)
+        out = true_curves(x)
+        if len(calls) > 1:  # every refinement run stops after 3 Nm
+            out[:, :, 3:] = np.nan
+        return out
+
+    res = refine_with_fe(model, y, x0, failing, max_fe_runs=3, tol_deg=1e-6)
+    np.testing.assert_allclose(res.x, res.x_start)
+    np.testing.assert_allclose(res.fe_mae_deg, res.fe_mae_start)
+    h = res.history
+    assert not h.loc[h["run"] > 1, "accepted"].any()
+    assert (
+        not h.loc[h["run"] > 1, "fe_complete"].any() and h.loc[h["run"] == 1, "fe_complete"].all()
+    )

@@ -82,7 +82,9 @@ class RefineResult:
     tol_deg : float
     history : pandas.DataFrame
         One row per FE run: ``specimen``, ``run`` (1 = the calibration), ``fe_mae_deg``,
-        ``surrogate_mae_deg`` (the uncorrected surrogate at the same point), ``accepted``
+        ``surrogate_mae_deg`` (the uncorrected surrogate at the same point), ``fe_complete``
+        (the run reached every measured point; a run that did not is never accepted),
+        ``accepted``
         (FE found it better than every earlier point) and ``damping`` (of the step that led
         there; NaN for the first run).
     """
@@ -143,6 +145,13 @@ def _mae(pred: np.ndarray, measured: np.ndarray) -> np.ndarray:
     count = np.isfinite(diff).sum(axis=(1, 2))
     total = np.nansum(diff, axis=(1, 2))
     return np.where(count > 0, total / np.maximum(count, 1), np.inf)
+
+
+def _judged(fe: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """The MAE FE judges by (n,): inf where the run missed a measured point (it failed before
+    reaching it), so that a run cannot win by leaving the hard points out."""
+    missed = (np.isfinite(measured) & ~np.isfinite(fe)).any(axis=(1, 2))
+    return np.where(missed, np.inf, _mae(fe, measured))
 
 
 def refine_with_fe(
@@ -231,14 +240,15 @@ def refine_with_fe(
     x_start = model.to_physical(v_best.double().numpy())
     fe_best = run_fe(x_start, np.arange(n))
     s_best = surrogate(v_best)
-    mae_best = _mae(fe_best, y)
-    mae_start = mae_best.copy()
+    mae_best = _judged(fe_best, y)
+    mae_start = _mae(fe_best, y)  # reported over the points reached
     runs = np.ones(n, dtype=int)
     rows: list[dict[str, Any]] = [
         {
             "specimen": names[i],
             "run": 1,
-            "fe_mae_deg": mae_best[i],
+            "fe_mae_deg": mae_start[i],
+            "fe_complete": bool(np.isfinite(mae_best[i])),
             "surrogate_mae_deg": _mae(s_best[i : i + 1], y[i : i + 1])[0],
             "accepted": True,
             "damping": float("nan"),
@@ -273,7 +283,7 @@ def refine_with_fe(
         x_try = model.to_physical(v_try.double().numpy())
         fe_try = run_fe(x_try, active)
         s_try = surrogate(v_try)
-        mae_try = _mae(fe_try, y[active])
+        mae_try = _judged(fe_try, y[active])
         runs[active] += 1
         better = mae_try < mae_best[active]
         # Broyden's rank-one update: the Jacobian along the step as FE measured it.
@@ -288,7 +298,8 @@ def refine_with_fe(
                 {
                     "specimen": names[i],
                     "run": int(runs[i]),
-                    "fe_mae_deg": mae_try[j],
+                    "fe_mae_deg": _mae(fe_try[j : j + 1], y[i : i + 1])[0],
+                    "fe_complete": bool(np.isfinite(mae_try[j])),
                     "surrogate_mae_deg": _mae(s_try[j : j + 1], y[i : i + 1])[0],
                     "accepted": bool(better[j]),
                     "damping": float(lam[i]),
@@ -311,6 +322,10 @@ def refine_with_fe(
             n,
             tol_deg,
         )
+    # Reported over the points reached (a specimen whose every run failed somewhere keeps
+    # its first run, and is not confirmed).
+    confirmed = mae_best <= tol_deg
+    mae_best = np.where(np.isfinite(mae_best), mae_best, _mae(fe_best, y))
     mae_best = np.where(np.isfinite(mae_best), mae_best, np.nan)
     return RefineResult(
         specimens=names,
@@ -321,7 +336,7 @@ def refine_with_fe(
         fe_mae_start=np.where(np.isfinite(mae_start), mae_start, np.nan),
         fe_mae_deg=mae_best,
         fe_runs=runs,
-        confirmed=mae_best <= tol_deg,
+        confirmed=confirmed,
         tol_deg=float(tol_deg),
         history=pd.DataFrame(rows),
     )
