@@ -148,6 +148,21 @@ def test_a_run_that_misses_measured_points_is_never_accepted(model, specimens):
     np.testing.assert_allclose(res.fe_mae_deg, res.fe_mae_start)
     h = res.history
     assert not h.loc[h["run"] > 1, "accepted"].any()
-    assert (
-        not h.loc[h["run"] > 1, "fe_complete"].any() and h.loc[h["run"] == 1, "fe_complete"].all()
-    )
+    assert (h.loc[h["run"] > 1, "fe_points_missed"] == 4 * 2).all()  # 4 and 5 Nm, 4 cases
+    assert (h.loc[h["run"] == 1, "fe_points_missed"] == 0).all()
+    assert not res.confirmed.any() or (res.fe_points_missed == 0).all()
+
+
+def test_runs_that_all_stop_early_still_refine_on_the_points_they_reach(model, specimens):
+    """When every run stops at 3 Nm, FE judges on the points reached; nothing is confirmed."""
+    y, x0 = specimens
+
+    def stopping(x, ids):
+        out = true_curves(x)
+        out[:, :, 3:] = np.nan
+        return out
+
+    res = refine_with_fe(model, y, x0, stopping, max_fe_runs=4, tol_deg=1e-6)
+    assert np.mean(res.fe_mae_deg) < np.mean(res.fe_mae_start)
+    assert (res.fe_points_missed == 8).all() and not res.confirmed.any()
+    assert res.summary()["n_specimens_with_missed_points"] == 8

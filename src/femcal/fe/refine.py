@@ -74,16 +74,20 @@ class RefineResult:
     fe_mae_start : ndarray, shape (n,)
         FE-evaluated MAE of ``x_start`` against the measurement, degrees.
     fe_mae_deg : ndarray, shape (n,)
-        FE-evaluated MAE of ``x`` (the FE-confirmed error).
+        FE-evaluated MAE of ``x`` (the FE-confirmed error), over the measured points its run
+        reached.
+    fe_points_missed : ndarray of int, shape (n,)
+        Measured points the run at ``x`` did not reach (it failed before them).
     fe_runs : ndarray of int, shape (n,)
         FE runs spent on each specimen (the first, at ``x_start``, included).
     confirmed : ndarray of bool, shape (n,)
-        FE confirms the fit: ``fe_mae_deg <= tol_deg``.
+        FE confirms the fit: ``fe_mae_deg <= tol_deg`` and no measured point missed.
     tol_deg : float
     history : pandas.DataFrame
         One row per FE run: ``specimen``, ``run`` (1 = the calibration), ``fe_mae_deg``,
-        ``surrogate_mae_deg`` (the uncorrected surrogate at the same point), ``fe_complete``
-        (the run reached every measured point; a run that did not is never accepted),
+        ``surrogate_mae_deg`` (the uncorrected surrogate at the same point),
+        ``fe_points_missed`` (measured points the run did not reach: a run is accepted only if
+        it misses no more than the best one and fits better on the points both reached),
         ``accepted``
         (FE found it better than every earlier point) and ``damping`` (of the step that led
         there; NaN for the first run).
@@ -97,6 +101,7 @@ class RefineResult:
     fe_mae_start: np.ndarray
     fe_mae_deg: np.ndarray
     fe_runs: np.ndarray
+    fe_points_missed: np.ndarray
     confirmed: np.ndarray
     tol_deg: float
     history: pd.DataFrame = field(repr=False)
@@ -109,6 +114,7 @@ class RefineResult:
                 "fe_mae_deg_start": self.fe_mae_start,
                 "fe_mae_deg": self.fe_mae_deg,
                 "fe_runs": self.fe_runs,
+                "fe_points_missed": self.fe_points_missed,
                 "confirmed": self.confirmed,
             }
         )
@@ -128,6 +134,7 @@ class RefineResult:
             if finite.any()
             else float("nan"),
             "n_confirmed": int(self.confirmed.sum()),
+            "n_specimens_with_missed_points": int((self.fe_points_missed > 0).sum()),
             "tol_deg": self.tol_deg,
             "fe_runs_total": int(self.fe_runs.sum()),
             "fe_runs_per_specimen_max": int(self.fe_runs.max()) if self.fe_runs.size else 0,
@@ -147,11 +154,21 @@ def _mae(pred: np.ndarray, measured: np.ndarray) -> np.ndarray:
     return np.where(count > 0, total / np.maximum(count, 1), np.inf)
 
 
-def _judged(fe: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """The MAE FE judges by (n,): inf where the run missed a measured point (it failed before
-    reaching it), so that a run cannot win by leaving the hard points out."""
-    missed = (np.isfinite(measured) & ~np.isfinite(fe)).any(axis=(1, 2))
-    return np.where(missed, np.inf, _mae(fe, measured))
+def _missed(fe: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Measured points a run did not reach (it failed before them), (n,) int."""
+    return (np.isfinite(measured) & ~np.isfinite(fe)).sum(axis=(1, 2))
+
+
+def _better(
+    fe_new: np.ndarray, fe_old: np.ndarray, measured: np.ndarray, missed_old: np.ndarray
+) -> np.ndarray:
+    """FE's judgement (n,): the new run misses no more measured points than the old one and
+    fits better on the points both reached (a run cannot win by leaving hard points out)."""
+    common = np.isfinite(fe_new) & np.isfinite(fe_old) & np.isfinite(measured)
+    count = common.sum(axis=(1, 2))
+    new = np.where(common, np.abs(fe_new - measured), 0.0).sum(axis=(1, 2))
+    old = np.where(common, np.abs(fe_old - measured), 0.0).sum(axis=(1, 2))
+    return (_missed(fe_new, measured) <= missed_old) & (count > 0) & (new < old)
 
 
 def refine_with_fe(
@@ -240,15 +257,16 @@ def refine_with_fe(
     x_start = model.to_physical(v_best.double().numpy())
     fe_best = run_fe(x_start, np.arange(n))
     s_best = surrogate(v_best)
-    mae_best = _judged(fe_best, y)
-    mae_start = _mae(fe_best, y)  # reported over the points reached
+    mae_best = _mae(fe_best, y)  # over the measured points the run reached
+    missed_best = _missed(fe_best, y)
+    mae_start = mae_best.copy()
     runs = np.ones(n, dtype=int)
     rows: list[dict[str, Any]] = [
         {
             "specimen": names[i],
             "run": 1,
             "fe_mae_deg": mae_start[i],
-            "fe_complete": bool(np.isfinite(mae_best[i])),
+            "fe_points_missed": int(missed_best[i]),
             "surrogate_mae_deg": _mae(s_best[i : i + 1], y[i : i + 1])[0],
             "accepted": True,
             "damping": float("nan"),
@@ -260,7 +278,7 @@ def refine_with_fe(
     jac = torch.zeros((n, y[0].size, d))
     broyden = torch.zeros((n, y[0].size, d))  # what FE taught about the Jacobian
     for round_ in range(1, int(max_fe_runs)):
-        active = np.flatnonzero(mae_best > tol_deg)
+        active = np.flatnonzero(~((mae_best <= tol_deg) & (missed_best == 0)))
         if active.size == 0:
             break
         fresh = active[need_jac[active]]
@@ -283,9 +301,10 @@ def refine_with_fe(
         x_try = model.to_physical(v_try.double().numpy())
         fe_try = run_fe(x_try, active)
         s_try = surrogate(v_try)
-        mae_try = _judged(fe_try, y[active])
+        mae_try = _mae(fe_try, y[active])
+        missed_try = _missed(fe_try, y[active])
         runs[active] += 1
-        better = mae_try < mae_best[active]
+        better = _better(fe_try, fe_best[active], y[active], missed_best[active])
         # Broyden's rank-one update: the Jacobian along the step as FE measured it.
         dv = v_try - v_best[active]
         dfe = torch.tensor(np.nan_to_num(fe_try - fe_best[active]), dtype=torch.float32)
@@ -298,8 +317,8 @@ def refine_with_fe(
                 {
                     "specimen": names[i],
                     "run": int(runs[i]),
-                    "fe_mae_deg": _mae(fe_try[j : j + 1], y[i : i + 1])[0],
-                    "fe_complete": bool(np.isfinite(mae_try[j])),
+                    "fe_mae_deg": mae_try[j],
+                    "fe_points_missed": int(missed_try[j]),
                     "surrogate_mae_deg": _mae(s_try[j : j + 1], y[i : i + 1])[0],
                     "accepted": bool(better[j]),
                     "damping": float(lam[i]),
@@ -308,6 +327,7 @@ def refine_with_fe(
         won, lost = active[better], active[~better]
         v_best[won] = v_try[better]
         fe_best[won], s_best[won], mae_best[won] = fe_try[better], s_try[better], mae_try[better]
+        missed_best[won] = missed_try[better]
         need_jac[won] = True
         lam[won] = np.maximum(lam[won] / 3.0, 1e-6)  # FE agreed: bolder next time
         lam[lost] *= 4.0  # FE found it worse: a shorter step from the same point
@@ -318,14 +338,12 @@ def refine_with_fe(
             active.size,
             won.size,
             _nanmean(np.where(np.isfinite(mae_best), mae_best, np.nan)),
-            int((mae_best <= tol_deg).sum()),
+            int(((mae_best <= tol_deg) & (missed_best == 0)).sum()),
             n,
             tol_deg,
         )
-    # Reported over the points reached (a specimen whose every run failed somewhere keeps
-    # its first run, and is not confirmed).
-    confirmed = mae_best <= tol_deg
-    mae_best = np.where(np.isfinite(mae_best), mae_best, _mae(fe_best, y))
+    # Over the points reached; a run that missed measured points confirms nothing there.
+    confirmed = (mae_best <= tol_deg) & (missed_best == 0)
     mae_best = np.where(np.isfinite(mae_best), mae_best, np.nan)
     return RefineResult(
         specimens=names,
@@ -336,6 +354,7 @@ def refine_with_fe(
         fe_mae_start=np.where(np.isfinite(mae_start), mae_start, np.nan),
         fe_mae_deg=mae_best,
         fe_runs=runs,
+        fe_points_missed=missed_best,
         confirmed=confirmed,
         tol_deg=float(tol_deg),
         history=pd.DataFrame(rows),
