@@ -183,6 +183,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("simulate", help="FE campaign on Dask -> dataset in the study's layout")
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
     p.add_argument("--store", help="campaign store, JSON lines (default: fe.store)")
+    p.add_argument(
+        "--retry-timeouts",
+        action="store_true",
+        help="run the stored jobs that failed on their wall-clock limit again",
+    )
     _add_metrics_file(p)
     p = command("adapt", help="adaptive FE sampling; fine-tuned challenger vs the champion")
     _add_metrics_file(p)

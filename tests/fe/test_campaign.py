@@ -111,6 +111,35 @@ def test_rerun_skips_finished_jobs_and_runs_only_new_ones(coarse_campaign, tmp_p
     assert {r["config_id"] for r in after[12:]} == {3}
 
 
+def test_retry_runs_only_the_failures_a_predicate_picks(coarse_campaign, tmp_path):
+    """``retry_failed=timed_out``: a job that hit the wall-clock limit runs again; a failure
+    of the model (a fibre-routine abort) stays a result."""
+    import json
+
+    from femcal.fe.campaign import timed_out
+
+    folder, design_df, _ = coarse_campaign
+    records = [json.loads(line) for line in _lines(folder / "runs.jsonl")]
+    records[0].update(status="failed", reason="timeout after 30 s (exit code -9; 3 of 5 levels)")
+    records[1].update(status="failed", reason="fiber extension is too large (exit code 201)")
+    store = tmp_path / "runs.jsonl"
+    store.write_text("".join(json.dumps(r) + "\n" for r in records))
+    assert timed_out(records[0]) and not timed_out(records[1]) and not timed_out(records[2])
+    result = run_campaign(
+        "calculix",
+        COARSE,
+        design_df,
+        store=store,
+        moments=MOMENTS,
+        retry_failed=timed_out,
+        progress=False,
+    )
+    assert result.n_run == 1 and result.n_skipped == 11
+    latest = CampaignStore(store).finished()
+    assert latest[records[0]["job_hash"]]["status"] == "ok"  # ran again, converged
+    assert latest[records[1]["job_hash"]]["status"] == "failed"  # the model's failure stays
+
+
 @requires_ccx
 def test_torn_last_line_is_ignored_and_cut_off(coarse_campaign, tmp_path, caplog):
     folder, _, _ = coarse_campaign

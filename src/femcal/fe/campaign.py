@@ -11,8 +11,10 @@ finished job to a durable store as it arrives:
   load case, levels, solver and adapter settings): nothing finished is computed twice;
 * failed simulations are records with ``status = "failed"`` and the reason (and the tail of
   the solver's log), never zeros; a failure is data and is not retried by a rerun unless
-  ``retry_failed`` is set. A job whose worker raised (solver missing, worker died) is not
-  stored: a rerun runs it again.
+  ``retry_failed`` says so (every failure, or those a predicate picks, e.g.
+  :func:`timed_out`: a wall-clock timeout depends on the machine's load, not the model).
+  A job whose worker raised (solver missing, worker died) is not stored: a rerun runs it
+  again.
 
 Each worker runs :func:`femcal.fe.base.simulate` in a per-job scratch folder, deleted on
 success and kept for failed jobs.
@@ -28,7 +30,7 @@ import socket
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -283,6 +285,13 @@ def dask_client(scheduler_address: str | None, n_workers: int) -> Iterator[Any]:
         yield client
 
 
+def timed_out(record: Mapping[str, Any]) -> bool:
+    """Whether a stored job failed on its wall-clock limit (``retry_failed=timed_out``)."""
+    return record.get("status") != STATUS_OK and str(record.get("reason", "")).startswith(
+        "timeout after"
+    )
+
+
 def _abort_error(exc: BaseException) -> bool:
     """Errors that would repeat for every job: stop the campaign at once."""
     return isinstance(exc, (SolverError, ConfigError, ImportError))
@@ -302,7 +311,7 @@ def run_campaign(
     n_workers: int = 2,
     scratch_dir: str | Path | None = None,
     keep_failed: bool = True,
-    retry_failed: bool = False,
+    retry_failed: bool | Callable[[Mapping[str, Any]], bool] = False,
     progress: bool = True,
 ) -> CampaignResult:
     """Run every job of a design on Dask, appending each result to the store as it arrives.
@@ -332,8 +341,10 @@ def run_campaign(
         Parent of the per-job scratch folders (default: the worker's temporary folder).
     keep_failed : bool, optional
         Keep failed jobs' scratch folders.
-    retry_failed : bool, optional
-        Run stored failed jobs again (default: a failure is a result and is kept).
+    retry_failed : bool or callable, optional
+        Run stored failed jobs again: all of them (True), or those whose stored record the
+        predicate accepts (e.g. :func:`timed_out`). Default: a failure is a result and is
+        kept.
     progress : bool, optional
         tqdm progress bar.
 
@@ -363,7 +374,14 @@ def run_campaign(
     n_run = 0
     n_workers_used = 0
     with cstore.writer():
-        done = cstore.finished(include_failed=not retry_failed)
+        if callable(retry_failed):
+            done = {
+                h: rec
+                for h, rec in cstore.finished().items()
+                if rec.get("status") == STATUS_OK or not retry_failed(rec)
+            }
+        else:
+            done = cstore.finished(include_failed=not retry_failed)
         todo = [(job, h) for job, h in zip(jobs, hashes) if h not in done]
         n_skipped = len(jobs) - len(todo)
         if n_skipped:

@@ -46,6 +46,7 @@ class SimulateSettings(StageSettings):
     n_workers: int
     scratch_dir: Path | None = None
     progress: bool = False
+    retry_timeouts: bool = False
     metrics_file: str | None = None
 
     @classmethod
@@ -70,6 +71,7 @@ class SimulateSettings(StageSettings):
             n_workers=n_workers,
             scratch_dir=setting_path(params, scratch) if scratch else None,
             progress=bool(args.get("progress")),
+            retry_timeouts=bool(args.get("retry_timeouts")),
             metrics_file=args.get("metrics_file"),
         )
 
@@ -145,8 +147,12 @@ def run_simulate(
     n_workers: int = 2,
     scratch_dir: Path | None = None,
     progress: bool = False,
+    retry_timeouts: bool = False,
 ):
     """The FE campaign (Dask, durable store, resume) and its dataset in the study's layout.
+
+    ``retry_timeouts`` runs the stored jobs that failed on their wall-clock limit again (a
+    timeout depends on the machine's load; the other failures are the model's and stay).
 
     Returns
     -------
@@ -162,7 +168,7 @@ def run_simulate(
 
     check_destination(out_dir)
     from femcal.errors import ConfigError
-    from femcal.fe.campaign import run_campaign
+    from femcal.fe.campaign import run_campaign, timed_out
     from femcal.fe.dataset import write_dataset
     from femcal.fe.design import split_design
     from femcal.fe.store import settings_hash
@@ -186,6 +192,7 @@ def run_simulate(
         scheduler_address=scheduler_address,
         n_workers=n_workers,
         scratch_dir=scratch_dir,
+        retry_failed=timed_out if retry_timeouts else False,
         progress=progress,
     )
     summary = write_dataset(
