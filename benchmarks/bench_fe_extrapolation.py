@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from bench_fe_refine import campaign_curves_table
+from bench_fe_refine import campaign_curves_table, recipe_surrogate
 
 from femcal.fe.adaptive import curves_to_rows
 from femcal.schema import PARAMETER_NAMES
@@ -71,20 +71,8 @@ def main() -> None:
             x_all[tr][:, :], curves_all[tr][:, :, keep], moments[keep], space.names
         )
         t0 = time.perf_counter()
-        model = NeuralSurrogate(
-            space,
-            hidden=[recipe["width"]] * recipe["depth"],
-            activation=recipe["activation"],
-            log_target=recipe["log_target"],
-            log_params=recipe["log_params"],
-            loss=recipe["loss"],
-            batch_size=recipe["batch_size"],
-            max_epochs=args.max_epochs,
-            patience=recipe["patience"],
-            learning_rate=recipe["learning_rate"],
-            n_members=args.members,
-            seed=args.seed,
-        ).fit(X, y)
+        model = recipe_surrogate(space, recipe, args.members, args.max_epochs, args.seed)
+        model.fit(X, y)
         return model, time.perf_counter() - t0
 
     X_ho, y_ho = curves_to_rows(x_all[ho], curves_all[ho], moments, space.names)

@@ -55,6 +55,26 @@ def campaign_curves_table(store: Path, moments: list[float]) -> tuple[np.ndarray
     return x, curves
 
 
+def recipe_surrogate(
+    space: ParameterSpace, recipe: dict, members: int, max_epochs: int, seed: int
+) -> NeuralSurrogate:
+    """An unfitted surrogate of the FE pipeline's recipe (fe/params.yaml train.large.fixed)."""
+    return NeuralSurrogate(
+        space,
+        hidden=[recipe["width"]] * recipe["depth"],
+        activation=recipe["activation"],
+        log_target=recipe["log_target"],
+        log_params=recipe["log_params"],
+        loss=recipe["loss"],
+        batch_size=recipe["batch_size"],
+        max_epochs=max_epochs,
+        patience=recipe["patience"],
+        learning_rate=recipe["learning_rate"],
+        n_members=members,
+        seed=seed,
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl")
@@ -85,20 +105,8 @@ def main() -> None:
     X_ho, y_ho = curves_to_rows(x_all[ho], curves_all[ho], moments, list(PARAMETER_NAMES))
     recipe = params["train"]["large"]["fixed"]
     t0 = time.perf_counter()
-    surrogate = NeuralSurrogate(
-        space,
-        hidden=[recipe["width"]] * recipe["depth"],
-        activation=recipe["activation"],
-        log_target=recipe["log_target"],
-        log_params=recipe["log_params"],
-        loss=recipe["loss"],
-        batch_size=recipe["batch_size"],
-        max_epochs=args.max_epochs,
-        patience=recipe["patience"],
-        learning_rate=recipe["learning_rate"],
-        n_members=args.members,
-        seed=args.seed,
-    ).fit(X, y)
+    surrogate = recipe_surrogate(space, recipe, args.members, args.max_epochs, args.seed)
+    surrogate.fit(X, y)
     train_s = time.perf_counter() - t0
     bands = band_mae(surrogate, X_ho, y_ho)
     model = SurrogateCurveModel(surrogate, moments)

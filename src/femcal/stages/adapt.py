@@ -146,7 +146,7 @@ def run_adapt(
     import mlflow
     from mlflow import MlflowClient
 
-    from femcal.datasets import ok_rows
+    from femcal.datasets import SPACE_FILE, ok_rows
     from femcal.fe.adaptive import adapt_surrogate, band_mae
     from femcal.fe.refine import campaign_curves
     from femcal.measurements import read_measurements
@@ -159,7 +159,7 @@ def run_adapt(
     meas = read_measurements(targets)
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
-    space = ParameterSpace.from_json(Path(train).parent / "parameter_space.json")
+    space = ParameterSpace.from_json(Path(train).parent / SPACE_FILE)
 
     def rows(path: Path):
         table = ok_rows(load_tidy(path, space))
