@@ -15,6 +15,7 @@ from femcal.calibration import SurrogateCurveModel
 from femcal.diagnose import NONE, UNEXPLAINED, diagnose, verdict_label
 from femcal.effects.planted import fe_rotation
 from femcal.errors import ConfigError
+from femcal.moments import MomentPolicy
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
 
@@ -159,6 +160,45 @@ def test_next_measurement_names_where_close_explanations_differ(world):
         assert n["between"][0] == s.final_label != n["between"][1]  # the chosen vs its rival
         assert n["load_case"] in LOAD_CASES and MOMENTS.min() <= n["moment_nm"] <= MOMENTS.max()
         assert n["difference_sigma"] == pytest.approx(abs(n["difference_deg"]) / NOISE, rel=1e-3)
+
+
+def test_next_measurement_searches_every_moment_the_policy_accepts(world):
+    """A small laxity, measured at 2.5..5 Nm only, where it is nearly a constant offset: the
+    disc alone and the disc with a neutral zone are close. With a moment policy the search
+    looks beyond the protocol, over the policy's accepted moments with the surrogate's larger
+    error there counted in sigma, and also names the best point within the protocol."""
+    base, _, _, _ = world
+    rng = np.random.default_rng(7)
+    moments = np.arange(2.5, 5.01, 0.5)
+    fe = SurrogateCurveModel(base.surrogate, moments).predict(study_space().sample_uniform(6, rng))
+    applied = np.broadcast_to(moments, (4, len(moments)))
+    lax = 0.04 * (1 - np.exp(-moments / 0.6))  # saturating laxity, not the library's law
+    rom = np.stack([fe_rotation(moments, r, applied) + lax for r in fe])
+    rom = rom + rng.normal(0, NOISE, rom.shape)
+    policy = MomentPolicy((1.0, 5.0), error_deg=0.005, growth=1.0, max_log_ratio=0.7)
+    model = SurrogateCurveModel(base.surrogate, moments)
+    names = list("abcdef")
+    diag = diagnose(model, rom, specimens=names, noise_deg=NOISE, moment_policy=policy, seed=0)
+    lo, hi = policy.accepted_range
+    found = [s.next_measurement for s in diag.specimens if s.next_measurement]
+    assert found, [s.verdict for s in diag.specimens]
+    for n in found:
+        m = n["moment_nm"]
+        assert lo * (1 - 1e-9) <= m <= hi * (1 + 1e-9)
+        sigma = np.hypot(NOISE, policy.sigma_surrogate([m])[0])
+        assert n["difference_sigma"] == pytest.approx(abs(n["difference_deg"]) / sigma, rel=1e-3)
+        assert n["within_measured_range"] == bool(2.5 - 1e-9 <= m <= 5.0 + 1e-9)
+        if not n["within_measured_range"]:
+            inner = n["within_protocol"]
+            assert 2.5 - 1e-9 <= inner["moment_nm"] <= 5.0 + 1e-9
+            assert inner["difference_sigma"] <= n["difference_sigma"]
+    # Below the protocol is where laxity shows: some suggestions leave it.
+    assert any(not n["within_measured_range"] for n in found), found
+    # Without a policy the search stays within the measured range.
+    plain = diagnose(model, rom, specimens=names, noise_deg=NOISE, seed=0)
+    for s in plain.specimens:
+        if s.next_measurement:
+            assert 2.5 - 1e-9 <= s.next_measurement["moment_nm"] <= 5.0 + 1e-9
 
 
 def test_an_effect_that_explains_its_own_load_cases_stays_when_more_is_missing(world):

@@ -64,6 +64,7 @@ def _assemble(
     curve_points,
     noise_used,
     noise_sd,
+    moment_policy,
     t0,
     n,
 ) -> Diagnosis:
@@ -142,6 +143,14 @@ def _assemble(
         for pos, i in enumerate(members):
             final_curves[i] = cv[pos]
     sigma_dense = np.interp(np.log(dense), np.log(moments), sigma_m)
+    # What to measure next: over every moment the policy accepts (with the surrogate's larger
+    # error there), else over the measured range.
+    probe_base, probe, sigma_probe = dense_base, dense, sigma_dense
+    if moment_policy is not None and dense_base is not None:
+        lo, hi = moment_policy.accepted_range
+        probe = np.unique(np.concatenate([np.geomspace(lo, hi, curve_points), moments]))
+        probe_base = _dense_base(base, probe)
+        sigma_probe = np.sqrt(noise_used**2 + moment_policy.sigma_surrogate(probe) ** 2)
     mae0 = np.nanmean(np.abs(measured - pred0.double().numpy()).reshape(n, -1), axis=1)
     unit_disc = base.space.to_unit(base.to_physical(v_disc.double().numpy()))
     for i, spec in enumerate(specimens):
@@ -151,6 +160,7 @@ def _assemble(
         f, pos = per_spec[i][chosen[i]]
         final_res = measured[i] - f.pred[pos].double().numpy()
         own = _own_range(dense, moments, mask[i])
+        own_lc = [moments[mask[i][j]] for j in range(mask.shape[1])]
         curves = {
             "moments": dense,
             NONE: np.where(own, curves0[i], np.nan),
@@ -158,7 +168,7 @@ def _assemble(
         if effects:
             curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
-            ranking, per_spec[i], dense_base, dense, sigma_dense, min_delta, chosen[i]
+            ranking, per_spec[i], probe_base, probe, sigma_probe, min_delta, chosen[i], own_lc
         )
         resid = measured[i] - pred0[i].double().numpy()
         out.append(

@@ -172,8 +172,16 @@ def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.n
         return model.curves(v).double().numpy()
 
 
-def _next_measurement(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen):
-    """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most."""
+def _next_measurement(
+    ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, measured_moments=None
+):
+    """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most.
+
+    ``dense`` (shape (q,)) are the moments searched and ``sigma_dense`` (shape (q,)) the sigma
+    there; ``measured_moments`` (one array per load case) mark whether the point found lies
+    within the specimen's own measured range of that load case (``within_measured_range``);
+    where it does not, ``within_protocol`` holds the best point within that range too.
+    """
     if len(ranking) < 2 or dense_base is None:
         return None
     best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
@@ -189,15 +197,29 @@ def _next_measurement(ranking, fits, dense_base, dense, sigma_dense, min_delta, 
     diff = (curves[0] - curves[1]) / sigma_dense[None, :]
     if not np.isfinite(diff).any():
         return None
-    j, k = np.unravel_index(np.nanargmax(np.abs(diff)), diff.shape)
-    return {
-        "between": [best["effect"], second["effect"]],
-        "criterion_gap": float(gap),
-        "load_case": LOAD_CASES[j],
-        "moment_nm": float(dense[k]),
-        "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
-        "difference_sigma": float(abs(diff[j, k])),
-    }
+
+    def point(d: np.ndarray) -> tuple[tuple[int, int], dict[str, Any]]:
+        j, k = np.unravel_index(np.nanargmax(np.abs(d)), d.shape)
+        return (int(j), int(k)), {
+            "load_case": LOAD_CASES[j],
+            "moment_nm": float(dense[k]),
+            "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
+            "difference_sigma": float(abs(d[j, k])),
+        }
+
+    where, found = point(diff)
+    out = {"between": [best["effect"], second["effect"]], "criterion_gap": float(gap), **found}
+    if measured_moments is not None:
+        own = np.zeros(diff.shape, dtype=bool)
+        for j, got in enumerate(measured_moments):
+            got = np.asarray(got, dtype=float)
+            if got.size:
+                own[j] = (dense >= got.min() * (1 - 1e-9)) & (dense <= got.max() * (1 + 1e-9))
+        out["within_measured_range"] = bool(own[where])
+        inside = np.where(own, diff, np.nan)
+        if not own[where] and np.isfinite(inside).any():
+            out["within_protocol"] = point(inside)[1]
+    return out
 
 
 def _failures(

@@ -193,10 +193,20 @@ def _next(s: SpecimenDiagnosis) -> str:
     n = s.next_measurement
     if not n:
         return ""
-    return (
-        f"{n['between'][0]} vs {n['between'][1]}: {n['load_case']} at {n['moment_nm']:.2g} Nm "
-        f"({n['difference_deg']:+.3f}°, {n['difference_sigma']:.1f}σ)"
-    )
+
+    def at(p: dict) -> str:
+        return (
+            f"{p['load_case']} at {p['moment_nm']:.2g} Nm "
+            f"({p['difference_deg']:+.3f}°, {p['difference_sigma']:.1f}σ"
+        )
+
+    text = f"{n['between'][0]} vs {n['between'][1]}: {at(n)}"
+    if n.get("within_measured_range") is False:
+        text += ", beyond the protocol"
+    text += ")"
+    if n.get("within_protocol"):
+        text += f"; within the protocol: {at(n['within_protocol'])})"
+    return text
 
 
 def write_diagnosis(

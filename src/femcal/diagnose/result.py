@@ -59,7 +59,11 @@ class SpecimenDiagnosis:
         ``amplitude_deg``, ``description`` (sentences), ``similarity`` (effect -> cosine),
         ``resembles`` (an effect name or None), ``model`` (the label it sits on).
     next_measurement : dict or None
-        Where the two closest explanations differ most.
+        Where the two closest explanations (criteria within ``min_delta``) differ most:
+        ``between`` (the chosen model, its rival), ``criterion_gap``, ``load_case``,
+        ``moment_nm``, ``difference_deg`` and ``difference_sigma`` (in the sigma at that
+        moment); with a moment policy also ``within_measured_range`` and, when the point lies
+        beyond the specimen's protocol, ``within_protocol`` (the best point within it).
     """
 
     specimen: str

@@ -78,6 +78,7 @@ from femcal.diagnose.result import (
 from femcal.effects.base import available_effects, get_effect
 from femcal.effects.composite import EffectModel
 from femcal.errors import ConfigError
+from femcal.moments import MomentPolicy
 from femcal.schema import LOAD_CASES
 
 logger = logging.getLogger(__name__)
@@ -142,6 +143,7 @@ def diagnose(
     combination_rounds: int = 1,
     exact_dof: bool = True,
     beam_delta: float | None = None,
+    moment_policy: MomentPolicy | None = None,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -243,6 +245,13 @@ def diagnose(
     exact_dof : bool
         The search's adequacy test takes the final test's degrees of freedom (``n - trace`` of
         the hat matrix, a Jacobian per fitted batch), else ``n - k/2``.
+    moment_policy : MomentPolicy, optional
+        Where a next measurement may be taken. Given, *what to measure next* searches every
+        moment the policy accepts (:attr:`~femcal.moments.MomentPolicy.accepted_range`), not
+        only the measured range, with the surrogate's error there
+        (:meth:`~femcal.moments.MomentPolicy.sigma_surrogate`) counted in sigma: two models
+        that agree on a 1.25..7.5 Nm protocol often part below it, where laxity lives. Needs a
+        surrogate-backed ``base``; without a policy the search stays within the measured range.
     seed : int
 
     Returns
@@ -547,6 +556,7 @@ def diagnose(
         curve_points=curve_points,
         noise_used=noise_used,
         noise_sd=noise_sd,
+        moment_policy=moment_policy,
         t0=t0,
         n=n,
     )

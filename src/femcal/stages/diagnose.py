@@ -197,6 +197,7 @@ def run_diagnose(
         min_delta=min_delta,
         alpha=alpha,
         max_effects=max_effects,
+        moment_policy=policy,
         seed=seed,
     )
     with (
