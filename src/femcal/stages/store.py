@@ -26,6 +26,30 @@ def tracking(params: Mapping[str, Any]) -> None:
     close_killed_runs([experiment])  # logs each run it closes as KILLED
 
 
+def registry_figures(result: Any) -> dict[str, Any]:
+    """What a training stage reports of a training ``result`` besides its errors.
+
+    Parameters
+    ----------
+    result : TrainResult or InverseTrainResult
+        A training's outcome (:func:`femcal.train.train_surrogate`,
+        :func:`femcal.inverse.train.train_inverse`).
+
+    Returns
+    -------
+    dict
+        ``n_trials`` (complete Optuna trials), ``seconds`` (wall time), ``version`` (the
+        registered version, None when not registered) and ``promoted`` (the champion alias
+        moved to it).
+    """
+    return {
+        "n_trials": result.n_trials,
+        "seconds": result.seconds,
+        "version": result.version,
+        "promoted": result.promoted,
+    }
+
+
 def export_folder(result, out_dir: Path, registered_model: str | None) -> None:
     """The logged MLflow model of a training ``result`` (``model_uri``, ``run_id``, ``version``,
     ``promoted``) exported to ``out_dir``, which appears complete or not at all."""
