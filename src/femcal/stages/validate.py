@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Unpack
 
@@ -56,7 +56,6 @@ class ValidateSettings(StageSettings):
     model_uri: str | None = None
     max_fe_runs: int = 1
     tol_deg: float = 0.05
-    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> ValidateSettings:
