@@ -183,7 +183,7 @@ def train_surrogate(
         mlflow.log_metric("val_mae_deg", val_mae)
 
         info = log_surrogate(model, space)
-        version, promoted, seconds = register_final(
+        registered = register_final(
             info.model_uri,
             register_as,
             val_metric=val_mae,
@@ -198,9 +198,7 @@ def train_surrogate(
             n_trials=n_complete,
             run_id=parent.info.run_id,
             model_uri=info.model_uri,
-            version=version,
-            promoted=promoted,
-            seconds=seconds,
+            **registered._asdict(),
         )
 
 

@@ -194,7 +194,7 @@ def train_inverse(
             model.save(Path(tmp) / "inverse_model")
             mlflow.log_artifacts(str(Path(tmp) / "inverse_model"), artifact_path="inverse_model")
         info = log_inverse(model)
-        version, promoted, seconds = register_final(
+        registered = register_final(
             info.model_uri,
             register_as,
             val_metric=val_rom,
@@ -207,12 +207,10 @@ def train_inverse(
             model=model,
             best_params=best_params,
             val_mae=val_mae,
-            run_id=parent.info.run_id,
-            model_uri=info.model_uri,
-            version=version,
-            promoted=promoted,
-            seconds=seconds,
             val_rom_mae_deg=val_rom,
             n_trials=n_complete,
             extra={"optuna_study": full_name, "n_samples": int(n_samples)},
+            run_id=parent.info.run_id,
+            model_uri=info.model_uri,
+            **registered._asdict(),
         )
