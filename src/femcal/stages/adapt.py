@@ -47,7 +47,6 @@ class AdaptSettings(StageSettings):
     calibrate_options: Mapping[str, Any]
     seed: int
     model_name: str
-    metrics_file: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> AdaptSettings:

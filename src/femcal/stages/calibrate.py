@@ -66,7 +66,6 @@ class CalibrateSettings(StageSettings):
     progress: bool = False
     effects: Sequence[str] = ()
     effect_modules: Sequence[Path] = ()
-    metrics_file: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> CalibrateSettings:

@@ -40,9 +40,13 @@ class StageSettings:
     params : mapping
         The parsed params.yaml the settings were read from (keyword-only; the tracked stages
         point MLflow at its store, :func:`femcal.stages.store.tracking`).
+    metrics_file : str or None
+        The stage's DVC metrics file (``--metrics-file``; keyword-only), written only when
+        given (:func:`write_metrics`).
     """
 
     params: Mapping[str, Any] = field(default_factory=dict, repr=False, kw_only=True)
+    metrics_file: str | None = field(default=None, kw_only=True)
 
     def call_args(self) -> dict[str, Any]:
         """The library function's keywords: every field but :data:`STAGE_ONLY`."""

@@ -45,7 +45,6 @@ class DiagnoseSettings(StageSettings):
     plots: bool = True
     max_plots: int | None = None
     effect_modules: Sequence[Path] = ()
-    metrics_file: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> DiagnoseSettings:

@@ -43,7 +43,6 @@ class SimulateSettings(StageSettings):
     out_dir: Path
     scratch_dir: Path | None = None
     retry_timeouts: bool = False
-    metrics_file: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> SimulateSettings:

@@ -52,7 +52,6 @@ class ValidateSettings(StageSettings):
     forces: Sequence[float]
     literature: Mapping[str, Any]
     out_dir: Path
-    metrics_file: str | None = None
     model_uri: str | None = None
     max_fe_runs: int = 1
     tol_deg: float = 0.05
