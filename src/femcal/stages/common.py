@@ -19,7 +19,6 @@ from typing import Any
 from femcal.config import section
 from femcal.errors import ConfigError, InputDataError
 from femcal.paths import setting_path, store_url
-from femcal.training.search import StudySearch
 
 logger = logging.getLogger(__name__)
 
@@ -146,42 +145,6 @@ def optuna_storage(params: Mapping[str, Any]) -> str:
     if file and file != ":memory:":
         Path(file).parent.mkdir(parents=True, exist_ok=True)
     return storage
-
-
-def study_search(
-    params: Mapping[str, Any],
-    args: Mapping[str, Any],
-    cfg: Mapping[str, Any],
-    *,
-    study_name: str,
-    seed: int,
-) -> StudySearch:
-    """A training stage's Optuna search, read once from params.yaml and the command line.
-
-    Parameters
-    ----------
-    params : mapping
-        The parsed params.yaml; the storage is ``train.storage`` (:func:`optuna_storage`).
-    args : mapping
-        The command line's settings: ``progress``.
-    cfg : mapping
-        The stage's section: ``search_space``, ``fixed``, ``n_trials`` (default 0).
-    study_name, seed
-        The study's base name and seed.
-
-    Returns
-    -------
-    StudySearch
-    """
-    return StudySearch(
-        study_name=study_name,
-        search_space=cfg.get("search_space") or {},
-        fixed=cfg.get("fixed") or {},
-        n_trials=int(cfg.get("n_trials", 0)),
-        storage=optuna_storage(params),
-        seed=seed,
-        progress=bool(args.get("progress")),
-    )
 
 
 def moment_settings(params: Mapping[str, Any]) -> dict[str, float]:

@@ -14,8 +14,8 @@ from typing import Any
 from femcal.config import section
 from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import StageSettings, path_setting, study_search
-from femcal.stages.store import export_folder, registry_figures, tracking
+from femcal.stages.common import StageSettings, path_setting
+from femcal.stages.store import export_folder, registry_figures, study_search, tracking
 from femcal.training.search import StudySearch
 
 

@@ -13,8 +13,8 @@ from typing import Any
 
 from femcal.config import section
 from femcal.paths import setting_path, setting_uri
-from femcal.stages.common import StageSettings, study_search
-from femcal.stages.store import export_folder, registry_figures, tracking
+from femcal.stages.common import StageSettings
+from femcal.stages.store import export_folder, registry_figures, study_search, tracking
 from femcal.training.search import StudySearch
 
 
