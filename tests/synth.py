@@ -22,6 +22,25 @@ def rom_function(u: np.ndarray, lc: int, moment: np.ndarray) -> np.ndarray:
     return (2.0 + lc) * np.log1p(moment / stiff)
 
 
+def true_curves(
+    x: np.ndarray, ids: np.ndarray | None = None, moments=(1, 2, 3, 4, 5)
+) -> np.ndarray:
+    """The synthetic study's model at physical parameters x (k, 13): curves (k, 4, m) in deg.
+
+    ``ids`` is ignored; with it the function is an FE model's curves
+    (:data:`femcal.fe.refine.FECurves`), as the FE tests' stand-in for the solver.
+    """
+    u = study_space().to_unit(np.asarray(x, dtype=float))
+    m = np.asarray(moments, dtype=float)
+    return np.stack(
+        [
+            np.stack([rom_function(u, k, np.array([mm])) for mm in m], axis=1)
+            for k in range(len(LOAD_CASES))
+        ],
+        axis=1,
+    )
+
+
 def tidy_table(n_configs: int, seed: int, moments=(1, 2, 3, 4, 5)) -> pd.DataFrame:
     """Rows (config x load case x moment) with physical parameters and synthetic rom_deg."""
     space = study_space()

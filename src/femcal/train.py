@@ -15,7 +15,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Unpack
 
 import numpy as np
 import pandas as pd
@@ -24,12 +24,8 @@ from femcal.datasets import ok_rows
 from femcal.errors import ConfigError
 from femcal.space import ParameterSpace
 from femcal.training.final import log_history, register_final, training_run
-from femcal.training.study import (
-    TrialRun,
-    hidden_from_width_depth,
-    search_settings,
-    study_name_for,
-)
+from femcal.training.search import StudyKeywords, StudySearch
+from femcal.training.study import TrialRun, hidden_from_width_depth
 
 logger = logging.getLogger(__name__)
 
@@ -99,18 +95,11 @@ def train_surrogate(
     table: pd.DataFrame,
     space: ParameterSpace,
     *,
-    search_space: Mapping[str, Mapping[str, Any]],
-    fixed: Mapping[str, Any],
-    n_trials: int,
     final_members: int,
-    storage: str,
-    study_name: str,
-    seed: int = 0,
     val_fraction: float = 0.15,
     register_as: str | None = None,
     run_name: str = "train",
-    progress: bool = False,
-    heartbeat_seconds: int = 30,
+    **study: Unpack[StudyKeywords],
 ) -> TrainResult:
     """Search hyper-parameters with Optuna, fit the final ensemble, log and register it.
 
@@ -120,26 +109,20 @@ def train_surrogate(
         Tidy training table (see :mod:`femcal.prepare`); failed rows are left out.
     space : ParameterSpace
         The parameter box.
-    search_space : mapping
-        Optuna search space (see :func:`femcal.training.study.suggest`).
-    fixed : mapping
-        Fixed NeuralSurrogate keywords (``width``/``depth`` allowed), overridden by the search.
-    n_trials : int
-        Complete trials the study should hold; a resumed study only runs the missing ones.
-        0 trains the final model on ``fixed`` alone.
     final_members : int
         Ensemble members of the final model.
-    storage : str
-        Optuna RDB storage URL (``sqlite:///…`` or any SQLAlchemy URL).
-    study_name : str
-        Base name of the study; a hash of the problem is appended (:func:`study_name_for`).
-    seed : int
-        Seeds the sampler, the validation split and every member.
+    val_fraction : float
+        Fraction of the configurations held out for validation and early stopping.
     register_as : str or None
         Registered model name; the champion alias moves only on a better validation MAE.
-    heartbeat_seconds : int
-        Trials send a heartbeat this often; a trial silent for three periods (its worker was
-        killed) is marked failed and retried by the next worker.
+    run_name : str
+        Name of the parent MLflow run (in the active experiment).
+    **study
+        The Optuna search (:class:`~femcal.training.search.StudySearch`): ``study_name``
+        (required; a hash of the problem is appended), ``search_space``, ``fixed`` (fixed
+        NeuralSurrogate keywords, ``width``/``depth`` allowed, overridden by the search),
+        ``n_trials``, ``storage``, ``seed`` (also seeds the validation split and every
+        member), ``heartbeat_seconds`` and ``progress``.
 
     Returns
     -------
@@ -150,22 +133,23 @@ def train_surrogate(
     from femcal.surrogates.nn import NeuralSurrogate
     from femcal.tracking import log_surrogate
 
+    search = StudySearch(**study)
+    seed = search.seed
     t0 = time.perf_counter()
-    if n_trials < 0 or final_members < 1:
+    if search.n_trials < 0 or final_members < 1:
         raise ConfigError(
-            f"n_trials must be >= 0 and final_members >= 1; got {n_trials} and {final_members}."
+            f"n_trials must be >= 0 and final_members >= 1; got {search.n_trials} and "
+            f"{final_members}."
         )
     data = ok_rows(table)
     train_df, val_df = validation_split(data, fraction=val_fraction, seed=seed)
     feature_cols = ["config_id", "load_case", "moment_nm", *space.names]
     X_tr, y_tr = train_df[feature_cols], train_df["rom_deg"].to_numpy()
     X_va, y_va = val_df[feature_cols], val_df["rom_deg"].to_numpy()
-    full_name = study_name_for(
-        study_name, search_space=search_space, fixed=fixed, data_id=table_fingerprint(table)
-    )
+    full_name = search.named(table_fingerprint(table))
 
     params = {
-        "n_trials": n_trials,
+        "n_trials": search.n_trials,
         "final_members": final_members,
         "seed": seed,
         "val_fraction": val_fraction,
@@ -186,30 +170,20 @@ def train_surrogate(
             mlflow.log_metric("best_val_mae_deg", value)
             return value
 
-        best_params, n_complete = search_settings(
-            train_trial,
-            fixed=fixed,
-            n_trials=n_trials,
-            metric="val_mae_deg",
-            storage=storage,
-            study_name=full_name,
-            search_space=search_space,
-            seed=seed,
-            monitor="val_mae_deg",
-            heartbeat_seconds=heartbeat_seconds,
-            progress=progress,
+        best_params, n_complete = search.run(
+            train_trial, name=full_name, metric="val_mae_deg", monitor="val_mae_deg"
         )
 
         final_kw = surrogate_kwargs(best_params)
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
         model = NeuralSurrogate(space, **final_kw, n_members=final_members, seed=seed)
-        model.fit(X_tr, y_tr, X_val=X_va, y_val=y_va, progress=progress)
+        model.fit(X_tr, y_tr, X_val=X_va, y_val=y_va, progress=search.progress)
         log_history(model.history_, ("train_loss", "val_loss", "val_mae_deg"), by_member=True)
         val_mae = float(np.mean(np.abs(model.predict(X_va) - y_va)))
         mlflow.log_metric("val_mae_deg", val_mae)
 
         info = log_surrogate(model, space)
-        version, promoted, seconds = register_final(
+        registered = register_final(
             info.model_uri,
             register_as,
             val_metric=val_mae,
@@ -224,9 +198,7 @@ def train_surrogate(
             n_trials=n_complete,
             run_id=parent.info.run_id,
             model_uri=info.model_uri,
-            version=version,
-            promoted=promoted,
-            seconds=seconds,
+            **registered._asdict(),
         )
 
 

@@ -8,6 +8,7 @@ Test) x four load cases = 12 jobs.
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -37,3 +38,23 @@ def coarse_campaign(tmp_path_factory) -> tuple[Path, object, CampaignResult]:
         progress=False,
     )
     return folder, design_df, result
+
+
+@pytest.fixture
+def mlflow_store(tmp_path, monkeypatch) -> Iterator[Path]:
+    """A temporary MLflow store ``tmp_path/mlruns`` with the experiment ``fe-test``.
+
+    The test runs in ``tmp_path`` with no MLFLOW_TRACKING_URI from the environment; the
+    tracking URI is reset afterwards. Returns the store's folder.
+    """
+    import mlflow
+
+    from femcal.tracking import configure_tracking, ensure_experiment
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    monkeypatch.chdir(tmp_path)
+    store = tmp_path / "mlruns"
+    configure_tracking(store_dir=store)
+    ensure_experiment("fe-test", store_dir=store)
+    yield store
+    mlflow.set_tracking_uri(None)

@@ -18,21 +18,10 @@ from femcal.fe.adaptive import adapt_surrogate, curves_to_rows, ensemble_spread
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
 
-from synth import rom_function, study_space, tidy_table
+from synth import study_space, tidy_table, true_curves
 
 MOMENTS = (1.0, 2.0, 3.0, 4.0, 5.0)
 NAMES = list(study_space().names)
-
-
-def true_curves(x: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
-    u = study_space().to_unit(np.asarray(x, dtype=float))
-    return np.stack(
-        [
-            np.stack([rom_function(u, k, np.array([m])) for m in MOMENTS], axis=1)
-            for k in range(len(LOAD_CASES))
-        ],
-        axis=1,
-    )
 
 
 def rows(table: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray]:
@@ -159,7 +148,7 @@ def test_adapt_errors(surrogate):
 
 @requires_ccx
 def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
-    coarse_campaign, tmp_path, monkeypatch
+    coarse_campaign, tmp_path, mlflow_store
 ):
     """``femcal adapt`` on the session's real CalculiX campaign: one round, MLflow for real."""
     import json
@@ -170,7 +159,7 @@ def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
     from femcal.cli import main
     from femcal.fe.dataset import write_dataset
     from femcal.prepare import prepare_dataset
-    from femcal.tracking import configure_tracking, ensure_experiment, export_model, log_surrogate
+    from femcal.tracking import export_model, log_surrogate
 
     _, design_df, result = coarse_campaign
     write_dataset(
@@ -181,48 +170,41 @@ def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
         moments=FE_MOMENTS,
     )
     prepare_dataset(tmp_path / "ds", tmp_path / "prepared")
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    monkeypatch.chdir(tmp_path)
     X, y = rows(tidy_table(48, seed=3))
     surrogate = NeuralSurrogate(
         study_space(), hidden=(16,), max_epochs=5, patience=5, n_members=2
     ).fit(X, y)
-    configure_tracking(store_dir=tmp_path / "mlruns")
-    ensure_experiment("fe-test", store_dir=tmp_path / "mlruns")
-    try:
-        with mlflow.start_run():
-            info = log_surrogate(surrogate, surrogate.space)
-        export_model(info.model_uri, tmp_path / "large")
-        params = {
-            "mlflow": {
-                "store_dir": str(tmp_path / "mlruns"),
-                "experiment": "fe-test",
-                "model_name": "fe-sur",
-            },
-            "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
-            "adapt": {
-                "model_uri": str(tmp_path / "large"),
-                "targets": str(tmp_path / "ds" / "Test"),
-                "train": str(tmp_path / "prepared" / "large.csv"),
-                "heldout": str(tmp_path / "prepared" / "small.csv"),
-                "out_model": str(tmp_path / "champion"),
-                "out_dir": str(tmp_path / "adapt"),
-                "store": str(tmp_path / "adapt-runs.jsonl"),
-                "rounds": 1,
-                "n_explore": 1,
-                "n_candidates": 8,
-                "finetune": {"max_epochs": 2, "patience": 2},
-                "calibrate_options": {"n_starts": 1, "max_iter": 3},
-            },
-        }
-        (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-        metrics = tmp_path / "adapt.json"
-        argv = ["--params", str(tmp_path / "params.yaml"), "adapt", "--metrics-file", str(metrics)]
-        assert main(argv) == 0
-        client = mlflow.MlflowClient()
-        challenger = client.get_model_version_by_alias("fe-sur", "challenger")
-    finally:
-        mlflow.set_tracking_uri(None)
+    with mlflow.start_run():
+        info = log_surrogate(surrogate, surrogate.space)
+    export_model(info.model_uri, tmp_path / "large")
+    params = {
+        "mlflow": {
+            "store_dir": str(mlflow_store),
+            "experiment": "fe-test",
+            "model_name": "fe-sur",
+        },
+        "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
+        "adapt": {
+            "model_uri": str(tmp_path / "large"),
+            "targets": str(tmp_path / "ds" / "Test"),
+            "train": str(tmp_path / "prepared" / "large.csv"),
+            "heldout": str(tmp_path / "prepared" / "small.csv"),
+            "out_model": str(tmp_path / "champion"),
+            "out_dir": str(tmp_path / "adapt"),
+            "store": str(tmp_path / "adapt-runs.jsonl"),
+            "rounds": 1,
+            "n_explore": 1,
+            "n_candidates": 8,
+            "finetune": {"max_epochs": 2, "patience": 2},
+            "calibrate_options": {"n_starts": 1, "max_iter": 3},
+        },
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    metrics = tmp_path / "adapt.json"
+    argv = ["--params", str(tmp_path / "params.yaml"), "adapt", "--metrics-file", str(metrics)]
+    assert main(argv) == 0
+    client = mlflow.MlflowClient()
+    challenger = client.get_model_version_by_alias("fe-sur", "challenger")
     figures = json.loads(metrics.read_text())
     assert figures["n_rounds"] == 1 and figures["n_new_configurations"] == 2  # 1 target + 1
     assert figures["challenger_version"] == str(challenger.version)

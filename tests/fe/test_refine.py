@@ -18,7 +18,7 @@ from femcal.fe.refine import campaign_curves, refine_with_fe
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.surrogates.nn import NeuralSurrogate
 
-from synth import rom_function, study_space, tidy_table
+from synth import study_space, tidy_table, true_curves
 
 
 @pytest.fixture(scope="module")
@@ -28,19 +28,6 @@ def model() -> SurrogateCurveModel:
         study_space(), hidden=(32, 32), max_epochs=200, patience=200, batch_size=16, seed=0
     ).fit(table, table["rom_deg"].to_numpy())
     return SurrogateCurveModel(surrogate, MOMENTS)
-
-
-def true_curves(x: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
-    """The synthetic study's model at physical parameters x (k, 13): (k, 4, 5) degrees."""
-    u = study_space().to_unit(np.asarray(x, dtype=float))
-    m = np.asarray(MOMENTS, dtype=float)
-    return np.stack(
-        [
-            np.stack([rom_function(u, k, np.array([mm])) for mm in m], axis=1)
-            for k in range(len(LOAD_CASES))
-        ],
-        axis=1,
-    )
 
 
 @pytest.fixture(scope="module")

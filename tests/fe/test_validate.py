@@ -37,7 +37,7 @@ def test_literature_ranges_are_checked():
 
 
 @requires_ccx
-def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, monkeypatch):
+def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, mlflow_store):
     _, design_df, result = coarse_campaign
     write_dataset(
         design_df,
@@ -65,10 +65,8 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
         columns=["specimen", "load_case", "moment_nm", "measured_rom_deg", "calibrated_rom_deg"],
     ).to_csv(cal / "curves.csv", index=False)
 
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    monkeypatch.chdir(tmp_path)
     settings = {
-        "mlflow": {"store_dir": str(tmp_path / "mlruns"), "experiment": "fe-test"},
+        "mlflow": {"store_dir": str(mlflow_store), "experiment": "fe-test"},
         "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
         "validate": {
             "calibration_dir": str(cal),
@@ -81,13 +79,10 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
         },
     }
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
-    try:
-        stage = ["validate", "--metrics-file", str(tmp_path / "validate.json")]  # as dvc.yaml
-        assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
-        runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
-        assert len(runs) == 1 and runs["metrics.fe_mae_deg"].iloc[0] < 1e-6
-    finally:
-        mlflow.set_tracking_uri(None)
+    stage = ["validate", "--metrics-file", str(tmp_path / "validate.json")]  # as dvc.yaml
+    assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
+    runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
+    assert len(runs) == 1 and runs["metrics.fe_mae_deg"].iloc[0] < 1e-6
     table = pd.read_csv(tmp_path / "val" / "validation.csv", dtype={"specimen": str})
     row = table.iloc[0]
     assert row["specimen"] == "0"
@@ -106,7 +101,6 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
     assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 5
     assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
     assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 5
-    mlflow.set_tracking_uri(None)
 
 
 def test_validate_names_a_missing_calibration(tmp_path):
@@ -126,7 +120,7 @@ def test_validate_names_a_missing_calibration(tmp_path):
 
 
 @requires_ccx
-def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, monkeypatch):
+def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, mlflow_store):
     """The stage with ``validate.refine``: FE runs per specimen within the budget, never a
     worse FE error than the calibration's, the refinement's tables, and a rerun from the store.
 
@@ -134,7 +128,7 @@ def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, monkeyp
     refused: this test is about the stage, tests/fe/test_refine.py about the algorithm.
     """
     from femcal.surrogates.nn import NeuralSurrogate
-    from femcal.tracking import configure_tracking, ensure_experiment, export_model, log_surrogate
+    from femcal.tracking import export_model, log_surrogate
 
     from synth import tidy_table
 
@@ -152,37 +146,30 @@ def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, monkeyp
     params = truth[list(PARAMETER_NAMES)].assign(specimen="0")
     params["C10Annulus"] *= 1.3  # a calibration FE does not confirm
     params[["specimen", *PARAMETER_NAMES]].to_csv(cal / "parameters.csv", index=False)
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    monkeypatch.chdir(tmp_path)
     table = tidy_table(48, seed=3)
     surrogate = NeuralSurrogate(
         study_space(), hidden=(16,), max_epochs=5, patience=5, batch_size=16, seed=0
     ).fit(table, table["rom_deg"].to_numpy())
-    configure_tracking(store_dir=tmp_path / "mlruns")
-    ensure_experiment("fe-test", store_dir=tmp_path / "mlruns")
-    try:
-        with mlflow.start_run():
-            info = log_surrogate(surrogate, surrogate.space)
-        export_model(info.model_uri, tmp_path / "model")
-        settings = {
-            "mlflow": {"store_dir": str(tmp_path / "mlruns"), "experiment": "fe-test"},
-            "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
-            "validate": {
-                "calibration_dir": str(cal),
-                "measurements": str(tmp_path / "ds" / "Test"),
-                "out_dir": str(tmp_path / "val"),
-                "store": str(tmp_path / "val-runs.jsonl"),
-                "refine": {"model_uri": str(tmp_path / "model"), "max_fe_runs": 2, "tol_deg": 1e-4},
-            },
-        }
-        (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
-        metrics = tmp_path / "validate.json"
-        stage = ["validate", "--metrics-file", str(metrics)]
-        assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
-        runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
-        assert runs["metrics.fe_runs_per_specimen_max"].iloc[0] == 2
-    finally:
-        mlflow.set_tracking_uri(None)
+    with mlflow.start_run():
+        info = log_surrogate(surrogate, surrogate.space)
+    export_model(info.model_uri, tmp_path / "model")
+    settings = {
+        "mlflow": {"store_dir": str(mlflow_store), "experiment": "fe-test"},
+        "fe": {"solver": "calculix", "settings": COARSE, "n_workers": 2},
+        "validate": {
+            "calibration_dir": str(cal),
+            "measurements": str(tmp_path / "ds" / "Test"),
+            "out_dir": str(tmp_path / "val"),
+            "store": str(tmp_path / "val-runs.jsonl"),
+            "refine": {"model_uri": str(tmp_path / "model"), "max_fe_runs": 2, "tol_deg": 1e-4},
+        },
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
+    metrics = tmp_path / "validate.json"
+    stage = ["validate", "--metrics-file", str(metrics)]
+    assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
+    runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
+    assert runs["metrics.fe_runs_per_specimen_max"].iloc[0] == 2
     figures = json.loads(metrics.read_text())
     assert figures["n_specimens"] == 1 and figures["fe_runs_per_specimen_max"] == 2
     assert figures["fe_mae_deg_calibrated"] > 0.05  # the perturbed calibration misses
@@ -199,7 +186,6 @@ def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, monkeyp
     assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 8
     assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
     assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 8
-    mlflow.set_tracking_uri(None)
 
 
 def test_refinement_needs_its_surrogate(tmp_path):

@@ -32,7 +32,8 @@ import pandas as pd
 
 from femcal.errors import ConfigError, InputDataError
 from femcal.fe.base import COMPRESSION
-from femcal.fe.campaign import CampaignResult, run_campaign
+from femcal.fe.campaign import CampaignResult
+from femcal.fe.runtime import FeRuntime
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES, STATUS_OK
 
 logger = logging.getLogger(__name__)
@@ -222,6 +223,7 @@ def validate_calibration(
     measured = meas.rom_deg[[index[s] for s in specimens]]  # (n, 4, m)
     calibrated = _surrogate_curves(calibration_dir / "curves.csv", specimens, meas.moments)
     forces = sorted(float(f) for f in forces)
+    runtime = FeRuntime(solver, settings, store, scheduler_address, n_workers, progress)
     refined = None
     if max_fe_runs > 1:
         if surrogate is None:
@@ -230,22 +232,13 @@ def validate_calibration(
                 "that steers it; give validate.refine.model_uri, or max_fe_runs: 1."
             )
         from femcal.calibration import SurrogateCurveModel
-        from femcal.fe.refine import campaign_curves, refine_with_fe
+        from femcal.fe.refine import refine_with_fe
 
-        fe = campaign_curves(
-            solver,
-            settings,
-            store=store,
-            moments=meas.moments.tolist(),
-            scheduler_address=scheduler_address,
-            n_workers=n_workers,
-            progress=progress,
-        )
         refined = refine_with_fe(
             SurrogateCurveModel(surrogate, meas.moments),
             measured,
             params[list(PARAMETER_NAMES)].to_numpy(dtype=float),
-            fe,
+            runtime.curves(meas.moments.tolist()),
             specimens=specimens,
             max_fe_runs=max_fe_runs,
             tol_deg=tol_deg,
@@ -257,17 +250,11 @@ def validate_calibration(
 
     design_df = params[list(PARAMETER_NAMES)].copy()
     design_df.insert(0, "config_id", np.arange(n, dtype=np.int64))
-    campaign = run_campaign(
-        solver,
-        settings,
+    campaign = runtime.campaign(
         design_df,
-        store=store,
         load_cases=(*LOAD_CASES, COMPRESSION) if forces else LOAD_CASES,
         moments=meas.moments.tolist(),
         forces=forces,
-        scheduler_address=scheduler_address,
-        n_workers=n_workers,
-        progress=progress,
     )
     fe = np.full((n, len(LOAD_CASES), m), np.nan)
     idp = np.full((n, len(forces)), np.nan)

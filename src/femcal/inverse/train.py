@@ -14,7 +14,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Unpack
 
 import numpy as np
 
@@ -22,12 +22,8 @@ from femcal.errors import ConfigError
 from femcal.inverse.data import make_inverse_dataset, rom_mae_deg, surrogate_fingerprint
 from femcal.inverse.model import INVERSE_SETTINGS, InverseModel
 from femcal.training.final import log_history, register_final, training_run
-from femcal.training.study import (
-    TrialRun,
-    hidden_from_width_depth,
-    search_settings,
-    study_name_for,
-)
+from femcal.training.search import StudyKeywords, StudySearch
+from femcal.training.study import TrialRun, hidden_from_width_depth
 
 if TYPE_CHECKING:
     from femcal.calibration.model import CurveModel
@@ -94,18 +90,11 @@ def train_inverse(
     curve_model: CurveModel,
     *,
     n_samples: int = 50_000,
-    search_space: Mapping[str, Mapping[str, Any]] | None = None,
-    fixed: Mapping[str, Any] | None = None,
-    n_trials: int = 0,
-    storage: str | None = None,
-    study_name: str = "inverse",
-    seed: int = 0,
     val_fraction: float = 0.1,
     sampling: str = "lhs",
     register_as: str | None = None,
     run_name: str = "train-inverse",
-    progress: bool = False,
-    heartbeat_seconds: int = 30,
+    **study: Unpack[StudyKeywords],
 ) -> InverseTrainResult:
     """Sample a training set from the surrogate, search settings with Optuna, fit, log, register.
 
@@ -115,21 +104,6 @@ def train_inverse(
         The surrogate on the moment grid the inverse model will accept (the study: 1..5 Nm).
     n_samples : int
         Configurations sampled in the unit box (the study: 50,000).
-    search_space : mapping, optional
-        Optuna search space (see :func:`femcal.training.study.suggest`) over :class:`InverseModel`
-        settings (``width``/``depth`` allowed).
-    fixed : mapping, optional
-        Fixed settings, overridden by the search; enqueued as trial 0 where inside the space.
-    n_trials : int
-        Complete trials the study should hold; a resumed study only runs the missing ones.
-        0 fits the final model on ``fixed`` alone.
-    storage : str, optional
-        Optuna RDB storage URL (``sqlite:///...``); needed when ``n_trials > 0``.
-    study_name : str
-        Base name of the study; a hash of the problem (surrogate, grid, samples, search
-        space, fixed settings) is appended.
-    seed : int
-        Seeds the samples, the validation split, the sampler and every fit.
     val_fraction : float
         Fraction of the samples held out for validation and early stopping.
     sampling : {"lhs", "uniform"}
@@ -139,11 +113,13 @@ def train_inverse(
         validation MAE in degrees.
     run_name : str
         Name of the parent MLflow run (in the active experiment).
-    progress : bool
-        Progress bars of Optuna and Lightning.
-    heartbeat_seconds : int
-        Trials send a heartbeat this often; a trial silent for three periods is failed and
-        retried.
+    **study
+        The Optuna search (:class:`~femcal.training.search.StudySearch`) over
+        :class:`InverseModel` settings (``width``/``depth`` allowed): ``study_name`` (default
+        "inverse"; a hash of the problem, surrogate, grid and samples included, is appended),
+        ``search_space``, ``fixed``, ``n_trials`` (default 0: the final model on ``fixed``
+        alone), ``storage`` (needed when ``n_trials > 0``), ``seed`` (also seeds the samples,
+        the validation split and every fit), ``heartbeat_seconds`` and ``progress``.
 
     Returns
     -------
@@ -153,18 +129,18 @@ def train_inverse(
 
     from femcal.inverse.store import log_inverse
 
+    search = StudySearch(**{"study_name": "inverse", **study})
+    seed = search.seed
     t0 = time.perf_counter()
-    search_space = dict(search_space or {})
-    fixed = dict(fixed or {})
-    if n_trials < 0:
-        raise ConfigError(f"n_trials must be >= 0; got {n_trials}.")
-    if n_trials > 0 and not storage:
+    if search.n_trials < 0:
+        raise ConfigError(f"n_trials must be >= 0; got {search.n_trials}.")
+    if search.n_trials > 0 and not search.storage:
         raise ConfigError("An Optuna search (n_trials > 0) needs an RDB storage URL (sqlite:///…).")
     if not 0.0 < val_fraction < 1.0:
         raise ConfigError(f"val_fraction must lie in (0, 1); got {val_fraction}.")
     if int(n_samples) < 10:
         raise ConfigError(f"n_samples must be >= 10; got {n_samples}.")
-    inverse_kwargs(fixed)  # fail early on unknown settings
+    inverse_kwargs(search.fixed)  # fail early on unknown settings
 
     rng = np.random.default_rng(seed)
     rom, unit = make_inverse_dataset(curve_model, n_samples, rng, sampling=sampling)
@@ -175,14 +151,14 @@ def train_inverse(
     moments = curve_model.moments.double().numpy()
     space = curve_model.space
     data_id = f"{surrogate_fingerprint(curve_model)}-{n_samples}-{seed}-{sampling}-{val_fraction}"
-    full_name = study_name_for(study_name, search_space=search_space, fixed=fixed, data_id=data_id)
+    full_name = search.named(data_id)
 
     def fit(params: Mapping[str, Any], fit_seed: int, **kw: Any) -> InverseModel:
         model = InverseModel(space, **inverse_kwargs(params), seed=fit_seed)
         return model.fit(X_tr, U_tr, moments=moments, X_val=X_va, U_val=U_va, **kw)
 
     params = {
-        "n_trials": n_trials,
+        "n_trials": search.n_trials,
         "n_samples": n_samples,
         "sampling": sampling,
         "seed": seed,
@@ -203,22 +179,12 @@ def train_inverse(
             mlflow.log_metrics({"best_val_mae": model.best_val_mae_, "val_rom_mae_deg": value})
             return value
 
-        best_params, n_complete = search_settings(
-            train_trial,
-            fixed=fixed,
-            n_trials=n_trials,
-            metric="val_rom_mae_deg",
-            storage=storage,
-            study_name=full_name,
-            search_space=search_space,
-            seed=seed,
-            monitor="val_mae",
-            heartbeat_seconds=heartbeat_seconds,
-            progress=progress,
+        best_params, n_complete = search.run(
+            train_trial, name=full_name, metric="val_rom_mae_deg", monitor="val_mae"
         )
 
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
-        model = fit(best_params, seed, progress=progress)
+        model = fit(best_params, seed, progress=search.progress)
         log_history(model.history_, ("train_loss", "val_mae", "lr"))
         val_mae = float(model.best_val_mae_)
         val_rom = rom_mae_deg(model, curve_model, X_va)
@@ -228,7 +194,7 @@ def train_inverse(
             model.save(Path(tmp) / "inverse_model")
             mlflow.log_artifacts(str(Path(tmp) / "inverse_model"), artifact_path="inverse_model")
         info = log_inverse(model)
-        version, promoted, seconds = register_final(
+        registered = register_final(
             info.model_uri,
             register_as,
             val_metric=val_rom,
@@ -241,12 +207,10 @@ def train_inverse(
             model=model,
             best_params=best_params,
             val_mae=val_mae,
-            run_id=parent.info.run_id,
-            model_uri=info.model_uri,
-            version=version,
-            promoted=promoted,
-            seconds=seconds,
             val_rom_mae_deg=val_rom,
             n_trials=n_complete,
             extra={"optuna_study": full_name, "n_samples": int(n_samples)},
+            run_id=parent.info.run_id,
+            model_uri=info.model_uri,
+            **registered._asdict(),
         )

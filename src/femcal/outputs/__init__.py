@@ -260,7 +260,14 @@ def _locked(dest: Path, timeout: float | None) -> Iterator[None]:
 class OutputStage:
     """A staging folder for one run's outputs, moved into place by :meth:`commit`.
 
-    Use :func:`staged_output` rather than this class directly.
+    Use it as a context manager, under its name :data:`staged_output`::
+
+        with staged_output(destination, command="calibrate") as stage:
+            ...  # write into stage.path
+
+    Entering opens the stage (:meth:`open`). On leaving the block normally the stage is
+    committed (unless it was already); on an exception (also ``KeyboardInterrupt``) the
+    staging folder is removed and nothing appears at ``destination``.
 
     Parameters
     ----------
@@ -288,6 +295,12 @@ class OutputStage:
         Where they go.
     previous : Path or None
         Where the earlier femcal output folder was moved (after :meth:`commit`).
+
+    Raises
+    ------
+    OutputFolderError
+        On entering: ``destination`` is a file or holds files femcal did not write, or cannot
+        be created. On leaving: see :meth:`commit`.
     """
 
     def __init__(
@@ -401,6 +414,22 @@ class OutputStage:
             shutil.rmtree(self.path, ignore_errors=True)
             self.state = "discarded"
 
+    # -- the context manager
+    def __enter__(self) -> OutputStage:
+        return self.open()
+
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        if exc_type is not None:
+            self.discard()
+            return
+        try:
+            self.commit()
+        except OutputFolderError:
+            raise  # the complete outputs were kept beside the destination (named in the message)
+        except BaseException:
+            self.discard()
+            raise
+
     # -- internals
     def _require(self, state: str) -> None:
         if self.state != state:
@@ -432,57 +461,6 @@ class OutputStage:
         }
 
 
-@contextlib.contextmanager
-def staged_output(
-    destination: str | Path,
-    *,
-    command: str,
-    keep_previous: int = 1,
-    lock_timeout: float | None = None,
-    label: str = "output folder",
-    info: Mapping[str, Any] | None = None,
-) -> Iterator[OutputStage]:
-    """Stage a run's outputs beside ``destination``; move them into place on success.
-
-    Parameters
-    ----------
-    destination : str or Path
-        The output folder.
-    command : str
-        What writes it (recorded in the marker).
-    keep_previous, lock_timeout, label, info
-        See :class:`OutputStage`.
-
-    Yields
-    ------
-    OutputStage
-        Write into ``stage.path``. On leaving the block normally the stage is committed
-        (unless it was already); on an exception (also ``KeyboardInterrupt``) the staging
-        folder is removed and nothing appears at ``destination``.
-
-    Raises
-    ------
-    OutputFolderError
-        At entry: ``destination`` is a file or holds files femcal did not write, or cannot be
-        created. At exit: see :meth:`OutputStage.commit`.
-    """
-    stage = OutputStage(
-        destination,
-        command=command,
-        keep_previous=keep_previous,
-        lock_timeout=lock_timeout,
-        label=label,
-        info=info,
-    ).open()
-    try:
-        yield stage
-    except BaseException:
-        stage.discard()
-        raise
-    try:
-        stage.commit()
-    except OutputFolderError:
-        raise  # the complete outputs were kept beside the destination (named in the message)
-    except BaseException:
-        stage.discard()
-        raise
+#: Stage a run's outputs beside a destination; move them into place on success:
+#: ``with staged_output(destination, command=...) as stage`` (see :class:`OutputStage`).
+staged_output = OutputStage

@@ -13,14 +13,14 @@ from __future__ import annotations
 import json
 import shutil
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from femcal.config import section
-from femcal.paths import store_path
+from femcal.fe.runtime import FeRuntime
 from femcal.stages.common import StageSettings, path_setting, write_metrics
 from femcal.stages.simulate import fe_runtime
 from femcal.stages.store import tracking
@@ -39,9 +39,7 @@ class AdaptSettings(StageSettings):
     heldout: Path
     out_model: Path
     out_dir: Path
-    store: Path
-    solver: str
-    settings: Mapping[str, Any]
+    fe: FeRuntime
     rounds: int
     n_explore: int
     n_candidates: int
@@ -49,16 +47,10 @@ class AdaptSettings(StageSettings):
     calibrate_options: Mapping[str, Any]
     seed: int
     model_name: str
-    scheduler_address: str | None
-    n_workers: int
-    progress: bool = False
-    metrics_file: str | None = None
-    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> AdaptSettings:
         cfg = section(params, "adapt")
-        address, n_workers = fe_runtime(params)
         return cls(
             model_uri=str(cfg["model_uri"]),
             targets=path_setting(params, "adapt", "targets"),
@@ -66,9 +58,7 @@ class AdaptSettings(StageSettings):
             heldout=path_setting(params, "adapt", "heldout"),
             out_model=path_setting(params, "adapt", "out_model"),
             out_dir=path_setting(params, "adapt", "out_dir"),
-            store=store_path(params, section(params, "adapt", "store")),
-            solver=section(params, "fe", "solver"),
-            settings=dict(section(params, "fe").get("settings") or {}),
+            fe=fe_runtime(params, args, "adapt"),
             rounds=int(cfg.get("rounds", 3)),
             n_explore=int(cfg.get("n_explore", 16)),
             n_candidates=int(cfg.get("n_candidates", 2048)),
@@ -76,9 +66,6 @@ class AdaptSettings(StageSettings):
             calibrate_options=dict(cfg.get("calibrate_options") or {}),
             seed=int(cfg.get("seed", 0)),
             model_name=str(section(params, "mlflow", "model_name")),
-            scheduler_address=address,
-            n_workers=n_workers,
-            progress=bool(args.get("progress")),
             metrics_file=args.get("metrics_file"),
             params=params,
         )
@@ -122,9 +109,7 @@ def run_adapt(
     heldout: Path,
     out_model: Path,
     out_dir: Path,
-    store: Path,
-    solver: str,
-    settings: Mapping[str, Any],
+    fe: FeRuntime,
     rounds: int,
     n_explore: int,
     n_candidates: int,
@@ -132,23 +117,20 @@ def run_adapt(
     calibrate_options: Mapping[str, Any],
     seed: int,
     model_name: str,
-    scheduler_address: str | None = None,
-    n_workers: int = 2,
-    progress: bool = False,
 ) -> dict[str, Any]:
     """Adaptive sampling from the surrogate at ``model_uri``; MLflow; the champion's folder.
 
     ``targets`` are measurements (any layout ``femcal calibrate`` reads), ``train`` and
     ``heldout`` prepared tidy tables (``data/prepared/large.csv``, ``small.csv``). Writes
     ``out_dir/rounds.csv``, ``out_dir/runs.csv`` and ``out_dir/adapt.json``, and
-    ``out_model``: the challenger's files when it won, else the starting model's.
+    ``out_model``: the challenger's files when it won, else the starting model's. The FE
+    runs go through ``fe`` (solver, settings, campaign store, Dask cluster).
     """
     import mlflow
     from mlflow import MlflowClient
 
     from femcal.datasets import SPACE_FILE, ok_rows
     from femcal.fe.adaptive import adapt_surrogate, band_mae
-    from femcal.fe.refine import campaign_curves
     from femcal.measurements import read_measurements
     from femcal.outputs import check_destination
     from femcal.space import ParameterSpace
@@ -168,21 +150,12 @@ def run_adapt(
         ].to_numpy(dtype=float)
 
     train_rows, heldout_rows = rows(train), rows(heldout)
-    fe = campaign_curves(
-        solver,
-        settings,
-        store=store,
-        moments=meas.moments.tolist(),
-        scheduler_address=scheduler_address,
-        n_workers=n_workers,
-        progress=progress,
-    )
     first_id = int(train_rows[0]["config_id"].max()) + 1
     result = adapt_surrogate(
         surrogate,
         targets=meas.rom_deg,
         moments=meas.moments.tolist(),
-        fe_curves=fe,
+        fe_curves=fe.curves(meas.moments.tolist()),
         train=train_rows,
         heldout=heldout_rows,
         rounds=rounds,

@@ -12,7 +12,7 @@ import json
 import logging
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +33,19 @@ class StageSettings:
 
     A stage's fields are the keywords of the library function it calls (``run_calibrate``,
     ``run_train``, ...), plus :data:`STAGE_ONLY`; :meth:`call_args` gives those keywords.
+
+    Attributes
+    ----------
+    params : mapping
+        The parsed params.yaml the settings were read from (keyword-only; the tracked stages
+        point MLflow at its store, :func:`femcal.stages.store.tracking`).
+    metrics_file : str or None
+        The stage's DVC metrics file (``--metrics-file``; keyword-only), written only when
+        given (:func:`write_metrics`).
     """
+
+    params: Mapping[str, Any] = field(default_factory=dict, repr=False, kw_only=True)
+    metrics_file: str | None = field(default=None, kw_only=True)
 
     def call_args(self) -> dict[str, Any]:
         """The library function's keywords: every field but :data:`STAGE_ONLY`."""

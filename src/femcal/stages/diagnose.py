@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +45,6 @@ class DiagnoseSettings(StageSettings):
     plots: bool = True
     max_plots: int | None = None
     effect_modules: Sequence[Path] = ()
-    metrics_file: str | None = None
-    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> DiagnoseSettings:

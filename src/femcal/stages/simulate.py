@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from femcal.config import section
+from femcal.fe.runtime import FeRuntime
 from femcal.paths import setting_path, store_path
 from femcal.space import ParameterSpace
 from femcal.stages.common import (
@@ -33,44 +34,30 @@ METRICS_KEYS = (
 class SimulateSettings(StageSettings):
     """The ``fe`` section of fe/params.yaml, with the command line's overrides."""
 
-    solver: str
-    settings: Mapping[str, Any]
+    fe: FeRuntime
     bounds: Any
     splits: Mapping[str, int]
     seed: int
     load_cases: Sequence[str]
     moments: Sequence[float]
-    store: Path
     out_dir: Path
-    scheduler_address: str | None
-    n_workers: int
     scratch_dir: Path | None = None
-    progress: bool = False
     retry_timeouts: bool = False
-    metrics_file: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> SimulateSettings:
         cfg = section(params, "fe")
         out = output_folder(params, args, "fe")  # before the campaign
-        address, n_workers = fe_runtime(params)
         scratch = cfg.get("scratch_dir")
         return cls(
-            solver=section(params, "fe", "solver"),
-            settings=dict(cfg.get("settings") or {}),
+            fe=fe_runtime(params, args, "fe"),
             bounds=section(params, "fe", "bounds"),
             splits=section(params, "fe", "splits"),
             seed=int(section(params, "fe", "seed")),
             load_cases=list(section(params, "fe", "load_cases")),
             moments=[float(m) for m in section(params, "fe", "moments")],
-            store=Path(args["store"])
-            if args.get("store")
-            else store_path(params, section(params, "fe", "store")),
             out_dir=out,
-            scheduler_address=address,
-            n_workers=n_workers,
             scratch_dir=setting_path(params, scratch) if scratch else None,
-            progress=bool(args.get("progress")),
             retry_timeouts=bool(args.get("retry_timeouts")),
             metrics_file=args.get("metrics_file"),
         )
@@ -134,23 +121,19 @@ def fe_space(bounds: Any) -> ParameterSpace:
 
 def run_simulate(
     *,
-    solver: str,
-    settings: Mapping[str, Any],
+    fe: FeRuntime,
     bounds: Any,
     splits: Mapping[str, int],
     seed: int,
     load_cases: Sequence[str],
     moments: Sequence[float],
-    store: Path,
     out_dir: Path,
-    scheduler_address: str | None = None,
-    n_workers: int = 2,
     scratch_dir: Path | None = None,
-    progress: bool = False,
     retry_timeouts: bool = False,
 ):
     """The FE campaign (Dask, durable store, resume) and its dataset in the study's layout.
 
+    ``fe`` names the solver, its settings, the campaign store and the Dask cluster.
     ``retry_timeouts`` runs the stored jobs that failed on their wall-clock limit again (a
     timeout depends on the machine's load; the other failures are the model's and stay).
 
@@ -168,7 +151,7 @@ def run_simulate(
 
     check_destination(out_dir)
     from femcal.errors import ConfigError
-    from femcal.fe.campaign import run_campaign, timed_out
+    from femcal.fe.campaign import timed_out
     from femcal.fe.dataset import write_dataset
     from femcal.fe.design import split_design
     from femcal.fe.store import settings_hash
@@ -181,19 +164,13 @@ def run_simulate(
         )
     space = fe_space(bounds)
     design_df = split_design(space, splits, seed)
-    result = run_campaign(
-        solver,
-        settings,
+    result = fe.campaign(
         design_df,
-        store=store,
         names=space.names,
         load_cases=LOAD_CASES,
         moments=moments,
-        scheduler_address=scheduler_address,
-        n_workers=n_workers,
         scratch_dir=scratch_dir,
         retry_failed=timed_out if retry_timeouts else False,
-        progress=progress,
     )
     summary = write_dataset(
         design_df,
@@ -202,12 +179,12 @@ def run_simulate(
         space=space,
         moments=moments,
         campaign_info={
-            "solver": solver,
-            "settings": dict(settings),
-            "settings_hash": settings_hash(solver, settings),
+            "solver": fe.solver,
+            "settings": dict(fe.settings),
+            "settings_hash": settings_hash(fe.solver, fe.settings),
             "seed": int(seed),
             "splits": {k: int(v) for k, v in splits.items()},
-            "store": str(store),
+            "store": str(fe.store),
             "jobs_run_now": result.n_run,
             "jobs_resumed_from_store": result.n_skipped,
             "wall_seconds_this_run": round(result.wall_seconds, 2),
@@ -217,10 +194,33 @@ def run_simulate(
     return result, summary
 
 
-def fe_runtime(params: Mapping[str, Any]) -> tuple[str | None, int]:
-    """Scheduler address (fe.scheduler_address, else FEMCAL_DASK_ADDRESS) and worker count."""
+def fe_runtime(params: Mapping[str, Any], args: Mapping[str, Any], store_section: str) -> FeRuntime:
+    """The FE runtime of a stage, read once from fe/params.yaml and the command line.
+
+    Parameters
+    ----------
+    params : mapping
+        The parsed fe/params.yaml: ``fe.solver``, ``fe.settings``, ``fe.scheduler_address``
+        (else ``FEMCAL_DASK_ADDRESS``), ``fe.n_workers`` (default 2).
+    args : mapping
+        The command line's settings: ``store`` (``--store``) and ``progress``.
+    store_section : str
+        The section whose ``store`` is the default campaign store (relative to the
+        repository's root, :func:`femcal.paths.store_path`).
+
+    Returns
+    -------
+    FeRuntime
+    """
     from femcal.fe.campaign import scheduler_address_from_env
 
     cfg = section(params, "fe")
-    address = cfg.get("scheduler_address") or scheduler_address_from_env()
-    return address, int(cfg.get("n_workers", 2))
+    given = args.get("store")
+    return FeRuntime(
+        solver=section(params, "fe", "solver"),
+        settings=dict(cfg.get("settings") or {}),
+        store=Path(given) if given else store_path(params, section(params, store_section, "store")),
+        scheduler_address=cfg.get("scheduler_address") or scheduler_address_from_env(),
+        n_workers=int(cfg.get("n_workers", 2)),
+        progress=bool(args.get("progress")),
+    )

@@ -1,4 +1,10 @@
-"""The MLflow store the tracked stages log to, and the model folders they export from it."""
+"""The stores of the tracked stages: MLflow's, which they log to and export model folders
+from, and the training stages' Optuna search in ``train.storage``.
+
+Only the stages whose DVC deps hold :mod:`femcal.training` import it
+(tests/stages/test_stage_deps.py); the others read their settings through
+:mod:`femcal.stages.common`.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +15,8 @@ from typing import Any
 
 from femcal.config import section
 from femcal.paths import store_path
+from femcal.stages.common import optuna_storage
+from femcal.training.search import StudySearch
 
 
 def tracking(params: Mapping[str, Any]) -> None:
@@ -24,6 +32,30 @@ def tracking(params: Mapping[str, Any]) -> None:
     experiment = ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
     tag_runs_with_process()  # pid + host on every run this command starts
     close_killed_runs([experiment])  # logs each run it closes as KILLED
+
+
+def registry_figures(result: Any) -> dict[str, Any]:
+    """What a training stage reports of a training ``result`` besides its errors.
+
+    Parameters
+    ----------
+    result : TrainResult or InverseTrainResult
+        A training's outcome (:func:`femcal.train.train_surrogate`,
+        :func:`femcal.inverse.train.train_inverse`).
+
+    Returns
+    -------
+    dict
+        ``n_trials`` (complete Optuna trials), ``seconds`` (wall time), ``version`` (the
+        registered version, None when not registered) and ``promoted`` (the champion alias
+        moved to it).
+    """
+    return {
+        "n_trials": result.n_trials,
+        "seconds": result.seconds,
+        "version": result.version,
+        "promoted": result.promoted,
+    }
 
 
 def export_folder(result, out_dir: Path, registered_model: str | None) -> None:
@@ -51,3 +83,39 @@ def export_folder(result, out_dir: Path, registered_model: str | None) -> None:
     if out_dir.exists():
         shutil.rmtree(out_dir)
     tmp.rename(out_dir)
+
+
+def study_search(
+    params: Mapping[str, Any],
+    args: Mapping[str, Any],
+    cfg: Mapping[str, Any],
+    *,
+    study_name: str,
+    seed: int,
+) -> StudySearch:
+    """A training stage's Optuna search, read once from params.yaml and the command line.
+
+    Parameters
+    ----------
+    params : mapping
+        The parsed params.yaml; the storage is ``train.storage`` (:func:`optuna_storage`).
+    args : mapping
+        The command line's settings: ``progress``.
+    cfg : mapping
+        The stage's section: ``search_space``, ``fixed``, ``n_trials`` (default 0).
+    study_name, seed
+        The study's base name and seed.
+
+    Returns
+    -------
+    StudySearch
+    """
+    return StudySearch(
+        study_name=study_name,
+        search_space=cfg.get("search_space") or {},
+        fixed=cfg.get("fixed") or {},
+        n_trials=int(cfg.get("n_trials", 0)),
+        storage=optuna_storage(params),
+        seed=seed,
+        progress=bool(args.get("progress")),
+    )

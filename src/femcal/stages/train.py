@@ -7,15 +7,16 @@ summary goes to ``reports/train-<split>.json``.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from femcal.config import section
 from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import StageSettings, optuna_storage, path_setting
-from femcal.stages.store import export_folder, tracking
+from femcal.stages.common import StageSettings, path_setting
+from femcal.stages.store import export_folder, registry_figures, study_search, tracking
+from femcal.training.search import StudySearch
 
 
 @dataclass(frozen=True)
@@ -26,33 +27,33 @@ class TrainSettings(StageSettings):
     split: str
     out_dir: Path
     metrics_path: Path
-    settings: Mapping[str, Any]
-    storage: str
-    study_name: str
-    seed: int
+    study: StudySearch
+    final_members: int
     val_fraction: float
-    model_name: str | None
+    register_as: str | None
     data_split: str | None = None
-    progress: bool = False
-    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> TrainSettings:
         split = args["split"]
         settings = section(params, "train", split)
+        model_name = settings.get("model_name") or section(params, "mlflow", "model_name")
         return cls(
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             split=split,
             out_dir=setting_path(params, f"models/surrogate-{split}"),
             metrics_path=setting_path(params, f"reports/train-{split}.json"),
-            settings=settings,
-            storage=optuna_storage(params),
-            study_name=section(params, "train", "study_name"),
-            seed=int(settings.get("seed", section(params, "train", "seed"))),
+            study=study_search(
+                params,
+                args,
+                settings,
+                study_name=f"{section(params, 'train', 'study_name')}-{split}",
+                seed=int(settings.get("seed", section(params, "train", "seed"))),
+            ),
+            final_members=int(settings.get("final_members", 1)),
             val_fraction=float(section(params, "train", "val_fraction")),
-            model_name=settings.get("model_name") or section(params, "mlflow", "model_name"),
+            register_as=model_name if settings.get("register") else None,
             data_split=settings.get("split", split),
-            progress=bool(args.get("progress")),
             params=params,
         )
 
@@ -64,10 +65,7 @@ def run(settings: TrainSettings) -> dict[str, Any]:
     return {
         "split": settings.split,
         "val_mae_deg": result.val_mae_deg,
-        "n_trials": result.n_trials,
-        "seconds": result.seconds,
-        "version": result.version,
-        "promoted": result.promoted,
+        **registry_figures(result),
     }
 
 
@@ -90,19 +88,18 @@ def run_train(
     split: str,
     out_dir: Path,
     metrics_path: Path,
-    settings: Mapping[str, Any],
-    storage: str,
-    study_name: str,
-    seed: int,
+    study: StudySearch,
+    final_members: int,
     val_fraction: float,
-    model_name: str | None,
-    progress: bool = False,
+    register_as: str | None,
     data_split: str | None = None,
 ):
     """Train (search + final ensemble) on one split; export the model folder, write the summary.
 
     ``split`` names the run (Optuna study, MLflow run); ``data_split`` is the prepared table
     trained on (default: ``split``), so that e.g. a held-out surrogate trains on "large" too.
+    ``study`` is the Optuna search; ``register_as`` the registered model name (None: not
+    registered).
 
     ``out_dir`` receives the logged MLflow model file for file (:func:`femcal.tracking.
     export_model`), with ``mlflow.json`` recording the run and the registered version: the
@@ -115,18 +112,12 @@ def run_train(
     result = train_surrogate(
         table,
         space,
-        search_space=settings.get("search_space") or {},
-        fixed=settings.get("fixed") or {},
-        n_trials=int(settings.get("n_trials", 0)),
-        final_members=int(settings.get("final_members", 1)),
-        storage=storage,
-        study_name=f"{study_name}-{split}",
-        seed=seed,
+        final_members=final_members,
         val_fraction=val_fraction,
-        register_as=model_name if settings.get("register") else None,
+        register_as=register_as,
         run_name=f"train-{split}",
-        progress=progress,
+        **study.keywords(),
     )
-    export_folder(result, out_dir, model_name if settings.get("register") else None)
+    export_folder(result, out_dir, register_as)
     write_summary(result, metrics_path)
     return result

@@ -7,14 +7,15 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from femcal.config import section
 from femcal.paths import setting_path, setting_uri
-from femcal.stages.common import StageSettings, optuna_storage
-from femcal.stages.store import export_folder, tracking
+from femcal.stages.common import StageSettings
+from femcal.stages.store import export_folder, registry_figures, study_search, tracking
+from femcal.training.search import StudySearch
 
 
 @dataclass(frozen=True)
@@ -25,13 +26,9 @@ class TrainInverseSettings(StageSettings):
     moments: Sequence[float]
     out_dir: Path
     metrics_path: Path
-    settings: Mapping[str, Any]
-    storage: str
-    study_name: str
-    seed: int
+    study: StudySearch
+    n_samples: int
     register_as: str | None
-    progress: bool = False
-    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_params(
@@ -43,12 +40,15 @@ class TrainInverseSettings(StageSettings):
             moments=[float(m) for m in section(params, "inverse", "moments")],
             out_dir=setting_path(params, "models/inverse"),
             metrics_path=setting_path(params, "reports/train-inverse.json"),
-            settings=cfg,
-            storage=optuna_storage(params),
-            study_name=str(cfg.get("study_name", "ivd-inverse")),
-            seed=int(cfg.get("seed", 0)),
+            study=study_search(
+                params,
+                args,
+                cfg,
+                study_name=str(cfg.get("study_name", "ivd-inverse")),
+                seed=int(cfg.get("seed", 0)),
+            ),
+            n_samples=int(cfg.get("n_samples", 50_000)),
             register_as=cfg.get("register_as"),
-            progress=bool(args.get("progress")),
             params=params,
         )
 
@@ -60,9 +60,7 @@ def run(settings: TrainInverseSettings) -> dict[str, Any]:
     return {
         "val_mae": result.val_mae,
         "val_rom_mae_deg": result.val_rom_mae_deg,
-        "n_trials": result.n_trials,
-        "seconds": result.seconds,
-        "version": result.version,
+        **registry_figures(result),
     }
 
 
@@ -81,19 +79,16 @@ def run_train_inverse(
     moments: Sequence[float],
     out_dir: Path,
     metrics_path: Path,
-    settings: Mapping[str, Any],
-    storage: str,
-    study_name: str,
-    seed: int,
+    study: StudySearch,
+    n_samples: int,
     register_as: str | None,
-    progress: bool = False,
 ):
     """Train the study's inverse network on samples of the surrogate; register it.
 
     ``surrogate_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI;
     the training run's tags ``femcal.surrogate.*`` name it (URI, SHA-256, registered
-    version). ``out_dir`` receives the logged MLflow model file for file, as for
-    :func:`run_train`.
+    version). ``study`` is the Optuna search of ``n_samples`` surrogate samples. ``out_dir``
+    receives the logged MLflow model file for file, as for :func:`run_train`.
     """
     import mlflow
 
@@ -105,16 +100,10 @@ def run_train_inverse(
     surrogate = load_surrogate(source)
     result = train_inverse(
         SurrogateCurveModel(surrogate, moments),
-        n_samples=int(settings.get("n_samples", 50_000)),
-        search_space=settings.get("search_space") or {},
-        fixed=settings.get("fixed") or {},
-        n_trials=int(settings.get("n_trials", 0)),
-        storage=storage,
-        study_name=study_name,
-        seed=seed,
+        n_samples=n_samples,
         register_as=register_as,
         run_name="train-inverse",
-        progress=progress,
+        **study.keywords(),
     )
     client = mlflow.MlflowClient()
     for key, value in source.tags("surrogate").items():

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Unpack
 
 import numpy as np
 
 from femcal.config import section
 from femcal.errors import ConfigError
-from femcal.paths import store_path
+from femcal.fe.runtime import FeKeywords, FeRuntime
 from femcal.stages.common import (
     StageSettings,
     output_folder,
@@ -40,31 +40,26 @@ METRICS_KEYS = (
 
 @dataclass(frozen=True)
 class ValidateSettings(StageSettings):
-    """The ``validate`` and ``fe`` sections of fe/params.yaml, with the command line's overrides."""
+    """The ``validate`` and ``fe`` sections of fe/params.yaml, with the command line's overrides.
+
+    :func:`run_validate` takes the FE runtime ``fe`` as its own keywords (solver, settings,
+    store, ...; :meth:`call_args`).
+    """
 
     calibration_dir: Path
     measurements: Path
-    solver: str
-    settings: Mapping[str, Any]
+    fe: FeRuntime
     forces: Sequence[float]
     literature: Mapping[str, Any]
-    store: Path
     out_dir: Path
-    scheduler_address: str | None
-    n_workers: int
-    progress: bool = False
-    metrics_file: str | None = None
     model_uri: str | None = None
     max_fe_runs: int = 1
     tol_deg: float = 0.05
-    params: Mapping[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> ValidateSettings:
         cfg = section(params, "validate")
-        fe = section(params, "fe")
         out = output_folder(params, args, "validate")  # before the FE campaign
-        address, n_workers = fe_runtime(params)
         refine = cfg.get("refine") or {}
         return cls(
             calibration_dir=(
@@ -77,25 +72,21 @@ class ValidateSettings(StageSettings):
                 if args.get("measurements")
                 else path_setting(params, "validate", "measurements")
             ),
-            solver=section(params, "fe", "solver"),
-            settings=dict(fe.get("settings") or {}),
+            fe=fe_runtime(params, args, "validate"),
             forces=[float(f) for f in cfg.get("forces") or []],
             literature=cfg.get("idp_literature") or {},
-            store=(
-                Path(args["store"])
-                if args.get("store")
-                else store_path(params, section(params, "validate", "store"))
-            ),
             out_dir=out,
-            scheduler_address=address,
-            n_workers=n_workers,
-            progress=bool(args.get("progress")),
             metrics_file=args.get("metrics_file"),
             model_uri=refine.get("model_uri"),
             max_fe_runs=int(refine.get("max_fe_runs", 1)),
             tol_deg=float(refine.get("tol_deg", 0.05)),
             params=params,
         )
+
+    def call_args(self) -> dict[str, Any]:
+        """:func:`run_validate`'s keywords: the FE runtime's spread among the others."""
+        args = super().call_args()
+        return {**args.pop("fe").keywords(), **args}
 
 
 def run(settings: ValidateSettings) -> dict[str, Any]:
@@ -148,23 +139,21 @@ def run_validate(
     *,
     calibration_dir: Path,
     measurements: Path,
-    solver: str,
-    settings: Mapping[str, Any],
     forces: Sequence[float],
     literature: Mapping[Any, Any],
-    store: Path,
     out_dir: Path,
-    scheduler_address: str | None = None,
-    n_workers: int = 2,
-    progress: bool = False,
     model_uri: str | None = None,
     max_fe_runs: int = 1,
     tol_deg: float = 0.05,
+    **fe: Unpack[FeKeywords],
 ):
     """FE re-simulation of a calibration (the study's step 4); tables in ``out_dir``; MLflow.
 
-    With ``max_fe_runs > 1`` the calibration is first refined with FE in the loop, steered by
-    the surrogate at ``model_uri`` (a model folder or a models:/ URI).
+    ``fe`` is the FE runtime's keywords (``solver``, ``settings``, ``store``,
+    ``scheduler_address``, ``n_workers``, ``progress``; :meth:`FeRuntime.keywords`), passed
+    on to :func:`femcal.fe.validate.validate_calibration`. With ``max_fe_runs > 1`` the
+    calibration is first refined with FE in the loop, steered by the surrogate at
+    ``model_uri`` (a model folder or a models:/ URI).
 
     Returns
     -------
@@ -197,18 +186,13 @@ def run_validate(
         result = validate_calibration(
             calibration_dir=calibration_dir,
             measurements=measurements,
-            solver=solver,
-            settings=settings,
             forces=forces,
             literature=ranges,
-            store=store,
             out_dir=stage.path,
-            scheduler_address=scheduler_address,
-            n_workers=n_workers,
-            progress=progress,
             surrogate=surrogate,
             max_fe_runs=max_fe_runs,
             tol_deg=tol_deg,
+            **fe,
         )
         s = result.summary
         with mlflow.start_run(run_name="validate") as run:
@@ -218,8 +202,8 @@ def run_validate(
                 {
                     "calibration_dir": str(calibration_dir),
                     "measurements": str(measurements),
-                    "solver": solver,
-                    "settings": json.dumps(dict(settings), sort_keys=True)[:500],
+                    "solver": fe["solver"],
+                    "settings": json.dumps(dict(fe["settings"]), sort_keys=True)[:500],
                     "forces_n": ",".join(f"{f:g}" for f in forces),
                     "solver_versions": ",".join(s["solver_versions"]),
                     "n_specimens": s["n_specimens"],

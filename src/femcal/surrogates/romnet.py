@@ -264,21 +264,10 @@ class RomNet(nn.Module):
     def forward(
         self, load_case_index: torch.Tensor, moment_nm: torch.Tensor, params: torch.Tensor
     ) -> torch.Tensor:
-        """RoM in degrees, the mean of the members.
+        """RoM in degrees, the mean of the members, shape (n,).
 
-        Parameters
-        ----------
-        load_case_index : LongTensor, shape (n,)
-            Index into :data:`~femcal.schema.LOAD_CASES`.
-        moment_nm : Tensor, shape (n,)
-            Applied moment in Nm, > 0.
-        params : Tensor, shape (n, d)
-            Parameters in physical units.
-
-        Returns
-        -------
-        Tensor, shape (n,)
-            RoM in degrees.
+        The batch as for :meth:`members_scaled`, one row of ``params`` (physical units, shape
+        (n, d)) per row.
         """
         return self.members_degrees(load_case_index, moment_nm, params).mean(0)
 

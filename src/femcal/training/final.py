@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -71,6 +71,24 @@ def log_history(
                 mlflow.log_metric(f"{prefix}{key}", float(value), step=step)
 
 
+class Registration(NamedTuple):
+    """What :func:`register_final` did: fields of every training's result.
+
+    Attributes
+    ----------
+    version : str or None
+        The registered version (None when not registered).
+    promoted : bool
+        Whether the champion alias moved to it.
+    seconds : float
+        The training's wall time.
+    """
+
+    version: str | None
+    promoted: bool
+    seconds: float
+
+
 def register_final(
     model_uri: str,
     register_as: str | None,
@@ -80,7 +98,7 @@ def register_final(
     run_id: str,
     started: float,
     tags: Mapping[str, str] | None = None,
-) -> tuple[str | None, bool, float]:
+) -> Registration:
     """Register the final model logged by the active run; log the training's wall time.
 
     Parameters
@@ -104,12 +122,9 @@ def register_final(
 
     Returns
     -------
-    version : str or None
-        The registered version (None when not registered).
-    promoted : bool
-        Whether the champion alias moved to it.
-    seconds : float
-        The training's wall time.
+    Registration
+        ``(version, promoted, seconds)``: the registered version (None when not registered),
+        whether the champion alias moved to it, the training's wall time.
     """
     import mlflow
 
@@ -123,4 +138,4 @@ def register_final(
     )
     seconds = time.perf_counter() - started
     mlflow.log_metric("train_seconds", seconds)
-    return version, promoted, seconds
+    return Registration(version, promoted, seconds)
