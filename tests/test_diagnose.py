@@ -159,7 +159,11 @@ def test_next_measurement_names_where_close_explanations_differ(world):
         assert n["criterion_gap"] < 10.0
         assert n["between"][0] == s.final_label != n["between"][1]  # the chosen vs its rival
         assert n["load_case"] in LOAD_CASES and MOMENTS.min() <= n["moment_nm"] <= MOMENTS.max()
-        assert n["difference_sigma"] == pytest.approx(abs(n["difference_deg"]) / NOISE, rel=1e-3)
+        # sigma: the noise and both models' own prediction sd (their parameter covariance)
+        assert n["sigma_deg"] == pytest.approx(np.hypot(NOISE, n["prediction_sd_deg"]), rel=1e-6)
+        assert n["difference_sigma"] == pytest.approx(
+            abs(n["difference_deg"]) / n["sigma_deg"], rel=1e-3
+        )
 
 
 def test_next_measurement_searches_every_moment_the_policy_accepts(world):
@@ -185,8 +189,11 @@ def test_next_measurement_searches_every_moment_the_policy_accepts(world):
     for n in found:
         m = n["moment_nm"]
         assert lo * (1 - 1e-9) <= m <= hi * (1 + 1e-9)
-        sigma = np.hypot(NOISE, policy.sigma_surrogate([m])[0])
-        assert n["difference_sigma"] == pytest.approx(abs(n["difference_deg"]) / sigma, rel=1e-3)
+        sigma = np.hypot(NOISE, policy.sigma_surrogate([m])[0])  # noise + surrogate there
+        assert n["sigma_deg"] == pytest.approx(np.hypot(sigma, n["prediction_sd_deg"]), rel=1e-6)
+        assert n["difference_sigma"] == pytest.approx(
+            abs(n["difference_deg"]) / n["sigma_deg"], rel=1e-3
+        )
         assert n["within_measured_range"] == bool(2.5 - 1e-9 <= m <= 5.0 + 1e-9)
         if not n["within_measured_range"]:
             inner = n["within_protocol"]

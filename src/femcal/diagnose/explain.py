@@ -172,15 +172,34 @@ def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.n
         return model.curves(v).double().numpy()
 
 
+def _dense_prediction(dense_base, effects: tuple[str, ...], fit, pos: int):
+    """One fitted model's curves (4, q) on the dense grid and their linearised sd (4, q).
+
+    The sd propagates the fit's parameter covariance (``fit.cov``, unit box prior) through
+    the exact Jacobian of the dense curves; zero without a covariance.
+    """
+    model = dense_base if not effects else EffectModel(dense_base, list(effects))
+    v = fit.v[pos : pos + 1]
+    if fit.cov is None:
+        with torch.no_grad():
+            return model.curves(v).double().numpy()[0], np.zeros((len(LOAD_CASES), 1))
+    curves, jac = model.curves_jacobian(v)
+    j = jac.detach().double().numpy()[0]  # (4, q, d)
+    var = np.einsum("lqd,de,lqe->lq", j, fit.cov[pos], j)
+    return curves.detach().double().numpy()[0], np.sqrt(np.clip(var, 0.0, None))
+
+
 def _next_measurement(
     ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, measured_moments=None
 ):
     """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most.
 
     ``dense`` (shape (q,)) are the moments searched and ``sigma_dense`` (shape (q,)) the sigma
-    there; ``measured_moments`` (one array per load case) mark whether the point found lies
-    within the specimen's own measured range of that load case (``within_measured_range``);
-    where it does not, ``within_protocol`` holds the best point within that range too.
+    there (noise and surrogate), to which both models' own prediction sd is added in
+    quadrature (``prediction_sd_deg``; their parameter covariance through the Jacobian);
+    ``measured_moments`` (one array per load case) mark whether the point found lies within
+    the specimen's own measured range of that load case (``within_measured_range``); where it
+    does not, ``within_protocol`` holds the best point within that range too.
     """
     if len(ranking) < 2 or dense_base is None:
         return None
@@ -190,11 +209,16 @@ def _next_measurement(
     gap = abs(second["criterion"] - best["criterion"])
     if gap >= min_delta:
         return None
-    curves = []
+    curves, var = [], np.zeros((len(LOAD_CASES), len(dense)))
     for r in (best, second):
         f, pos = fits[tuple(r["effects"])]
-        curves.append(_dense_curves(dense_base, tuple(r["effects"]), f.v[pos : pos + 1])[0])
-    diff = (curves[0] - curves[1]) / sigma_dense[None, :]
+        c, sd = _dense_prediction(dense_base, tuple(r["effects"]), f, pos)
+        curves.append(c)
+        var = var + sd**2
+    # The two models' own uncertainty counts too: where a rival's parameters are not pinned
+    # by the data (a ligament slack beyond the protocol), its prediction there is not either.
+    total = np.sqrt(sigma_dense[None, :] ** 2 + var)
+    diff = (curves[0] - curves[1]) / total
     if not np.isfinite(diff).any():
         return None
 
@@ -205,6 +229,8 @@ def _next_measurement(
             "moment_nm": float(dense[k]),
             "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
             "difference_sigma": float(abs(d[j, k])),
+            "sigma_deg": float(total[j, k]),
+            "prediction_sd_deg": float(np.sqrt(var[j, k])),
         }
 
     where, found = point(diff)
