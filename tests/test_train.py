@@ -226,3 +226,36 @@ def test_killed_search_resumes(store):
     # Finished trials were kept, not recomputed: their values are unchanged.
     for t_before, t_after in zip(before[:-1], after):
         assert t_before.state != optuna.trial.TrialState.COMPLETE or t_before.value == t_after.value
+
+
+def test_idp_target_trains_a_pressure_head_with_its_own_unit(store):
+    # The FE campaign's second output: a pressure that can be <= 0 under a pure moment,
+    # learnt linearly; its error is named in MPa in the result, MLflow and the summary.
+    table = tidy_table(16, seed=2)
+    table["idp_mpa"] = 0.05 * table["moment_nm"] - 0.1  # negative at 1 Nm
+    table.loc[3, "idp_mpa"] = np.nan  # a level without a pressure is left out, not an error
+    fixed = {**TINY, "log_target": False}
+    res = _train(table, store, fixed=fixed, n_trials=0, target="idp_mpa", register_as=None)
+    assert res.target == "idp_mpa" and res.val_metric == "val_mae_mpa"
+    run = MlflowClient().get_run(res.run_id)
+    assert "val_mae_mpa" in run.data.metrics and "val_mae_deg" not in run.data.metrics
+    assert run.data.params["target"] == "idp_mpa"
+    pred = res.surrogate.predict(table[["load_case", "moment_nm", *study_space().names]])
+    assert np.isfinite(pred).all()
+    assert pred.min() < 0, "a pressure head must be able to predict negative values"
+
+
+def test_idp_target_errors(store):
+    table = tidy_table(8, seed=2)
+    with pytest.raises(ConfigError, match="needs fixed log_target: false"):
+        _train(table, store, n_trials=0, target="idp_mpa")
+    with pytest.raises(ConfigError, match="not an output a surrogate can learn"):
+        _train(table, store, n_trials=0, target="force_n")
+    with pytest.raises(ConfigError, match="has no column 'idp_mpa'"):
+        _train(
+            table.drop(columns="idp_mpa"),
+            store,
+            n_trials=0,
+            target="idp_mpa",
+            fixed={**TINY, "log_target": False},
+        )

@@ -47,6 +47,10 @@ STATUS_FAILED = "failed"
 KEY_COLUMNS: tuple[str, ...] = ("config_id", "load_case", "moment_nm")
 #: Output columns of a tidy FE table.
 OUTPUT_COLUMNS: tuple[str, ...] = ("rom_deg", "idp_mpa", "status")
+#: What a surrogate can be trained to predict (an output column) -> the suffix of its error's
+#: name: ``rom_deg`` (the RoM, the calibration's target) and ``idp_mpa`` (the intradiscal
+#: pressure, the FE campaign's second output: ``val_mae_mpa``).
+TARGETS: dict[str, str] = {"rom_deg": "deg", "idp_mpa": "mpa"}
 
 #: Spellings of load-case names accepted from users, mapped to the canonical name.
 _LOAD_CASE_ALIASES: dict[str, str] = {}

@@ -22,6 +22,7 @@ import pandas as pd
 
 from femcal.datasets import ok_rows
 from femcal.errors import ConfigError
+from femcal.schema import TARGETS
 from femcal.space import ParameterSpace
 from femcal.training.final import log_history, register_final, training_run
 from femcal.training.search import StudyKeywords, StudySearch
@@ -41,7 +42,8 @@ class TrainResult:
     best_params : dict
         Hyper-parameters of the final model (fixed ones merged with the best trial's).
     val_mae_deg : float
-        The final model's MAE on the validation configurations, in degrees.
+        The final model's MAE on the validation configurations, in the target's unit (degrees
+        for the RoM; MPa for ``target="idp_mpa"``: :attr:`val_metric` names it).
     n_trials : int
         Complete trials in the study after this call.
     run_id : str
@@ -52,6 +54,8 @@ class TrainResult:
         The registered model version (None when not registered).
     promoted : bool
         Whether the champion alias moved to ``version``.
+    target : str
+        The output predicted (:data:`femcal.schema.TARGETS`).
     """
 
     surrogate: Any
@@ -64,6 +68,12 @@ class TrainResult:
     promoted: bool = False
     seconds: float = 0.0
     extra: dict = field(default_factory=dict)
+    target: str = "rom_deg"
+
+    @property
+    def val_metric(self) -> str:
+        """The validation error's name with its unit: ``val_mae_deg`` or ``val_mae_mpa``."""
+        return f"val_mae_{TARGETS[self.target]}"
 
 
 def surrogate_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
@@ -99,6 +109,7 @@ def train_surrogate(
     val_fraction: float = 0.15,
     register_as: str | None = None,
     run_name: str = "train",
+    target: str = "rom_deg",
     **study: Unpack[StudyKeywords],
 ) -> TrainResult:
     """Search hyper-parameters with Optuna, fit the final ensemble, log and register it.
@@ -117,6 +128,12 @@ def train_surrogate(
         Registered model name; the champion alias moves only on a better validation MAE.
     run_name : str
         Name of the parent MLflow run (in the active experiment).
+    target : {"rom_deg", "idp_mpa"}
+        The output column predicted (:data:`femcal.schema.TARGETS`): the RoM, or the
+        intradiscal pressure (the IDP head of an FE campaign; modelled linearly, not in log,
+        since the nucleus pressure under a pure moment can be negative). Rows where it is
+        missing are left out. The error's name carries its unit: ``val_mae_deg`` or
+        ``val_mae_mpa`` (:attr:`TrainResult.val_metric`).
     **study
         The Optuna search (:class:`~femcal.training.search.StudySearch`): ``study_name``
         (required; a hash of the problem is appended), ``search_space``, ``fixed`` (fixed
@@ -141,11 +158,33 @@ def train_surrogate(
             f"n_trials must be >= 0 and final_members >= 1; got {search.n_trials} and "
             f"{final_members}."
         )
+    if target not in TARGETS:
+        raise ConfigError(
+            f"train: target {target!r} is not an output a surrogate can learn; use one of "
+            f"{sorted(TARGETS)}."
+        )
     data = ok_rows(table)
+    if target != "rom_deg":
+        if target not in data.columns:
+            raise ConfigError(
+                f"train: the table has no column {target!r} to learn; an FE campaign's prepared "
+                "split has it (femcal simulate, then femcal prepare)."
+            )
+        data = data[np.isfinite(data[target].to_numpy(dtype=float))].reset_index(drop=True)
+    metric = f"val_mae_{TARGETS[target]}"
+    if target == "idp_mpa" and (
+        search.fixed.get("log_target", True) or "log_target" in search.search_space
+    ):
+        raise ConfigError(
+            "train: target 'idp_mpa' needs fixed log_target: false (a nucleus pressure under a "
+            f"pure moment can be <= 0); got fixed log_target={search.fixed.get('log_target')!r}"
+            f"{' and log_target in the search space' if 'log_target' in search.search_space else ''}"
+            ". Set it in the train section's fixed keywords."
+        )
     train_df, val_df = validation_split(data, fraction=val_fraction, seed=seed)
     feature_cols = ["config_id", "load_case", "moment_nm", *space.names]
-    X_tr, y_tr = train_df[feature_cols], train_df["rom_deg"].to_numpy()
-    X_va, y_va = val_df[feature_cols], val_df["rom_deg"].to_numpy()
+    X_tr, y_tr = train_df[feature_cols], train_df[target].to_numpy(dtype=float)
+    X_va, y_va = val_df[feature_cols], val_df[target].to_numpy(dtype=float)
     full_name = search.named(table_fingerprint(table))
 
     params = {
@@ -156,6 +195,7 @@ def train_surrogate(
         "n_train_configs": train_df["config_id"].nunique(),
         "n_val_configs": val_df["config_id"].nunique(),
         "optuna_study": full_name,
+        "target": target,
     }
     with training_run(run_name, "train", params) as parent:
 
@@ -166,8 +206,9 @@ def train_surrogate(
             model.fit(
                 X_tr, y_tr, X_val=X_va, y_val=y_va, logger=trial.logger, callbacks=trial.callbacks
             )
+            # the estimator's ``best_val_mae_deg_``: its MAE in the target's own unit
             value = float(model.best_val_mae_deg_)
-            mlflow.log_metric("best_val_mae_deg", value)
+            mlflow.log_metric(f"best_{metric}", value)
             return value
 
         best_params, n_complete = search.run(
@@ -178,9 +219,10 @@ def train_surrogate(
         mlflow.log_params({f"final.{k}": v for k, v in best_params.items()})
         model = NeuralSurrogate(space, **final_kw, n_members=final_members, seed=seed)
         model.fit(X_tr, y_tr, X_val=X_va, y_val=y_va, progress=search.progress)
-        log_history(model.history_, ("train_loss", "val_loss", "val_mae_deg"), by_member=True)
+        history = [{**row, metric: row.get("val_mae_deg")} for row in model.history_]
+        log_history(history, ("train_loss", "val_loss", metric), by_member=True)
         val_mae = float(np.mean(np.abs(model.predict(X_va) - y_va)))
-        mlflow.log_metric("val_mae_deg", val_mae)
+        mlflow.log_metric(metric, val_mae)
 
         info = log_surrogate(model, space)
         registered = register_final(
@@ -196,6 +238,7 @@ def train_surrogate(
             best_params=best_params,
             val_mae_deg=val_mae,
             n_trials=n_complete,
+            target=target,
             run_id=parent.info.run_id,
             model_uri=info.model_uri,
             **registered._asdict(),
@@ -205,7 +248,7 @@ def train_surrogate(
 def write_summary(result: TrainResult, path: str | Path) -> None:
     """Write the training summary (DVC metrics file)."""
     summary = {
-        "val_mae_deg": result.val_mae_deg,
+        result.val_metric: result.val_mae_deg,
         "n_trials": result.n_trials,
         "seconds": round(result.seconds, 1),
         "mlflow_run_id": result.run_id,

@@ -21,6 +21,7 @@ from femcal.settings.keywords import (
     SPLITS,
     SURROGATE_FIXED,
 )
+from femcal.schema import TARGETS
 from femcal.settings.search import SearchSpace
 from femcal.settings.values import DATASET_NAME, MODEL_URI, MOMENTS, N_JOBS, NAME, PATH, SQL_URL
 
@@ -91,6 +92,12 @@ class TrainSplitSettings:
         Choice(SPLITS), "prepared table trained on (default: the section's name)"
     )
     model_name: str | None = optional(NAME, "registered name (default: mlflow.model_name)")
+    target: str = setting(
+        Choice(tuple(TARGETS)),
+        "output learnt: rom_deg, or idp_mpa (an FE campaign's IDP head; needs fixed "
+        "log_target: false)",
+        "rom_deg",
+    )
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ class TrainSettings(StageSettings):
     val_fraction: float
     register_as: str | None
     data_split: str | None = None
+    target: str = "rom_deg"
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> TrainSettings:
@@ -54,6 +55,7 @@ class TrainSettings(StageSettings):
             val_fraction=float(section(params, "train", "val_fraction")),
             register_as=model_name if settings.get("register") else None,
             data_split=settings.get("split", split),
+            target=str(settings.get("target", "rom_deg")),
             params=params,
         )
 
@@ -64,7 +66,8 @@ def run(settings: TrainSettings) -> dict[str, Any]:
     result = run_train(**settings.call_args())
     return {
         "split": settings.split,
-        "val_mae_deg": result.val_mae_deg,
+        "target": result.target,
+        result.val_metric: result.val_mae_deg,
         **registry_figures(result),
     }
 
@@ -77,9 +80,15 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         else ""
     )
     return [
-        f"trained on {figures['split']}: validation MAE {figures['val_mae_deg']:.4f} deg after "
+        f"trained on {figures['split']}: validation MAE {_validation_error(figures)} after "
         f"{figures['n_trials']} Optuna trials in {figures['seconds']:.0f} s{reg}"
     ]
+
+
+def _validation_error(figures: Mapping[str, Any]) -> str:
+    if "val_mae_mpa" in figures:
+        return f"{figures['val_mae_mpa']:.4f} MPa (IDP)"
+    return f"{figures['val_mae_deg']:.4f} deg"
 
 
 def run_train(
@@ -93,13 +102,15 @@ def run_train(
     val_fraction: float,
     register_as: str | None,
     data_split: str | None = None,
+    target: str = "rom_deg",
 ):
     """Train (search + final ensemble) on one split; export the model folder, write the summary.
 
     ``split`` names the run (Optuna study, MLflow run); ``data_split`` is the prepared table
     trained on (default: ``split``), so that e.g. a held-out surrogate trains on "large" too.
     ``study`` is the Optuna search; ``register_as`` the registered model name (None: not
-    registered).
+    registered); ``target`` the output learnt (``rom_deg``, or ``idp_mpa`` for the FE
+    campaign's IDP head).
 
     ``out_dir`` receives the logged MLflow model file for file (:func:`femcal.tracking.
     export_model`), with ``mlflow.json`` recording the run and the registered version: the
@@ -116,6 +127,7 @@ def run_train(
         val_fraction=val_fraction,
         register_as=register_as,
         run_name=f"train-{split}",
+        target=target,
         **study.keywords(),
     )
     export_folder(result, out_dir, register_as)
