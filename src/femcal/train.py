@@ -172,14 +172,13 @@ def train_surrogate(
             )
         data = data[np.isfinite(data[target].to_numpy(dtype=float))].reset_index(drop=True)
     metric = f"val_mae_{TARGETS[target]}"
-    if target == "idp_mpa" and (
-        search.fixed.get("log_target", True) or "log_target" in search.search_space
-    ):
+    searched = "log_target" in search.search_space
+    if target == "idp_mpa" and (search.fixed.get("log_target", True) or searched):
         raise ConfigError(
             "train: target 'idp_mpa' needs fixed log_target: false (a nucleus pressure under a "
             f"pure moment can be <= 0); got fixed log_target={search.fixed.get('log_target')!r}"
-            f"{' and log_target in the search space' if 'log_target' in search.search_space else ''}"
-            ". Set it in the train section's fixed keywords."
+            f"{' and log_target in the search space' if searched else ''}. Set it in the "
+            "train section's fixed keywords."
         )
     train_df, val_df = validation_split(data, fraction=val_fraction, seed=seed)
     feature_cols = ["config_id", "load_case", "moment_nm", *space.names]

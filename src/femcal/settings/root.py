@@ -10,6 +10,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+from femcal.schema import TARGETS
 from femcal.settings._checks import Bool, Choice, Float, FnCheck, Int, KeyChoice, ListOf
 from femcal.settings._messages import Context, Invalid, got
 from femcal.settings._validate import Keywords, MapOf, Section, optional, setting
@@ -21,7 +22,6 @@ from femcal.settings.keywords import (
     SPLITS,
     SURROGATE_FIXED,
 )
-from femcal.schema import TARGETS
 from femcal.settings.search import SearchSpace
 from femcal.settings.values import DATASET_NAME, MODEL_URI, MOMENTS, N_JOBS, NAME, PATH, SQL_URL
 
