@@ -78,7 +78,9 @@ def test_typed_sections_of_each_file():
     assert root.train.splits["large"].search_space["learning_rate"].log is True
     fe = load_settings(ROOT / "fe" / "params.yaml")
     assert fe.fe.settings["geometry"] == "coarse" and fe.fe.bounds["Kappa"] == (0.0, 0.33)
-    assert fe.validate.idp_literature[1000].mean == pytest.approx(1.0)
+    assert fe.validate.idp_literature == {}  # no placeholder band
+    standing = [p for p in fe.validate.idp_published if p.condition == "relaxed standing"]
+    assert standing[0].idp_mpa == pytest.approx(0.50) and standing[0].kind == "in vivo"
     assert fe.baselines is None
 
 
@@ -675,15 +677,25 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
             r"'Extension'\?",
         ),
         (
-            "    300: {low: 0.18, mean: 0.30, high: 0.42}",
-            "    300: {low: 0.48, mean: 0.30, high: 0.42}",
+            "  idp_literature: {}",
+            "  idp_literature:\n    300: {low: 0.48, mean: 0.30, high: 0.42}",
             r"validate\.idp_literature\.300\.mean: need low <= mean <= high; got 0\.48, 0\.3, "
             r"0\.42",
         ),
         (
-            "    300: {low: 0.18, mean: 0.30, high: 0.42}",
-            "    300: {low: 0.18, high: 0.42}",
+            "  idp_literature: {}",
+            "  idp_literature:\n    300: {low: 0.18, high: 0.42}",
             r"validate\.idp_literature\.300\.mean: missing setting",
+        ),
+        (
+            "condition: relaxed standing, idp_mpa: 0.50,",
+            "condition: relaxed standing, idp_mpa: -0.50,",
+            r"validate\.idp_published\[4\]\.idp_mpa: expected a number > 0",
+        ),
+        (
+            "condition: relaxed standing, idp_mpa: 0.50, kind: in vivo,",
+            "condition: relaxed standing, idp_mpa: 0.50, kind: invivo,",
+            r"validate\.idp_published\[4\]\.kind: expected one of",
         ),
         (
             "  holdout_uri: null",

@@ -26,6 +26,42 @@ LITERATURE = {
 }
 
 
+PUBLISHED = [
+    {
+        "source": "test",
+        "condition": "lying (test)",
+        "idp_mpa": 1e-3,
+        "kind": "in vivo",
+        "subjects": 1,
+        "level": "L4-L5",
+    },
+    {
+        "source": "test",
+        "condition": "out of reach (test)",
+        "idp_mpa": 500.0,
+        "kind": "in vivo",
+        "subjects": 1,
+        "level": "L4-L5",
+    },
+]
+
+
+def _idp_head(tmp_path):
+    """A tiny IDP head (a pressure surrogate, linear target) exported as a model folder."""
+    from femcal.surrogates.nn import NeuralSurrogate
+    from femcal.tracking import export_model, log_surrogate
+
+    from synth import tidy_table
+
+    table = tidy_table(24, seed=4)
+    head = NeuralSurrogate(
+        study_space(), hidden=(8,), max_epochs=3, batch_size=16, log_target=False, seed=0
+    ).fit(table, table["idp_mpa"].to_numpy())
+    with mlflow.start_run():
+        info = log_surrogate(head, head.space)
+    return export_model(info.model_uri, tmp_path / "idp-head")
+
+
 def test_literature_ranges_are_checked():
     ranges = literature_ranges(LITERATURE)
     assert [r.force_n for r in ranges] == [300.0, 1000.0, 2000.0]
@@ -76,6 +112,8 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
             "store": str(tmp_path / "val-runs.jsonl"),
             "forces": [300, 1000, 2000],
             "idp_literature": LITERATURE,
+            "idp_published": PUBLISHED,
+            "idp_model_uri": str(_idp_head(tmp_path)),
         },
     }
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(settings))
@@ -97,6 +135,23 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
     assert set(summary["fe_mae_deg_per_load_case"]) == set(LOAD_CASES)
     assert summary["solver_versions"] and summary["n_specimens"] == 1
     assert json.loads((tmp_path / "validate.json").read_text())["n_specimens"] == 1
+    # A published pressure below the disc's pressure at 300 N is reached by interpolation,
+    # one beyond its pressure at 2000 N is not (nothing is extrapolated).
+    low, high = summary["idp_published"]
+    assert low["n_reached"] == 1 and 0 < low["force_n_median"] < 300
+    assert high["n_reached"] == 0 and high["n_beyond"] == 1
+    published = pd.read_csv(tmp_path / "val" / "idp_published.csv", dtype={"specimen": str})
+    assert published["condition"].tolist() == ["lying (test)", "out of reach (test)"]
+    # The IDP head against FE's pressures under the four moments, where FE has them.
+    head = pd.read_csv(tmp_path / "val" / "idp_head.csv", dtype={"specimen": str})
+    assert set(head["load_case"]) == set(LOAD_CASES) and head["head_idp_mpa"].notna().all()
+    assert summary["idp_head"]["n_points"] == len(head)
+    assert summary["idp_head"]["mae_mpa"] == pytest.approx(
+        float(np.mean(np.abs(head["head_idp_mpa"] - head["fe_idp_mpa"])))
+    )
+    assert runs["metrics.idp_head_mae_mpa"].iloc[0] == pytest.approx(
+        summary["idp_head"]["mae_mpa"]
+    )
     # Five FE jobs: four moment load cases and one compression; a rerun recomputes nothing.
     assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 5
     assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0

@@ -6,9 +6,11 @@ calibrated parameters of every specimen go back into the FE model:
 * the four pure-moment load cases at the measured moments give the honest, FE-evaluated
   calibration error against the measurement (per specimen and per load case), reported
   beside the surrogate-evaluated error of the calibration and the FE-vs-surrogate gap;
-* axial compression at the validation forces (300, 1000, 2000 N) gives the intradiscal
-  pressure, compared with the literature range at each force (a quantity the calibration
-  never saw).
+* axial compression at the validation forces (100, 300, 1000, 2000 N) gives the intradiscal
+  pressure (a quantity the calibration never saw), compared with published in vitro ranges
+  at a force and with published in vivo values through the force at which each disc reaches
+  them (:mod:`femcal.fe.idp`); the IDP head, when given, is compared with FE's pressures
+  under the moments.
 
 With a surrogate and ``max_fe_runs > 1``, the calibration is first refined with FE in the
 loop (:func:`femcal.fe.refine.refine_with_fe`) until FE confirms each fit or the budget of FE
@@ -33,6 +35,13 @@ import pandas as pd
 from femcal.errors import ConfigError, InputDataError
 from femcal.fe.base import COMPRESSION
 from femcal.fe.campaign import CampaignResult
+from femcal.fe.idp import (
+    IDP_HEAD_CSV,
+    IDP_PUBLISHED_CSV,
+    PublishedIdp,
+    idp_head_error,
+    published_table,
+)
 from femcal.fe.runtime import FeRuntime
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES, STATUS_OK
 
@@ -168,6 +177,8 @@ def validate_calibration(
     surrogate: Any = None,
     max_fe_runs: int = 1,
     tol_deg: float = 0.05,
+    published: Sequence[PublishedIdp] = (),
+    idp_head: Any = None,
 ) -> ValidationResult:
     """Re-simulate a calibration's parameters with the FE model; write the validation tables.
 
@@ -198,6 +209,13 @@ def validate_calibration(
         FE runs per specimen at most in the refinement, the first included (1: none).
     tol_deg : float
         FE-evaluated MAE at which refinement stops for a specimen.
+    published : sequence of PublishedIdp
+        Published pressures without a known force (in vivo postures): the force at which each
+        disc reaches them goes to ``idp_published.csv`` (:mod:`femcal.fe.idp`).
+    idp_head : surrogate, optional
+        The IDP head (a surrogate of the pressure, ``train.<split>.target: idp_mpa``): its
+        pressures at the validated parameters against FE's under the moments go to
+        ``idp_head.csv`` and the summary's ``idp_head``.
 
     Returns
     -------
@@ -257,6 +275,7 @@ def validate_calibration(
         forces=forces,
     )
     fe = np.full((n, len(LOAD_CASES), m), np.nan)
+    fe_idp = np.full((n, len(LOAD_CASES), m), np.nan)  # the pressure under the moments
     idp = np.full((n, len(forces)), np.nan)
     failed: list[list[str]] = [[] for _ in range(n)]
     for rec in campaign.records.itertuples(index=False):
@@ -268,6 +287,9 @@ def validate_calibration(
             idp[i] = [np.nan if v is None else float(v) for v in rec.idp_mpa]
         else:
             fe[i, LOAD_CASES.index(rec.load_case)] = values
+            fe_idp[i, LOAD_CASES.index(rec.load_case)] = [
+                np.nan if v is None else float(v) for v in rec.idp_mpa
+            ]
 
     common = np.isfinite(measured) & np.isfinite(fe)
     meas_c = np.where(common, measured, np.nan)
@@ -319,6 +341,12 @@ def validate_calibration(
                 }
             )
     idp_df = pd.DataFrame(idp_rows)
+    published_df, published_summary = published_table(specimens, forces, idp, published)
+    head_df, head_summary = None, None
+    if idp_head is not None:
+        head_df, head_summary = idp_head_error(
+            idp_head, specimens, params[list(PARAMETER_NAMES)].to_numpy(float), meas.moments, fe_idp
+        )
 
     def mean(col: str) -> float:
         v = table[col].to_numpy(dtype=float)
@@ -368,6 +396,8 @@ def validate_calibration(
             }
             for j, f in enumerate(forces)
         ],
+        "idp_published": published_summary,
+        "idp_head": head_summary,
         "n_fe_failed_jobs": int((campaign.records["status"] != STATUS_OK).sum()),
         "fe_failures": campaign.failures().to_dict(orient="records"),
         "fe_cpu_seconds_total": float(campaign.records["cpu_seconds"].sum()),
@@ -381,6 +411,10 @@ def validate_calibration(
     table.to_csv(out_dir / VALIDATION_CSV, index=False)
     curves.to_csv(out_dir / CURVES_CSV, index=False)
     idp_df.to_csv(out_dir / IDP_CSV, index=False)
+    if published:
+        published_df.to_csv(out_dir / IDP_PUBLISHED_CSV, index=False)
+    if head_df is not None:
+        head_df.to_csv(out_dir / IDP_HEAD_CSV, index=False)
     if refined is not None:
         refined.table().to_csv(out_dir / REFINE_CSV, index=False)
         refined.history.to_csv(out_dir / REFINE_HISTORY_CSV, index=False)

@@ -16,7 +16,7 @@ from femcal.settings._checks import Choice, Float, FnCheck, Int, KeyChoice, List
 from femcal.settings._messages import BAD, Context, Invalid, got, unknown_message, yaml_repr
 from femcal.settings._validate import MapOf, Section, optional, setting
 from femcal.settings.keywords import CALIBRATOR_OPTIONS, SOLVERS, SPLITS, SURROGATE_FIXED
-from femcal.settings.values import DASK_ADDRESS, MODEL_URI, MOMENTS, PATH
+from femcal.settings.values import DASK_ADDRESS, MODEL_URI, MOMENTS, NAME, PATH
 
 
 def _bounds(value: Any, path: tuple, ctx: Context) -> Any:
@@ -125,6 +125,20 @@ class IdpRange:
 
 
 @dataclass(frozen=True)
+class PublishedIdp:
+    """An intradiscal pressure published for one posture or activity (no force known), MPa."""
+
+    _complete: ClassVar[bool] = True
+
+    source: str = setting(NAME, "citation: authors, year, journal, volume:pages")
+    condition: str = setting(NAME, "posture or activity, as the source names it")
+    idp_mpa: float = setting(Float(0, lo_open=True), "the published value, MPa")
+    kind: str = setting(Choice(("in vivo", "in vitro")), "in vivo or in vitro")
+    subjects: int = setting(Int(1), "subjects or specimens measured")
+    level: str = setting(NAME, "disc level, e.g. L4-L5")
+
+
+@dataclass(frozen=True)
 class AdaptSettings:
     """``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion."""
 
@@ -180,8 +194,19 @@ class ValidateSettings:
     )
     idp_literature: dict = setting(
         MapOf(Section(IdpRange), Float(0, lo_open=True), what="force in N -> {low, mean, high}"),
-        "literature IDP range per force: force in N -> {low, mean, high} in MPa",
+        "published in vitro IDP range per force: force in N -> {low, mean, high} in MPa",
         {},
+    )
+    idp_published: tuple = setting(
+        ListOf(Section(PublishedIdp)),
+        "published IDP values without a known force (in vivo postures): the axial force at "
+        "which each calibrated disc reaches them is reported",
+        [],
+    )
+    idp_model_uri: str | None = optional(
+        MODEL_URI,
+        "the IDP head (train@idp), compared with FE's pressures under the moments (null: not "
+        "compared)",
     )
     refine: RefineSettings | None = optional(
         Section(RefineSettings), "FE-in-the-loop refinement (null: validate the calibration as is)"

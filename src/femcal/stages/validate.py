@@ -34,6 +34,8 @@ METRICS_KEYS = (
     "fe_vs_surrogate_mae_deg",
     "fe_mae_deg_per_load_case",
     "idp",
+    "idp_published",
+    "idp_head",
     "n_fe_failed_jobs",
 )
 
@@ -55,6 +57,8 @@ class ValidateSettings(StageSettings):
     model_uri: str | None = None
     max_fe_runs: int = 1
     tol_deg: float = 0.05
+    published: Sequence[Mapping[str, Any]] = ()
+    idp_model_uri: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> ValidateSettings:
@@ -80,6 +84,8 @@ class ValidateSettings(StageSettings):
             model_uri=refine.get("model_uri"),
             max_fe_runs=int(refine.get("max_fe_runs", 1)),
             tol_deg=float(refine.get("tol_deg", 0.05)),
+            published=list(cfg.get("idp_published") or []),
+            idp_model_uri=cfg.get("idp_model_uri"),
             params=params,
         )
 
@@ -130,6 +136,28 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             f"  IDP at {row['force_n']:g} N: {row['idp_mpa_min']:.3f}-{row['idp_mpa_max']:.3f} "
             f"MPa{verdict}"
         )
+    for row in s.get("idp_published") or []:
+        where = (
+            f"at {row['force_n_min']:.0f}-{row['force_n_max']:.0f} N (median "
+            f"{row['force_n_median']:.0f} N)"
+            if row["n_reached"]
+            else "by none"
+        )
+        beyond = (
+            f"; {row['n_beyond']} stay below it up to {row['max_force_n']:g} N"
+            if row["n_beyond"]
+            else ""
+        )
+        lines.append(
+            f"  {row['idp_mpa']:g} MPa, {row['condition']} ({row['kind']}, {row['source']}): "
+            f"reached {where}{beyond}"
+        )
+    if s.get("idp_head"):
+        h = s["idp_head"]
+        lines.append(
+            f"IDP head vs FE under the moments: MAE {h['mae_mpa']:.4f} MPa over {h['n_points']} "
+            f"points (FE pressures {h['fe_idp_mpa_min']:.3f}..{h['fe_idp_mpa_max']:.3f} MPa)"
+        )
     extra = f", {out}/refine.csv" if s.get("refine") else ""
     lines.append(f"outputs: {out}/validation.csv, {out}/validation.json, {out}/idp.csv{extra}")
     return lines
@@ -145,6 +173,8 @@ def run_validate(
     model_uri: str | None = None,
     max_fe_runs: int = 1,
     tol_deg: float = 0.05,
+    published: Sequence[Mapping[str, Any]] = (),
+    idp_model_uri: str | None = None,
     **fe: Unpack[FeKeywords],
 ):
     """FE re-simulation of a calibration (the study's step 4); tables in ``out_dir``; MLflow.
@@ -153,7 +183,9 @@ def run_validate(
     ``scheduler_address``, ``n_workers``, ``progress``; :meth:`FeRuntime.keywords`), passed
     on to :func:`femcal.fe.validate.validate_calibration`. With ``max_fe_runs > 1`` the
     calibration is first refined with FE in the loop, steered by the surrogate at
-    ``model_uri`` (a model folder or a models:/ URI).
+    ``model_uri`` (a model folder or a models:/ URI). ``published`` are the published
+    pressures without a known force (``validate.idp_published``); ``idp_model_uri`` the IDP
+    head compared with FE under the moments (None: not compared).
 
     Returns
     -------
@@ -166,9 +198,16 @@ def run_validate(
     check_destination(out_dir)  # before the FE campaign
     import mlflow
 
+    from femcal.fe.idp import published_values
     from femcal.fe.validate import literature_ranges, validate_calibration
 
     ranges = literature_ranges(literature)
+    values = published_values(published)
+    idp_head = None
+    if idp_model_uri:
+        from femcal.tracking import load_surrogate, open_model
+
+        idp_head = load_surrogate(open_model(idp_model_uri))
     surrogate = None
     if max_fe_runs > 1:
         if not model_uri:
@@ -192,6 +231,8 @@ def run_validate(
             surrogate=surrogate,
             max_fe_runs=max_fe_runs,
             tol_deg=tol_deg,
+            published=values,
+            idp_head=idp_head,
             **fe,
         )
         s = result.summary
@@ -225,6 +266,11 @@ def run_validate(
                 metrics[f"idp_mpa_mean_{row['force_n']:g}N"] = row["idp_mpa_mean"]
                 if row["n_in_range"] is not None:
                     metrics[f"idp_n_in_range_{row['force_n']:g}N"] = row["n_in_range"]
+            for row in s["idp_published"]:
+                key = "".join(c if c.isalnum() else "_" for c in row["condition"])
+                metrics[f"idp_implied_force_n_median_{key}"] = row["force_n_median"]
+            if s["idp_head"]:
+                metrics["idp_head_mae_mpa"] = s["idp_head"]["mae_mpa"]
             mlflow.log_metrics({k: float(v) for k, v in metrics.items() if np.isfinite(float(v))})
             mlflow.log_table(result.table, artifact_file="tables/validation.json")
             stage.finalize()
