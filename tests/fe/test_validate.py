@@ -149,9 +149,7 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
     assert summary["idp_head"]["mae_mpa"] == pytest.approx(
         float(np.mean(np.abs(head["head_idp_mpa"] - head["fe_idp_mpa"])))
     )
-    assert runs["metrics.idp_head_mae_mpa"].iloc[0] == pytest.approx(
-        summary["idp_head"]["mae_mpa"]
-    )
+    assert runs["metrics.idp_head_mae_mpa"].iloc[0] == pytest.approx(summary["idp_head"]["mae_mpa"])
     # Five FE jobs: four moment load cases and one compression; a rerun recomputes nothing.
     assert len((tmp_path / "val-runs.jsonl").read_text().splitlines()) == 5
     assert main(["--params", str(tmp_path / "params.yaml"), "validate"]) == 0
