@@ -51,6 +51,13 @@ def test_dataset_reads_with_prepare_and_keeps_every_value(coarse_campaign, tmp_p
     assert saved["failure_rate"] == pytest.approx(saved["n_failed"] / 12)
     assert len(saved["failures"]) == saved["n_failed"]
     assert saved["cpu_seconds_per_configuration"]["mean"] > 0
+    assert saved["moments"] == [float(m) for m in MOMENTS]
+    # The campaign's wall time: one run of 12 jobs, from its first start to its last end.
+    (run,) = saved["campaign_runs"]
+    assert run["jobs"] == 12 and run["workers"] >= 1
+    starts, ends = runs["started_at"], runs["finished_at"]
+    assert run["wall_seconds"] == pytest.approx(ends.max() - starts.min())
+    assert saved["campaign_wall_seconds"] == pytest.approx(run["wall_seconds"])
     # A job missing from the store is an error naming it (unless asked to write it empty).
     with pytest.raises(InputDataError, match=r"load case Flexion: no result in the campaign"):
         write_dataset(

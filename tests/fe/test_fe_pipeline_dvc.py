@@ -36,7 +36,8 @@ def _run(args, cwd, env):
 @requires_ccx
 def test_fe_pipeline_runs_and_resumes(tmp_path):
     root = tmp_path / "repo"
-    copy_working_tree(root)
+    # from scratch: without the committed store of the shipped campaign (hours of CalculiX)
+    copy_working_tree(root, skip=lambda rel: rel == "fe/data/campaign/runs.jsonl")
     params_path = root / "fe" / "params.yaml"
     params = yaml.safe_load(params_path.read_text())
     params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
@@ -50,6 +51,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     params["fe"]["settings"]["timeout_s"] = 300
     params["train"]["large"].update({"final_members": 2})  # adapt needs an ensemble
     params["train"]["large"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
+    params["train"]["idp"].update({"final_members": 1})
+    params["train"]["idp"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
     params["calibrate"]["max_plots"] = 1
     params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
     params_path.write_text(yaml.safe_dump(params, sort_keys=False))
@@ -62,7 +65,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     _run([*git, "commit", "-qm", "copy"], root, env)
 
     first = _run([BIN / "dvc", "repro", "fe/dvc.yaml"], root, env)
-    for stage in ("simulate", "prepare", "train@large", "adapt", "calibrate@fe-test", "validate"):
+    stages = ("simulate", "prepare", "train@large", "train@idp", "adapt", "calibrate@fe-test")
+    for stage in (*stages, "validate"):
         assert f"Running stage 'fe/dvc.yaml:{stage}'" in first.stdout
     assert "Running stage 'fetch'" not in first.stdout  # the root pipeline is not run
     fe = root / "fe"
@@ -83,6 +87,13 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     assert summary["n_fe_failed_jobs"] >= int((~reached).sum())
     metrics = json.loads((fe / "reports/validate.json").read_text())
     assert metrics["n_specimens"] == 2
+    # The IDP head against FE under the moments; the published in vivo values of params.yaml
+    # against the discs' pressure-force curves.
+    assert json.loads((fe / "reports/train-idp.json").read_text())["val_mae_mpa"] >= 0
+    assert metrics["idp_head"]["n_points"] > 0
+    published = pd.read_csv(fe / "reports/validation/idp_published.csv")
+    assert "relaxed standing" in set(published["condition"])
+    assert {row["condition"] for row in metrics["idp_published"]} == set(published["condition"])
     adapt = json.loads((fe / "reports/adapt.json").read_text())
     assert adapt["n_rounds"] == 1 and adapt["n_new_configurations"] == 3  # 2 targets + 1
     assert (fe / "models/surrogate-champion/MLmodel").is_file()

@@ -201,6 +201,9 @@ def write_dataset(
                             "wall_seconds": rec.get("wall_seconds"),
                             "worker": rec.get("worker", ""),
                             "host": rec.get("host", ""),
+                            "campaign_run": rec.get("campaign_run", ""),
+                            "started_at": rec.get("started_at"),
+                            "finished_at": rec.get("finished_at"),
                         }
                     )
                 header = ["0.0"] + [_num(v) for v in moments]
@@ -231,6 +234,33 @@ def write_dataset(
     return summary
 
 
+def _campaign_wall(stored: pd.DataFrame) -> dict[str, Any]:
+    """Wall seconds per run of the campaign (its records' first start to last end)."""
+    cols = ("campaign_run", "started_at", "finished_at")
+    if any(c not in stored.columns for c in cols):
+        return {"campaign_wall_seconds": float("nan"), "campaign_runs": []}
+    df = stored.assign(
+        started_at=pd.to_numeric(stored["started_at"], errors="coerce"),
+        finished_at=pd.to_numeric(stored["finished_at"], errors="coerce"),
+    ).dropna(subset=["started_at", "finished_at"])
+    runs = [
+        {
+            "campaign_run": str(run),
+            "jobs": int(len(g)),
+            "workers": int(g["worker"].nunique()) if "worker" in g else 0,
+            "wall_seconds": float(g["finished_at"].max() - g["started_at"].min()),
+        }
+        for run, g in df.groupby(df["campaign_run"].astype(str), sort=False)
+    ]
+    runs.sort(key=lambda r: -r["jobs"])
+    return {
+        "campaign_wall_seconds": float(sum(r["wall_seconds"] for r in runs))
+        if runs
+        else float("nan"),
+        "campaign_runs": runs,
+    }
+
+
 def summarize_runs(
     runs: pd.DataFrame, *, moments: Sequence[float], extra: Mapping[str, Any] | None = None
 ) -> dict[str, Any]:
@@ -242,7 +272,11 @@ def summarize_runs(
         ``n_configurations`` (total and per split), ``n_jobs``, ``n_ok``, ``n_failed``,
         ``n_missing``, ``failure_rate`` (failed / stored jobs), ``failures`` (config, split,
         row, load case, reason), ``failure_reasons`` (reason -> count), CPU seconds per
-        configuration (mean, median, min, max, total), solver versions, moments, ``extra``.
+        configuration (mean, median, min, max, total), solver versions, ``moments`` (the
+        levels simulated, Nm), ``campaign_wall_seconds`` (what the campaign took: over the
+        runs of ``femcal simulate`` that produced the records, a resumed campaign's pauses
+        left out, each run from its first job's start to its last job's end),
+        ``campaign_runs`` (their number and workers each), ``extra``.
     """
     status = runs["status"].astype(str)
     stored = runs[status != "missing"]
@@ -281,7 +315,8 @@ def summarize_runs(
         "solver_versions": sorted(
             {str(v) for v in stored.get("solver_version", pd.Series(dtype=str)).dropna()}
         ),
-        "moments_nm": [float(v) for v in moments],
+        "moments": [float(v) for v in moments],
+        **_campaign_wall(stored),
     }
     if extra:
         out.update({str(k): v for k, v in extra.items()})

@@ -259,6 +259,7 @@ def records_frame(records: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
         "wall_seconds",
         "worker",
         "host",
+        "started_at",
         "finished_at",
         "job_hash",
         "settings_hash",

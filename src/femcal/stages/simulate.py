@@ -27,6 +27,9 @@ METRICS_KEYS = (
     "cpu_seconds_per_configuration",
     "cpu_seconds_total",
     "failure_reasons",
+    "moments",
+    "campaign_wall_seconds",
+    "campaign_runs",
 )
 
 
