@@ -227,6 +227,32 @@ def test_polynomial_degree_follows_the_training_moments():
     assert model.net_.architecture()["moment_degree"] == 3
 
 
+def test_moment_degree_is_a_setting_capped_by_the_moments(tmp_path):
+    """A wide moment range (an FE campaign's 0.5..10 Nm) asks for more than a cubic; the
+    degree survives save/load, and is capped by the distinct training moments."""
+    from synth import study_space, tidy_table
+
+    wide = tidy_table(12, seed=0, moments=tuple(np.arange(1, 21) / 2))
+    model = NeuralSurrogate(
+        study_space(), hidden=(8,), max_epochs=2, patience=2, seed=0, moment_degree=5
+    ).fit(wide, wide["rom_deg"].to_numpy())
+    assert model.net_.architecture()["moment_degree"] == 5
+    model.save(tmp_path / "m")
+    loaded = NeuralSurrogate.load(tmp_path / "m")
+    assert loaded.moment_degree == 5 and loaded.net_.architecture()["moment_degree"] == 5
+    np.testing.assert_allclose(loaded.predict(wide), model.predict(wide), rtol=1e-6)
+    few = tidy_table(12, seed=0, moments=(1, 3, 5))
+    model.fit(few, few["rom_deg"].to_numpy())
+    assert model.net_.architecture()["moment_degree"] == 2
+    # Fine-tuning must not silently keep another degree than the one asked for.
+    tuned = copy.deepcopy(model).set_params(warm_start=True, max_epochs=1)
+    with pytest.raises(ConfigError, match=r"but moment_degree changed \(fitted: moment_degree=2"):
+        tuned.fit(wide, wide["rom_deg"].to_numpy())
+    for bad in (-1, 9, 2.5, True, "5"):
+        with pytest.raises(ConfigError, match=r"moment_degree must be an integer in 0..8"):
+            NeuralSurrogate(study_space(), moment_degree=bad).fit(few, few["rom_deg"].to_numpy())
+
+
 def test_warm_start_fine_tunes_the_fitted_members(
     fitted: NeuralSurrogate, data: tuple[pd.DataFrame, np.ndarray]
 ) -> None:

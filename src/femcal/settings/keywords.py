@@ -77,6 +77,10 @@ SURROGATE_HYPERPARAMETERS: dict[str, tuple[Check, str]] = {
     ),
     "log_params": (Bool(), "parameters with positive bounds enter in log scale"),
     "lr_schedule": (Choice(("onecycle", "cosine", "constant")), "learning-rate schedule"),
+    "moment_degree": (
+        Nullable(Int(0, 8)),
+        "degree of each curve's polynomial in log-moment (null: 3)",
+    ),
 }
 _SURROGATE_REFUSED = {
     "n_members": "the ensemble size is train.<split>.final_members (trials train one member)",
