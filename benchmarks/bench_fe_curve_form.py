@@ -15,7 +15,7 @@ Writes ``reports/bench_fe_curve_form.md`` and ``reports/bench_fe_curve_form.json
 
 Usage (from the project root)::
 
-    .venv/bin/python benchmarks/bench_fe_curve_form.py [--campaign fe/data/campaign/runs.jsonl]
+    .venv/bin/python benchmarks/bench_fe_curve_form.py [--campaign fe/data/campaign/runs.jsonl.gz]
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from femcal.fe.store import CampaignStore
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,11 +91,10 @@ def summarise(records: list[dict], key: str, degrees: range, *, log_values: bool
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl")
+    ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl.gz")
     ap.add_argument("--out", default="reports/bench_fe_curve_form")
     args = ap.parse_args()
-    lines = (ROOT / args.campaign).read_text().splitlines()
-    records = [json.loads(line) for line in lines if line.strip()]
+    records = list(CampaignStore(ROOT / args.campaign).finished().values())
     degrees = range(2, 8)
     result = {
         "campaign": args.campaign,

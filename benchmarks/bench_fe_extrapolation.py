@@ -41,7 +41,7 @@ SD = math.sqrt(math.pi / 2)  # Gaussian errors: sd = MAE * sqrt(pi / 2)
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl")
+    ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl.gz")
     ap.add_argument("--n-heldout", type=int, default=16)
     ap.add_argument("--members", type=int, default=2)
     ap.add_argument("--max-epochs", type=int, default=600)

@@ -1,7 +1,7 @@
 """Benchmark: FE-in-the-loop refinement of calibrations, confirmed by CalculiX.
 
 Takes the finished configurations of an FE campaign store (default: the 0.5..10 Nm campaign,
-``fe/data/campaign/runs.jsonl``, complete or not), holds ``--n-heldout`` of them out as
+``fe/data/campaign/runs.jsonl.gz``, complete or not), holds ``--n-heldout`` of them out as
 specimens (their FE curves are the measurements, no noise), trains a surrogate on the others
 (the FE pipeline's recipe, ``--members`` members), calibrates the held-out curves through it
 (pgd) and refines each calibration with CalculiX in the loop
@@ -77,7 +77,7 @@ def recipe_surrogate(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl")
+    ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl.gz")
     ap.add_argument("--store", default="fe/data/refine-bench/runs.jsonl")
     ap.add_argument("--n-heldout", type=int, default=16)
     ap.add_argument("--members", type=int, default=3)

@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_effects_module(p)
     p = command("simulate", help="FE campaign on Dask -> dataset in the study's layout")
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
-    p.add_argument("--store", help="campaign store, JSON lines (default: fe.store)")
+    p.add_argument("--store", help="campaign store, .jsonl or .jsonl.gz (default: fe.store)")
     p.add_argument(
         "--retry-timeouts",
         action="store_true",

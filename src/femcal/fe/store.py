@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import gzip
 import hashlib
 import json
 import logging
@@ -123,32 +124,62 @@ def _nan_to_none(values: Sequence[float]) -> list[float | None]:
 
 
 class CampaignStore:
-    """An append-only JSON-lines file of finished jobs (one record per line).
+    """An append-only JSON-lines store of finished jobs (one record per line).
 
     Parameters
     ----------
     path : Path
-        The ``.jsonl`` file; created with its folder when first written.
+        A ``.jsonl`` file, created with its folder when first written. Or a ``.jsonl.gz``
+        file, the form to commit (about 4x smaller): finished jobs are then appended to a
+        plain journal beside it (the same name without ``.gz``), which is folded into the
+        compressed file every ``fold_every`` records and when the writer closes. A journal
+        left by a killed writer is read with the compressed file and folded by the next one.
+    fold_every : int
+        Records appended between two folds of the journal (``.gz`` stores only).
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, fold_every: int = 50) -> None:
         self.path = Path(path)
+        self.compressed = self.path.suffix == ".gz"
+        #: The plain file that is appended to (the store itself unless it is compressed).
+        self.journal = self.path.with_suffix("") if self.compressed else self.path
+        self.fold_every = int(fold_every)
         self._fh: Any = None
+        self._since_fold = 0
 
     # reading ---------------------------------------------------------------
+    def _sealed_bytes(self) -> bytes:
+        """The decompressed content of a ``.gz`` store (empty if there is none)."""
+        if not (self.compressed and self.path.is_file()):
+            return b""
+        try:
+            with gzip.open(self.path, "rb") as fh:
+                return fh.read()
+        except (OSError, EOFError) as exc:
+            raise InputDataError(
+                f"{self.path}: not a readable gzip file ({exc}). Restore it from git "
+                "(git checkout -- <file>) or delete it to run its jobs again."
+            ) from None
+
     def read(self) -> list[dict]:
         """All records, in file order; a torn last line (killed writer) is skipped.
 
         Raises
         ------
         InputDataError
-            A line other than the last is not a JSON record (the file was edited or
-            corrupted): the message names the file and line.
+            A line other than the journal's last is not a JSON record (the file was edited
+            or corrupted), or a ``.gz`` store is not gzip: the message names the file and
+            line.
         """
-        if not self.path.is_file():
-            return []
-        raw = self.path.read_bytes()
-        lines = raw.split(b"\n")
+        sealed = self._sealed_bytes()
+        records = self._parse(self.path, sealed.split(b"\n"), torn_ok=False)
+        if self.journal.is_file():
+            known = set(sealed.split(b"\n"))
+            lines = [ln for ln in self.journal.read_bytes().split(b"\n") if ln not in known]
+            records += self._parse(self.journal, lines, torn_ok=True)
+        return records
+
+    def _parse(self, path: Path, lines: list[bytes], *, torn_ok: bool) -> list[dict]:
         records: list[dict] = []
         for i, line in enumerate(lines):
             if not line.strip():
@@ -159,16 +190,16 @@ class CampaignStore:
                     raise ValueError("not a job record")
             except ValueError:
                 last = i == len(lines) - 1 or all(not x.strip() for x in lines[i + 1 :])
-                if last:
+                if last and torn_ok:
                     logger.warning(
                         "%s: ignoring a torn last line (%d bytes; a writer was killed while "
                         "appending); that job will run again.",
-                        self.path,
+                        path,
                         len(line),
                     )
                     continue
                 raise InputDataError(
-                    f"{self.path}, line {i + 1}: not a job record of a campaign store. The "
+                    f"{path}, line {i + 1}: not a job record of a campaign store. The "
                     "file was edited or corrupted; delete that line (the job will run again) "
                     "or restore the file."
                 ) from None
@@ -188,13 +219,16 @@ class CampaignStore:
     def writer(self) -> Iterator[CampaignStore]:
         """Open for appending: an exclusive lock, and a torn last line cut off first.
 
+        A ``.gz`` store folds its journal on opening (a killed writer's records) and on
+        closing.
+
         Raises
         ------
         ConfigError
             Another process holds the store open for writing.
         """
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fh = open(self.path, "a+b")  # noqa: SIM115 - closed below
+        self.journal.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(self.journal, "a+b")  # noqa: SIM115 - closed below
         try:
             try:
                 fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -205,7 +239,11 @@ class CampaignStore:
                 ) from None
             self._repair(fh)
             self._fh = fh
+            self.fold()
             yield self
+            self.fold()
+            if self.compressed and os.fstat(fh.fileno()).st_size == 0:
+                self.journal.unlink(missing_ok=True)
         finally:
             self._fh = None
             fh.close()  # releases the lock
@@ -223,7 +261,7 @@ class CampaignStore:
         keep = data.rfind(b"\n") + 1
         logger.warning(
             "%s: cutting off a torn last line (%d bytes) left by a killed writer.",
-            self.path,
+            self.journal,
             size - keep,
         )
         fh.truncate(keep)
@@ -238,6 +276,43 @@ class CampaignStore:
         self._fh.write(line.encode() + b"\n")
         self._fh.flush()
         os.fsync(self._fh.fileno())
+        self._since_fold += 1
+        if self._since_fold >= self.fold_every:
+            self.fold()
+
+    def fold(self) -> None:
+        """Move the journal's records into the ``.gz`` store (atomically; no-op if plain).
+
+        The compressed file is rewritten to a temporary file, synced and renamed over the old
+        one; only then is the journal emptied, so a kill at any point loses nothing (records
+        in both files are read once). The gzip header carries no time stamp, so the same
+        records give the same bytes.
+        """
+        if self._fh is None:
+            raise RuntimeError("CampaignStore.fold outside `with store.writer():`")
+        self._since_fold = 0
+        if not self.compressed:
+            return
+        self._fh.seek(0)
+        journal = self._fh.read()
+        if not journal.strip():
+            return
+        sealed = self._sealed_bytes()
+        known = set(sealed.split(b"\n"))
+        new = [ln for ln in journal.split(b"\n") if ln.strip() and ln not in known]
+        if sealed and not sealed.endswith(b"\n"):
+            sealed += b"\n"
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "wb") as raw:
+            with gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as gz:
+                gz.write(sealed + b"".join(ln + b"\n" for ln in new))
+            raw.flush()
+            os.fsync(raw.fileno())
+        os.replace(tmp, self.path)
+        self._fh.truncate(0)
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        logger.info("%s: folded %d journal records into the store.", self.path, len(new))
 
 
 def records_frame(records: Sequence[Mapping[str, Any]]) -> pd.DataFrame:

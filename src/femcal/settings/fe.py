@@ -79,7 +79,9 @@ class FeSettings:
     )
     moments: tuple[float, ...] = setting(MOMENTS, "moments simulated, Nm")
     out_dir: str = setting(PATH, "dataset folder in the study's layout")
-    store: str = setting(PATH, "durable store of finished jobs (JSON lines)")
+    store: str = setting(
+        PATH, "durable store of finished jobs (JSON lines; .jsonl.gz to commit it)"
+    )
     settings: dict = setting(
         FnCheck("a mapping of the adapter's keyword arguments", _solver_settings),
         "the adapter's keyword arguments (part of every job's hash)",
