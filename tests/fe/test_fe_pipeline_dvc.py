@@ -21,6 +21,8 @@ from fe_helpers import requires_ccx
 from femcal.prepare import read_split
 
 BIN = Path(sys.executable).parent
+#: The committed campaign stores (hours of CalculiX): the test runs its own from scratch.
+STORES = ("fe/data/campaign/", "fe/data/adapt-campaign/", "fe/data/validation-campaign/")
 
 
 def _run(args, cwd, env):
@@ -37,7 +39,7 @@ def _run(args, cwd, env):
 def test_fe_pipeline_runs_and_resumes(tmp_path):
     root = tmp_path / "repo"
     # from scratch: without the committed store of the shipped campaign (hours of CalculiX)
-    copy_working_tree(root, skip=lambda rel: rel.startswith("fe/data/campaign/"))
+    copy_working_tree(root, skip=lambda rel: rel.startswith(STORES))
     params_path = root / "fe" / "params.yaml"
     params = yaml.safe_load(params_path.read_text())
     params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
