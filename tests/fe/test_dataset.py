@@ -100,6 +100,10 @@ def test_failed_job_is_data_with_its_reason_and_survives_into_the_dataset(tmp_pa
     )
     assert summary["failure_rate"] == 1.0 and summary["n_failed"] == 4
     assert all("increments" in f["reason"] for f in summary["failures"])
+    # Counted by cause: one key per solver message, whatever level each job stopped at.
+    assert sum(summary["failure_reasons"].values()) == 4
+    assert all("increments" in k and "(exit code" not in k for k in summary["failure_reasons"])
+    assert summary["failed_levels_reached"]["n_of"] == 5
     reached = {f["load_case"]: f["levels_reached"] for f in summary["failures"]}
     assert all(0 <= k <= 2 for k in reached.values()) and max(reached.values()) > 0
     layout = SPLITS["large"]

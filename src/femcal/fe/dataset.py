@@ -271,7 +271,9 @@ def summarize_runs(
     dict
         ``n_configurations`` (total and per split), ``n_jobs``, ``n_ok``, ``n_failed``,
         ``n_missing``, ``failure_rate`` (failed / stored jobs), ``failures`` (config, split,
-        row, load case, reason), ``failure_reasons`` (reason -> count), CPU seconds per
+        row, load case, levels reached, reason), ``failure_reasons`` (cause -> count, the
+        solver's message without exit code, levels and attempt), ``failed_levels_reached``
+        (median and min over failed jobs, of ``n_of`` levels), CPU seconds per
         configuration (mean, median, min, max, total), solver versions, ``moments`` (the
         levels simulated, Nm), ``campaign_wall_seconds`` (what the campaign took: over the
         runs of ``femcal simulate`` that produced the records, a resumed campaign's pauses
@@ -282,7 +284,11 @@ def summarize_runs(
     stored = runs[status != "missing"]
     failed = runs[status == STATUS_FAILED]
     cpu = pd.to_numeric(stored["cpu_seconds"], errors="coerce").groupby(stored["config_id"]).sum()
-    reasons = failed["reason"].fillna("").astype(str).value_counts()
+    # The cause without its details (exit code, levels reached, attempt), so that one abort
+    # counts once whatever level it stopped at.
+    causes = failed["reason"].fillna("").astype(str).str.replace(r"\s*\(.*\)\s*$", "", regex=True)
+    reasons = causes.value_counts()
+    reached = pd.to_numeric(failed["levels_reached"], errors="coerce")
     out: dict[str, Any] = {
         "n_configurations": int(runs["config_id"].nunique()),
         "n_configurations_per_split": {
@@ -305,6 +311,11 @@ def summarize_runs(
             for r in failed.itertuples()
         ],
         "failure_reasons": {str(k): int(v) for k, v in reasons.items()},
+        "failed_levels_reached": {
+            "median": float(reached.median()) if len(reached) else float("nan"),
+            "min": float(reached.min()) if len(reached) else float("nan"),
+            "n_of": len(moments),
+        },
         "cpu_seconds_per_configuration": {
             "mean": float(cpu.mean()) if len(cpu) else float("nan"),
             "median": float(cpu.median()) if len(cpu) else float("nan"),
