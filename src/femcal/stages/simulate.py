@@ -27,6 +27,7 @@ METRICS_KEYS = (
     "cpu_seconds_per_configuration",
     "cpu_seconds_total",
     "failure_reasons",
+    "failed_levels_reached",
     "moments",
     "campaign_wall_seconds",
     "campaign_runs",
