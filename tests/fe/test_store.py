@@ -103,3 +103,13 @@ def test_append_and_fold_outside_the_writer_are_refused(tmp_path):
         store.append(_record(0))
     with pytest.raises(RuntimeError, match="outside `with store.writer"):
         store.fold()
+
+
+def test_a_bad_journal_line_is_named_by_its_line_in_the_file(tmp_path):
+    """Lines skipped as already folded still count: the message gives the file's line."""
+    store = CampaignStore(tmp_path / "runs.jsonl.gz")
+    _fill(store, range(2))
+    folded = gzip.decompress(store.path.read_bytes()).splitlines()
+    store.journal.write_bytes(folded[0] + b"\n" + folded[1] + b"\nnot json\n" + folded[0] + b"\n")
+    with pytest.raises(InputDataError, match=r"runs\.jsonl, line 3: not a job record"):
+        store.read()

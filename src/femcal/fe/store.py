@@ -174,15 +174,18 @@ class CampaignStore:
         sealed = self._sealed_bytes()
         records = self._parse(self.path, sealed.split(b"\n"), torn_ok=False)
         if self.journal.is_file():
+            lines = self.journal.read_bytes().split(b"\n")
+            # Lines already folded (a kill between the fold's rename and truncate): read once.
             known = set(sealed.split(b"\n"))
-            lines = [ln for ln in self.journal.read_bytes().split(b"\n") if ln not in known]
-            records += self._parse(self.journal, lines, torn_ok=True)
+            records += self._parse(self.journal, lines, torn_ok=True, skip=known)
         return records
 
-    def _parse(self, path: Path, lines: list[bytes], *, torn_ok: bool) -> list[dict]:
+    def _parse(
+        self, path: Path, lines: list[bytes], *, torn_ok: bool, skip: set[bytes] | None = None
+    ) -> list[dict]:
         records: list[dict] = []
         for i, line in enumerate(lines):
-            if not line.strip():
+            if not line.strip() or (skip and line in skip):
                 continue
             try:
                 rec = json.loads(line)
