@@ -17,6 +17,9 @@ from femcal.stages.common import (
     write_metrics,
 )
 
+#: Failed jobs listed one by one in the stage's report (all of them are in runs.csv).
+MAX_FAILURES_LISTED = 10
+
 #: The summary keys the stage's DVC metrics file holds.
 METRICS_KEYS = (
     "n_configurations",
@@ -86,10 +89,17 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         f"seconds per configuration: mean {cpu['mean']:.2f}, max {cpu['max']:.2f}; solver "
         f"{', '.join(summary['solver_versions'])}",
     ]
-    for f in summary["failures"]:
+    for cause, n in summary["failure_reasons"].items():
+        lines.append(f"  failed: {n} x {cause}")
+    for f in summary["failures"][:MAX_FAILURES_LISTED]:
         lines.append(
             f"  failed: config {f['config_id']} ({f['split']} row {f['row']}) {f['load_case']}: "
             f"{f['reason']}"
+        )
+    if len(summary["failures"]) > MAX_FAILURES_LISTED:
+        lines.append(
+            f"  ... and {len(summary['failures']) - MAX_FAILURES_LISTED} more failed jobs "
+            "(all of them: runs.csv and campaign.json)"
         )
     lines.append(f"dataset: {figures['out']} (the study's layout; runs.csv, campaign.json)")
     return lines
