@@ -66,8 +66,9 @@ def adapted(surrogate):
 def test_the_error_at_the_calibrated_solutions_falls(adapted):
     result, _ = adapted
     err = result.rounds["error_at_solutions_deg"].to_numpy()
-    # The error where calibrations land, round after round (measured 0.289, 0.254, 0.220 deg)
-    # and on held-out configurations (0.344 -> 0.244 deg).
+    # The error where calibrations land, round after round (measured 0.296, 0.203, 0.168 deg;
+    # 0.289, 0.254, 0.220 before the rounds started from the runs and fine-tuned without a
+    # validation split) and on held-out configurations (0.344 -> 0.215 deg).
     assert np.all(np.diff(err) < 0) and err[-1] < 0.85 * err[0]
     assert result.rounds["heldout_mae_deg"].iloc[-1] < 0.85 * result.heldout_mae_start
     s = result.summary()
