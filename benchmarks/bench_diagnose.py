@@ -264,12 +264,11 @@ def judge(verdict: str, named: Sequence[str], expected: frozenset[str], out_of_l
 
 
 # ------------------------------------------------------------------------------ one cohort
-def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
-    """Diagnose a cohort, recalibrate it with the found effects, and compute every bar."""
+def run_diagnosis(cohort: dict[str, Any], ctx: dict[str, Any]):
+    """``diagnose`` a cohort as ``femcal diagnose`` would; returns the diagnosis, its wall and
+    CPU seconds, the curve model and the points' weights (the moment policy's)."""
     surrogate, policy = ctx["surrogate"], ctx["policy"]
-    moments, rom, noise = cohort["moments"], cohort["rom_deg"], cohort["noise_deg"]
-    labels, classes = cohort["labels"], [c for c in cohort["classes"] if c in cohort["labels"]]
-    n = len(labels)
+    moments, rom = cohort["moments"], cohort["rom_deg"]
     model = SurrogateCurveModel(surrogate, moments)
     if policy is not None:
         sur_err = policy.sigma_surrogate(moments)
@@ -281,7 +280,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
         model,
         rom,
         specimens=cohort["specimens"],
-        noise_deg=noise,
+        noise_deg=cohort["noise_deg"],
         surrogate_error_deg=sur_err,
         candidates=ctx["candidates"],
         start_bank=ctx["start_bank"],
@@ -290,7 +289,15 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
         seed=cohort["seed"],
         **ctx["options"],
     )
-    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    return diag, time.perf_counter() - t0, time.process_time() - cpu0, model, weight
+
+
+def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
+    """Diagnose a cohort, recalibrate it with the found effects, and compute every bar."""
+    rom, noise = cohort["rom_deg"], cohort["noise_deg"]
+    labels, classes = cohort["labels"], [c for c in cohort["classes"] if c in cohort["labels"]]
+    n = len(labels)
+    diag, wall, cpu, model, weight = run_diagnosis(cohort, ctx)
     verdicts = np.array([s.verdict for s in diag.specimens], dtype=object)
     named = [named_effects(s) for s in diag.specimens]
     judged = [
@@ -414,7 +421,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
         "seed": cohort["seed"],
         "holdout": cohort["kind"] == "hidden" and cohort["seed"] in HOLDOUT_SEEDS,
         "n_specimens": n,
-        "moments": [float(m) for m in moments],
+        "moments": [float(m) for m in cohort["moments"]],
         "sigma_deg": float(diag.sigma_deg),
         "sigma_by_moment": None
         if getattr(diag, "sigma_by_moment", None) is None
@@ -498,6 +505,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         help=f"also the held-out hidden cohorts {', '.join(map(str, HOLDOUT_SEEDS))}",
     )
     ap.add_argument("--max-specimens", type=int, default=None, help="per cohort (quick runs)")
+    ap.add_argument(
+        "--timing-only",
+        action="store_true",
+        help="only time the diagnosis (bar (e)) on a quiet machine: writes "
+        "bench_diagnose_timing.md/.json, no recalibration or visibility checks",
+    )
     ap.add_argument("--out", type=Path, default=REPO / "reports", help="report folder")
     ap.add_argument(
         "--model-uri", default=None, help="the surrogate (default: params.yaml calibrate.model_uri)"
@@ -585,7 +598,24 @@ def main(argv: Sequence[str] | None = None) -> None:
             cohort = hidden_cohort(seed, fe_moments, fe_rom, plant["noise_deg"])
         cohort = restrict(cohort, args.max_specimens)
         print(f"{kind} seed {seed}: {len(cohort['specimens'])} specimens ...", flush=True)
-        rows.append(one_cohort(cohort, ctx))
+        if args.timing_only:
+            diag, wall, cpu, _, _ = run_diagnosis(cohort, ctx)
+            n = len(cohort["specimens"])
+            rows.append(
+                {
+                    "kind": kind,
+                    "seed": seed,
+                    "holdout": kind == "hidden" and seed in HOLDOUT_SEEDS,
+                    "n_specimens": n,
+                    "seconds": wall,
+                    "cpu_seconds": cpu,
+                    "wall_per_50": wall * 50 / n,
+                    "cpu_per_50": cpu * 50 / n,
+                    "verdicts": [s.verdict for s in diag.specimens],
+                }
+            )
+        else:
+            rows.append(one_cohort(cohort, ctx))
     threads = os.environ.get("OMP_NUM_THREADS")
     command = (
         (f"OMP_NUM_THREADS={threads} " if threads else "")
@@ -605,7 +635,42 @@ def main(argv: Sequence[str] | None = None) -> None:
         "diagnose_options": options,
         "noise_deg": plant["noise_deg"],
     }
-    write(rows, meta, args.out)
+    if args.timing_only:
+        write_timing(rows, meta, args.out)
+    else:
+        write(rows, meta, args.out)
+
+
+def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
+    """Write ``bench_diagnose_timing.md`` and ``.json`` into ``out`` (bar (e) only)."""
+    out.mkdir(parents=True, exist_ok=True)
+    load = os.getloadavg() if hasattr(os, "getloadavg") else None
+    lines = [
+        "# Missing-effect search: the diagnosis' time per 50 specimens (bar (e), <= 60 s)",
+        "",
+        f"Reproduce: `{meta['command']}` (on a quiet machine: nothing else running).",
+        "",
+        f"Machine: {meta['machine']}, {os.cpu_count()} cores, {meta['torch_threads']} torch "
+        f"threads; load average after the run {', '.join(f'{v:.2f}' for v in load or ())}. "
+        "Only `femcal.diagnose.diagnose` is timed, exactly as in `bench_diagnose.md` (same "
+        "cohorts, options and seeds: the verdicts are the same); the recalibrations and the "
+        "visibility checks of the full benchmark are not run.",
+        "",
+        "| cohort | specimens | wall | CPU | wall per 50 specimens | CPU per 50 | <= 60 s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        name = f"{r['kind']} {r['seed']}" + (" (held out)" if r["holdout"] else "")
+        lines.append(
+            f"| {name} | {r['n_specimens']} | {r['seconds']:.1f} s | {r['cpu_seconds']:.1f} s | "
+            f"{r['wall_per_50']:.1f} s | {r['cpu_per_50']:.1f} s | "
+            f"{_ok(r['wall_per_50'] <= BAR_SECONDS)} |"
+        )
+    (out / "bench_diagnose_timing.md").write_text("\n".join(lines) + "\n")
+    (out / "bench_diagnose_timing.json").write_text(
+        json.dumps({**meta, "load_average": load, "cohorts": rows}, indent=2) + "\n"
+    )
+    print(f"wrote {out / 'bench_diagnose_timing.md'}")
 
 
 # ------------------------------------------------------------------------------ report
