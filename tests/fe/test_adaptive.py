@@ -104,6 +104,47 @@ def test_same_seed_same_runs(surrogate):
     pd.testing.assert_frame_equal(a, b)
 
 
+def test_rounds_start_from_the_runs_and_fine_tune_without_a_split(surrogate, monkeypatch):
+    """Round 2 calibrates from the training configurations and round 1's runs (the solutions
+    otherwise wander along each specimen's valley of equal fits, where no run taught the
+    surrogate anything); each fine-tuning sees every row (no best-epoch split of the old
+    configurations, which kept the weights from before the new runs)."""
+    import femcal.calibration as calibration
+
+    banks, splits = [], []
+    real_calibrate, real_fit = calibration.calibrate, NeuralSurrogate.fit
+
+    def calibrate(*args, options=None, **kwargs):
+        banks.append(np.asarray(options["start_bank"]))
+        return real_calibrate(*args, options=options, **kwargs)
+
+    def fit(self, *args, **kwargs):
+        splits.append(self.val_fraction)
+        return real_fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(calibration, "calibrate", calibrate)
+    monkeypatch.setattr(NeuralSurrogate, "fit", fit)
+    result = adapt_surrogate(
+        surrogate,
+        targets=true_curves(study_space().sample_uniform(2, np.random.default_rng(1))),
+        moments=MOMENTS,
+        fe_curves=true_curves,
+        train=rows(tidy_table(48, seed=3)),
+        heldout=rows(tidy_table(4, seed=99)),
+        rounds=2,
+        n_explore=1,
+        n_candidates=16,
+        finetune={"max_epochs": 2},
+        calibrate_options={"n_starts": 1},
+        seed=0,
+        first_id=500,
+    )
+    assert [len(b) for b in banks] == [48, 48 + 3]
+    first = result.runs[result.runs["round"] == 1][NAMES].to_numpy()
+    np.testing.assert_allclose(banks[1][-3:], first)
+    assert splits == [0.0, 0.0]
+
+
 def test_ensemble_spread(surrogate):
     x = study_space().sample_uniform(5, np.random.default_rng(0))
     s = ensemble_spread(surrogate, x, MOMENTS)
