@@ -660,9 +660,9 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        name = f"{r['kind']} {r['seed']}" + (" (held out)" if r["holdout"] else "")
         lines.append(
-            f"| {name} | {r['n_specimens']} | {r['seconds']:.1f} s | {r['cpu_seconds']:.1f} s | "
+            f"| {_cohort_name(r)} | {r['n_specimens']} | {r['seconds']:.1f} s | "
+            f"{r['cpu_seconds']:.1f} s | "
             f"{r['wall_per_50']:.1f} s | {r['cpu_per_50']:.1f} s | "
             f"{_ok(r['wall_per_50'] <= BAR_SECONDS)} |"
         )
@@ -676,6 +676,11 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
 # ------------------------------------------------------------------------------ report
 def _pct(x: float) -> str:
     return "n/a" if not np.isfinite(x) else f"{x:.0%}"
+
+
+def _cohort_name(r: dict[str, Any]) -> str:
+    """A report row's cohort, e.g. ``hidden 67740 (held out)``."""
+    return f"{r['kind']} {r['seed']}" + (" (held out)" if r["holdout"] else "")
 
 
 def _ok(flag: bool) -> str:
@@ -729,7 +734,7 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
     ]
     for r in rows:
         b, ok = r["bars"], r["bars"]["pass"]
-        name = f"{r['kind']} {r['seed']}" + (" (held out)" if r["holdout"] else "")
+        name = _cohort_name(r)
         nan_note = (
             f" ({r['n_recalibrated_nan']} recalibrations NaN)" if r["n_recalibrated_nan"] else ""
         )
