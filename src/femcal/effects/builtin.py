@@ -25,8 +25,9 @@ from femcal.effects.base import Effect, EffectParameter, register_effect
 
 
 def _smooth_ramp(x: torch.Tensor, width: float) -> torch.Tensor:
-    """max(x, 0) with its corner rounded over ``width`` (differentiable everywhere)."""
-    return width * torch.nn.functional.softplus(x / width)
+    """max(x, 0) with its corner rounded over ``width`` (differentiable everywhere):
+    ``width * softplus(x / width)``."""
+    return torch.nn.functional.softplus(x, beta=1.0 / width)
 
 
 def _like(p: Mapping[str, torch.Tensor], name: str, ref: torch.Tensor) -> torch.Tensor:

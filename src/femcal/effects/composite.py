@@ -23,6 +23,7 @@ import torch
 
 from femcal.calibration.model import CurveModel
 from femcal.effects.base import Effect, get_effect
+from femcal.forward_ad import constant_like
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import forward_tangents
 
@@ -94,42 +95,82 @@ class EffectModel:
 
     # ------------------------------------------------------------ evaluation
     def _disc(self, v_disc: torch.Tensor, coef: torch.Tensor | None = None):
-        """A function M (B, 4, m) -> (phi, dphi/dM) of the disc at ``v_disc`` (B, 13).
+        """A function ``phi(M, detached=False, slope=True)`` of the disc at ``v_disc`` (B, 13):
+        M (B, 4, m) -> (rotation, d rotation / dM or None).
 
         ``coef`` (K, B, 4, p): the members' coefficients when already computed (the Jacobian
         passes them as a dual tensor, differentiated by :func:`forward_tangents`).
+        ``detached``: without graph or forward-mode tangent (the bisection); ``slope=False``
+        skips the derivative.
         """
         net = self.net
         b = v_disc.shape[0]
-        shape = (b, net.n_load_cases, net.moment_degree + 1)
+        p = net.moment_degree + 1
         if coef is None:
-            coef = torch.stack([m(v_disc).reshape(shape) for m in net.members])
-        powers = torch.arange(net.moment_degree + 1, dtype=v_disc.dtype)
+            coef = torch.stack([m(v_disc).reshape(b, net.n_load_cases, p) for m in net.members])
+        # The output scaling folded into the coefficients: Horner's rule then gives the
+        # network's target t (log RoM or RoM) directly; and t's derivative in z.
+        loc, inv_scale, y_scale, y_loc, dpowers = (
+            constant_like(x, coef)
+            for x in (
+                net.moment_loc,
+                1.0 / net.moment_scale,
+                net.y_scale,
+                torch.eye(p, dtype=coef.dtype)[0] * net.y_loc,
+                torch.arange(1, p, dtype=coef.dtype),
+            )
+        )
+        prepared = {False: coef * y_scale + y_loc}
+        prepared[True] = prepared[False].detach()  # no graph, no tangent: for the bisection
+        derivative = {False: prepared[False][..., 1:] * dpowers}
+        derivative[True] = derivative[False].detach()
+        log_low = float(np.log(self.m_low))
 
-        m_low = self.m_low
+        def members(detached: bool, z: torch.Tensor, slope: bool):
+            # Each member's cubic in z by Horner's rule (K, B, 4, m), the members' mean RoM
+            # and, with ``slope``, its derivative in z.
+            c = prepared[detached]
+            t = c[..., p - 1, None]
+            for j in range(p - 2, -1, -1):
+                t = t * z + c[..., j, None]
+            deg = torch.exp(t) if net.log_target else t
+            if not slope:
+                return deg.mean(0), None
+            if p == 1:
+                return deg.mean(0), torch.zeros_like(deg[0])
+            dc = derivative[detached]
+            dt = dc[..., p - 2, None]
+            for j in range(p - 3, -1, -1):
+                dt = dt * z + dc[..., j, None]
+            return deg.mean(0), (deg * dt if net.log_target else dt).mean(0)
 
-        fixed = coef.detach()  # no graph, no forward-mode tangent: for the bisection
+        def z_of(log_m: torch.Tensor) -> torch.Tensor:
+            return (log_m - loc) * inv_scale
 
-        def phi(moment: torch.Tensor, detached: bool = False):
-            # The cubic in log-moment holds in the trained range; below its lowest moment the
-            # curve continues as the power law through the origin with the log-log slope there
-            # (a cubic extrapolated far down can blow up). Returns (phi, dphi/dM).
-            c = fixed if detached else coef
-            mc = moment.clamp_min(m_low)
-            z = (torch.log(mc) - net.moment_loc) / net.moment_scale  # (B, 4, m)
-            basis = z[..., None] ** powers  # (B, 4, m, p)
-            # (B, 4, m, p) @ (K, B, 4, p, 1) -> (K, B, 4, m): one batched product per member.
-            scaled = (basis @ c[..., None])[..., 0]
-            deg = net.to_degrees(scaled)
-            # d z^j / dz = j z^(j-1): the basis shifted by one power.
-            dbasis = torch.cat([torch.zeros_like(basis[..., :1]), basis[..., :-1]], -1) * powers
-            dz = (dbasis @ c[..., None])[..., 0] / (net.moment_scale * mc)
-            slope = deg * net.y_scale * dz if net.log_target else net.y_scale * dz
-            deg, slope = deg.mean(0), slope.mean(0)
-            low = moment < m_low
-            b = (slope * mc / deg).clamp(0.05, 3.0)
-            out = deg * (moment / mc) ** torch.where(low, b, torch.ones_like(b))
-            return out, torch.where(low, out * b / moment, slope)
+        # Below the lowest trained moment the curve continues as the power law through the
+        # origin with the log-log slope there (a cubic extrapolated far down can blow up):
+        # that slope, once per (row, load case).
+        ends: dict[bool, torch.Tensor] = {}
+
+        def low_end(detached: bool) -> torch.Tensor:
+            if detached not in ends:
+                log_m = constant_like(torch.full((b, net.n_load_cases, 1), log_low), coef)
+                deg, ddeg = members(detached, z_of(log_m), True)
+                ends[detached] = (ddeg * inv_scale / deg).clamp(0.05, 3.0)
+            return ends[detached]
+
+        def phi(moment: torch.Tensor, detached: bool = False, slope: bool = True):
+            log_m = torch.log(moment if detached else constant_like(moment, coef))
+            log_mc = log_m.clamp_min(log_low)
+            deg, ddeg = members(detached, z_of(log_mc), slope)
+            low = log_m < log_low
+            if not low.any():
+                return deg, None if ddeg is None else ddeg * inv_scale / torch.exp(log_m)
+            b_low = low_end(detached)
+            out = deg * torch.exp(b_low * (log_m - log_mc))  # = deg where M >= m_low
+            if ddeg is None:
+                return out, None
+            return out, torch.where(low, out * b_low, ddeg * inv_scale) / torch.exp(log_m)
 
         return phi
 
@@ -138,28 +179,31 @@ class EffectModel:
         (the Newton step in :meth:`curves` gives the exact derivative at the solution)."""
         v = v.detach()
         b = v.shape[0]
-        phi_disc = self._disc(v[:, : self.n_disc])
         applied = self.moments.to(v.dtype).expand(b, 4, -1)
         params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
-        parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
+        parallel = [
+            (p, e.load_case_mask()[None, :, None])
+            for e, p in zip(self.effects, params)
+            if e.kind == "parallel"
+        ]
         if not parallel:
             return applied.clone()
-        lc_mask = torch.zeros(4, dtype=torch.bool)
-        for e, _ in parallel:
-            lc_mask |= e.load_case_mask()
+        moments = [e.moment for e in self.effects if e.kind == "parallel"]
+        lc_mask = torch.stack([m[0, :, 0] for _, m in parallel]).any(0)
         with torch.no_grad():
+            phi_disc = self._disc(v[:, : self.n_disc])
             lo = torch.log(applied * _MIN_SHARE)
             hi = torch.log(applied).clone()
             for _ in range(_BISECTIONS):
                 mid = 0.5 * (lo + hi)
                 md = torch.exp(mid)
-                phi = phi_disc(md, detached=True)[0]
-                total = torch.zeros_like(phi)
-                for e, p in parallel:
-                    total = total + e.moment(phi, p) * e.load_case_mask()[None, :, None]
-                g = md + total - applied
-                hi = torch.where(g > 0, mid, hi)
-                lo = torch.where(g > 0, lo, mid)
+                phi = phi_disc(md, detached=True, slope=False)[0]
+                g = md - applied
+                for moment, (p, mask) in zip(moments, parallel):
+                    g = g + moment(phi, p) * mask
+                up = g > 0
+                hi = torch.where(up, mid, hi)
+                lo = torch.where(up, lo, mid)
             md0 = torch.exp(0.5 * (lo + hi))
             return torch.where(lc_mask[None, :, None], md0, applied)
 
@@ -194,7 +238,7 @@ class EffectModel:
         self.n_evaluations += int(v.shape[0])
         b = v.shape[0]
         phi_disc = self._disc(v[:, : self.n_disc], coef)
-        applied = self.moments.to(v.dtype).expand(b, 4, -1)
+        applied = constant_like(self.moments.to(v.dtype).expand(b, 4, -1), v)
         params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
         parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
         if parallel:
@@ -203,10 +247,11 @@ class EffectModel:
                 lc_mask |= e.load_case_mask()
 
             def extra(phi: torch.Tensor, p_detach: bool) -> torch.Tensor:
-                total = torch.zeros_like(phi)
+                total = None
                 for e, p in parallel:
                     pp = {k: t.detach() for k, t in p.items()} if p_detach else p
-                    total = total + e.moment(phi, pp) * e.load_case_mask()[None, :, None]
+                    term = e.moment(phi, pp) * constant_like(e.load_case_mask()[None, :, None], phi)
+                    total = term if total is None else total + term
                 return total
 
             if share is None:
@@ -214,22 +259,23 @@ class EffectModel:
                 rows = v.detach().cpu().numpy()
                 self._shares = {r.tobytes(): md0[i] for i, r in enumerate(rows)}
             else:
-                md0 = share
+                md0 = constant_like(share, v)
             # One Newton step with the graph: exact implicit gradient at the solution.
             phi0, slope = phi_disc(md0)
             phi_req = phi0.detach().requires_grad_(True)
             with torch.enable_grad():
                 (dme,) = torch.autograd.grad(extra(phi_req, True).sum(), phi_req)
             g = md0 + extra(phi0, False) - applied
-            gprime = 1.0 + dme * slope.detach()
+            gprime = constant_like(1.0 + dme * slope.detach(), v)
             md = md0 - g / gprime
             md = torch.where(lc_mask[None, :, None], md, applied)
-            phi, _ = phi_disc(md)
+            phi, _ = phi_disc(md, slope=False)
         else:
-            phi, _ = phi_disc(applied)
+            phi, _ = phi_disc(applied, slope=False)
         for e, p in zip(self.effects, params):
             if e.kind == "series":
-                phi = phi + e.rotation(applied, p) * e.load_case_mask()[None, :, None]
+                mask = constant_like(e.load_case_mask()[None, :, None], v)
+                phi = phi + e.rotation(applied, p) * mask
         return phi
 
     def curves_jacobian(
