@@ -238,8 +238,6 @@ class ParameterSpace:
             return (self.lower, self.upper, *self._log_bounds, self._is_log)
         import torch
 
-        from femcal.forward_ad import constant_like, has_tangent
-
         key = (like.dtype, like.device)
         cached = self._torch_cache.get(key)
         if cached is None:
@@ -251,8 +249,6 @@ class ParameterSpace:
             log_hi = torch.log(torch.where(mask, hi, one))
             cached = (lo, hi, log_lo, log_hi, mask)
             self._torch_cache[key] = cached
-        if has_tangent(like):  # zero tangents: see femcal.forward_ad
-            return (*(constant_like(t, like) for t in cached[:4]), cached[4])
         return cached
 
     @staticmethod
