@@ -84,6 +84,8 @@ def test_runs_are_numbered_and_labelled(adapted, surrogate):
     assert per_round["calibration"].tolist() == [6, 6, 6]
     assert per_round["disagreement"].tolist() == [4, 4, 4]
     assert not surrogate.warm_start and result.surrogate is not surrogate
+    # the challenger keeps the recipe it was trained with, not the fine-tuning's settings
+    assert result.surrogate.get_params() == surrogate.get_params()
 
 
 def test_same_seed_same_runs(surrogate):

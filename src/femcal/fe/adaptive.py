@@ -264,6 +264,9 @@ def adapt_surrogate(
         **dict(finetune or {}),
         "warm_start": True,
     }
+    # The recipe the surrogate was trained with, restored after the rounds: the challenger's
+    # get_params() say how to train it from scratch, not how it was fine-tuned.
+    recipe = {k: v for k, v in model.get_params().items() if k in tune}
     X_train, y_train = train
     X_ho, y_ho = heldout
     heldout_start = _mae(model.predict(X_ho), y_ho)
@@ -322,7 +325,7 @@ def adapt_surrogate(
             row["error_at_solutions_deg"],
             row["heldout_mae_deg"],
         )
-    model.set_params(warm_start=False)
+    model.set_params(**recipe)
     return AdaptResult(
         surrogate=model,
         rounds=pd.DataFrame(rows),
