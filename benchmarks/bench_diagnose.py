@@ -642,8 +642,11 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
-    """Write ``bench_diagnose_timing.md`` and ``.json`` into ``out`` (bar (e) only)."""
+    """Write ``bench_diagnose_timing.md`` and ``.json`` into ``out`` (bar (e) only); with
+    more than one torch thread ``bench_diagnose_timing_<n>threads.md`` and ``.json``."""
     out.mkdir(parents=True, exist_ok=True)
+    threads = int(meta["torch_threads"])
+    name = "bench_diagnose_timing" + (f"_{threads}threads" if threads > 1 else "")
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     lines = [
         "# Missing-effect search: the diagnosis' time per 50 specimens (bar (e), <= 60 s)",
@@ -666,11 +669,11 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
             f"{r['wall_per_50']:.1f} s | {r['cpu_per_50']:.1f} s | "
             f"{_ok(r['wall_per_50'] <= BAR_SECONDS)} |"
         )
-    (out / "bench_diagnose_timing.md").write_text("\n".join(lines) + "\n")
-    (out / "bench_diagnose_timing.json").write_text(
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    (out / f"{name}.json").write_text(
         json.dumps({**meta, "load_average": load, "cohorts": rows}, indent=2) + "\n"
     )
-    print(f"wrote {out / 'bench_diagnose_timing.md'}")
+    print(f"wrote {out / name}.md")
 
 
 # ------------------------------------------------------------------------------ report
