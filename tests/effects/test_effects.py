@@ -78,29 +78,6 @@ def test_effects_act_where_they_should(surrogate):
     assert torch.all(nz > disc)
 
 
-@pytest.mark.parametrize("name", ["facet_contact", "ligament_tension"])
-def test_parallel_effects_carry_no_moment_in_the_neutral_position(name):
-    # Over the whole box (a soft facet onset over a small gap included), the element is
-    # unloaded at zero rotation and its moment grows with the rotation.
-    effect = get_effect(name)()
-    u = torch.rand(4096, len(effect.parameters), generator=torch.Generator().manual_seed(3))
-    p = effect.from_unit(u)
-    rotation = torch.linspace(0.0, 10.0, 41).expand(4096, 1, 41)
-    moment = effect.moment(rotation, p)
-    assert torch.all(moment[..., 0] == 0)
-    assert torch.all(torch.diff(moment, dim=-1) >= 0)
-
-
-def test_a_soft_facet_onset_over_no_gap_gives_finite_curves(surrogate):
-    # No gap, the stiffest contact and the softest onset: the rounded corner used to preload
-    # the facets by more than the applied moment, and the disc's share had no solution.
-    model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact"])
-    v = torch.cat([torch.full((1, 13), 0.5), torch.tensor([[0.0, 1.0, 0.5, 1.0]])], 1)
-    curves, jac = model.curves_jacobian(v)
-    assert torch.isfinite(curves).all() and torch.isfinite(jac).all()
-    torch.testing.assert_close(model.curves(v), curves)
-
-
 def test_composite_jacobian_matches_finite_differences(surrogate):
     base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["facet_contact", "ligament_tension", "neutral_zone"])

@@ -7,8 +7,7 @@ diagnosis like any other):
 
 * facet contact, ``M = k (phi - gap)_+^n`` with ``n`` in [1, 3]: a linear spring after the gap
   (n = 1), Hertz-like contact (n = 1.5), the classic quadratic (n = 2) and stiffer; the corner
-  at the gap rounded over an onset width of 0.05 (sharp) to 2 deg (soft engagement), less its
-  value at phi = 0 (no moment in the neutral position);
+  at the gap rounded over an onset width of 0.05 (sharp) to 2 deg (soft engagement);
 * ligament tension, ``M = k (exp((phi - slack)_+ / s) - 1)`` with the toe length ``s`` in
   [0.5, 8] deg: a long toe region that is nearly linear (large ``s``) to an abrupt lock-up;
 * neutral-zone laxity, ``phi = range (1 - exp(-(M / m0)^b))`` with ``b`` in [0.5, 3]: a slow
@@ -58,18 +57,11 @@ class FacetContact(Effect):
         gap = _like(p, "facet_gap_deg", rotation_deg)
         k = _like(p, "facet_stiffness", rotation_deg)
         n = _like(p, "facet_exponent", rotation_deg)
+        # x^n = exp(n log x), smooth in x and n; the ramp is floored so that far from contact
+        # (where softplus underflows to 0) the derivative in n is 0, not 0 * log 0 = NaN.
         w = _like(p, "facet_onset_deg", rotation_deg)
-
-        def power(closure: torch.Tensor) -> torch.Tensor:
-            # ramp^n = exp(n log ramp), smooth in the closure and n; the ramp is floored so
-            # that far from contact (where softplus underflows to 0) the derivative in n is 0,
-            # not 0 * log 0.
-            ramp = (w * torch.nn.functional.softplus(closure / w)).clamp_min(1e-12)
-            return torch.exp(n * torch.log(ramp))
-
-        # Less the rounded corner's value at zero rotation: no contact moment in the neutral
-        # position (a soft onset over a small gap would otherwise preload the facets).
-        return k * (power(rotation_deg - gap) - power(-gap))
+        ramp = (w * torch.nn.functional.softplus((rotation_deg - gap) / w)).clamp_min(1e-12)
+        return k * torch.exp(n * torch.log(ramp))
 
 
 @register_effect
@@ -92,8 +84,7 @@ class LigamentTension(Effect):
         slack = _like(p, "ligament_slack_deg", rotation_deg)
         k = _like(p, "ligament_stiffness", rotation_deg)
         toe = _like(p, "ligament_toe_deg", rotation_deg)
-        stretch = (_smooth_ramp(rotation_deg - slack, 0.05) - _smooth_ramp(-slack, 0.05)) / toe
-        # no tension in the neutral position (the rounded corner's value there subtracted)
+        stretch = _smooth_ramp(rotation_deg - slack, 0.05) / toe
         return k * torch.expm1(stretch.clamp(max=30.0))
 
 
