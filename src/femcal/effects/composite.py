@@ -181,15 +181,12 @@ class EffectModel:
         b = v.shape[0]
         applied = self.moments.to(v.dtype).expand(b, 4, -1)
         params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
-        parallel = [
-            (p, e.load_case_mask()[None, :, None])
-            for e, p in zip(self.effects, params)
-            if e.kind == "parallel"
-        ]
+        parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
         if not parallel:
             return applied.clone()
-        moments = [e.moment for e in self.effects if e.kind == "parallel"]
-        lc_mask = torch.stack([m[0, :, 0] for _, m in parallel]).any(0)
+        lc_mask = torch.zeros(4, dtype=torch.bool)
+        for e, _ in parallel:
+            lc_mask |= e.load_case_mask()
         with torch.no_grad():
             phi_disc = self._disc(v[:, : self.n_disc])
             lo = torch.log(applied * _MIN_SHARE)
@@ -199,8 +196,8 @@ class EffectModel:
                 md = torch.exp(mid)
                 phi = phi_disc(md, detached=True, slope=False)[0]
                 g = md - applied
-                for moment, (p, mask) in zip(moments, parallel):
-                    g = g + moment(phi, p) * mask
+                for e, p in parallel:
+                    g = g + e.moment(phi, p) * e.load_case_mask()[None, :, None]
                 up = g > 0
                 hi = torch.where(up, mid, hi)
                 lo = torch.where(up, lo, mid)
