@@ -78,6 +78,49 @@ def test_effects_act_where_they_should(surrogate):
     assert torch.all(nz > disc)
 
 
+@pytest.mark.parametrize("name", ["facet_contact", "ligament_tension"])
+def test_parallel_effects_carry_no_moment_in_the_neutral_position(name):
+    # Over the whole box (a soft facet onset over a small gap included), the element is
+    # unloaded at zero rotation and its moment grows with the rotation.
+    effect = get_effect(name)()
+    u = torch.rand(4096, len(effect.parameters), generator=torch.Generator().manual_seed(3))
+    p = effect.from_unit(u)
+    rotation = torch.linspace(0.0, 10.0, 41).expand(4096, 1, 41)
+    moment = effect.moment(rotation, p)
+    # 0 up to the law's floor on the closure (1e-12 deg, times k <= 5 Nm/deg^n)
+    assert moment[..., 0].abs().max() < 1e-10
+    assert torch.all(torch.diff(moment, dim=-1) >= 0)
+
+
+def test_facet_contact_is_never_stiffer_than_a_sharp_contact_without_gap():
+    # The closure counts from the neutral position, its slope is at most 1: contact carries at
+    # most k phi^n, the sharp law with no gap. A soft onset over no gap used to give a tangent
+    # stiffness of k n (w ln 2)^(n - 1) at zero rotation (14 Nm/deg at the box's corner), so
+    # that curves in radians (0.1 deg at 5 Nm) fell within the effects' envelope.
+    effect = get_effect("facet_contact")()
+    u = torch.rand(4096, 4, generator=torch.Generator().manual_seed(5))
+    u[:8] = torch.tensor([0.0, 1.0, 1.0, 1.0])  # no gap, stiffest, n = 3, softest onset
+    p = effect.from_unit(u)
+    rotation = torch.linspace(0.0, 10.0, 41).expand(4096, 1, 41)
+    moment = effect.moment(rotation, p)
+    k = p["facet_stiffness"].reshape(-1, 1, 1)
+    n = p["facet_exponent"].reshape(-1, 1, 1)
+    assert torch.all(moment <= k * rotation**n * (1 + 1e-5) + 1e-10)
+    # At 0.25 deg, the box's corner: 0.011 Nm; 4.1 Nm with the power's value at zero
+    # subtracted instead, 17 Nm (13 of them preload) before either.
+    assert moment[:8, 0, 1].max() < 0.05
+
+
+def test_a_soft_facet_onset_over_no_gap_gives_finite_curves(surrogate):
+    # No gap, the stiffest contact and the softest onset: the rounded corner used to preload
+    # the facets by more than the applied moment, and the disc's share had no solution.
+    model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact"])
+    v = torch.cat([torch.full((1, 13), 0.5), torch.tensor([[0.0, 1.0, 0.5, 1.0]])], 1)
+    curves, jac = model.curves_jacobian(v)
+    assert torch.isfinite(curves).all() and torch.isfinite(jac).all()
+    torch.testing.assert_close(model.curves(v), curves)
+
+
 def test_composite_jacobian_matches_finite_differences(surrogate):
     base = SurrogateCurveModel(surrogate, MOMENTS)
     model = EffectModel(base, ["facet_contact", "ligament_tension", "neutral_zone"])

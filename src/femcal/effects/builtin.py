@@ -7,7 +7,8 @@ diagnosis like any other):
 
 * facet contact, ``M = k (phi - gap)_+^n`` with ``n`` in [1, 3]: a linear spring after the gap
   (n = 1), Hertz-like contact (n = 1.5), the classic quadratic (n = 2) and stiffer; the corner
-  at the gap rounded over an onset width of 0.05 (sharp) to 2 deg (soft engagement);
+  at the gap rounded over an onset width of 0.05 (sharp) to 2 deg (soft engagement), the
+  closure counted from the neutral position (no moment there);
 * ligament tension, ``M = k (exp((phi - slack)_+ / s) - 1)`` with the toe length ``s`` in
   [0.5, 8] deg: a long toe region that is nearly linear (large ``s``) to an abrupt lock-up;
 * neutral-zone laxity, ``phi = range (1 - exp(-(M / m0)^b))`` with ``b`` in [0.5, 3]: a slow
@@ -57,11 +58,20 @@ class FacetContact(Effect):
         gap = _like(p, "facet_gap_deg", rotation_deg)
         k = _like(p, "facet_stiffness", rotation_deg)
         n = _like(p, "facet_exponent", rotation_deg)
-        # x^n = exp(n log x), smooth in x and n; the ramp is floored so that far from contact
-        # (where softplus underflows to 0) the derivative in n is 0, not 0 * log 0 = NaN.
         w = _like(p, "facet_onset_deg", rotation_deg)
-        ramp = (w * torch.nn.functional.softplus((rotation_deg - gap) / w)).clamp_min(1e-12)
-        return k * torch.exp(n * torch.log(ramp))
+
+        # The closure since the neutral position, its corner at the gap rounded over w: the
+        # rounded corner's value at zero rotation is subtracted, so that contact carries no
+        # moment in the neutral position (a soft onset over a small gap used to preload the
+        # facets, beyond the applied moment for 0.45 % of the box) and its stiffness there
+        # stays that of the ramp's slope, not k n (w ln 2)^(n - 1).
+        closure = w * (
+            torch.nn.functional.softplus((rotation_deg - gap) / w)
+            - torch.nn.functional.softplus(-gap / w)
+        )
+        # closure^n = exp(n log closure), smooth in the closure and n; floored so that far from
+        # contact (where softplus underflows to 0) the derivative in n is 0, not 0 * log 0.
+        return k * torch.exp(n * torch.log(closure.clamp_min(1e-12)))
 
 
 @register_effect
@@ -84,7 +94,8 @@ class LigamentTension(Effect):
         slack = _like(p, "ligament_slack_deg", rotation_deg)
         k = _like(p, "ligament_stiffness", rotation_deg)
         toe = _like(p, "ligament_toe_deg", rotation_deg)
-        stretch = _smooth_ramp(rotation_deg - slack, 0.05) / toe
+        stretch = (_smooth_ramp(rotation_deg - slack, 0.05) - _smooth_ramp(-slack, 0.05)) / toe
+        # no tension in the neutral position (the rounded corner's value there subtracted)
         return k * torch.expm1(stretch.clamp(max=30.0))
 
 
