@@ -272,6 +272,8 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, beam_delta=-1.0)
     with pytest.raises(ConfigError, match="min_delta_inadequate must be >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
+    with pytest.raises(ConfigError, match="min_delta_adequate must be >= 0 or None"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_adequate=-1.0)
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, surrogate_error_deg=-0.1)
 
