@@ -366,3 +366,26 @@ def test_the_beam_extends_every_model_close_to_the_best(world):
             assert pairs_w == every, (w.specimen, pairs_w)
             assert len(pairs_g) == 2 and len(set.intersection(*map(set, pairs_g))) == 1
     assert reached >= 1
+
+
+def test_a_model_that_explains_the_data_is_still_offered_a_further_effect(world):
+    """A single facet (a linear spring, not femcal's law) that disc + facet explains: the
+    default search still fits the pairs that extend it (``min_delta_adequate``) and keeps the
+    single effect, because no pair pays; with ``min_delta_adequate=None`` it stops there."""
+    base, _, _, _ = world
+    rng = np.random.default_rng(5)
+    fe = base.predict(study_space().sample_uniform(2, rng))
+    rom = np.stack([_facet(MOMENTS, f, MOMENTS) for f in fe])
+    rom = rom + rng.normal(0, NOISE, rom.shape)
+    kw = dict(specimens=["F0", "F1"], noise_deg=NOISE, discrepancy=False, seed=0)
+    on = diagnose(base, rom, **kw)
+    off = diagnose(base, rom, min_delta_adequate=None, **kw)
+    for a, b in zip(on.specimens, off.specimens):
+        assert a.verdict == b.verdict == "facet_contact", (a.verdict, b.verdict)
+        pairs_on = {tuple(sorted(r["effects"])) for r in a.ranking if len(r["effects"]) == 2}
+        pairs_off = {tuple(sorted(r["effects"])) for r in b.ranking if len(r["effects"]) == 2}
+        assert pairs_on == {
+            ("facet_contact", "ligament_tension"),
+            ("facet_contact", "neutral_zone"),
+        }
+        assert pairs_off == set()
