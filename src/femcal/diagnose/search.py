@@ -226,7 +226,8 @@ def diagnose(
         the tuning cohorts (reports/bench_diagnose.md, session 17): 2 named two more
         combinations whole among 153 eligible hidden specimens and changed no other verdict
         there or in the three-class cohorts 0 and 1; 0 gave the same verdicts, 5 one
-        combination less; about 10 % more time.
+        combination less; ~20 % more time (quiet, one thread: 47-52 s per 50 hidden
+        specimens, 37.5-48.6 s before).
     elimination_cap : float
         Open-world elimination: when an effect is dropped, the discrepancy in that effect's own
         load cases may be at most this factor times what the model with the effect needed
