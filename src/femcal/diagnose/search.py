@@ -223,7 +223,8 @@ def diagnose(
     min_delta_adequate : float or None
         BIC improvement a further effect needs over a model that holds an effect and already
         explains the data (None: the search stops there, ``stop_when_adequate``). Measured on
-        the tuning cohorts (reports/bench_diagnose.md, session 17): 2 named two more
+        the tuning cohorts (``benchmarks/bench_diagnose.py --diagnose-option
+        min_delta_adequate=...``, session 17's closing note): 2 named two more
         combinations whole among 153 eligible hidden specimens and changed no other verdict
         there or in the three-class cohorts 0 and 1; 0 gave the same verdicts, 5 one
         combination less; ~20 % more time (quiet, one thread: 47-52 s per 50 hidden
