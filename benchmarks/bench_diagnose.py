@@ -295,7 +295,9 @@ def truth_preferred(
     for effects in models:
         m = EffectModel(model, list(effects)) if effects else model
         res = calibrate(m, rom, weight=w, method="pgd", options=opts, seed=0)
-        chi2 = np.nansum(((rom - res.prediction) / sigma_m) ** 2, axis=(1, 2))
+        # over the measured points only; a NaN prediction there makes the model's BIC inf
+        z = np.where(np.isfinite(rom), (rom - res.prediction) / sigma_m, 0.0)
+        chi2 = (z**2).sum(axis=(1, 2))
         bic[effects] = np.where(np.isfinite(chi2), chi2, np.inf) + m.dim * log_n
     for k, i in enumerate(idx):
         truth = tuple(sorted(cohort["expected"][i]))
