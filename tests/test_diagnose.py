@@ -274,6 +274,8 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="min_delta_adequate must be >= 0 or None"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_adequate=-1.0)
+    with pytest.raises(ConfigError, match="penalty must be one of 'effective', 'count'"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, penalty="aic")
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, surrogate_error_deg=-0.1)
 
@@ -389,3 +391,32 @@ def test_a_model_that_explains_the_data_is_still_offered_a_further_effect(world)
             ("facet_contact", "neutral_zone"),
         }
         assert pairs_off == set()
+
+
+def test_the_criterion_counts_the_parameters_the_data_determine(world):
+    """BIC ``chi^2 + k ln n``: by default ``k`` is the trace of the hat matrix, so the disc's
+    parameters that RoM does not determine cost less than their count, and every ranking's
+    criterion is ordered and consistent with its own effective number of parameters."""
+    import torch
+
+    from femcal.diagnose.fits import _Fit
+
+    fit = _Fit(("x",), None, torch.zeros(1, 15), np.array([0]), None, np.array([30.0]), 15)
+    fit.trace = np.array([6.5])
+    mask, sigma = np.ones((1, 4, 9), dtype=bool), np.full((4, 9), NOISE)
+    assert fit.criterion(0, np.log(36), "effective", mask, sigma) == pytest.approx(
+        30.0 + 6.5 * np.log(36)
+    )
+    assert fit.criterion(0, np.log(36), "count", mask, sigma) == pytest.approx(
+        30.0 + 15 * np.log(36)
+    )
+    _, _, _, diag = world
+    base = world[0]
+    for s in diag.specimens:
+        crit = [r["criterion"] for r in s.ranking]
+        assert crit == sorted(crit)
+        for r in s.ranking:
+            # trace of J (J'J + I)^-1 J' = sum of lambda / (lambda + 1) < the count
+            assert 0 < r["effective_parameters"] < base.dim + len(r["parameters"])
+        disc = next(r for r in s.ranking if not r["effects"])
+        assert disc["effective_parameters"] < base.dim  # most of the disc is not identifiable

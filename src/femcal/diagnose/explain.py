@@ -78,9 +78,21 @@ def _adequate_quick(
 
 # ------------------------------------------------------------------------ reporting
 def _ranking(
-    fits: dict, i: int, measured: np.ndarray, sigma: np.ndarray, log_n: np.ndarray, base
+    fits: dict,
+    i: int,
+    measured: np.ndarray,
+    sigma: np.ndarray,
+    log_n: np.ndarray,
+    base,
+    penalty: str = "effective",
+    mask: np.ndarray | None = None,
 ) -> list[dict[str, Any]]:
-    """Every model fitted for specimen ``i``: MAE, BIC and effect parameters ± sd."""
+    """Every model fitted for specimen ``i``: MAE, BIC (the search's criterion,
+    :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of parameters and the
+    effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured points (default: where
+    ``measured`` is finite)."""
+    if mask is None:
+        mask = np.isfinite(measured)
     rows = []
     for effects, (f, pos) in fits.items():
         pred = f.pred[pos].double().numpy()
@@ -89,7 +101,8 @@ def _ranking(
             "effect": model_label(effects),
             "effects": list(effects),
             "mae_deg": mae,
-            "criterion": float(f.chi2[pos] + f.k * log_n[i]),
+            "criterion": f.criterion(pos, float(log_n[i]), penalty, mask, sigma),
+            "effective_parameters": float(f.trace[pos]) if f.trace is not None else None,
             "parameters": {},
         }
         if effects:

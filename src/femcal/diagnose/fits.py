@@ -112,6 +112,10 @@ def _chi2_sf(x: float, k: float) -> float:
     return float(chi2.sf(x, max(k, 1.0)))
 
 
+#: How a model's criterion counts its parameters (:func:`_Fit.criterion`).
+PENALTIES = ("effective", "count")
+
+
 @dataclass
 class _Fit:
     effects: tuple[str, ...]
@@ -133,6 +137,19 @@ class _Fit:
         _, jac = self.model.curves_jacobian(self.v)
         self.trace, self.cov = _hat_trace_and_cov(jac, mask[self.rows], sigma)
         self.finite = torch.isfinite(jac).reshape(len(self.rows), -1).all(1).numpy()
+
+    def criterion(
+        self, pos: int, log_n: float, penalty: str, mask: np.ndarray, sigma: np.ndarray
+    ) -> float:
+        """BIC of specimen ``pos`` of the batch: ``chi^2 + k ln n`` with ``k`` the effective
+        number of parameters (``penalty="effective"``: the trace of the hat matrix under the
+        unit-box prior, :meth:`ensure_trace`) or the count of parameters (``"count"``)."""
+        if penalty == "effective":
+            self.ensure_trace(mask, sigma)
+            k = float(self.trace[pos])
+        else:
+            k = float(self.k)
+        return float(self.chi2[pos] + k * log_n)
 
 
 def _fit_from(

@@ -46,7 +46,9 @@ class SpecimenDiagnosis:
         The final model explains the data within the noise.
     ranking : list of dict
         Every model fitted (``effect`` = its label, ``effects``, ``mae_deg``, ``criterion``
-        (BIC), ``parameters`` of its effects ± sd), best first.
+        (BIC, ``chi^2 + k ln n`` with ``k`` the ``effective_parameters`` by default),
+        ``effective_parameters`` (trace of the hat matrix), ``parameters`` of its effects
+        ± sd), best first.
     residuals : ndarray, shape (4, m)
         Disc-alone residuals, measured - model (deg, NaN where not measured).
     final_residuals : ndarray, shape (4, m)

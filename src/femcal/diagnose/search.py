@@ -9,10 +9,12 @@ For every specimen:
    effect parameters jointly, inside all bounds, from the current solution and a grid over the
    new effect's box; a first effect also from the disc-and-effect combinations nearest the
    specimen's curves, because the disc fitted alone has bent towards the missing physics), add
-   the one with the lowest BIC (``chi^2 + k ln n`` with the known noise) if it beats the current
-   model by ``min_delta`` (10 = "very strong" evidence), and go on while another effect pays: a
-   model that holds an effect takes a further one at a lower bar, ``min_delta_inadequate`` when
-   it still does not explain the data (the data already say that something more is missing) and
+   the one with the lowest BIC (``chi^2 + k ln n`` with the known noise, ``k`` the model's
+   effective number of parameters: the trace of its hat matrix, see ``penalty``) if it beats
+   the current model by ``min_delta`` (10 = "very strong" evidence), and go on while another
+   effect pays: a model that holds an effect takes a further one at a lower bar,
+   ``min_delta_inadequate`` when it still does not explain the data (the data already say that
+   something more is missing) and
    ``min_delta_adequate`` when it does (a second effect small beside the first escapes the
    chi-square test but may still pay a likelihood criterion; the backward check below drops it
    again if it stops paying once the smaller model is refitted); a further effect also starts
@@ -65,6 +67,7 @@ from femcal.diagnose.explain import (
     _adequate_quick,
 )
 from femcal.diagnose.fits import (
+    PENALTIES,
     _chi2,
     _columns,
     _Fit,
@@ -146,6 +149,7 @@ def diagnose(
     combination_rounds: int = 1,
     exact_dof: bool = True,
     beam_delta: float | None = None,
+    penalty: str = "effective",
     moment_policy: MomentPolicy | None = None,
     seed: int = 0,
 ) -> Diagnosis:
@@ -258,6 +262,19 @@ def diagnose(
     exact_dof : bool
         The search's adequacy test takes the final test's degrees of freedom (``n - trace`` of
         the hat matrix, a Jacobian per fitted batch), else ``n - k/2``.
+    penalty : {"effective", "count"}
+        How the BIC ``chi^2 + k ln n`` of forward selection, the backward check, the ranking
+        and *what to measure next* counts a model's parameters: ``k`` the effective number
+        (the trace of the hat matrix ``J (J^T J + I)^-1 J^T`` in unit coordinates with the
+        noise's weights, the degrees of freedom the adequacy test already uses) or their count.
+        The disc's 13 parameters are mostly not identifiable from RoM, and an effect's shape
+        parameters are often barely determined by 16-36 points: counted in full they made a
+        second effect pay for parameters the data never fixed, and combinations were named as
+        their stronger effect alone. Measured on the four tuning hidden cohorts (session 18):
+        "effective" named 139 of 153 eligible specimens right, "count" 128; no ``none``
+        specimen was given an effect with either, and the three-class cohorts 0 and 1 stayed
+        at 100 %. The open-world elimination keeps counting parameters (with the effective
+        number there: 136 of 153).
     moment_policy : MomentPolicy, optional
         Where a next measurement may be taken. Given, *what to measure next* searches every
         moment the policy accepts (:attr:`~femcal.moments.MomentPolicy.accepted_range`), not
@@ -301,6 +318,11 @@ def diagnose(
         raise ConfigError(
             "diagnose: beam_delta must be >= 0 (how close in BIC a model must be to the best "
             f"of its level to be extended too; 0 = greedy) or None (min_delta); got {beam_delta}."
+        )
+    if penalty not in PENALTIES:
+        raise ConfigError(
+            f"diagnose: penalty must be one of {', '.join(map(repr, PENALTIES))} (how the BIC "
+            f"counts a model's parameters); got {penalty!r}."
         )
     if gp_amplitude not in ("ml", "misfit"):
         raise ConfigError(f"diagnose: gp_amplitude must be 'ml' or 'misfit'; got {gp_amplitude!r}.")
@@ -368,7 +390,7 @@ def diagnose(
     ]
 
     def bic_of(fit: _Fit, pos: int, i: int) -> float:
-        return float(fit.chi2[pos] + fit.k * log_n[i])
+        return fit.criterion(pos, float(log_n[i]), penalty, mask, sigma)
 
     # The models each specimen's next level extends: the best of the level and every model
     # within ``beam_delta`` of it (a greedy path through a near tie misses the pair that
@@ -574,6 +596,7 @@ def diagnose(
         effect_model=effect_model,
         alpha=alpha,
         min_delta=min_delta,
+        penalty=penalty,
         discrepancy=discrepancy,
         curve_points=curve_points,
         noise_used=noise_used,
