@@ -74,7 +74,7 @@ from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.config import load_params, section
 from femcal.datasets import load_split, training_configurations
 from femcal.diagnose import diagnose
-from femcal.diagnose.fits import _hat_trace_and_cov
+from femcal.diagnose.fits import _Fit
 from femcal.effects.base import available_effects
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
@@ -264,12 +264,12 @@ def truth_preferred(
     Every model the diagnosis could name (the disc alone, each registered effect, each pair,
     the triple) is calibrated to each combination specimen with a thorough ``pgd``
     (:data:`THOROUGH`), and scored as the diagnosis scores it: ``chi^2 + k ln n`` with the
-    noise and the surrogate's error ``sigma_m`` (m,), ``k`` counted as the diagnosis' ``penalty``
-    option says (by default the effective number of parameters at the thorough fit, the trace
-    of its hat matrix; :meth:`femcal.diagnose.fits._Fit.criterion`). Where another model has a
-    lower BIC than
-    the true combination, no criterion that prefers the simpler or better-fitting model can
-    name the combination whole: this is the ceiling of bar (a) that the data allow. True for
+    noise and the surrogate's error ``sigma_m`` (m,), ``k`` counted as the diagnosis'
+    ``penalty`` option says (by default the effective number of parameters at the thorough
+    fit, the trace of its hat matrix; :meth:`femcal.diagnose.fits._Fit.criterion`). Where
+    another model has a lower BIC than the true combination, no criterion that prefers the
+    simpler or better-fitting model can name the combination whole: this is the ceiling of
+    bar (a) that the data allow. True for
     every specimen that is not a combination of registered effects.
 
     Returns
@@ -305,11 +305,13 @@ def truth_preferred(
         # over the measured points only; a NaN prediction there makes the model's BIC inf
         z = np.where(mask, (rom - res.prediction) / sigma_m, 0.0)
         chi2 = (z**2).sum(axis=(1, 2))
-        k = np.full(len(idx), float(m.dim))
-        if penalty == "effective":
-            _, jac = m.curves_jacobian(m.from_physical(np.asarray(res.x)))
-            k, _ = _hat_trace_and_cov(jac, mask, sigma)
-        bic[effects] = np.where(np.isfinite(chi2), chi2, np.inf) + k * log_n
+        chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
+        # scored by the diagnosis' own criterion (its traces from one Jacobian of the batch)
+        v = m.from_physical(np.asarray(res.x))
+        fit = _Fit(effects, m, v, np.arange(len(idx)), None, chi2, m.dim)
+        bic[effects] = np.array(
+            [fit.criterion(k, log_n[k], penalty, mask, sigma) for k in range(len(idx))]
+        )
     for k, i in enumerate(idx):
         truth = tuple(sorted(cohort["expected"][i]))
         other = min(float(b[k]) for e, b in bic.items() if e != truth)

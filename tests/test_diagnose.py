@@ -412,8 +412,7 @@ def test_the_criterion_counts_the_parameters_the_data_determine(world):
     assert fit.criterion(0, np.log(36), "count", mask, sigma) == pytest.approx(
         30.0 + 15 * np.log(36)
     )
-    _, _, _, diag = world
-    base = world[0]
+    base, _, _, diag = world
     for s in diag.specimens:
         crit = [r["criterion"] for r in s.ranking]
         assert crit == sorted(crit)

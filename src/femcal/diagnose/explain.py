@@ -84,15 +84,13 @@ def _ranking(
     sigma: np.ndarray,
     log_n: np.ndarray,
     base,
-    penalty: str = "effective",
-    mask: np.ndarray | None = None,
+    penalty: str,
+    mask: np.ndarray,
 ) -> list[dict[str, Any]]:
     """Every model fitted for specimen ``i``: MAE, BIC (the search's criterion,
     :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of parameters and the
-    effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured points (default: where
-    ``measured`` is finite)."""
-    if mask is None:
-        mask = np.isfinite(measured)
+    effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured points; every fit's
+    trace is known (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`)."""
     rows = []
     for effects, (f, pos) in fits.items():
         pred = f.pred[pos].double().numpy()
@@ -102,7 +100,7 @@ def _ranking(
             "effects": list(effects),
             "mae_deg": mae,
             "criterion": f.criterion(pos, float(log_n[i]), penalty, mask, sigma),
-            "effective_parameters": float(f.trace[pos]) if f.trace is not None else None,
+            "effective_parameters": float(f.trace[pos]),
             "parameters": {},
         }
         if effects:
