@@ -421,3 +421,22 @@ def test_the_criterion_counts_the_parameters_the_data_determine(world):
             assert 0 < r["effective_parameters"] < base.dim + len(r["parameters"])
         disc = next(r for r in s.ranking if not r["effects"])
         assert disc["effective_parameters"] < base.dim  # most of the disc is not identifiable
+
+
+def test_chi2_skips_unmeasured_points_but_not_a_failed_prediction():
+    """A point that was not measured (NaN in ``measured``) does not count; a prediction that is
+    not finite where a point was measured makes the model's chi-square inf, so it can never be
+    chosen (it used to be skipped like an unmeasured point)."""
+    import torch
+
+    from femcal.diagnose.fits import _chi2
+
+    sigma = np.full((4, 3), 0.5)
+    measured = np.zeros((2, 4, 3))
+    measured[:, 0, 2] = np.nan  # not measured
+    pred = torch.full((2, 4, 3), 0.5)
+    pred[0, 0, 2] = float("nan")  # at the unmeasured point: fine
+    pred[1, 1, 1] = float("nan")  # at a measured point: this model failed there
+    chi2 = _chi2(pred, measured, sigma)
+    assert chi2[0] == pytest.approx(11.0)  # 11 measured points, each (0.5 / 0.5)^2
+    assert chi2[1] == np.inf

@@ -24,8 +24,12 @@ def _weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    r = (measured - pred.double().numpy()) / sigma
-    return np.nansum(r**2, axis=(1, 2))
+    """Chi-square over the measured points, shape (n,): ``pred`` (n, 4, m), ``measured``
+    (n, 4, m) NaN where not measured, ``sigma`` (4, m). A prediction that is not finite at a
+    measured point makes it inf (that model cannot be chosen), not a skipped point."""
+    z = np.where(np.isfinite(measured), (measured - pred.double().numpy()) / sigma, 0.0)
+    chi2 = (z**2).sum(axis=(1, 2))
+    return np.where(np.isfinite(chi2), chi2, np.inf)
 
 
 def _grid(
