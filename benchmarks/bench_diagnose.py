@@ -11,7 +11,8 @@ noise sd 0.05 deg:
   ``unexplained``) and ``none``, 8 specimens per class, protocols 1..5 Nm x 0.5, 1.25..5 Nm
   and 1.25..7.5 Nm x 1.25 mixed in one file (NaN where not measured). Seeds 0, 1, 2025 and
   4711 tune (:data:`hidden_cohorts.TUNING_SEEDS`); :data:`hidden_cohorts.HOLDOUT_SEEDS` are held
-  out and run only with ``--holdout``.
+  out and run only with ``--holdout``; :data:`hidden_cohorts.FRESH_SEEDS` (3..6) were first run
+  in session 19 with the search unchanged.
 
 The surrogate is the registered champion; its own error enters sigma per moment as in the
 diagnose stage (:meth:`femcal.moments.MomentPolicy.sigma_surrogate` with params.yaml
@@ -34,7 +35,10 @@ report counts them). The bars, per cohort:
 (e) the diagnosis of 50 specimens <= 60 s on 2 cores (wall scaled to 50 specimens; CPU too).
 
 Writes ``reports/bench_diagnose.md`` and ``reports/bench_diagnose.json`` (``--out`` for
-another folder). Run it alone: other processes on the 2 cores slow torch down badly.
+another folder); the bars are also pooled per group of cohorts (tuning, fresh, held out) with
+Wilson 95 % intervals. ``--from-json A.json --from-json B.json`` writes one report from earlier
+runs (no diagnosis), e.g. to put a run of other seeds beside the main one. Run it alone: other
+processes on the 2 cores slow torch down badly.
 
 Usage (from the project root, after ``make repro``)::
 
@@ -62,6 +66,7 @@ import pandas as pd
 import torch
 from hidden_cohorts import CLASSES as HIDDEN_CLASSES
 from hidden_cohorts import (
+    FRESH_SEEDS,
     HOLDOUT_SEEDS,
     PROTOCOLS,
     TUNING_SEEDS,
@@ -600,6 +605,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     ap.add_argument("--out", type=Path, default=REPO / "reports", help="report folder")
     ap.add_argument(
+        "--from-json",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="rewrite the report from earlier runs' bench_diagnose.json (repeatable: their "
+        "cohorts side by side), diagnosing nothing",
+    )
+    ap.add_argument(
         "--model-uri", default=None, help="the surrogate (default: params.yaml calibrate.model_uri)"
     )
     ap.add_argument(
@@ -610,6 +624,10 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="a keyword of femcal.diagnose.diagnose for an ablation (a Python literal), repeatable",
     )
     args = ap.parse_args(argv)
+    if args.from_json:
+        rows, meta = merge_reports(args.from_json)
+        write(rows, meta, args.out)
+        return
     options = {}
     for item in args.diagnose_option:
         key, sep, value = item.partition("=")
@@ -777,6 +795,86 @@ def _ok(flag: bool) -> str:
     return "yes" if flag else "**no**"
 
 
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval (95 % by default) of a proportion ``k / n``; (nan, nan) if n = 0."""
+    if n <= 0:
+        return float("nan"), float("nan")
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return float(centre - half), float(centre + half)
+
+
+def _group(r: dict[str, Any]) -> str:
+    if r["kind"] != "hidden":
+        return f"{r['kind']}-class cohorts" if r["kind"] == "three" else r["kind"]
+    if r["holdout"]:
+        return "hidden, held out"
+    if r["seed"] in TUNING_SEEDS:
+        return "hidden, tuning"
+    return "hidden, fresh (first run)" if r["seed"] in FRESH_SEEDS else "hidden, other seeds"
+
+
+def pooled(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Bars (a) and (b) pooled per group of cohorts (three-class; hidden tuning; hidden held
+    out), with Wilson 95 % intervals: one cohort's 36-41 eligible specimens put a rate's
+    interval about +-10 points wide."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(_group(r), []).append(r)
+    out = []
+    for name, rs in groups.items():
+        k = sum(int(r["n_right_eligible"]) for r in rs)
+        n = sum(int(r["n_eligible"]) for r in rs)
+        kp = sum(int(r.get("n_truth_preferred", r["n_eligible"])) for r in rs)
+        kb = sum(int(r["n_none_given_effect"]) for r in rs)
+        nb = sum(int(r["n_none"]) for r in rs)
+        out.append(
+            {
+                "group": name,
+                "seeds": [r["seed"] for r in rs],
+                "a_right": k,
+                "a_eligible": n,
+                "a_interval": wilson(k, n),
+                "ceiling": kp / n if n else float("nan"),
+                "b_none_given_effect": kb,
+                "b_none": nb,
+                "b_interval": wilson(kb, nb),
+            }
+        )
+    return out
+
+
+def merge_reports(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The cohorts of several ``bench_diagnose.json`` files and their shared settings.
+
+    Raises
+    ------
+    ValueError
+        The files were written with other surrogates, noise or diagnose options: their rates
+        are not comparable side by side.
+    """
+    rows: list[dict[str, Any]] = []
+    metas = []
+    for path in paths:
+        data = json.loads(Path(path).read_text())
+        rows += data.pop("cohorts")
+        metas.append(data)
+    for key in ("surrogate", "noise_deg", "diagnose_options", "max_specimens"):
+        seen = {json.dumps(m.get(key), sort_keys=True) for m in metas}
+        if len(seen) > 1:
+            raise ValueError(
+                f"--from-json: the reports differ in {key!r} ({', '.join(sorted(seen))}); "
+                "merge only runs of the same surrogate, noise and options."
+            )
+    commands = []
+    for m in metas:
+        commands += m.get("commands") or [m["command"]]
+    meta = {**metas[0], "commands": commands}
+    meta.pop("command", None)
+    return rows, meta
+
+
 def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
     """Write ``bench_diagnose.md`` and ``bench_diagnose.json`` into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -785,7 +883,13 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
     lines = [
         "# Missing-effect search: closed-world and open-world cohorts",
         "",
-        f"Reproduce: `{meta['command']}`",
+        "Reproduce: "
+        + ", then ".join(f"`{c}`" for c in meta.get("commands") or [meta["command"]])
+        + (
+            " (this report joins their JSON: `benchmarks/bench_diagnose.py --from-json ...`)"
+            if len(meta.get("commands") or []) > 1
+            else ""
+        ),
         "",
         f"Machine: {meta['machine']}, {meta['torch_threads']} torch threads. Surrogate: "
         f"{meta['surrogate']}, its error {sur:.4f} deg (sd) in range"
@@ -848,6 +952,26 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
                 if "n_truth_preferred" in r
                 else "- | - |"
             )
+        )
+    lines += [
+        "",
+        "Pooled per group of cohorts, with Wilson 95 % intervals (one cohort's 36-41 eligible "
+        "specimens give an interval about ±10 points wide; near ties between a combination and "
+        "its stronger effect flip with float rounding, see the README):",
+        "",
+        "| cohorts | seeds | (a) right / eligible | 95 % interval | ceiling of (a) | "
+        "(b) `none` given an effect | 95 % interval |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for g in pooled(rows):
+        lo, hi = g["a_interval"]
+        blo, bhi = g["b_interval"]
+        lines.append(
+            f"| {g['group']} | {', '.join(map(str, g['seeds']))} | "
+            f"{g['a_right']}/{g['a_eligible']} = {_pct(g['a_right'] / max(g['a_eligible'], 1))} | "
+            f"{_pct(lo)}-{_pct(hi)} | {_pct(g['ceiling'])} | "
+            f"{g['b_none_given_effect']}/{g['b_none']} = "
+            f"{_pct(g['b_none_given_effect'] / max(g['b_none'], 1))} | {_pct(blo)}-{_pct(bhi)} |"
         )
     lines += [
         "",
