@@ -816,8 +816,8 @@ def _group(r: dict[str, Any]) -> str:
 
 
 def pooled(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Bars (a) and (b) pooled per group of cohorts (three-class; hidden tuning; hidden held
-    out), with Wilson 95 % intervals: one cohort's 36-41 eligible specimens put a rate's
+    """Bars (a) and (b) pooled per group of cohorts (three-class; hidden tuning, fresh, held
+    out), with Wilson 95 % intervals: one cohort's 34-41 eligible specimens put a rate's
     interval about +-10 points wide."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
@@ -955,7 +955,7 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         )
     lines += [
         "",
-        "Pooled per group of cohorts, with Wilson 95 % intervals (one cohort's 36-41 eligible "
+        "Pooled per group of cohorts, with Wilson 95 % intervals (one cohort's 34-41 eligible "
         "specimens give an interval about ±10 points wide; near ties between a combination and "
         "its stronger effect flip with float rounding, see the README):",
         "",
