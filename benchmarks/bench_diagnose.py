@@ -74,12 +74,13 @@ from hidden_cohorts import (
     make_hidden_cohort,
     stratified,
 )
+from scipy.stats import binomtest
 
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.config import load_params, section
 from femcal.datasets import load_split, training_configurations
 from femcal.diagnose import diagnose
-from femcal.diagnose.fits import _Fit
+from femcal.diagnose.fits import _chi2, _Fit
 from femcal.effects.base import available_effects
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
@@ -307,10 +308,8 @@ def truth_preferred(
     for effects in models:
         m = EffectModel(model, list(effects)) if effects else model
         res = calibrate(m, rom, weight=w, method="pgd", options=opts, seed=0)
-        # over the measured points only; a NaN prediction there makes the model's BIC inf
-        z = np.where(mask, (rom - res.prediction) / sigma_m, 0.0)
-        chi2 = (z**2).sum(axis=(1, 2))
-        chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
+        # the diagnosis' own chi-square: measured points only, a failed prediction there inf
+        chi2 = _chi2(torch.as_tensor(res.prediction), rom, sigma)
         # scored by the diagnosis' own criterion (its traces from one Jacobian of the batch)
         v = m.from_physical(np.asarray(res.x))
         fit = _Fit(effects, m, v, np.arange(len(idx)), None, chi2, m.dim)
@@ -795,14 +794,12 @@ def _ok(flag: bool) -> str:
     return "yes" if flag else "**no**"
 
 
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval (95 % by default) of a proportion ``k / n``; (nan, nan) if n = 0."""
+def wilson(k: int, n: int) -> tuple[float, float]:
+    """Wilson score 95 % interval of a proportion ``k / n`` (SciPy); (nan, nan) if n = 0."""
     if n <= 0:
         return float("nan"), float("nan")
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return float(centre - half), float(centre + half)
+    ci = binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+    return float(ci.low), float(ci.high)
 
 
 def _group(r: dict[str, Any]) -> str:
