@@ -276,7 +276,9 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_inadequate=-1.0)
     with pytest.raises(ConfigError, match="min_delta_adequate must be >= 0 or None"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, min_delta_adequate=-1.0)
-    with pytest.raises(ConfigError, match="penalty must be one of 'effective', 'count'"):
+    with pytest.raises(
+        ConfigError, match="penalty must be one of 'effective', 'count', 'evidence'"
+    ):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, penalty="aic")
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, surrogate_error_deg=-0.1)
@@ -421,6 +423,30 @@ def test_the_criterion_counts_the_parameters_the_data_determine(world):
             assert 0 < r["effective_parameters"] < base.dim + len(r["parameters"])
         disc = next(r for r in s.ranking if not r["effects"])
         assert disc["effective_parameters"] < base.dim  # most of the disc is not identifiable
+
+
+def test_the_evidence_penalty_is_laplaces_occam_factor_over_the_unit_box():
+    """``penalty="evidence"``: ``chi^2 + ln det(I + J^T J / 2 pi)`` in unit coordinates. An
+    axis the data do not determine costs nothing; one they fix to a posterior sd ``s`` costs
+    ``ln(1 + 1 / (2 pi s^2))``, the box's width over the posterior's (a Gaussian of variance
+    ``1 / 2 pi`` has the unit box's volume)."""
+    import torch
+
+    from femcal.diagnose.fits import _Fit, _hat_trace_and_cov
+
+    sigma = np.full((4, 3), 0.1)
+    mask = np.ones((1, 4, 3), dtype=bool)
+    jac = torch.zeros(1, 4, 3, 2, dtype=torch.float64)
+    jac[0, 0, :, 0] = 0.5  # three points, 5 sd per unit
+    _, cov, occam = _hat_trace_and_cov(jac, mask, sigma)
+    info = 3 * (0.5 / 0.1) ** 2  # the second parameter: no information at all
+    assert occam[0] == pytest.approx(np.log(1 + info / (2 * np.pi)))
+    assert cov[0, 1, 1] == pytest.approx(1.0)
+    fit = _Fit(("x",), None, torch.zeros(1, 2), np.array([0]), None, np.array([30.0]), 2)
+    fit.trace, fit.occam = np.array([1.0]), occam
+    assert fit.criterion(0, np.log(12), "evidence", mask, sigma) == pytest.approx(
+        30.0 + np.log(1 + info / (2 * np.pi))
+    )
 
 
 def test_chi2_skips_unmeasured_points_but_not_a_failed_prediction():

@@ -106,7 +106,11 @@ def _hat_trace_and_cov(jac: torch.Tensor, mask: np.ndarray, sigma: np.ndarray):
     info = np.einsum("npi,npj->nij", j, j)
     cov = np.linalg.inv(info + np.eye(d))
     trace = np.einsum("nij,nji->n", info, cov)
-    return trace, cov
+    # Laplace's Occam factor with the unit box as a flat prior: the posterior's volume over
+    # the box's (a Gaussian of variance 1/(2 pi) per unit axis has the box's volume, so an
+    # axis the data do not fix costs nothing and a fixed one ln(information / 2 pi)).
+    _, occam = np.linalg.slogdet(np.eye(d) + info / (2 * np.pi))
+    return trace, cov, occam
 
 
 def _chi2_sf(x: float, k: float) -> float:
@@ -117,7 +121,7 @@ def _chi2_sf(x: float, k: float) -> float:
 
 
 #: How a model's criterion counts its parameters (:func:`_Fit.criterion`).
-PENALTIES = ("effective", "count")
+PENALTIES = ("effective", "count", "evidence")
 
 
 @dataclass
@@ -132,6 +136,7 @@ class _Fit:
     trace: np.ndarray | None = None  # (r,) effective number of parameters
     cov: np.ndarray | None = None  # (r, dim, dim) parameter covariance, unit coordinates
     finite: np.ndarray | None = None  # (r,) the Jacobian is finite
+    occam: np.ndarray | None = None  # (r,) ln det(I + J^T J / 2 pi), unit coordinates
 
     def ensure_trace(self, mask: np.ndarray, sigma: np.ndarray) -> None:
         """Effective parameters, covariance and finiteness from one Jacobian of the batch
@@ -139,7 +144,7 @@ class _Fit:
         if self.trace is not None:
             return
         _, jac = self.model.curves_jacobian(self.v)
-        self.trace, self.cov = _hat_trace_and_cov(jac, mask[self.rows], sigma)
+        self.trace, self.cov, self.occam = _hat_trace_and_cov(jac, mask[self.rows], sigma)
         self.finite = torch.isfinite(jac).reshape(len(self.rows), -1).all(1).numpy()
 
     def criterion(
@@ -147,7 +152,12 @@ class _Fit:
     ) -> float:
         """BIC of specimen ``pos`` of the batch: ``chi^2 + k ln n`` with ``k`` the effective
         number of parameters (``penalty="effective"``: the trace of the hat matrix under the
-        unit-box prior, :meth:`ensure_trace`) or the count of parameters (``"count"``)."""
+        unit-box prior, :meth:`ensure_trace`) or the count of parameters (``"count"``); with
+        ``"evidence"`` minus twice Laplace's log evidence under a flat prior on the unit box,
+        ``chi^2 + ln det(I + J^T J / 2 pi)`` (up to a constant common to every model)."""
+        if penalty == "evidence":
+            self.ensure_trace(mask, sigma)
+            return float(self.chi2[pos] + self.occam[pos])
         if penalty == "effective":
             self.ensure_trace(mask, sigma)
             k = float(self.trace[pos])
