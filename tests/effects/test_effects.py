@@ -127,6 +127,7 @@ def test_composite_jacobian_matches_finite_differences(surrogate):
     model.net = copy.deepcopy(model.net).double()
     model.moments = model.moments.double()
     v = torch.rand(3, model.dim, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    v[1, : model.n_disc] = v[0, : model.n_disc]  # one disc, two effect starts (computed once)
     _, jac = model.curves_jacobian(v)
     eps = 1e-6
     for i in range(model.dim):
@@ -134,6 +135,21 @@ def test_composite_jacobian_matches_finite_differences(surrogate):
         dv[:, i] = eps
         fd = (model.curves(v + dv) - model.curves(v - dv)) / (2 * eps)
         torch.testing.assert_close(jac[..., i], fd, rtol=1e-5, atol=1e-7)
+
+
+def test_rows_sharing_their_disc_get_the_jacobian_each_gets_alone(surrogate):
+    # The starts of one grid share the disc's parameters: its network tangents are computed
+    # once per distinct disc and handed to every row (float32: a batch of another size may
+    # round the last bit otherwise).
+    base = SurrogateCurveModel(surrogate, MOMENTS)
+    model = EffectModel(base, BUILTIN)
+    v = torch.rand(5, model.dim, generator=torch.Generator().manual_seed(8))
+    v[[1, 3], : model.n_disc] = v[0, : model.n_disc]
+    got_f, got_j = model.curves_jacobian(v)
+    for i in range(len(v)):
+        want_f, want_j = EffectModel(base, BUILTIN).curves_jacobian(v[i : i + 1])
+        torch.testing.assert_close(got_f[i], want_f[0], rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(got_j[i], want_j[0], rtol=1e-5, atol=1e-5)
 
 
 def test_the_jacobian_reuses_the_shares_of_the_last_curves_call_exactly(surrogate):

@@ -160,8 +160,20 @@ class Effect:
 
     @classmethod
     def from_unit(cls, u: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Unit-box values (B, p) -> physical parameters by name, each (B,)."""
-        x = cls.space().from_unit(u)
+        """Unit-box values (B, p) -> physical parameters by name, each (B,).
+
+        A forward-mode dual ``u`` (the Jacobian, :meth:`EffectModel.curves_jacobian`) is mapped
+        by its primal and the map's diagonal derivative: the same values, without forward-mode
+        AD's slow broadcasting of the map's bounds over every dual row.
+        """
+        import torch.autograd.forward_ad as fwad
+
+        space = cls.space()
+        primal, tangent = fwad.unpack_dual(u)
+        if tangent is None:
+            x = space.from_unit(u)
+        else:
+            x = fwad.make_dual(space.from_unit(primal), space.from_unit_jacobian(primal) * tangent)
         return {q.name: x[:, j] for j, q in enumerate(cls.parameters)}
 
     @classmethod

@@ -98,20 +98,30 @@ class EffectModel:
         return torch.cat(parts, dim=1)
 
     # ------------------------------------------------------------ evaluation
-    def _disc(self, v_disc: torch.Tensor, coef: torch.Tensor | None = None):
+    def _disc(
+        self,
+        v_disc: torch.Tensor,
+        coef: torch.Tensor | None = None,
+        cases: list[int] | None = None,
+    ):
         """A function ``phi(M, detached=False, slope=True)`` of the disc at ``v_disc`` (B, 13):
-        M (B, 4, m) -> (rotation, d rotation / dM or None).
+        M (B, c, m) -> (rotation, d rotation / dM or None), ``c`` = 4 or ``len(cases)``.
 
         ``coef`` (K, B, 4, p): the members' coefficients when already computed (the Jacobian
         passes them as a dual tensor, differentiated by :func:`forward_tangents`).
-        ``detached``: without graph or forward-mode tangent (the bisection); ``slope=False``
-        skips the derivative.
+        ``cases``: only these load cases (indices into
+        :data:`~femcal.schema.LOAD_CASES`; the bisection needs only those of its parallel
+        effects). ``detached``: without graph or forward-mode tangent (the bisection);
+        ``slope=False`` skips the derivative.
         """
         net = self.net
         b = v_disc.shape[0]
         p = net.moment_degree + 1
         if coef is None:
             coef = torch.stack([m(v_disc).reshape(b, net.n_load_cases, p) for m in net.members])
+        if cases is not None:
+            coef = coef[:, :, cases]
+        n_cases = coef.shape[2]
         # The output scaling folded into the coefficients: Horner's rule then gives the
         # network's target t (log RoM or RoM) directly; and t's derivative in z.
         loc, inv_scale, y_scale, y_loc, dpowers = (
@@ -158,7 +168,7 @@ class EffectModel:
 
         def low_end(detached: bool) -> torch.Tensor:
             if detached not in ends:
-                log_m = constant_like(torch.full((b, net.n_load_cases, 1), log_low), coef)
+                log_m = constant_like(torch.full((b, n_cases, 1), log_low), coef)
                 deg, ddeg = members(detached, z_of(log_m), True)
                 ends[detached] = (ddeg * inv_scale / deg).clamp(0.05, 3.0)
             return ends[detached]
@@ -191,23 +201,27 @@ class EffectModel:
         lc_mask = torch.zeros(4, dtype=torch.bool)
         for e, _ in parallel:
             lc_mask |= e.load_case_mask()
+        # Only the load cases a parallel effect acts in (elsewhere the disc carries it all).
+        cases = torch.nonzero(lc_mask).flatten().tolist()
         with torch.no_grad():
-            phi_disc = self._disc(v[:, : self.n_disc])
-            lo = torch.log(applied * _MIN_SHARE)
-            hi = torch.log(applied).clone()
-            masks = [e.load_case_mask()[None, :, None].to(v.dtype) for e, _ in parallel]
+            phi_disc = self._disc(v[:, : self.n_disc], cases=cases)
+            target = applied[:, cases]
+            lo = torch.log(target * _MIN_SHARE)
+            hi = torch.log(target).clone()
+            masks = [e.load_case_mask()[None, cases, None].to(v.dtype) for e, _ in parallel]
             for _ in range(_BISECTIONS):
                 mid = 0.5 * (lo + hi)
                 md = torch.exp(mid)
                 phi = phi_disc(md, detached=True, slope=False)[0]
-                g = md - applied
+                g = md - target
                 for (e, p), lc in zip(parallel, masks):
                     g = g + e.moment(phi, p) * lc
                 up = g > 0
                 hi = torch.where(up, mid, hi)
                 lo = torch.where(up, lo, mid)
-            md0 = torch.exp(0.5 * (lo + hi))
-            return torch.where(lc_mask[None, :, None], md0, applied)
+            share = applied.clone()
+            share[:, cases] = torch.exp(0.5 * (lo + hi))
+            return share
 
     def _share_of(self, v: torch.Tensor) -> torch.Tensor:
         """:meth:`_disc_share` at ``v`` (n, dim); the rows that the last :meth:`curves` call
@@ -310,9 +324,12 @@ class EffectModel:
             # costs far more per operation); row i * d + j carries d coef_i / d v_j.
             shape = (n * d, net.n_load_cases, net.moment_degree + 1)
             coef, dcoef = [], []
+            # Each distinct disc once: a fit's starts from one grid share the disc's parameters.
+            disc, inverse = torch.unique(vc[:, :nd], dim=0, return_inverse=True)
             with torch.no_grad():
                 for member in net.members:
-                    h, t = forward_tangents(member, vc[:, :nd])  # (n, out), (n, nd, out)
+                    h, t = forward_tangents(member, disc)  # (u, out), (u, nd, out)
+                    h, t = h[inverse], t[inverse]
                     full = t.new_zeros((n, d, t.shape[-1]))
                     full[:, :nd] = t
                     coef.append(h.repeat_interleave(d, 0).reshape(shape))
