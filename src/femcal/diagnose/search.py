@@ -286,7 +286,7 @@ def diagnose(
         (:meth:`~femcal.diagnose.fits._Fit.criterion`), which charges a well-determined
         parameter the log of the box's width over its posterior's (BIC: ``ln n``, 2.8-3.6
         for 16-36 points). Measured on the eight tuning and fresh hidden cohorts (session 20,
-        297 eligible): 257 right against 267, ten combinations named as one effect; with
+        297 eligible): 257 right against 267, eleven pairs named as one effect; with
         ``min_delta_adequate = min_delta_inadequate = 0`` (its natural bars, odds of 1) 263.
     moment_policy : MomentPolicy, optional
         Where a next measurement may be taken. Given, *what to measure next* searches every
