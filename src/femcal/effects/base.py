@@ -49,6 +49,7 @@ from typing import ClassVar
 
 import numpy as np
 import torch
+import torch.autograd.forward_ad as fwad
 
 from femcal.errors import ConfigError
 from femcal.registry import Registry
@@ -166,8 +167,6 @@ class Effect:
         by its primal and the map's diagonal derivative: the same values, without forward-mode
         AD's slow broadcasting of the map's bounds over every dual row.
         """
-        import torch.autograd.forward_ad as fwad
-
         space = cls.space()
         primal, tangent = fwad.unpack_dual(u)
         if tangent is None:
