@@ -155,15 +155,12 @@ class _Fit:
         unit-box prior, :meth:`ensure_trace`) or the count of parameters (``"count"``); with
         ``"evidence"`` minus twice Laplace's log evidence under a flat prior on the unit box,
         ``chi^2 + ln det(I + J^T J / 2 pi)`` (up to a constant common to every model)."""
+        if penalty == "count":
+            return float(self.chi2[pos] + self.k * log_n)
+        self.ensure_trace(mask, sigma)
         if penalty == "evidence":
-            self.ensure_trace(mask, sigma)
             return float(self.chi2[pos] + self.occam[pos])
-        if penalty == "effective":
-            self.ensure_trace(mask, sigma)
-            k = float(self.trace[pos])
-        else:
-            k = float(self.k)
-        return float(self.chi2[pos] + k * log_n)
+        return float(self.chi2[pos] + float(self.trace[pos]) * log_n)
 
 
 def _fit_from(
