@@ -12,7 +12,8 @@ noise sd 0.05 deg:
   and 1.25..7.5 Nm x 1.25 mixed in one file (NaN where not measured). Seeds 0, 1, 2025 and
   4711 tune (:data:`hidden_cohorts.TUNING_SEEDS`); :data:`hidden_cohorts.HOLDOUT_SEEDS` are held
   out and run only with ``--holdout``; :data:`hidden_cohorts.FRESH_SEEDS` (3..6) were first run
-  in session 19 with the search unchanged.
+  in session 19 with the search unchanged; :data:`hidden_cohorts.CRITERION_SEEDS` were drawn in
+  session 21 to measure a change of the model criterion.
 
 The surrogate is the registered champion; its own error enters sigma per moment as in the
 diagnose stage (:meth:`femcal.moments.MomentPolicy.sigma_surrogate` with params.yaml
@@ -37,8 +38,12 @@ report counts them). The bars, per cohort:
 Writes ``reports/bench_diagnose.md`` and ``reports/bench_diagnose.json`` (``--out`` for
 another folder); the bars are also pooled per group of cohorts (tuning, fresh, held out) with
 Wilson 95 % intervals. ``--from-json A.json --from-json B.json`` writes one report from earlier
-runs (no diagnosis), e.g. to put a run of other seeds beside the main one. Run it alone: other
-processes on the 2 cores slow torch down badly.
+runs (no diagnosis), e.g. to put a run of other seeds beside the main one. ``--timing-only``
+runs the diagnosis alone (a minute per cohort): bar (e), and bars (a) and (b) too (eligibility
+comes from the diagnosis' own disc-alone fit), but none of the visibility, ceiling and
+recalibration columns; with ``--diagnose-option KEY=VALUE`` its files are named after the
+options (``bench_diagnose_timing_criterion-aic.md``), so an ablation never overwrites the
+default's report. Run it alone: other processes on the 2 cores slow torch down badly.
 
 Usage (from the project root, after ``make repro``)::
 
@@ -66,6 +71,7 @@ import pandas as pd
 import torch
 from hidden_cohorts import CLASSES as HIDDEN_CLASSES
 from hidden_cohorts import (
+    CRITERION_SEEDS,
     FRESH_SEEDS,
     HOLDOUT_SEEDS,
     PROTOCOLS,
@@ -80,7 +86,7 @@ from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.config import load_params, section
 from femcal.datasets import load_split, training_configurations
 from femcal.diagnose import Diagnosis, diagnose
-from femcal.diagnose.fits import _chi2, _Fit
+from femcal.diagnose.fits import _chi2, _Fit, parameter_cost
 from femcal.effects.base import available_effects
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
@@ -99,7 +105,7 @@ REPORTED = {
     "neutral_zone": ("nz_range_deg", "nz_moment_nm"),
 }
 BAR_RIGHT, BAR_NONE, BAR_RATIO, BAR_SECONDS = 0.90, 0.10, 1.5, 60.0
-#: The thorough calibration behind the BIC ceiling (:func:`truth_preferred`): four times the
+#: The thorough calibration behind the ceiling (:func:`truth_preferred`): four times the
 #: nearest starts, every effect start kept to the end, more rounds and iterations than the
 #: diagnosis affords.
 THOROUGH = {
@@ -270,17 +276,18 @@ def truth_preferred(
     sigma_m: np.ndarray,
     diag: Diagnosis | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per specimen: is its true combination the library's BIC-preferred model?
+    """Per specimen: is its true combination the library's preferred model (the diagnosis'
+    criterion, the BIC by default)?
 
     Every model the diagnosis could name (the disc alone, each registered effect, each pair,
     the triple) is calibrated to each combination specimen with a thorough ``pgd``
-    (:data:`THOROUGH`) and scored as the diagnosis scores it: ``chi^2 + k ln n`` with the
+    (:data:`THOROUGH`) and scored as the diagnosis scores it: ``chi^2 + cost k`` with the
     noise and the surrogate's error ``sigma_m`` (m,), ``k`` counted as the diagnosis'
     ``penalty`` option says (by default the effective number of parameters at the thorough
     fit, the trace of its hat matrix; :meth:`femcal.diagnose.fits._Fit.criterion`); with the
     ``diag`` given, a model the diagnosis also fitted counts with the lower of the two. Where
-    another model has a lower BIC than the true combination, no criterion that prefers the
-    simpler or better-fitting model can name the combination whole: this is the ceiling of
+    another model scores lower than the true combination, no search with that criterion can
+    name the combination whole: this is the ceiling of
     bar (a) that the data allow. True for
     every specimen that is not a combination of registered effects.
 
@@ -288,7 +295,7 @@ def truth_preferred(
     -------
     preferred : ndarray of bool, shape (n,)
     margin : ndarray, shape (n,)
-        BIC of the best other model minus the truth's (> 0: the truth is preferred); NaN where
+        Criterion of the best other model minus the truth's (> 0: the truth is preferred); NaN where
         the specimen is not a combination.
     """
     n = len(cohort["specimens"])
@@ -302,7 +309,10 @@ def truth_preferred(
         return preferred, margin
     idx = np.asarray(rows)
     rom = cohort["rom_deg"][idx]
-    log_n = np.log(np.maximum(np.isfinite(rom).reshape(len(idx), -1).sum(1), 2))
+    # what one parameter costs, as the diagnosis prices it (2 with the AIC, ln n with the BIC)
+    cost = parameter_cost(
+        ctx["options"].get("criterion", "bic"), np.isfinite(rom).reshape(len(idx), -1).sum(1)
+    )
     names = sorted(ctx["candidates"] or available_effects())
     models = [c for k in range(len(names) + 1) for c in itertools.combinations(names, k)]
     opts = {**ctx["cal_opts"], **THOROUGH}
@@ -329,7 +339,7 @@ def truth_preferred(
         fit = _Fit(effects, m, v, np.arange(len(idx)), None, chi2, m.dim)
         bic[effects] = np.array(
             [
-                min(fit.criterion(k, log_n[k], penalty, mask, sigma), own.get((k, effects), np.inf))
+                min(fit.criterion(k, cost[k], penalty, mask, sigma), own.get((k, effects), np.inf))
                 for k in range(len(idx))
             ]
         )
@@ -391,28 +401,44 @@ def run_diagnosis(cohort: dict[str, Any], ctx: dict[str, Any]):
     return diag, time.perf_counter() - t0, time.process_time() - cpu0, model, weight
 
 
-def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
-    """Diagnose a cohort, recalibrate it with the found effects, and compute every bar."""
-    rom, noise = cohort["rom_deg"], cohort["noise_deg"]
-    labels, classes = cohort["labels"], [c for c in cohort["classes"] if c in cohort["labels"]]
-    n = len(labels)
-    diag, wall, cpu, model, weight = run_diagnosis(cohort, ctx)
+def judge_cohort(cohort: dict[str, Any], diag: Diagnosis) -> dict[str, np.ndarray]:
+    """Per specimen (arrays of shape (n,)): the verdict, the effects it names, whether it is
+    right (and right with an extra ``+unexplained``), whether the specimen is a ``none`` one,
+    and whether it is eligible for bar (a) (not ``none``, the disc alone misses by > 2σ)."""
     verdicts = np.array([s.verdict for s in diag.specimens], dtype=object)
     named = [named_effects(s) for s in diag.specimens]
     judged = [
         judge(v, nm, ex, ool)
         for v, nm, ex, ool in zip(verdicts, named, cohort["expected"], cohort["out_of_library"])
     ]
-    right = np.array([j[0] for j in judged])
-    extra_unexplained = np.array([j[1] for j in judged])
     base_mae = np.array([s.baseline_mae_deg for s in diag.specimens])
-    is_none = labels == NONE
-    eligible = ~is_none & (base_mae > 2 * noise)
+    is_none = cohort["labels"] == NONE
+    return {
+        "verdicts": verdicts,
+        "named": named,
+        "right": np.array([j[0] for j in judged]),
+        "extra_unexplained": np.array([j[1] for j in judged]),
+        "base_mae": base_mae,
+        "is_none": is_none,
+        "eligible": ~is_none & (base_mae > 2 * cohort["noise_deg"]),
+    }
+
+
+def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
+    """Diagnose a cohort, recalibrate it with the found effects, and compute every bar."""
+    rom = cohort["rom_deg"]
+    labels, classes = cohort["labels"], [c for c in cohort["classes"] if c in cohort["labels"]]
+    n = len(labels)
+    diag, wall, cpu, model, weight = run_diagnosis(cohort, ctx)
+    j = judge_cohort(cohort, diag)
+    verdicts, named, right = j["verdicts"], j["named"], j["right"]
+    extra_unexplained, base_mae = j["extra_unexplained"], j["base_mae"]
+    is_none, eligible = j["is_none"], j["eligible"]
     # (a') the stricter subset: every hidden component would also be visible on its own
     each_visible = eligible & components_visible(cohort, ctx, model, weight)
     # (a'') each effect of a combination also shows beyond the other true effects
     identifiable = eligible & components_identifiable(cohort, ctx, model, weight)
-    # (a*) the ceiling: the true combination is the library's BIC-preferred model
+    # (a*) the ceiling: the true combination is the library's preferred model
     pref, margin = truth_preferred(
         cohort, ctx, model, weight, np.asarray(diag.sigma_by_moment), diag
     )
@@ -618,8 +644,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument(
         "--timing-only",
         action="store_true",
-        help="only time the diagnosis (bar (e)) on a quiet machine: writes "
-        "bench_diagnose_timing.md/.json, no recalibration or visibility checks",
+        help="only the diagnosis: bar (e) on a quiet machine, and bars (a) and (b); writes "
+        "bench_diagnose_timing[_OPTIONS].md/.json, no recalibration, visibility or ceiling",
     )
     ap.add_argument("--out", type=Path, default=REPO / "reports", help="report folder")
     ap.add_argument(
@@ -724,6 +750,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         if args.timing_only:
             diag, wall, cpu, _, _ = run_diagnosis(cohort, ctx)
             n = len(cohort["specimens"])
+            j = judge_cohort(cohort, diag)
             rows.append(
                 {
                     "kind": kind,
@@ -734,7 +761,14 @@ def main(argv: Sequence[str] | None = None) -> None:
                     "cpu_seconds": cpu,
                     "wall_per_50": wall * 50 / n,
                     "cpu_per_50": cpu * 50 / n,
+                    "n_eligible": int(j["eligible"].sum()),
+                    "n_right_eligible": int(j["right"][j["eligible"]].sum()),
+                    "n_none": int(j["is_none"].sum()),
+                    "n_none_given_effect": int((j["verdicts"][j["is_none"]] != NONE).sum()),
                     "verdicts": [s.verdict for s in diag.specimens],
+                    "classes": [str(c) for c in cohort["labels"]],
+                    "eligible": j["eligible"].tolist(),
+                    "right": j["right"].tolist(),
                 }
             )
         else:
@@ -765,11 +799,15 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
-    """Write ``bench_diagnose_timing.md`` and ``.json`` into ``out`` (bar (e) only); with
-    more than one torch thread ``bench_diagnose_timing_<n>threads.md`` and ``.json``."""
+    """Write ``bench_diagnose_timing.md`` and ``.json`` into ``out`` (bar (e), and bars (a)
+    and (b) per cohort and pooled per group); with more than one torch thread
+    ``bench_diagnose_timing_<n>threads.md``, with diagnose options
+    ``bench_diagnose_timing_<key>-<value>.md`` (and ``.json``)."""
     out.mkdir(parents=True, exist_ok=True)
     threads = int(meta["torch_threads"])
     name = "bench_diagnose_timing" + (f"_{threads}threads" if threads > 1 else "")
+    # an ablation (--diagnose-option) writes beside the default's report, never over it
+    name += "".join(f"_{k}-{v}" for k, v in sorted(meta["diagnose_options"].items()))
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     lines = [
         "# Missing-effect search: the diagnosis' time per 50 specimens (bar (e), <= 60 s)",
@@ -780,18 +818,40 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
         f"threads; load average after the run {', '.join(f'{v:.2f}' for v in load or ())}. "
         "Only `femcal.diagnose.diagnose` is timed, exactly as in `bench_diagnose.md` (same "
         "cohorts, options and seeds: the verdicts are the same); the recalibrations and the "
-        "visibility checks of the full benchmark are not run.",
+        "visibility checks of the full benchmark are not run. Options of "
+        f"`femcal.diagnose.diagnose` beyond the defaults: {meta['diagnose_options'] or 'none'}. "
+        "Bars (a) and (b) as in `bench_diagnose.md` (eligible: not `none`, the disc alone "
+        "misses by > 2σ).",
         "",
-        "| cohort | specimens | wall | CPU | wall per 50 specimens | CPU per 50 | <= 60 s |",
-        "|---|---|---|---|---|---|---|",
+        "| cohort | specimens | (a) right / eligible | (b) `none` given an effect | wall | CPU "
+        "| wall per 50 specimens | CPU per 50 | <= 60 s |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
+        a = f"{r['n_right_eligible']}/{r['n_eligible']}" if "n_eligible" in r else "-"
+        b = f"{r['n_none_given_effect']}/{r['n_none']}" if "n_none" in r else "-"
         lines.append(
-            f"| {_cohort_name(r)} | {r['n_specimens']} | {r['seconds']:.1f} s | "
+            f"| {_cohort_name(r)} | {r['n_specimens']} | {a} | {b} | {r['seconds']:.1f} s | "
             f"{r['cpu_seconds']:.1f} s | "
             f"{r['wall_per_50']:.1f} s | {r['cpu_per_50']:.1f} s | "
             f"{_ok(r['wall_per_50'] <= BAR_SECONDS)} |"
         )
+    if all("n_eligible" in r for r in rows):
+        lines += [
+            "",
+            "| cohorts | (a) right / eligible | 95 % interval | (b) `none` given an effect |",
+            "|---|---|---|---|",
+        ]
+        groups: dict[str, list[dict[str, Any]]] = {}
+        for r in rows:
+            groups.setdefault(_group(r), []).append(r)
+        for g, rs in groups.items():
+            k = sum(r["n_right_eligible"] for r in rs)
+            n = sum(r["n_eligible"] for r in rs)
+            lo, hi = wilson(k, n)
+            nb = sum(r["n_none"] for r in rs)
+            kb = sum(r["n_none_given_effect"] for r in rs)
+            lines.append(f"| {g} | {k}/{n} = {_pct(k / n)} | {lo:.0%}-{hi:.0%} | {kb}/{nb} |")
     (out / f"{name}.md").write_text("\n".join(lines) + "\n")
     (out / f"{name}.json").write_text(
         json.dumps({**meta, "load_average": load, "cohorts": rows}, indent=2) + "\n"
@@ -828,6 +888,8 @@ def _group(r: dict[str, Any]) -> str:
         return "hidden, held out"
     if r["seed"] in TUNING_SEEDS:
         return "hidden, tuning"
+    if r["seed"] in CRITERION_SEEDS:
+        return "hidden, drawn in session 21 (first run)"
     return "hidden, fresh (first run)" if r["seed"] in FRESH_SEEDS else "hidden, other seeds"
 
 
@@ -940,7 +1002,7 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         "(e) diagnosis wall (CPU), per 50 specimens (<= 60 s) | "
         "(a') of (a), where each component of a combination would also be visible alone | "
         "(a'') of (a), where each effect of a combination shows beyond the others | "
-        "(a*) of (a), where the true combination is the BIC-preferred model | "
+        "(a*) of (a), where the true combination is the preferred model | "
         "ceiling of (a): share of (a) where it is |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -1001,11 +1063,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         "> 2σ for each of its effects (the eligibility of (a), applied to what the other effects "
         "leave).",
         "(a*) is not the issue's bar either, but it is the ceiling the data allow any criterion "
-        "that prefers the better model by BIC (the diagnosis' criterion): every model the "
+        "that prefers the better model by the diagnosis' criterion (BIC `chi^2 + k ln n` by "
+        "default, AIC `chi^2 + 2k` with `criterion='aic'`): every model the "
         "diagnosis could name (the disc alone, each effect, each pair, the triple) is "
         "calibrated to each combination specimen with a thorough `pgd` (`THOROUGH`: 32 nearest "
         "starts, every effect start kept to the end, 5 rounds, 40 iterations) and scored "
-        "`chi^2 + k ln n` with the same σ; a combination counts only where its BIC is the "
+        "by that criterion with the same σ; a combination counts only where it scores the "
         "lowest. The last column is the share of the eligible specimens where that holds "
         "(every single effect and out-of-library specimen counts): bar (a) cannot pass where it "
         "is below 90 %, whatever the search.",

@@ -280,6 +280,8 @@ def test_bad_settings_are_refused(world):
         ConfigError, match="penalty must be one of 'effective', 'count', 'evidence'"
     ):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, penalty="aic")
+    with pytest.raises(ConfigError, match="criterion must be one of 'aic', 'bic'"):
+        diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, criterion="hqic")
     with pytest.raises(ConfigError, match="surrogate_error_deg must be finite and >= 0"):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=NOISE, surrogate_error_deg=-0.1)
 
@@ -423,6 +425,30 @@ def test_the_criterion_counts_the_parameters_the_data_determine(world):
             assert 0 < r["effective_parameters"] < base.dim + len(r["parameters"])
         disc = next(r for r in s.ranking if not r["effects"])
         assert disc["effective_parameters"] < base.dim  # most of the disc is not identifiable
+
+
+def test_a_parameter_costs_2_in_the_aic_and_ln_n_in_the_bic(world):
+    """``criterion``: the price of one effective parameter, ``ln n`` (BIC, the default) or 2
+    (AIC). The disc alone is fitted the same way under both, so its two criteria differ by
+    its effective number of parameters times ``ln n - 2``."""
+    from femcal.diagnose.fits import parameter_cost
+
+    n_points = np.array([16.0, 36.0])
+    assert parameter_cost("aic", n_points).tolist() == [2.0, 2.0]
+    assert parameter_cost("bic", n_points) == pytest.approx(np.log(n_points))
+    with pytest.raises(ConfigError, match="criterion must be one of 'aic', 'bic'.*got 'hqic'"):
+        parameter_cost("hqic", n_points)
+    base, rom, _, _ = world
+    kw = dict(specimens=["a"], noise_deg=NOISE, discrepancy=False, max_effects=1, seed=0)
+    bic = diagnose(base, rom[:1], **kw).specimens[0]
+    aic = diagnose(base, rom[:1], criterion="aic", **kw).specimens[0]
+    disc_aic = next(r for r in aic.ranking if not r["effects"])
+    disc_bic = next(r for r in bic.ranking if not r["effects"])
+    n = np.isfinite(rom[0]).sum()
+    assert disc_aic["effective_parameters"] == pytest.approx(disc_bic["effective_parameters"])
+    assert disc_bic["criterion"] - disc_aic["criterion"] == pytest.approx(
+        disc_aic["effective_parameters"] * (np.log(n) - 2.0), rel=1e-6
+    )
 
 
 def test_the_evidence_penalty_is_laplaces_occam_factor_over_the_unit_box():

@@ -47,7 +47,7 @@ def _assemble(
     measured,
     mask,
     n_points,
-    log_n,
+    cost,
     sigma,
     sigma_m,
     sur,
@@ -155,7 +155,7 @@ def _assemble(
     mae0 = np.nanmean(np.abs(measured - pred0.double().numpy()).reshape(n, -1), axis=1)
     unit_disc = base.space.to_unit(base.to_physical(v_disc.double().numpy()))
     for i, spec in enumerate(specimens):
-        ranking = _ranking(per_spec[i], i, measured, sigma, log_n, base, penalty, mask)
+        ranking = _ranking(per_spec[i], i, measured, sigma, cost, base, penalty, mask)
         effects = list(chosen[i])
         adequate = bool(adequacy[i]["final"]["adequate"])
         f, pos = per_spec[i][chosen[i]]

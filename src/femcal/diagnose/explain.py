@@ -82,15 +82,15 @@ def _ranking(
     i: int,
     measured: np.ndarray,
     sigma: np.ndarray,
-    log_n: np.ndarray,
+    cost: np.ndarray,
     base,
     penalty: str,
     mask: np.ndarray,
 ) -> list[dict[str, Any]]:
-    """Every model fitted for specimen ``i``: MAE, BIC (the search's criterion,
-    :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of parameters and the
-    effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured points; every fit's
-    trace is known (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`)."""
+    """Every model fitted for specimen ``i``: MAE, the search's criterion (``cost`` (n,) per
+    parameter, :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of
+    parameters and the effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured
+    points; every fit's trace is known (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`)."""
     rows = []
     for effects, (f, pos) in fits.items():
         pred = f.pred[pos].double().numpy()
@@ -99,7 +99,7 @@ def _ranking(
             "effect": model_label(effects),
             "effects": list(effects),
             "mae_deg": mae,
-            "criterion": f.criterion(pos, float(log_n[i]), penalty, mask, sigma),
+            "criterion": f.criterion(pos, float(cost[i]), penalty, mask, sigma),
             "effective_parameters": float(f.trace[pos]),
             "parameters": {},
         }
