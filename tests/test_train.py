@@ -176,17 +176,23 @@ def test_killed_search_resumes(store):
     name = None
     import sqlite3
 
-    def progress() -> tuple[str | None, list[str]]:
+    def progress() -> tuple[str | None, list[str], bool]:
         # Read the store with plain SQL, read-only: Optuna's own storage object would try to
         # create the schema that the worker may be creating at that moment (a race that failed
         # with "UNIQUE constraint failed: alembic_version").
         try:
             with sqlite3.connect(f"file:{store / 'optuna.db'}?mode=ro", uri=True) as db:
                 study = db.execute("SELECT study_name FROM studies").fetchone()
-                states = db.execute("SELECT state FROM trials ORDER BY trial_id").fetchall()
+                trials = db.execute("SELECT trial_id, state FROM trials ORDER BY trial_id")
+                trials = trials.fetchall()
+                beats = {r[0] for r in db.execute("SELECT trial_id FROM trial_heartbeats")}
         except sqlite3.Error:  # not there yet, or the schema is being written
-            return None, []
-        return (study[0] if study else None), [row[0] for row in states]
+            return None, [], False
+        # Optuna only fails a running trial as stale once it has beaten at least once: a
+        # worker killed before its trial's first heartbeat leaves a trial that stays RUNNING
+        # (seen under load), so the kill waits for that beat too.
+        beating = bool(trials) and trials[-1][0] in beats
+        return (study[0] if study else None), [row[1] for row in trials], beating
 
     try:
         # No wall-clock deadline: wait for the worker as long as it runs (a loaded machine only
@@ -194,8 +200,8 @@ def test_killed_search_resumes(store):
         give_up = time.monotonic() + 3600
         while proc.poll() is None and time.monotonic() < give_up:
             time.sleep(0.5)
-            name, states = progress()
-            if states.count("COMPLETE") >= 2 and states[-1] == "RUNNING":
+            name, states, beating = progress()
+            if states.count("COMPLETE") >= 2 and states[-1] == "RUNNING" and beating:
                 break
         else:
             pytest.fail(f"the worker ended (code {proc.returncode}) before two complete trials")
