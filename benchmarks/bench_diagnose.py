@@ -842,16 +842,13 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
             "| cohorts | (a) right / eligible | 95 % interval | (b) `none` given an effect |",
             "|---|---|---|---|",
         ]
-        groups: dict[str, list[dict[str, Any]]] = {}
-        for r in rows:
-            groups.setdefault(_group(r), []).append(r)
-        for g, rs in groups.items():
-            k = sum(r["n_right_eligible"] for r in rs)
-            n = sum(r["n_eligible"] for r in rs)
-            lo, hi = wilson(k, n)
-            nb = sum(r["n_none"] for r in rs)
-            kb = sum(r["n_none_given_effect"] for r in rs)
-            lines.append(f"| {g} | {k}/{n} = {_pct(k / n)} | {lo:.0%}-{hi:.0%} | {kb}/{nb} |")
+        for g in pooled(rows):
+            k, n = g["a_right"], g["a_eligible"]
+            lo, hi = g["a_interval"]
+            lines.append(
+                f"| {g['group']} | {k}/{n} = {_pct(k / n)} | {lo:.0%}-{hi:.0%} | "
+                f"{g['b_none_given_effect']}/{g['b_none']} |"
+            )
     (out / f"{name}.md").write_text("\n".join(lines) + "\n")
     (out / f"{name}.json").write_text(
         json.dumps({**meta, "load_average": load, "cohorts": rows}, indent=2) + "\n"

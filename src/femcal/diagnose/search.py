@@ -68,7 +68,6 @@ from femcal.diagnose.explain import (
     _adequate_quick,
 )
 from femcal.diagnose.fits import (
-    CRITERIA,
     PENALTIES,
     _chi2,
     _columns,
@@ -360,11 +359,6 @@ def diagnose(
             f"diagnose: penalty must be one of {', '.join(map(repr, PENALTIES))} (how the "
             f"criterion counts a model's parameters); got {penalty!r}."
         )
-    if criterion not in CRITERIA:
-        raise ConfigError(
-            f"diagnose: criterion must be one of {', '.join(map(repr, CRITERIA))} (what one "
-            f"parameter costs: 2 or ln n); got {criterion!r}."
-        )
     if gp_amplitude not in ("ml", "misfit"):
         raise ConfigError(f"diagnose: gp_amplitude must be 'ml' or 'misfit'; got {gp_amplitude!r}.")
     rng = np.random.default_rng(seed)
@@ -501,18 +495,18 @@ def diagnose(
         for i in active:
             current = chosen[i]
             cur_fit, cur_pos = per_spec[i][current]
-            cur_bic = criterion_of(cur_fit, cur_pos, i)
-            bics = {e: criterion_of(*per_spec[i][e], i) for e in children[int(i)]}
+            cur_crit = criterion_of(cur_fit, cur_pos, i)
+            crits = {e: criterion_of(*per_spec[i][e], i) for e in children[int(i)]}
             logger.debug(
                 "%s: forward from %s: criterion gains %s",
                 specimens[i],
                 frontier[i],
-                {e: round(cur_bic - b, 1) for e, b in bics.items()},
+                {e: round(cur_crit - b, 1) for e, b in crits.items()},
             )
-            if not bics:
+            if not crits:
                 continue
-            best_eff = min(bics, key=bics.get)
-            best_bic = bics[best_eff]
+            best_eff = min(crits, key=crits.get)
+            best_crit = crits[best_eff]
             # A model shown not to explain the data needs something more: the next effect
             # only has to beat it by ``min_delta_inadequate`` (the elimination below keeps
             # an effect only if it pays beyond a smooth discrepancy).
@@ -526,9 +520,9 @@ def diagnose(
                     need = min_delta_inadequate
                 elif min_delta_adequate is not None:
                     need = min_delta_adequate
-            if cur_bic - best_bic >= need:
+            if cur_crit - best_crit >= need:
                 chosen[i] = best_eff
-                frontier[i] = [e for e, b in bics.items() if b - best_bic < beam or e == best_eff]
+                frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
                 improved.append(int(i))
         # Keep adding while it pays (or, with ``stop_when_adequate``, only where the chosen
         # model still does not explain the data).
