@@ -74,6 +74,7 @@ from hidden_cohorts import (
     CRITERION_SEEDS,
     FRESH_SEEDS,
     HOLDOUT_SEEDS,
+    POLISH_SEEDS,
     PROTOCOLS,
     TUNING_SEEDS,
     expected_effects,
@@ -887,6 +888,8 @@ def _group(r: dict[str, Any]) -> str:
         return "hidden, tuning"
     if r["seed"] in CRITERION_SEEDS:
         return "hidden, drawn in session 21 (first run)"
+    if r["seed"] in POLISH_SEEDS:
+        return "hidden, drawn in session 22 (first run)"
     return "hidden, fresh (first run)" if r["seed"] in FRESH_SEEDS else "hidden, other seeds"
 
 
