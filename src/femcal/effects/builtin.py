@@ -101,11 +101,8 @@ class LigamentTension(Effect):
 
 @register_effect
 class NeutralZone(Effect):
-    """Neutral-zone laxity: extra rotation at low moments that saturates, in every load case,
-    ``phi_nz = range * (1 - exp_t(-(M / m0)^b))`` with ``exp_t(-u) = (1 + t u)^(-1/t)``: the
-    classic exponential saturation at ``t = 0``, a slower, algebraic approach to the range for
-    ``t > 0`` (``t = 1``: ``u / (1 + u)``, the tail of an arctangent; ``t = 2``: ``1 / sqrt``).
-    ``b`` shapes the onset (< 1 abrupt, > 1 S-shaped towards a bilinear corner)."""
+    """Neutral-zone laxity: extra rotation at low moments that saturates,
+    ``phi_nz = range * (1 - exp(-(M / m0)^b))``, in every load case."""
 
     name = "neutral_zone"
     kind = "series"
@@ -115,21 +112,10 @@ class NeutralZone(Effect):
         EffectParameter("nz_moment_nm", "Nm", 0.1, 1.5, log=True),
         # start: b = 1, the classic exponential (0.5 * 6 ** u = 1).
         EffectParameter("nz_shape", "1", 0.5, 3.0, log=True, start=0.3868528, grid=False),
-        # start: t = 0, the exponential saturation; up to 2, a tail that still grows at 5 Nm.
-        EffectParameter("nz_tail", "1", 0.0, 2.0, start=0.0, grid=False),
     )
 
     def rotation(self, moment_nm: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
         a = _like(p, "nz_range_deg", moment_nm)
         m0 = _like(p, "nz_moment_nm", moment_nm)
         b = _like(p, "nz_shape", moment_nm)
-        t = _like(p, "nz_tail", moment_nm)
-        u = (moment_nm / m0) ** b
-        # log(1 + t u) / t = u f(t u), f(x) = log1p(x) / x, by its series near x = 0 (both
-        # branches finite, so that neither poisons the other's derivative)
-        x = t * u
-        small = x < 1e-4
-        x_safe = torch.where(small, torch.ones_like(x), x)
-        f = torch.where(small, 1.0 - x / 2.0 + x**2 / 3.0, torch.log1p(x_safe) / x_safe)
-        decay = u * f
-        return a * (1.0 - torch.exp(-decay))
+        return a * (1.0 - torch.exp(-((moment_nm / m0) ** b)))
