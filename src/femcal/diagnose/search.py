@@ -151,8 +151,6 @@ def diagnose(
     combination_rounds: int = 1,
     exact_dof: bool = True,
     beam_delta: float | None = None,
-    polish_window: float = 0.0,
-    polish_bank: int = 16,
     penalty: str = "effective",
     criterion: str = "bic",
     moment_policy: MomentPolicy | None = None,
@@ -430,31 +428,6 @@ def diagnose(
     def criterion_of(fit: _Fit, pos: int, i: int) -> float:
         return fit.criterion(pos, float(cost[i]), penalty, mask, sigma)
 
-    def polish(effects: tuple[str, ...], members: list[int]) -> None:
-        """Refit model ``effects`` at specimens ``members`` from more starts (its own solution,
-        each effect's grid again with the rest as found, the ``polish_bank`` nearest
-        disc-and-effect starts of its bank); where that lowers the chi-square, keep it."""
-        rows = np.asarray(sorted(set(members)))
-        model = effect_model(effects)
-        v0 = _combination_starts(model, _solutions(per_spec, rows, effects), effect_levels, 8)
-        if start_bank is not None and polish_bank > 0:
-            if effects not in banks:
-                banks[effects] = effect_bank(model, start_bank, rng, bank_samples)
-            problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
-            near = nearest_starts(problem, *banks[effects], polish_bank)
-            v0 = torch.cat([v0, banks[effects][0][near]], dim=1)
-        g = v0.shape[1]
-        v, pred, chi2 = _fit_from(
-            model, measured, weight, sigma, rows, v0.reshape(len(rows) * g, -1), g, max_iter
-        )
-        old = np.array([per_spec[i][effects][0].chi2[per_spec[i][effects][1]] for i in rows])
-        better = np.flatnonzero(chi2 < old)
-        if better.size:
-            at = torch.as_tensor(better)
-            fit = _Fit(effects, model, v[at], rows[better], pred[at], chi2[better], model.dim)
-            for pos, i in enumerate(rows[better]):
-                per_spec[i][effects] = (fit, pos)
-
     # The models each specimen's next level extends: the best of the level and every model
     # within ``beam_delta`` of it (a greedy path through a near tie misses the pair that
     # extends the runner-up: hidden cohort 0 H046, facet + laxity, where ligament alone beat
@@ -462,35 +435,12 @@ def diagnose(
     frontier: list[list[tuple[str, ...]]] = [[()] for _ in range(n)]
     beam = min_delta if beam_delta is None else float(beam_delta)
     active = all_rows.copy()
-    children: dict[int, list[tuple[str, ...]]] = {}
-
-    def standing(i: int) -> tuple[float, dict[tuple[str, ...], float], float]:
-        """Specimen ``i``'s current criterion, its children's, and the gain one needs."""
-        current = chosen[i]
-        cur_fit, cur_pos = per_spec[i][current]
-        cur_crit = criterion_of(cur_fit, cur_pos, i)
-        crits = {e: criterion_of(*per_spec[i][e], i) for e in children[int(i)]}
-        # A model shown not to explain the data needs something more: the next effect
-        # only has to beat it by ``min_delta_inadequate`` (the elimination below keeps
-        # an effect only if it pays beyond a smooth discrepancy).
-        need = min_delta
-        if exact_dof:
-            cur_fit.ensure_trace(mask, sigma)
-        if current:
-            if not _adequate_quick(
-                cur_fit, cur_pos, i, measured, sigma, n_points, alpha, load_case_test
-            ):
-                need = min_delta_inadequate
-            elif min_delta_adequate is not None:
-                need = min_delta_adequate
-        return cur_crit, crits, need
-
     for _level in range(max_effects):
         if active.size == 0:
             break
         # Each new model once per specimen, extending its best parent in the frontier.
         jobs: dict[tuple[tuple[str, ...], str], list[int]] = {}
-        children.clear()
+        children: dict[int, list[tuple[str, ...]]] = {}
         for i in active:
             parents = sorted(frontier[i], key=lambda e, i=i: criterion_of(*per_spec[i][e], i))
             seen: set[tuple[str, ...]] = set()
@@ -541,25 +491,12 @@ def diagnose(
             fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
             for pos, i in enumerate(rows):
                 per_spec[i][effects] = (fit, pos)
-        state = {int(i): standing(int(i)) for i in active}
-        if polish_window > 0:
-            # A decision within ``polish_window`` of its bar rests on two fits that a few more
-            # starts may move by as much: refit the current model and its best child there.
-            todo: dict[tuple[str, ...], list[int]] = {}
-            for i, (cur_crit, crits, need) in state.items():
-                if chosen[i] and crits:
-                    best_eff = min(crits, key=crits.get)
-                    if abs(cur_crit - crits[best_eff] - need) < polish_window:
-                        todo.setdefault(chosen[i], []).append(i)
-                        todo.setdefault(best_eff, []).append(i)
-            for effects, members in todo.items():
-                polish(effects, members)
-            for i in {i for members in todo.values() for i in members}:
-                state[i] = standing(i)
         improved: list[int] = []
         for i in active:
             current = chosen[i]
-            cur_crit, crits, need = state[int(i)]
+            cur_fit, cur_pos = per_spec[i][current]
+            cur_crit = criterion_of(cur_fit, cur_pos, i)
+            crits = {e: criterion_of(*per_spec[i][e], i) for e in children[int(i)]}
             logger.debug(
                 "%s: forward from %s: criterion gains %s",
                 specimens[i],
@@ -570,6 +507,19 @@ def diagnose(
                 continue
             best_eff = min(crits, key=crits.get)
             best_crit = crits[best_eff]
+            # A model shown not to explain the data needs something more: the next effect
+            # only has to beat it by ``min_delta_inadequate`` (the elimination below keeps
+            # an effect only if it pays beyond a smooth discrepancy).
+            need = min_delta
+            if exact_dof:
+                cur_fit.ensure_trace(mask, sigma)
+            if current:
+                if not _adequate_quick(
+                    cur_fit, cur_pos, i, measured, sigma, n_points, alpha, load_case_test
+                ):
+                    need = min_delta_inadequate
+                elif min_delta_adequate is not None:
+                    need = min_delta_adequate
             if cur_crit - best_crit >= need:
                 chosen[i] = best_eff
                 frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
