@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import inspect
 import itertools
 import json
 import os
@@ -97,6 +98,12 @@ from femcal.tidy import wide_rom
 from femcal.tracking import configure_tracking, load_surrogate, resolve_model_version
 
 REPO = Path(__file__).resolve().parents[1]
+#: ``diagnose``'s keyword defaults: what an option not given on the command line is.
+DIAGNOSE_DEFAULTS = {
+    k: p.default
+    for k, p in inspect.signature(diagnose).parameters.items()
+    if p.default is not inspect.Parameter.empty
+}
 UNEXPLAINED = "unexplained"
 THREE_CLASSES = (NONE, "facet_contact", "ligament_tension", "neutral_zone")
 #: The planted parameters reported with their uncertainty, per effect (three-class cohorts).
@@ -311,13 +318,12 @@ def truth_preferred(
     idx = np.asarray(rows)
     rom = cohort["rom_deg"][idx]
     # what one parameter costs, as the diagnosis prices it (2 with the AIC, ln n with the BIC)
-    cost = parameter_cost(
-        ctx["options"].get("criterion", "bic"), np.isfinite(rom).reshape(len(idx), -1).sum(1)
-    )
+    criterion = ctx["options"].get("criterion", DIAGNOSE_DEFAULTS["criterion"])
+    cost = parameter_cost(criterion, np.isfinite(rom).reshape(len(idx), -1).sum(1))
     names = sorted(ctx["candidates"] or available_effects())
     models = [c for k in range(len(names) + 1) for c in itertools.combinations(names, k)]
     opts = {**ctx["cal_opts"], **THOROUGH}
-    penalty = ctx["options"].get("penalty", "effective")
+    penalty = ctx["options"].get("penalty", DIAGNOSE_DEFAULTS["penalty"])
     w = None if weight is None else weight[idx]
     mask = np.isfinite(rom)
     sigma = np.broadcast_to(sigma_m, rom.shape[1:])
