@@ -73,6 +73,7 @@ import torch
 from hidden_cohorts import CLASSES as HIDDEN_CLASSES
 from hidden_cohorts import (
     CRITERION_SEEDS,
+    ELIMINATION_SEEDS,
     FRESH_SEEDS,
     HOLDOUT_SEEDS,
     POLISH_SEEDS,
@@ -896,6 +897,8 @@ def _group(r: dict[str, Any]) -> str:
         return "hidden, drawn in session 21 (first run)"
     if r["seed"] in POLISH_SEEDS:
         return "hidden, drawn in session 22 (first run)"
+    if r["seed"] in ELIMINATION_SEEDS:
+        return "hidden, drawn in session 22 for the elimination (first run)"
     return "hidden, fresh (first run)" if r["seed"] in FRESH_SEEDS else "hidden, other seeds"
 
 
