@@ -13,7 +13,8 @@ noise sd 0.05 deg:
   4711 tune (:data:`hidden_cohorts.TUNING_SEEDS`); :data:`hidden_cohorts.HOLDOUT_SEEDS` are held
   out and run only with ``--holdout``; :data:`hidden_cohorts.FRESH_SEEDS` (3..6) were first run
   in session 19 with the search unchanged; :data:`hidden_cohorts.CRITERION_SEEDS` were drawn in
-  session 21 to measure a change of the model criterion.
+  session 21 to measure a change of the model criterion, :data:`hidden_cohorts.POLISH_SEEDS`
+  and :data:`hidden_cohorts.ELIMINATION_SEEDS` in session 22 (each group its own report rows).
 
 The surrogate is the registered champion; its own error enters sigma per moment as in the
 diagnose stage (:meth:`femcal.moments.MomentPolicy.sigma_surrogate` with params.yaml
@@ -773,7 +774,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     "n_right_eligible": int(j["right"][j["eligible"]].sum()),
                     "n_none": int(j["is_none"].sum()),
                     "n_none_given_effect": int((j["verdicts"][j["is_none"]] != NONE).sum()),
-                    "verdicts": [s.verdict for s in diag.specimens],
+                    "verdicts": j["verdicts"].tolist(),
                     "classes": [str(c) for c in cohort["labels"]],
                     "eligible": j["eligible"].tolist(),
                     "right": j["right"].tolist(),
@@ -886,20 +887,23 @@ def wilson(k: int, n: int) -> tuple[float, float]:
     return float(ci.low), float(ci.high)
 
 
+#: The hidden cohorts' report groups after the held-out ones, in order: seeds, label.
+SEED_GROUPS = (
+    (TUNING_SEEDS, "hidden, tuning"),
+    (CRITERION_SEEDS, "hidden, drawn in session 21 (first run)"),
+    (POLISH_SEEDS, "hidden, drawn in session 22 (first run)"),
+    (ELIMINATION_SEEDS, "hidden, drawn in session 22 for the elimination (first run)"),
+    (FRESH_SEEDS, "hidden, fresh (first run)"),
+)
+
+
 def _group(r: dict[str, Any]) -> str:
     if r["kind"] != "hidden":
         return f"{r['kind']}-class cohorts" if r["kind"] == "three" else r["kind"]
     if r["holdout"]:
         return "hidden, held out"
-    if r["seed"] in TUNING_SEEDS:
-        return "hidden, tuning"
-    if r["seed"] in CRITERION_SEEDS:
-        return "hidden, drawn in session 21 (first run)"
-    if r["seed"] in POLISH_SEEDS:
-        return "hidden, drawn in session 22 (first run)"
-    if r["seed"] in ELIMINATION_SEEDS:
-        return "hidden, drawn in session 22 for the elimination (first run)"
-    return "hidden, fresh (first run)" if r["seed"] in FRESH_SEEDS else "hidden, other seeds"
+    labels = (label for seeds, label in SEED_GROUPS if r["seed"] in seeds)
+    return next(labels, "hidden, other seeds")
 
 
 def pooled(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
