@@ -164,6 +164,11 @@ def test_next_measurement_names_where_close_explanations_differ(world):
         assert n["difference_sigma"] == pytest.approx(
             abs(n["difference_deg"]) / n["sigma_deg"], rel=1e-3
         )
+        # each measurement there moves the criteria difference_sigma^2 apart on average:
+        # enough of them leave the two min_delta (10) apart whichever is right
+        k = n["repeats_to_settle"]
+        assert k * n["difference_sigma"] ** 2 >= 10.0 + n["criterion_gap"] - 1e-9
+        assert k == 1 or (k - 1) * n["difference_sigma"] ** 2 < 10.0 + n["criterion_gap"]
 
 
 def test_next_measurement_searches_every_moment_the_policy_accepts(world):

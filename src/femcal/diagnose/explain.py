@@ -3,6 +3,7 @@ models, what each effect adds, where the disc fails, and what to measure next.""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -200,10 +201,18 @@ def _dense_prediction(dense_base, effects: tuple[str, ...], fit, pos: int):
     return curves.detach().double().numpy()[0], np.sqrt(np.clip(var, 0.0, None))
 
 
+def _repeats(needed: float, apart_sigma: float) -> int | None:
+    """Measurements at a point ``apart_sigma`` sigma apart that move two models' criteria
+    ``needed`` apart on average (each adds ``apart_sigma^2``); ``None`` when they coincide."""
+    if not apart_sigma > 1e-6:
+        return None
+    return max(1, math.ceil(needed / apart_sigma**2))
+
+
 def _next_measurement(
     ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, measured_moments=None
 ):
-    """Where the chosen model and its closest rival (BIC within ``min_delta``) differ most.
+    """Where the chosen model and a close rival (criterion within ``min_delta``) differ most.
 
     ``dense`` (shape (q,)) are the moments searched and ``sigma_dense`` (shape (q,)) the sigma
     there (noise and surrogate), to which both models' own prediction sd is added in
@@ -211,37 +220,62 @@ def _next_measurement(
     ``measured_moments`` (one array per load case) mark whether the point found lies within
     the specimen's own measured range of that load case (``within_measured_range``); where it
     does not, ``within_protocol`` holds the best point within that range too.
+
+    Each point also says how many measurements repeated there would settle the question
+    (``repeats_to_settle``): a point where the models differ by ``d`` sigma moves their
+    criteria apart by ``d^2`` per measurement on average, so ``(min_delta + gap) / d^2`` of
+    them (rounded up) leave the two ``min_delta`` apart whichever is right (``None`` where they
+    do not differ at all). Of the rivals within ``min_delta``, the one that the fewest
+    measurements settle is named: the closest rival in criterion is often the chosen model
+    with a further effect fitted to nothing, which predicts the same curves everywhere.
     """
     if len(ranking) < 2 or dense_base is None:
         return None
     best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
-    rivals = [r for r in ranking if r is not best]
-    second = min(rivals, key=lambda r: abs(r["criterion"] - best["criterion"]))
-    gap = abs(second["criterion"] - best["criterion"])
-    if gap >= min_delta:
+    rivals = [
+        r for r in ranking if r is not best and abs(r["criterion"] - best["criterion"]) < min_delta
+    ]
+    if not rivals:
         return None
-    curves, var = [], np.zeros((len(LOAD_CASES), len(dense)))
-    for r in (best, second):
+
+    def prediction(r: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         f, pos = fits[tuple(r["effects"])]
-        c, sd = _dense_prediction(dense_base, tuple(r["effects"]), f, pos)
-        curves.append(c)
-        var = var + sd**2
+        return _dense_prediction(dense_base, tuple(r["effects"]), f, pos)
+
+    best_curve, best_sd = prediction(best)
+    pick = None  # ((repeats, gap), rival, its curves, variance): fewest repeats, then closest
+    for r in rivals:
+        c, sd = prediction(r)
+        v = np.broadcast_to(best_sd**2 + sd**2, c.shape)  # sd (4, 1) without a covariance
+        d = np.abs(best_curve - c) / np.sqrt(sigma_dense[None, :] ** 2 + v)
+        if not np.isfinite(d).any():
+            continue
+        g = abs(r["criterion"] - best["criterion"])
+        k = _repeats(min_delta + g, float(np.nanmax(d)))
+        key = (math.inf if k is None else k, g)
+        if pick is None or key < pick[0]:
+            pick = (key, r, c, v)
+    if pick is None:
+        return None
+    _, second, rival_curve, var = pick
+    gap = abs(second["criterion"] - best["criterion"])
+    curves = [best_curve, rival_curve]
     # The two models' own uncertainty counts too: where a rival's parameters are not pinned
     # by the data (a ligament slack beyond the protocol), its prediction there is not either.
     total = np.sqrt(sigma_dense[None, :] ** 2 + var)
     diff = (curves[0] - curves[1]) / total
-    if not np.isfinite(diff).any():
-        return None
 
     def point(d: np.ndarray) -> tuple[tuple[int, int], dict[str, Any]]:
         j, k = np.unravel_index(np.nanargmax(np.abs(d)), d.shape)
+        apart = float(abs(d[j, k]))
         return (int(j), int(k)), {
             "load_case": LOAD_CASES[j],
             "moment_nm": float(dense[k]),
             "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
-            "difference_sigma": float(abs(d[j, k])),
+            "difference_sigma": apart,
             "sigma_deg": float(total[j, k]),
             "prediction_sd_deg": float(np.sqrt(var[j, k])),
+            "repeats_to_settle": _repeats(min_delta + gap, apart),
         }
 
     where, found = point(diff)

@@ -19,6 +19,9 @@ LABELS = {
     "LateralBending": "lateral bending",
     "AxialRotation": "axial rotation",
 }
+#: ``summary.md`` calls a suggested measurement practical when this many repeats there (or
+#: fewer) settle the question (``next_measurement.repeats_to_settle``).
+PRACTICAL_REPEATS = 10
 
 
 def residuals_frame(diag: Diagnosis) -> pd.DataFrame:
@@ -189,23 +192,42 @@ def _parameters(s: SpecimenDiagnosis) -> str:
     )
 
 
+def _settles(p: dict) -> bool:
+    """Whether a suggested point settles the question in a practical number of measurements."""
+    k = p.get("repeats_to_settle")
+    return k is not None and k <= PRACTICAL_REPEATS
+
+
 def _next(s: SpecimenDiagnosis) -> str:
     n = s.next_measurement
     if not n:
         return ""
 
     def at(p: dict) -> str:
+        k = p.get("repeats_to_settle")
         return (
             f"{p['load_case']} at {p['moment_nm']:.2g} Nm "
             f"({p['difference_deg']:+.3f}°, {p['difference_sigma']:.1f}σ"
+            + ("" if k is None else f", {k} measurement{'s' if k > 1 else ''}")
         )
 
-    text = f"{n['between'][0]} vs {n['between'][1]}: {at(n)}"
+    pair = f"{n['between'][0]} vs {n['between'][1]}"
+    if not _settles(n):
+        return (
+            f"{pair}: no practical measurement tells them apart (at most "
+            f"{n['difference_sigma']:.1f}σ, {n['load_case']} at {n['moment_nm']:.2g} Nm)"
+        )
+    text = f"{pair}: {at(n)}"
     if n.get("within_measured_range") is False:
         text += ", beyond the protocol"
     text += ")"
-    if n.get("within_protocol"):
-        text += f"; within the protocol: {at(n['within_protocol'])})"
+    inner = n.get("within_protocol")
+    if inner:
+        text += (
+            f"; within the protocol: {at(inner)})"
+            if _settles(inner)
+            else f"; none practical within the protocol (at most {inner['difference_sigma']:.1f}σ)"
+        )
     return text
 
 

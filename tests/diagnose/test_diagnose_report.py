@@ -1,0 +1,74 @@
+"""The diagnosis' summary text (femcal.diagnose.report)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from femcal.diagnose.explain import _repeats
+from femcal.diagnose.report import PRACTICAL_REPEATS, _next
+from femcal.diagnose.result import SpecimenDiagnosis
+
+
+def _specimen(next_measurement):
+    return SpecimenDiagnosis(
+        specimen="S1",
+        verdict="facet_contact",
+        baseline_mae_deg=0.2,
+        ranking=[],
+        residuals=np.zeros((4, 3)),
+        next_measurement=next_measurement,
+    )
+
+
+def _point(sigma_apart: float, gap: float = 4.0, **extra):
+    return {
+        "load_case": "Extension",
+        "moment_nm": 7.5,
+        "difference_deg": -0.1,
+        "difference_sigma": sigma_apart,
+        "repeats_to_settle": _repeats(10.0 + gap, sigma_apart),
+        **extra,
+    }
+
+
+@pytest.mark.parametrize(
+    ("apart", "expected"), [(3.0, 2), (14**0.5, 1), (1.0, 14), (0.1, 1400), (0.0, None)]
+)
+def test_repeats_settle_the_criterion_gap_whichever_model_is_right(apart, expected):
+    # min_delta 10 + gap 4 = 14 to gain; each measurement adds apart^2 on average.
+    assert _repeats(14.0, apart) == expected
+
+
+def test_a_practical_point_says_how_many_measurements_settle_it():
+    n = {"between": ["facet_contact", "facet_contact+neutral_zone"], **_point(3.0)}
+    text = _next(_specimen(n))
+    assert text == (
+        "facet_contact vs facet_contact+neutral_zone: Extension at 7.5 Nm "
+        "(-0.100°, 3.0σ, 2 measurements)"
+    )
+
+
+def test_a_point_beyond_the_protocol_names_the_practical_one_within_it_or_says_there_is_none():
+    inner_ok = _point(2.0, moment_nm=5.0)
+    n = {
+        "between": ["a", "b"],
+        **_point(3.0),
+        "within_measured_range": False,
+        "within_protocol": inner_ok,
+    }
+    text = _next(_specimen(n))
+    assert "beyond the protocol); within the protocol: Extension at 5 Nm" in text
+    assert text.endswith("4 measurements)")
+    n["within_protocol"] = _point(0.5, moment_nm=5.0)
+    assert _next(_specimen(n)).endswith("none practical within the protocol (at most 0.5σ)")
+
+
+def test_models_that_barely_differ_get_no_measurement_to_make():
+    assert _repeats(14.0, 0.5) > PRACTICAL_REPEATS
+    text = _next(_specimen({"between": ["none", "facet_contact"], **_point(0.1)}))
+    assert text == (
+        "none vs facet_contact: no practical measurement tells them apart "
+        "(at most 0.1σ, Extension at 7.5 Nm)"
+    )
+    assert _next(_specimen(None)) == ""

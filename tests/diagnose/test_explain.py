@@ -1,0 +1,75 @@
+"""What to measure next (femcal.diagnose.explain._next_measurement) on given model curves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from femcal.diagnose import explain
+
+DENSE = np.array([1.0, 2.0, 4.0, 8.0])
+SIGMA = np.full(4, 0.05)
+
+
+@pytest.fixture
+def curves(monkeypatch):
+    """Each model's dense curves (4, 4) by its effects; no parameter covariance."""
+    base = np.tile(np.array([1.0, 2.0, 3.0, 4.0]), (4, 1))
+    table = {
+        (): base,
+        ("facet_contact",): base - np.array([0.0, 0.0, 0.1, 0.3]),
+        # the chosen model with a further effect fitted to nothing: the same curves
+        ("facet_contact", "ligament_tension"): base - np.array([0.0, 0.0, 0.1, 0.3]) + 1e-4,
+        ("facet_contact", "neutral_zone"): base - np.array([0.15, 0.0, 0.1, 0.3]),
+    }
+    monkeypatch.setattr(
+        explain,
+        "_dense_prediction",
+        lambda dense_base, effects, fit, pos: (table[effects], np.zeros((4, 1))),
+    )
+    return table
+
+
+def _ranking(criteria: dict[tuple[str, ...], float]):
+    return [
+        {"effects": list(e), "effect": "+".join(e) or "none", "criterion": c}
+        for e, c in criteria.items()
+    ]
+
+
+def _next(ranking, min_delta=10.0):
+    fits = {tuple(r["effects"]): (None, 0) for r in ranking}
+    return explain._next_measurement(
+        ranking, fits, object(), DENSE, SIGMA, min_delta, ("facet_contact",)
+    )
+
+
+def test_the_rival_named_is_the_one_fewest_measurements_settle(curves):
+    ranking = _ranking(
+        {
+            ("facet_contact",): 20.0,
+            ("facet_contact", "ligament_tension"): 21.0,  # closest, predicts the same
+            ("facet_contact", "neutral_zone"): 26.0,  # 3 sigma apart at 1 Nm
+            (): 60.0,  # beyond min_delta
+        }
+    )
+    n = _next(ranking)
+    assert n["between"] == ["facet_contact", "facet_contact+neutral_zone"]
+    assert n["criterion_gap"] == pytest.approx(6.0)
+    assert (n["load_case"], n["moment_nm"]) == ("Flexion", 1.0)
+    assert n["difference_sigma"] == pytest.approx(3.0)
+    assert n["repeats_to_settle"] == 2  # (10 + 6) / 3^2 = 1.8
+
+
+def test_no_rival_within_min_delta_means_nothing_to_measure(curves):
+    ranking = _ranking({("facet_contact",): 20.0, ("facet_contact", "neutral_zone"): 30.0})
+    assert _next(ranking) is None
+    assert _next(ranking, min_delta=10.5)["between"][1] == "facet_contact+neutral_zone"
+
+
+def test_rivals_that_predict_the_same_are_named_with_no_measurement_to_make(curves):
+    ranking = _ranking({("facet_contact",): 20.0, ("facet_contact", "ligament_tension"): 21.0})
+    n = _next(ranking)
+    assert n["between"][1] == "facet_contact+ligament_tension"
+    assert n["difference_sigma"] == pytest.approx(1e-4 / 0.05)
+    assert n["repeats_to_settle"] > 10**6
