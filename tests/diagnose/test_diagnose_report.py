@@ -72,3 +72,54 @@ def test_models_that_barely_differ_get_no_measurement_to_make():
         "(at most 0.1σ, Extension at 7.5 Nm)"
     )
     assert _next(_specimen(None)) == ""
+
+
+def _diagnosis(next_measurement):
+    from femcal.diagnose.result import Diagnosis
+
+    moments = np.array([1.0, 2.5, 5.0])
+    s = _specimen(next_measurement)
+    s.residuals = np.full((4, 3), 0.01)
+    return Diagnosis(
+        specimens=[s],
+        sigma_deg=0.05,
+        noise_deg=0.05,
+        noise_sd_deg=0.0,
+        surrogate_error_deg=0.0,
+        moments=moments,
+        seconds=0.0,
+    )
+
+
+def _marks(tmp_path, monkeypatch, next_measurement) -> tuple[list, list[str]]:
+    """The dotted 'measure next' lines of a specimen's figure as (panel title, x), and the
+    figure's notes."""
+    from matplotlib.figure import Figure
+
+    from femcal.diagnose.report import plot_specimen
+
+    seen = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: seen.append(fig))
+    plot_specimen(_diagnosis(next_measurement), 0, np.ones((4, 3)), tmp_path / "S1.png")
+    (fig,) = seen
+    lines = [
+        (ax.get_title(), float(line.get_xdata()[0]))
+        for ax in fig.axes
+        for line in ax.get_lines()
+        if line.get_linestyle() == ":"
+    ]
+    return lines, [t.get_text() for t in fig.texts if "Measure next" in t.get_text()]
+
+
+def test_the_figure_marks_a_practical_measurement_and_only_that(tmp_path, monkeypatch):
+    n = {"between": ["facet_contact", "facet_contact+neutral_zone"], **_point(3.0)}
+    lines, notes = _marks(tmp_path, monkeypatch, n)
+    assert lines == [("extension", 7.5)]
+    assert notes == [
+        "Measure next: extension at 7.5 Nm, where facet_contact+neutral_zone differs from "
+        "facet_contact by -0.100° (3.0σ): 2 measurements there settle it."
+    ]
+    # beyond the protocol not practical, within it practical: the one within
+    n = {**n, **_point(0.5), "within_protocol": _point(2.0, moment_nm=4.0)}
+    assert _marks(tmp_path, monkeypatch, n)[0] == [("extension", 4.0)]
+    assert _marks(tmp_path, monkeypatch, {**n, "within_protocol": None}) == ([], [])

@@ -62,6 +62,38 @@ def _plt():
     return plt
 
 
+def _mark_next_measurement(s: SpecimenDiagnosis, axes) -> str | None:
+    """A dotted line where ``next_measurement`` says to measure, when that is practical (the
+    point beyond the protocol, else the one within it); returns the sentence saying so."""
+    n = s.next_measurement
+    if not n:
+        return None
+    point = n if _settles(n) else n.get("within_protocol")
+    if not point or not _settles(point):
+        return None
+    ax = axes[LOAD_CASES.index(point["load_case"])]
+    x = point["moment_nm"]
+    ax.axvline(x, ls=":", color="C1", lw=1.4)
+    ax.text(
+        x,
+        0.03,
+        "measure next ",
+        transform=ax.get_xaxis_transform(),
+        rotation=90,
+        ha="right",
+        va="bottom",
+        fontsize=8,
+        color="C1",
+    )
+    k = point["repeats_to_settle"]
+    return (
+        f"Measure next: {LABELS.get(point['load_case'], point['load_case'])} at {x:.2g} Nm, "
+        f"where {n['between'][1]} differs from {n['between'][0]} by "
+        f"{point['difference_deg']:+.3f}° ({point['difference_sigma']:.1f}σ): "
+        f"{k} measurement{'s' if k > 1 else ''} there settle it."
+    )
+
+
 def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> None:
     """Measured points and continuous model curves (disc alone, with the verdict's effects),
     residuals against the ±2σ band, and the discrepancy estimate with its band."""
@@ -129,6 +161,7 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
                 label=f"discrepancy of {s.discrepancy['model']} (± 2 sd)",
             )
         rx.set_xlabel("moment (Nm)", fontsize=10)
+    measure_next = _mark_next_measurement(s, axes[0])
     axes[0, 0].set_ylabel("RoM (deg)", fontsize=10)
     axes[1, 0].set_ylabel("measured − model (deg)", fontsize=10)
     axes[0, 0].legend(fontsize=8, loc="upper left")
@@ -143,9 +176,11 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
         )
     )
     fig.suptitle(title, fontsize=11)
-    if s.discrepancy is not None and s.discrepancy["description"]:
-        text = "\n".join(s.discrepancy["description"])
-        fig.text(0.01, -0.01, text, fontsize=8.5, va="top", family="monospace")
+    notes = list(s.discrepancy["description"]) if s.discrepancy is not None else []
+    if measure_next:
+        notes.append(measure_next)
+    if notes:
+        fig.text(0.01, -0.01, "\n".join(notes), fontsize=8.5, va="top", family="monospace")
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
 
