@@ -396,6 +396,8 @@ def run_diagnosis(cohort: dict[str, Any], ctx: dict[str, Any]):
     model = SurrogateCurveModel(surrogate, moments)
     if policy is not None:
         sur_err = policy.sigma_surrogate(moments)
+        if ctx.get("in_range") is not None:  # --surrogate-error-in-range
+            sur_err = np.sqrt(ctx["in_range"] ** 2 + sur_err**2 - policy.error_deg**2)
         weight = np.ascontiguousarray(np.broadcast_to(policy.weights(moments), rom.shape))
     else:
         sur_err, weight = ctx["sur_err"], None
@@ -718,6 +720,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         metavar="KEY=VALUE",
         help="a keyword of femcal.diagnose.diagnose for an ablation (a Python literal), repeatable",
     )
+    ap.add_argument(
+        "--surrogate-error-in-range",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="an ablation: count the surrogate's error inside its trained moments as DEG "
+        "instead of the policy's pre-fit sd (beyond them its growth is kept: sd(M)^2 = DEG^2 + "
+        "sd_policy(M)^2 - sd_policy(in range)^2); see benchmarks/bench_postfit_error.py",
+    )
     args = ap.parse_args(argv)
     if args.from_json:
         rows, meta = merge_reports(args.from_json)
@@ -781,6 +792,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "candidates": section(params, "diagnose", "candidates"),
         "min_delta": float(section(params, "diagnose", "min_delta")),
         "options": options,
+        "in_range": args.surrogate_error_in_range,
         "cal_opts": calibration_options(
             "pgd",
             section(params, "calibrate", "options", "pgd"),
@@ -823,6 +835,17 @@ def main(argv: Sequence[str] | None = None) -> None:
                     "eligible": j["eligible"].tolist(),
                     "right": j["right"].tolist(),
                     "rivals": j["rivals"],
+                    # where the rival differs most (sigma) and the measurements to settle it
+                    "rival_sigma": [
+                        None if not s.next_measurement else s.next_measurement["difference_sigma"]
+                        for s in diag.specimens
+                    ],
+                    "rival_repeats": [
+                        None
+                        if not s.next_measurement
+                        else s.next_measurement.get("repeats_to_settle")
+                        for s in diag.specimens
+                    ],
                 }
             )
         else:
@@ -844,6 +867,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         else {"growth": policy.growth, "max_log_ratio": policy.max_log_ratio},
         "max_specimens": args.max_specimens,
         "diagnose_options": options,
+        "surrogate_error_in_range": args.surrogate_error_in_range,
         "noise_deg": plant["noise_deg"],
     }
     if args.timing_only:
@@ -862,6 +886,8 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
     name = "bench_diagnose_timing" + (f"_{threads}threads" if threads > 1 else "")
     # an ablation (--diagnose-option) writes beside the default's report, never over it
     name += "".join(f"_{k}-{v}" for k, v in sorted(meta["diagnose_options"].items()))
+    if meta.get("surrogate_error_in_range") is not None:
+        name += f"_surrogate-in-range-{meta['surrogate_error_in_range']:g}"
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     lines = [
         "# Missing-effect search: the diagnosis' time per 50 specimens (bar (e), <= 60 s)",
@@ -875,7 +901,14 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
         "Only `femcal.diagnose.diagnose` is timed, exactly as in `bench_diagnose.md` (same "
         "cohorts, options and seeds: the verdicts are the same); the recalibrations and the "
         "visibility checks of the full benchmark are not run. Options of "
-        f"`femcal.diagnose.diagnose` beyond the defaults: {meta['diagnose_options'] or 'none'}. "
+        f"`femcal.diagnose.diagnose` beyond the defaults: {meta['diagnose_options'] or 'none'}"
+        + (
+            ""
+            if meta.get("surrogate_error_in_range") is None
+            else "; the surrogate's error inside its trained moments counted as "
+            f"{meta['surrogate_error_in_range']:g}° (its growth beyond them kept)"
+        )
+        + ". "
         "Bars (a) and (b) as in `bench_diagnose.md` (eligible: not `none`, the disc alone "
         "misses by > 2σ). Where the verdict is wrong, the rival that `next_measurement` names "
         "(the close model the fewest measurements settle) may be the true model: counted, and "
@@ -1014,7 +1047,8 @@ def merge_reports(paths: Sequence[Path]) -> tuple[list[dict[str, Any]], dict[str
         data = json.loads(Path(path).read_text())
         rows += data.pop("cohorts")
         metas.append(data)
-    for key in ("surrogate", "noise_deg", "diagnose_options", "max_specimens"):
+    keys = ("surrogate", "noise_deg", "diagnose_options", "surrogate_error_in_range")
+    for key in (*keys, "max_specimens"):
         seen = {json.dumps(m.get(key), sort_keys=True) for m in metas}
         if len(seen) > 1:
             raise ValueError(
