@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -62,14 +63,22 @@ def _plt():
     return plt
 
 
-def _mark_next_measurement(s: SpecimenDiagnosis, axes) -> str | None:
-    """A dotted line where ``next_measurement`` says to measure, when that is practical (the
-    point beyond the protocol, else the one within it); returns the sentence saying so."""
+def practical_next(s: SpecimenDiagnosis) -> dict[str, Any] | None:
+    """The point of ``next_measurement`` that a practical number of measurements (at most
+    :data:`PRACTICAL_REPEATS`) settles: the best one, else the best within the protocol;
+    ``None`` when neither does."""
     n = s.next_measurement
     if not n:
         return None
     point = n if _settles(n) else n.get("within_protocol")
-    if not point or not _settles(point):
+    return point if point and _settles(point) else None
+
+
+def _mark_next_measurement(s: SpecimenDiagnosis, axes) -> str | None:
+    """A dotted line where ``next_measurement`` says to measure, when that is practical (the
+    point beyond the protocol, else the one within it); returns the sentence saying so."""
+    n, point = s.next_measurement, practical_next(s)
+    if point is None:
         return None
     ax = axes[LOAD_CASES.index(point["load_case"])]
     x = point["moment_nm"]

@@ -99,7 +99,13 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
     )
 
 
+#: Specimens ``describe`` names with a practical next measurement (the rest are counted).
+SHOWN = 5
+
+
 def describe(figures: Mapping[str, Any]) -> list[str]:
+    from femcal.diagnose.report import practical_next
+
     diag = figures["diagnosis"]
     lines = describe_user_effects(figures["user_effects"], figures["user_effect_paths"])
     lines.append(
@@ -115,6 +121,17 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml and run "
             "`dvc repro` (or: femcal calibrate --measurements FILE --effects "
             f"{','.join(found)})"
+        )
+    close = [(sp.specimen, p) for sp in diag.specimens if (p := practical_next(sp)) is not None]
+    if close:
+        shown = "; ".join(
+            f"{name}: {p['load_case']} at {p['moment_nm']:.2g} Nm, {p['repeats_to_settle']}x"
+            for name, p in close[:SHOWN]
+        )
+        more = f" and {len(close) - SHOWN} more" if len(close) > SHOWN else ""
+        lines.append(
+            f"close calls a few measurements would settle: {shown}{more} (summary.md says "
+            "between which models, plots/ marks the point)"
         )
     if counts.get("unexplained"):
         lines.append(
