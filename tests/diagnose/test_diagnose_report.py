@@ -116,10 +116,29 @@ def test_the_figure_marks_a_practical_measurement_and_only_that(tmp_path, monkey
     lines, notes = _marks(tmp_path, monkeypatch, n)
     assert lines == [("extension", 7.5)]
     assert notes == [
-        "Measure next: extension at 7.5 Nm, where facet_contact+neutral_zone differs from "
-        "facet_contact by -0.100° (3.0σ): 2 measurements there settle it."
+        "Measure next to tell facet_contact from facet_contact+neutral_zone: extension at "
+        "7.5 Nm (-0.100°, 3.0σ, 2 measurements)."
     ]
-    # beyond the protocol not practical, within it practical: the one within
-    n = {**n, **_point(0.5), "within_protocol": _point(2.0, moment_nm=4.0)}
-    assert _marks(tmp_path, monkeypatch, n)[0] == [("extension", 4.0)]
-    assert _marks(tmp_path, monkeypatch, {**n, "within_protocol": None}) == ([], [])
+    # beyond the protocol, and within it practical too: both marked
+    inner = _point(2.0, moment_nm=4.0)
+    n = {**n, "within_measured_range": False, "within_protocol": inner}
+    lines, notes = _marks(tmp_path, monkeypatch, n)
+    assert lines == [("extension", 7.5), ("extension", 4.0)]
+    assert notes[0].endswith(
+        "(-0.100°, 3.0σ, 2 measurements), beyond the protocol; within the protocol: extension "
+        "at 4 Nm (-0.100°, 2.0σ, 4 measurements)."
+    )
+    # within the protocol not practical: only the point beyond it
+    n["within_protocol"] = _point(0.5, moment_nm=4.0)
+    assert _marks(tmp_path, monkeypatch, n)[0] == [("extension", 7.5)]
+    # nothing practical: nothing marked, nothing said
+    assert _marks(tmp_path, monkeypatch, {**n, **_point(0.5)}) == ([], [])
+
+
+def test_the_point_within_the_protocol_never_settles_sooner():
+    """It is the best point of a subset of the moments searched: at most as far apart."""
+    from femcal.diagnose.report import practical_next
+
+    n = {"between": ["a", "b"], **_point(0.5), "within_protocol": _point(0.5, moment_nm=4.0)}
+    assert practical_next(_specimen(n)) is None
+    assert practical_next(_specimen({**n, **_point(3.0)}))["moment_nm"] == 7.5

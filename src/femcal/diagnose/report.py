@@ -64,43 +64,49 @@ def _plt():
 
 
 def practical_next(s: SpecimenDiagnosis) -> dict[str, Any] | None:
-    """The point of ``next_measurement`` that a practical number of measurements (at most
-    :data:`PRACTICAL_REPEATS`) settles: the best one, else the best within the protocol;
-    ``None`` when neither does."""
+    """``next_measurement`` when a practical number of measurements (at most
+    :data:`PRACTICAL_REPEATS`) at its point settles the question, else ``None``. (Its point
+    within the protocol, when it has one, differs less, so it never settles sooner.)"""
     n = s.next_measurement
-    if not n:
-        return None
-    point = n if _settles(n) else n.get("within_protocol")
-    return point if point and _settles(point) else None
+    return n if n and _settles(n) else None
 
 
 def _mark_next_measurement(s: SpecimenDiagnosis, axes) -> str | None:
-    """A dotted line where ``next_measurement`` says to measure, when that is practical (the
-    point beyond the protocol, else the one within it); returns the sentence saying so."""
-    n, point = s.next_measurement, practical_next(s)
-    if point is None:
+    """Dotted lines where ``next_measurement`` says to measure, when that is practical (and
+    at its point within the protocol too, when that is practical as well); returns the
+    sentence saying so."""
+    n = practical_next(s)
+    if n is None:
         return None
-    ax = axes[LOAD_CASES.index(point["load_case"])]
-    x = point["moment_nm"]
-    ax.axvline(x, ls=":", color="C1", lw=1.4)
-    ax.text(
-        x,
-        0.03,
-        "measure next ",
-        transform=ax.get_xaxis_transform(),
-        rotation=90,
-        ha="right",
-        va="bottom",
-        fontsize=8,
-        color="C1",
+    inner = n.get("within_protocol")
+    points = [n] + ([inner] if inner and _settles(inner) else [])
+    for p in points:
+        ax = axes[LOAD_CASES.index(p["load_case"])]
+        ax.axvline(p["moment_nm"], ls=":", color="C1", lw=1.4)
+        ax.text(
+            p["moment_nm"],
+            0.03,
+            "measure next ",
+            transform=ax.get_xaxis_transform(),
+            rotation=90,
+            ha="right",
+            va="bottom",
+            fontsize=8,
+            color="C1",
+        )
+
+    def where(p: dict[str, Any]) -> str:
+        k = p["repeats_to_settle"]
+        return (
+            f"{LABELS.get(p['load_case'], p['load_case'])} at {p['moment_nm']:.2g} Nm "
+            f"({p['difference_deg']:+.3f}°, {p['difference_sigma']:.1f}σ, "
+            f"{k} measurement{'s' if k > 1 else ''})"
+        )
+
+    text = f"Measure next to tell {n['between'][0]} from {n['between'][1]}: {where(n)}" + (
+        ", beyond the protocol" if n.get("within_measured_range") is False else ""
     )
-    k = point["repeats_to_settle"]
-    return (
-        f"Measure next: {LABELS.get(point['load_case'], point['load_case'])} at {x:.2g} Nm, "
-        f"where {n['between'][1]} differs from {n['between'][0]} by "
-        f"{point['difference_deg']:+.3f}° ({point['difference_sigma']:.1f}σ): "
-        f"{k} measurement{'s' if k > 1 else ''} there settle it."
-    )
+    return text + (f"; within the protocol: {where(inner)}" if len(points) > 1 else "") + "."
 
 
 def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> None:
