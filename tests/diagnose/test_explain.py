@@ -11,22 +11,32 @@ DENSE = np.array([1.0, 2.0, 4.0, 8.0])
 SIGMA = np.full(4, 0.05)
 
 
+class _Table(dict):
+    pass
+
+
 @pytest.fixture
 def curves(monkeypatch):
     """Each model's dense curves (4, 4) by its effects; no parameter covariance."""
     base = np.tile(np.array([1.0, 2.0, 3.0, 4.0]), (4, 1))
-    table = {
-        (): base,
-        ("facet_contact",): base - np.array([0.0, 0.0, 0.1, 0.3]),
-        # the chosen model with a further effect fitted to nothing: the same curves
-        ("facet_contact", "ligament_tension"): base - np.array([0.0, 0.0, 0.1, 0.3]) + 1e-4,
-        ("facet_contact", "neutral_zone"): base - np.array([0.15, 0.0, 0.1, 0.3]),
-    }
-    monkeypatch.setattr(
-        explain,
-        "_dense_prediction",
-        lambda dense_base, effects, fit, pos: (table[effects], np.zeros((4, 1))),
+    table = _Table(
+        {
+            (): base,
+            ("facet_contact",): base - np.array([0.0, 0.0, 0.1, 0.3]),
+            # the chosen model with a further effect fitted to nothing: the same curves
+            ("facet_contact", "ligament_tension"): base - np.array([0.0, 0.0, 0.1, 0.3]) + 1e-4,
+            ("facet_contact", "neutral_zone"): base - np.array([0.15, 0.0, 0.1, 0.3]),
+        }
     )
+    table.sd = {}  # a model's prediction sd (4, q) where it has one; else zero
+    table.jacobians = []  # the models whose sd was asked for
+
+    def prediction(dense_base, effects, fit, pos, sd=True):
+        if sd:
+            table.jacobians.append(effects)
+        return table[effects], table.sd.get(effects, np.zeros((4, 1))) if sd else np.zeros((4, 1))
+
+    monkeypatch.setattr(explain, "_dense_prediction", prediction)
     return table
 
 
@@ -73,3 +83,30 @@ def test_rivals_that_predict_the_same_are_named_with_no_measurement_to_make(curv
     assert n["between"][1] == "facet_contact+ligament_tension"
     assert n["difference_sigma"] == pytest.approx(1e-4 / 0.05)
     assert n["repeats_to_settle"] > 10**6
+
+
+def test_a_rival_whose_own_uncertainty_hides_its_difference_is_passed_over(curves):
+    """The rival whose curves differ most has a prediction sd that hides the difference (its
+    parameters are not pinned where it differs): the other one is named, as trying every
+    rival with its sd would; the Jacobian of a rival that cannot win is never computed."""
+    curves.sd[("facet_contact", "neutral_zone")] = np.full((4, 4), 1.0)
+    curves[("facet_contact", "ligament_tension")] = curves[("facet_contact",)] + 0.05
+    curves[("facet_contact", "ligament_tension", "neutral_zone")] = curves[("facet_contact",)]
+    ranking = _ranking(
+        {
+            ("facet_contact",): 20.0,
+            ("facet_contact", "ligament_tension"): 25.0,  # 1 sigma apart everywhere
+            ("facet_contact", "neutral_zone"): 26.0,  # 3 sigma on its curves, ~0.15 with sd
+            ("facet_contact", "ligament_tension", "neutral_zone"): 22.0,  # the same curves
+        }
+    )
+    n = _next(ranking)
+    assert n["between"][1] == "facet_contact+ligament_tension"
+    assert n["repeats_to_settle"] == 15  # (10 + 5) / 1^2
+    # the chosen model, then the rivals by their bound until none can win: the same curves
+    # (bound: never settles) is never refined
+    assert curves.jacobians == [
+        ("facet_contact",),
+        ("facet_contact", "neutral_zone"),
+        ("facet_contact", "ligament_tension"),
+    ]

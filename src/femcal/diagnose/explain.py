@@ -184,15 +184,16 @@ def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.n
         return model.curves(v).double().numpy()
 
 
-def _dense_prediction(dense_base, effects: tuple[str, ...], fit, pos: int):
+def _dense_prediction(dense_base, effects: tuple[str, ...], fit, pos: int, sd: bool = True):
     """One fitted model's curves (4, q) on the dense grid and their linearised sd (4, q).
 
     The sd propagates the fit's parameter covariance (``fit.cov``, unit box prior) through
-    the exact Jacobian of the dense curves; zero without a covariance.
+    the exact Jacobian of the dense curves; zero (shape (4, 1)) without a covariance or with
+    ``sd=False`` (the curves alone, no Jacobian).
     """
     model = dense_base if not effects else EffectModel(dense_base, list(effects))
     v = fit.v[pos : pos + 1]
-    if fit.cov is None:
+    if fit.cov is None or not sd:
         with torch.no_grad():
             return model.curves(v).double().numpy()[0], np.zeros((len(LOAD_CASES), 1))
     curves, jac = model.curves_jacobian(v)
@@ -238,23 +239,36 @@ def _next_measurement(
     if not rivals:
         return None
 
-    def prediction(r: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    def prediction(r: dict[str, Any], sd: bool = True) -> tuple[np.ndarray, np.ndarray]:
         f, pos = fits[tuple(r["effects"])]
-        return _dense_prediction(dense_base, tuple(r["effects"]), f, pos)
+        return _dense_prediction(dense_base, tuple(r["effects"]), f, pos, sd)
+
+    def key(r: dict[str, Any], d: np.ndarray) -> tuple[float, float]:
+        """(measurements to settle, criterion gap): the rival with the smallest is named."""
+        g = abs(r["criterion"] - best["criterion"])
+        k = _repeats(min_delta + g, float(np.nanmax(d))) if np.isfinite(d).any() else None
+        return (math.inf if k is None else k, g)
 
     best_curve, best_sd = prediction(best)
-    pick = None  # ((repeats, gap), rival, its curves, variance): fewest repeats, then closest
+    # The models' own prediction sd only lowers d, so the curves alone bound each rival's key
+    # from below: the rivals are tried in that order, and the Jacobians (the sd) computed
+    # only while a rival could still beat the best found (the same rival as trying them all).
+    bounds = []
     for r in rivals:
+        c, _ = prediction(r, sd=False)
+        bounds.append((key(r, np.abs(best_curve - c) / sigma_dense[None, :]), r))
+    pick = None  # (key, rival, its curves, variance)
+    for bound, r in sorted(bounds, key=lambda b: b[0]):
+        if pick is not None and bound >= pick[0]:
+            break
         c, sd = prediction(r)
         v = np.broadcast_to(best_sd**2 + sd**2, c.shape)  # sd (4, 1) without a covariance
         d = np.abs(best_curve - c) / np.sqrt(sigma_dense[None, :] ** 2 + v)
         if not np.isfinite(d).any():
             continue
-        g = abs(r["criterion"] - best["criterion"])
-        k = _repeats(min_delta + g, float(np.nanmax(d)))
-        key = (math.inf if k is None else k, g)
-        if pick is None or key < pick[0]:
-            pick = (key, r, c, v)
+        k = key(r, d)
+        if pick is None or k < pick[0]:
+            pick = (k, r, c, v)
     if pick is None:
         return None
     _, second, rival_curve, var = pick
