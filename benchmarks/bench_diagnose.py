@@ -91,7 +91,7 @@ from femcal.config import load_params, section
 from femcal.datasets import load_split, training_configurations
 from femcal.diagnose import Diagnosis, diagnose
 from femcal.diagnose.fits import _chi2, _Fit, parameter_cost
-from femcal.diagnose.report import PRACTICAL_REPEATS
+from femcal.diagnose.report import PRACTICAL_REPEATS, practical_next
 from femcal.effects.base import available_effects
 from femcal.effects.composite import EffectModel
 from femcal.effects.planted import NONE, make_cohort
@@ -373,7 +373,7 @@ def named_effects(s: Any) -> list[str]:
     effects = getattr(s, "effects", None)
     if effects is not None:
         return [str(e) for e in effects]
-    return [p for p in str(s.verdict).split("+") if p not in (NONE, UNEXPLAINED)]
+    return named_effects_of(s.verdict)
 
 
 def judge(verdict: str, named: Sequence[str], expected: frozenset[str], out_of_library: bool):
@@ -440,14 +440,7 @@ def judge_cohort(cohort: dict[str, Any], diag: Diagnosis) -> dict[str, np.ndarra
             for r, ex, ool in zip(rivals, cohort["expected"], cohort["out_of_library"])
         ]
     )
-    practical = np.array(
-        [
-            bool(s.next_measurement)
-            and s.next_measurement.get("repeats_to_settle") is not None
-            and s.next_measurement["repeats_to_settle"] <= PRACTICAL_REPEATS
-            for s in diag.specimens
-        ]
-    )
+    practical = np.array([practical_next(s) is not None for s in diag.specimens])
     return {
         "verdicts": verdicts,
         "named": named,

@@ -271,8 +271,7 @@ def _next_measurement(
             pick = (k, r, c, v)
     if pick is None:
         return None
-    _, second, rival_curve, var = pick
-    gap = abs(second["criterion"] - best["criterion"])
+    (_, gap), second, rival_curve, var = pick
     curves = [best_curve, rival_curve]
     # The two models' own uncertainty counts too: where a rival's parameters are not pinned
     # by the data (a ligament slack beyond the protocol), its prediction there is not either.
