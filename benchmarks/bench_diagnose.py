@@ -329,7 +329,7 @@ def truth_preferred(
     penalty = ctx["options"].get("penalty", DIAGNOSE_DEFAULTS["penalty"])
     w = None if weight is None else weight[idx]
     mask = np.isfinite(rom)
-    sigma = np.broadcast_to(sigma_m, rom.shape[1:])
+    sigma = np.broadcast_to(sigma_m, rom.shape)
     # The diagnosis' own fits of the same models: the thorough ``pgd`` is not reliably the better
     # one (seeds 3 and 4: the diagnosis' fit scored lower by more than 1 in 175 of 483
     # specimen-model pairs, higher in 188), so each model counts with the better of the two.

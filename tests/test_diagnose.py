@@ -164,11 +164,16 @@ def test_next_measurement_names_where_close_explanations_differ(world):
         assert n["difference_sigma"] == pytest.approx(
             abs(n["difference_deg"]) / n["sigma_deg"], rel=1e-3
         )
-        # each measurement there moves the criteria difference_sigma^2 apart on average:
-        # enough of them leave the two min_delta (10) apart whichever is right
-        k = n["repeats_to_settle"]
-        assert k * n["difference_sigma"] ** 2 >= 10.0 + n["criterion_gap"] - 1e-9
-        assert k == 1 or (k - 1) * n["difference_sigma"] ** 2 < 10.0 + n["criterion_gap"]
+        # k measurements there part the criteria by delta^2 / (noise^2 / k + v), the models'
+        # prediction variance v shared (they refit to the new points): the fewest that leave
+        # the two min_delta (10) apart whichever is right, or None when none would
+        k, needed = n["repeats_to_settle"], 10.0 + n["criterion_gap"]
+        delta2, v = n["difference_deg"] ** 2, n["prediction_sd_deg"] ** 2
+        if k is None:
+            assert delta2 / v <= needed * (1 + 1e-6)
+        else:
+            assert delta2 / (NOISE**2 / k + v) >= needed * (1 - 1e-6)
+            assert k == 1 or delta2 / (NOISE**2 / (k - 1) + v) < needed
 
 
 def test_next_measurement_searches_every_moment_the_policy_accepts(world):
@@ -321,7 +326,7 @@ def test_the_search_asks_the_final_adequacy_question_once_the_fit_has_its_trace(
     from femcal.diagnose.explain import _adequacy, _adequate_quick
     from femcal.diagnose.fits import _Fit
 
-    sigma = np.full((4, 4), 0.05)
+    sigma = np.full((1, 4, 4), 0.05)  # (n, 4, m): every point's own
     measured = np.zeros((1, 4, 4))
     pred = torch.full((1, 4, 4), 0.05 * np.sqrt(19.2 / 16))  # chi2 = 19.2 on 16 points
     fit = _Fit(("x",), None, torch.zeros(1, 15), np.array([0]), pred, np.array([19.2]), 15)
@@ -329,7 +334,7 @@ def test_the_search_asks_the_final_adequacy_question_once_the_fit_has_its_trace(
     assert _adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)  # dof 8.5: p ~ 0.02
     fit.trace = np.array([9.0])  # dof 7
     assert not _adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)
-    assert not _adequacy(measured[0] - pred[0].numpy(), sigma, 7.0, 0.01)["adequate"]
+    assert not _adequacy(measured[0] - pred[0].numpy(), sigma[0], 7.0, 0.01)["adequate"]
 
 
 def test_refining_a_combination_never_makes_a_fit_worse(world):
@@ -343,8 +348,8 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
 
     base, rom, _, _ = world
     model = EffectModel(base, ["facet_contact", "ligament_tension"])
-    sigma = np.full((4, len(MOMENTS)), NOISE)
-    weight = np.ascontiguousarray(_weights(sigma[0], rom.shape))
+    sigma = np.full(rom.shape, NOISE)
+    weight = np.ascontiguousarray(_weights(sigma, rom.shape))
     rows = np.arange(len(rom))
     n_points = np.full(len(rom), float(rom[0].size))
     v0 = torch.full((len(rom), model.dim), 0.5)  # one poor start: the middle of the box
@@ -414,7 +419,7 @@ def test_the_criterion_counts_the_parameters_the_data_determine(world):
 
     fit = _Fit(("x",), None, torch.zeros(1, 15), np.array([0]), None, np.array([30.0]), 15)
     fit.trace = np.array([6.5])
-    mask, sigma = np.ones((1, 4, 9), dtype=bool), np.full((4, 9), NOISE)
+    mask, sigma = np.ones((1, 4, 9), dtype=bool), np.full((1, 4, 9), NOISE)
     assert fit.criterion(0, np.log(36), "effective", mask, sigma) == pytest.approx(
         30.0 + 6.5 * np.log(36)
     )
@@ -465,7 +470,7 @@ def test_the_evidence_penalty_is_laplaces_occam_factor_over_the_unit_box():
 
     from femcal.diagnose.fits import _Fit, _hat_trace_and_cov
 
-    sigma = np.full((4, 3), 0.1)
+    sigma = np.full((1, 4, 3), 0.1)
     mask = np.ones((1, 4, 3), dtype=bool)
     jac = torch.zeros(1, 4, 3, 2, dtype=torch.float64)
     jac[0, 0, :, 0] = 0.5  # three points, 5 sd per unit
@@ -488,7 +493,7 @@ def test_chi2_skips_unmeasured_points_but_not_a_failed_prediction():
 
     from femcal.diagnose.fits import _chi2
 
-    sigma = np.full((4, 3), 0.5)
+    sigma = np.full((2, 4, 3), 0.5)
     measured = np.zeros((2, 4, 3))
     measured[:, 0, 2] = np.nan  # not measured
     pred = torch.full((2, 4, 3), 0.5)
@@ -497,3 +502,75 @@ def test_chi2_skips_unmeasured_points_but_not_a_failed_prediction():
     chi2 = _chi2(pred, measured, sigma)
     assert chi2[0] == pytest.approx(11.0)  # 11 measured points, each (0.5 / 0.5)^2
     assert chi2[1] == np.inf
+
+
+# --------------------------------------------------------------------- point weights
+def _quick(base, rom, **kw):
+    """One-effect diagnosis without the discrepancy: fast, and enough to compare criteria."""
+    opts = dict(specimens=[f"S{i}" for i in range(len(rom))], discrepancy=False, seed=0)
+    return diagnose(base, rom, max_effects=1, **{**opts, **kw})
+
+
+def _criteria(diag):
+    return [{r["effect"]: r["criterion"] for r in s.ranking} for s in diag.specimens]
+
+
+def test_a_point_of_weight_w_counts_as_noise_over_root_w(world):
+    """Weight 4 everywhere (each point the mean of four measurements) is the noise halved:
+    the same verdicts and the same criteria; the surrogate's error, which repeats share, is
+    not divided (each point's sigma is sqrt(noise^2 / w + surrogate^2))."""
+    base, rom, _, _ = world
+    rom = rom[:2]
+    four = _quick(base, rom, noise_deg=NOISE, point_weight=np.full(rom.shape, 4.0))
+    half = _quick(base, rom, noise_deg=NOISE / 2)
+    assert [s.verdict for s in four.specimens] == [s.verdict for s in half.specimens]
+    for a, b in zip(_criteria(four), _criteria(half)):
+        assert a.keys() == b.keys()
+        for k in a:
+            assert a[k] == pytest.approx(b[k], rel=1e-6)
+    np.testing.assert_allclose(four.specimens[0].sigma, NOISE / 2)
+    w = np.ones(rom.shape)
+    w[:, :, -1] = 9.0
+    sur = np.full(len(MOMENTS), 0.01)
+    mixed = _quick(base, rom, noise_deg=NOISE, surrogate_error_deg=sur, point_weight=w)
+    s = mixed.specimens[0].sigma
+    assert s[:, -1] == pytest.approx(np.full(4, np.hypot(NOISE / 3, 0.01)))
+    assert s[:, 0] == pytest.approx(np.full(4, np.hypot(NOISE, 0.01)))
+    assert mixed.sigma_deg == pytest.approx(np.hypot(NOISE, 0.01))  # a point of weight 1
+
+
+def test_a_point_of_weight_zero_is_left_out(world):
+    base, rom, _, _ = world
+    rom = rom[:1].copy()
+    w = np.ones(rom.shape)
+    w[0, 1, 3] = 0.0
+    left_out = _quick(base, rom, noise_deg=NOISE, point_weight=w)
+    rom_nan = rom.copy()
+    rom_nan[0, 1, 3] = np.nan
+    missing = _quick(base, rom_nan, noise_deg=NOISE)
+    assert left_out.specimens[0].verdict == missing.specimens[0].verdict
+    for a, b in zip(_criteria(left_out), _criteria(missing)):
+        for k in a:
+            assert a[k] == pytest.approx(b[k], rel=1e-6)
+    assert np.isnan(left_out.specimens[0].residuals[1, 3])
+
+
+@pytest.mark.parametrize(
+    ("weight", "match"),
+    [
+        (
+            np.ones((1, 4, 3)),
+            r"point_weight must have the measurements' shape \(1, 4, 9\).*"
+            r"got \(1, 4, 3\)",
+        ),
+        (
+            -np.ones((1, 4, 9)),
+            r"point_weight must be finite and >= 0.*got \[-1\.0, -1\.0, "
+            r"-1\.0\] at 36 points.*the mean of k repeated measurements weighs k",
+        ),
+    ],
+)
+def test_bad_point_weights_are_refused(world, weight, match):
+    base, rom, _, _ = world
+    with pytest.raises(ConfigError, match=match):
+        _quick(base, rom[:1], noise_deg=NOISE, point_weight=weight)

@@ -310,6 +310,68 @@ LC_HELP = (
 )
 
 
+def test_repeated_rows_are_combined_into_their_weighted_mean(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """What to measure next asks for repeated measurements at one point: rows at the same
+    point are combined (weighted mean, weights summed), not refused, and the log says so."""
+    path = long_file(
+        tmp_path,
+        "S1,Flexion,1,1.0",
+        "S1,Extension,6,2.0",
+        "S1,extension,6.0,2.4",
+        "S1,Extension,6,2.2",
+        header="specimen,load_case,moment_nm,rom_deg",
+    )
+    with caplog.at_level(logging.INFO, logger="femcal.measurements"):
+        meas = read_measurements(path)
+    j = int(np.searchsorted(meas.moments, 6.0))
+    ext = LOAD_CASES.index("Extension")
+    assert meas.rom_deg[0, ext, j] == pytest.approx(2.2)
+    assert meas.weight[0, ext, j] == 3.0
+    assert meas.weight[0, 0, 0] == 1.0
+    assert len(meas.to_long()) == 2
+    assert "'S1' Extension 6 Nm (3 rows: lines 3, 4, 5)" in caplog.text
+    assert "same values" not in caplog.text
+
+
+def test_repeated_rows_weighted(tmp_path: Path) -> None:
+    path = long_file(
+        tmp_path,
+        "S1,Flexion,1,1.0,1,0.1",
+        "S1,Flexion,1,2.0,3,0.5",
+        header="specimen,load_case,moment_nm,rom_deg,weight,idp_mpa",
+    )
+    meas = read_measurements(path)
+    assert meas.rom_deg[0, 0, 0] == pytest.approx(1.75)
+    assert meas.weight[0, 0, 0] == 4.0
+    assert meas.idp_mpa[0, 0, 0] == pytest.approx(0.4)
+
+
+def test_repeated_rows_of_weight_zero_keep_their_plain_mean(tmp_path: Path) -> None:
+    path = long_file(
+        tmp_path,
+        "S1,Flexion,1,1.0,0",
+        "S1,Flexion,1,2.0,0",
+        "S1,Flexion,2,2.0,1",
+        header="specimen,load_case,moment_nm,rom_deg,weight",
+    )
+    meas = read_measurements(path)
+    assert meas.rom_deg[0, 0, 0] == pytest.approx(1.5)
+    assert meas.weight[0, 0, 0] == 0.0
+
+
+def test_a_copied_row_is_warned_about(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = long_file(tmp_path, "S1,Flexion,1,1.0", "S1,Flexion,1.0,1.0")
+    with caplog.at_level(logging.INFO, logger="femcal.measurements"):
+        meas = read_measurements(path)
+    assert meas.weight[0, 0, 0] == 2.0
+    warned = [r for r in caplog.records if "repeat" in r.getMessage() and r.levelno >= 30]
+    assert len(warned) == 1
+    assert "lines 2 and 3 repeat a point with the same values" in warned[0].getMessage()
+    assert "If one is a copy, delete it" in warned[0].getMessage()
+
+
 @pytest.mark.parametrize(
     ("row", "match"),
     [
@@ -329,10 +391,6 @@ LC_HELP = (
         ("S1,Flexion,0,1", r"line 3, column 'moment_nm': the moment must be positive; got 0\."),
         ("S1,Flexion,-2,1", r"column 'moment_nm': the moment must be positive; got -2\."),
         (",Flexion,2,1", r"line 3, column 'specimen': empty specimen name; name the specimen"),
-        (
-            "S1,Flexion,1.0,2",
-            r"lines 2 and 3: the same point twice \(specimen 'S1', Flexion, 1 Nm\); delete one",
-        ),
         ("S1,Flexion,2,1,7", r"line 3: 5 cells but the header has 4 columns \(extra '7'\)"),
     ],
 )

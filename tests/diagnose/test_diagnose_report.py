@@ -27,7 +27,7 @@ def _point(sigma_apart: float, gap: float = 4.0, **extra):
         "moment_nm": 7.5,
         "difference_deg": -0.1,
         "difference_sigma": sigma_apart,
-        "repeats_to_settle": _repeats(10.0 + gap, sigma_apart),
+        "repeats_to_settle": _repeats(10.0 + gap, sigma_apart * 0.05, 0.05),
         **extra,
     }
 
@@ -37,7 +37,19 @@ def _point(sigma_apart: float, gap: float = 4.0, **extra):
 )
 def test_repeats_settle_the_criterion_gap_whichever_model_is_right(apart, expected):
     # min_delta 10 + gap 4 = 14 to gain; each measurement adds apart^2 on average.
-    assert _repeats(14.0, apart) == expected
+    assert _repeats(14.0, apart * 0.05, 0.05) == expected
+
+
+@pytest.mark.parametrize(
+    ("shared_sd", "expected"),
+    [(0.0, 2), (0.02, 3), (0.03, 4), (0.039, 30), (0.15 / 14**0.5, None), (0.05, None)],
+)
+def test_repeats_do_not_average_the_error_they_share(shared_sd, expected):
+    """The mean of k repeats at one point has variance noise^2 / k + shared (the surrogate's
+    error there, the models' own uncertainty): k = noise^2 / (difference^2 / needed - shared)
+    (a 0.15 deg difference, 3 noise sd, needed 14: 1.6, 2.1, 3.5 and 29.0 repeats, rounded
+    up), and none settle it once the shared part alone reaches difference^2 / needed."""
+    assert _repeats(14.0, 0.15, 0.05, shared_sd**2) == expected
 
 
 def test_a_practical_point_says_how_many_measurements_settle_it():
@@ -65,7 +77,7 @@ def test_a_point_beyond_the_protocol_names_the_practical_one_within_it_or_says_t
 
 
 def test_models_that_barely_differ_get_no_measurement_to_make():
-    assert _repeats(14.0, 0.5) > PRACTICAL_REPEATS
+    assert _repeats(14.0, 0.5 * 0.05, 0.05) > PRACTICAL_REPEATS
     text = _next(_specimen({"between": ["none", "facet_contact"], **_point(0.1)}))
     assert text == (
         "none vs facet_contact: no practical measurement tells them apart "

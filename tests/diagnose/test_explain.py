@@ -110,3 +110,16 @@ def test_a_rival_whose_own_uncertainty_hides_its_difference_is_passed_over(curve
         ("facet_contact", "neutral_zone"),
         ("facet_contact", "ligament_tension"),
     ]
+
+
+@pytest.mark.parametrize(("rival_sd", "expected"), [(0.0, 2), (0.03, 5), (0.04, None)])
+def test_a_rivals_own_uncertainty_is_not_averaged_out_by_repeats(curves, rival_sd, expected):
+    """A rival whose prediction the data do not pin refits to new points: its prediction
+    variance v is shared by repeats like the surrogate's error, k = noise^2 / (delta^2 /
+    needed - v) (delta 0.15 deg at 1 Nm, noise 0.05, needed 10 + 6: 1.8 -> 2 without sd,
+    4.9 -> 5 with sd 0.03; with 0.04, v alone exceeds delta^2 / needed: never)."""
+    curves.sd[("facet_contact", "neutral_zone")] = np.full((4, 4), rival_sd)
+    ranking = _ranking({("facet_contact",): 20.0, ("facet_contact", "neutral_zone"): 26.0})
+    n = _next(ranking)
+    assert n["repeats_to_settle"] == expected
+    assert n["difference_sigma"] == pytest.approx(0.15 / np.hypot(0.05, rival_sd))

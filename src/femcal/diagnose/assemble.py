@@ -89,10 +89,10 @@ def _assemble(
         res = measured[i] - f.pred[pos].double().numpy()
         adequacy.append(
             {
-                "final": _adequacy(res, sigma, float(n_points[i] - f.trace[pos]), alpha),
+                "final": _adequacy(res, sigma[i], float(n_points[i] - f.trace[pos]), alpha),
                 "disc_alone": _adequacy(
                     measured[i] - pred0[i].double().numpy(),
-                    sigma,
+                    sigma[i],
                     float(n_points[i] - f0.trace[i]),
                     alpha,
                 ),
@@ -108,13 +108,13 @@ def _assemble(
             rows = np.asarray(members)
             model = base if not effects else effect_model(effects)
             v = _solutions(per_spec, rows, effects)
-            dfit = fit_discrepancy(model, v, measured[rows], sigma_m)
+            dfit = fit_discrepancy(model, v, measured[rows], sigma[rows])
             mean, sd = discrepancy_posterior(dfit, moments, dense, mask[rows])
             for pos, i in enumerate(rows):
                 own = _own_range(dense, moments, mask[i])
                 mu = np.where(own, mean[pos], np.nan)
                 sdev = np.where(own, sd[pos], np.nan)
-                sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma)
+                sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma[i])
                 best_sim = max(sim, key=sim.get) if sim else None
                 resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
                 text = describe(dense, mu, sdev, float(sigma_m.min()))
@@ -169,7 +169,15 @@ def _assemble(
         if effects:
             curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
-            ranking, per_spec[i], probe_base, probe, sigma_probe, min_delta, chosen[i], own_lc
+            ranking,
+            per_spec[i],
+            probe_base,
+            probe,
+            sigma_probe,
+            min_delta,
+            chosen[i],
+            own_lc,
+            noise_deg=noise_used,
         )
         resid = measured[i] - pred0[i].double().numpy()
         out.append(
@@ -179,7 +187,7 @@ def _assemble(
                 baseline_mae_deg=float(mae0[i]),
                 ranking=ranking,
                 residuals=resid,
-                failures=_failures(resid, sigma, moments, unit_disc[i], base.space.names),
+                failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
                 effects=effects,
                 adequate=adequate,
                 adequacy=adequacy[i],
@@ -188,6 +196,7 @@ def _assemble(
                 curves=curves,
                 discrepancy=disc_info[i],
                 next_measurement=nxt,
+                sigma=np.where(mask[i], sigma[i], np.nan),
             )
         )
     return Diagnosis(

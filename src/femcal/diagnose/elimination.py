@@ -51,8 +51,9 @@ def open_world_elimination(
     Updates ``chosen`` (per specimen, the effects kept) and ``per_spec`` (every fitted model
     of every specimen: ``(fit, row in the fit)``) in place; the other arguments are those of
     :func:`femcal.diagnose.diagnose` and its intermediate arrays: ``measured`` (n, 4, m) with
-    NaN where not measured, ``weight`` and ``mask`` of the same shape, ``sigma`` (4, m) and
-    ``sigma_m`` (m,) the noise with the surrogate's error, ``n_points`` and ``log_n`` (n,).
+    NaN where not measured, ``weight``, ``mask`` and ``sigma`` (every point's noise with the
+    surrogate's error) of the same shape, ``sigma_m`` (m,) that of a point of weight 1,
+    ``n_points`` and ``log_n`` (n,).
     """
     n = len(chosen)
     # 2b. Open world: where the chosen effects still leave the data unexplained, keep an effect
@@ -76,7 +77,7 @@ def open_world_elimination(
         """Per load case (4,): the RMS misfit ``effects`` leave beyond the noise."""
         f, pos = per_spec[i][effects]
         r = np.where(mask[i], measured[i] - f.pred[pos].double().numpy(), 0.0)
-        noise = np.where(mask[i], sigma**2, 0.0).sum(1)
+        noise = np.where(mask[i], sigma[i] ** 2, 0.0).sum(1)
         excess = ((r**2).sum(1) - noise) / np.maximum(mask[i].sum(1), 1)
         return np.clip(np.sqrt(np.clip(excess, 0.0, None)), sigma_m.min(), 5.0)
 
@@ -105,13 +106,13 @@ def open_world_elimination(
                 model,
                 v[idx],
                 measured[ids],
-                sigma_m,
+                sigma[ids],
                 amplitude_deg="ml",
                 amplitude_cap=None if cap is None else cap[idx],
             )
             score = fit.neg2_log_ml
         else:
-            fit = fit_discrepancy(model, v[idx], measured[ids], sigma_m, amplitude_deg=amp[idx])
+            fit = fit_discrepancy(model, v[idx], measured[ids], sigma[ids], amplitude_deg=amp[idx])
             score = fit.cost
         for pos, i in enumerate(ids):
             key = (int(i), effects)

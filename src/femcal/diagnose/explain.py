@@ -74,7 +74,7 @@ def _adequate_quick(
     res = measured[i] - fit.pred[pos].double().numpy()
     used = fit.k / 2 if fit.trace is None else float(fit.trace[pos])
     dof = float(n_points[i] - used)
-    return bool(_adequacy(res, sigma, dof, alpha, per_load_case)["adequate"])
+    return bool(_adequacy(res, sigma[i], dof, alpha, per_load_case)["adequate"])
 
 
 # ------------------------------------------------------------------------ reporting
@@ -202,33 +202,68 @@ def _dense_prediction(dense_base, effects: tuple[str, ...], fit, pos: int, sd: b
     return curves.detach().double().numpy()[0], np.sqrt(np.clip(var, 0.0, None))
 
 
-def _repeats(needed: float, apart_sigma: float) -> int | None:
-    """Measurements at a point ``apart_sigma`` sigma apart that move two models' criteria
-    ``needed`` apart on average (each adds ``apart_sigma^2``); ``None`` when they coincide."""
-    if not apart_sigma > 1e-6:
-        return None
-    return max(1, math.ceil(needed / apart_sigma**2))
+def _repeats_grid(
+    needed: float, difference_deg: np.ndarray, noise_deg: np.ndarray, shared_var: np.ndarray
+) -> np.ndarray:
+    """Measurements repeated at a point that move two models' criteria ``needed`` apart on
+    average; ``inf`` where no number of them does (arrays broadcast together).
+
+    The diagnosis scores the mean of ``k`` repeats as one point of variance ``noise^2 / k +
+    surrogate^2`` (the surrogate's error there does not average out), and both models refit,
+    each prediction moving by up to its own prediction sd: ``k`` repeats part the criteria by
+    ``difference^2 / (noise^2 / k + shared)``, ``shared`` the surrogate's and both models'
+    prediction variance, so ``k = noise^2 / (difference^2 / needed - shared)``, rounded up,
+    where that is positive. With nothing shared this is ``needed / d^2`` for a point ``d``
+    noise sd apart.
+    """
+    room = np.asarray(difference_deg, dtype=float) ** 2 / needed - shared_var
+    noise2 = np.broadcast_to(np.asarray(noise_deg, dtype=float) ** 2, room.shape)
+    k = np.full(room.shape, np.inf)
+    ok = np.isfinite(room) & (room > 1e-12 * noise2)
+    # (1 - 1e-9): a whole number plus float noise is not one more
+    k[ok] = np.maximum(1.0, np.ceil(noise2[ok] / room[ok] * (1 - 1e-9)))
+    return k
+
+
+def _repeats(
+    needed: float, difference_deg: float, noise_deg: float, shared_var: float = 0.0
+) -> int | None:
+    """:func:`_repeats_grid` at one point, ``None`` where no number of repeats settles it."""
+    k = float(_repeats_grid(needed, np.array(difference_deg), np.array(noise_deg), shared_var))
+    return None if not math.isfinite(k) else int(k)
 
 
 def _next_measurement(
-    ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, measured_moments=None
+    ranking,
+    fits,
+    dense_base,
+    dense,
+    sigma_dense,
+    min_delta,
+    chosen,
+    measured_moments=None,
+    noise_deg=None,
 ):
-    """Where the chosen model and a close rival (criterion within ``min_delta``) differ most.
+    """Where to measure to tell the chosen model from a close rival (criterion within
+    ``min_delta``), and how many times.
 
     ``dense`` (shape (q,)) are the moments searched and ``sigma_dense`` (shape (q,)) the sigma
-    there (noise and surrogate), to which both models' own prediction sd is added in
+    of one measurement there (``noise_deg``, the measurement noise, and the surrogate's error;
+    all noise when ``noise_deg`` is None), to which both models' own prediction sd is added in
     quadrature (``prediction_sd_deg``; their parameter covariance through the Jacobian);
     ``measured_moments`` (one array per load case) mark whether the point found lies within
     the specimen's own measured range of that load case (``within_measured_range``); where it
     does not, ``within_protocol`` holds the best point within that range too.
 
-    Each point also says how many measurements repeated there would settle the question
-    (``repeats_to_settle``): a point where the models differ by ``d`` sigma moves their
-    criteria apart by ``d^2`` per measurement on average, so ``(min_delta + gap) / d^2`` of
-    them (rounded up) leave the two ``min_delta`` apart whichever is right (``None`` where they
-    do not differ at all). Of the rivals within ``min_delta``, the one that the fewest
-    measurements settle is named: the closest rival in criterion is often the chosen model
-    with a further effect fitted to nothing, which predicts the same curves everywhere.
+    The point named is the one where the fewest measurements repeated there settle the
+    question (``repeats_to_settle``, :func:`_repeats_grid`: they move the two criteria
+    ``min_delta + gap`` apart on average, leaving the two ``min_delta`` apart whichever is
+    right; the surrogate's error and the models' own uncertainty there do not average out),
+    else, where no number does (``None``), where the two differ most in sigma
+    (``difference_sigma``, one measurement). Of the rivals within ``min_delta``, the one that
+    the fewest measurements settle is named: the closest rival in criterion is often the
+    chosen model with a further effect fitted to nothing, which predicts the same curves
+    everywhere.
     """
     if len(ranking) < 2 or dense_base is None:
         return None
@@ -243,55 +278,77 @@ def _next_measurement(
         f, pos = fits[tuple(r["effects"])]
         return _dense_prediction(dense_base, tuple(r["effects"]), f, pos, sd)
 
-    def key(r: dict[str, Any], d: np.ndarray) -> tuple[float, float]:
-        """(measurements to settle, criterion gap): the rival with the smallest is named."""
+    noise = sigma_dense if noise_deg is None else np.minimum(float(noise_deg), sigma_dense)
+    surrogate_var = sigma_dense**2 - noise**2  # (q,): shared by repeats at one moment
+
+    def repeats(r: dict[str, Any], delta: np.ndarray, var: np.ndarray) -> np.ndarray:
+        """(4, q) measurements to settle ``r`` against the chosen model at each point. What
+        repeats share: the surrogate's error there, and the two models' own prediction
+        variance ``var``: a model whose prediction there the data do not pin refits to the
+        new points at a cost of ``delta^2 / var`` elsewhere, so the criteria part by at most
+        ``delta^2 / (noise^2 / k + surrogate^2 + var)`` (planted P005: five measurements at
+        the point of a rival with a 0.22 deg prediction sd left the rival closer than
+        before)."""
         g = abs(r["criterion"] - best["criterion"])
-        k = _repeats(min_delta + g, float(np.nanmax(d))) if np.isfinite(d).any() else None
-        return (math.inf if k is None else k, g)
+        return _repeats_grid(min_delta + g, delta, noise[None, :], surrogate_var[None, :] + var)
+
+    def key(r: dict[str, Any], k: np.ndarray, d: np.ndarray) -> tuple[float, float, float]:
+        """(measurements to settle, minus the largest difference in sigma, criterion gap):
+        the rival with the smallest is named (where none settles, the most different)."""
+        gap = abs(r["criterion"] - best["criterion"])
+        return (float(np.nanmin(k)), -float(np.nanmax(np.abs(d))), gap)
 
     best_curve, best_sd = prediction(best)
-    # The models' own prediction sd only lowers d, so the curves alone bound each rival's key
-    # from below: the rivals are tried in that order, and the Jacobians (the sd) computed
-    # only while a rival could still beat the best found (the same rival as trying them all).
+    # The models' own prediction sd only adds repeats and lowers the difference in sigma, so
+    # the curves alone bound each rival's key from below: the rivals are tried in that order,
+    # and the Jacobians (the sd) computed only while a rival could still beat the best found
+    # (the same rival as trying them all).
     bounds = []
     for r in rivals:
         c, _ = prediction(r, sd=False)
-        bounds.append((key(r, np.abs(best_curve - c) / sigma_dense[None, :]), r))
-    pick = None  # (key, rival, its curves, variance)
+        delta = best_curve - c
+        d_upper = delta / sigma_dense[None, :]
+        bounds.append((key(r, repeats(r, delta, np.zeros_like(c)), d_upper), r))
+    pick = None  # (key, rival, its curves, variance, repeats)
     for bound, r in sorted(bounds, key=lambda b: b[0]):
         if pick is not None and bound >= pick[0]:
             break
         c, sd = prediction(r)
         v = np.broadcast_to(best_sd**2 + sd**2, c.shape)  # sd (4, 1) without a covariance
-        d = np.abs(best_curve - c) / np.sqrt(sigma_dense[None, :] ** 2 + v)
-        if not np.isfinite(d).any():
+        if not np.isfinite(best_curve - c).any():
             continue
-        k = key(r, d)
+        k_grid = repeats(r, best_curve - c, v)
+        k = key(r, k_grid, (best_curve - c) / np.sqrt(sigma_dense[None, :] ** 2 + v))
         if pick is None or k < pick[0]:
-            pick = (k, r, c, v)
+            pick = (k, r, c, v, k_grid)
     if pick is None:
         return None
-    (_, gap), second, rival_curve, var = pick
+    (_, _, gap), second, rival_curve, var, k_grid = pick
     curves = [best_curve, rival_curve]
     # The two models' own uncertainty counts too: where a rival's parameters are not pinned
     # by the data (a ligament slack beyond the protocol), its prediction there is not either.
     total = np.sqrt(sigma_dense[None, :] ** 2 + var)
     diff = (curves[0] - curves[1]) / total
 
-    def point(d: np.ndarray) -> tuple[tuple[int, int], dict[str, Any]]:
-        j, k = np.unravel_index(np.nanargmax(np.abs(d)), d.shape)
-        apart = float(abs(d[j, k]))
+    def point(d: np.ndarray, k_at: np.ndarray) -> tuple[tuple[int, int], dict[str, Any]]:
+        # the fewest repeats (ties: the larger difference), else the largest difference
+        if np.isfinite(k_at).any():
+            order = np.lexsort((-np.nan_to_num(np.abs(d)).ravel(), k_at.ravel()))
+            j, k = np.unravel_index(order[0], d.shape)
+        else:
+            j, k = np.unravel_index(np.nanargmax(np.abs(d)), d.shape)
+        n_rep = k_at[j, k]
         return (int(j), int(k)), {
             "load_case": LOAD_CASES[j],
             "moment_nm": float(dense[k]),
             "difference_deg": float(curves[0][j, k] - curves[1][j, k]),
-            "difference_sigma": apart,
+            "difference_sigma": float(abs(d[j, k])),
             "sigma_deg": float(total[j, k]),
             "prediction_sd_deg": float(np.sqrt(var[j, k])),
-            "repeats_to_settle": _repeats(min_delta + gap, apart),
+            "repeats_to_settle": int(n_rep) if np.isfinite(n_rep) else None,
         }
 
-    where, found = point(diff)
+    where, found = point(diff, k_grid)
     out = {"between": [best["effect"], second["effect"]], "criterion_gap": float(gap), **found}
     if measured_moments is not None:
         own = np.zeros(diff.shape, dtype=bool)
@@ -302,7 +359,7 @@ def _next_measurement(
         out["within_measured_range"] = bool(own[where])
         inside = np.where(own, diff, np.nan)
         if not own[where] and np.isfinite(inside).any():
-            out["within_protocol"] = point(inside)[1]
+            out["within_protocol"] = point(inside, np.where(own, k_grid, np.inf))[1]
     return out
 
 

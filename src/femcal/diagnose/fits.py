@@ -26,7 +26,7 @@ def _weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Chi-square over the measured points, shape (n,): ``pred`` (n, 4, m), ``measured``
-    (n, 4, m) NaN where not measured, ``sigma`` (4, m). A prediction that is not finite at a
+    (n, 4, m) NaN where not measured, ``sigma`` (n, 4, m). A prediction that is not finite at a
     measured point makes it inf (that model cannot be chosen), not a skipped point."""
     z = np.where(np.isfinite(measured), (measured - pred.double().numpy()) / sigma, 0.0)
     chi2 = (z**2).sum(axis=(1, 2))
@@ -169,11 +169,13 @@ class _Fit:
 
     def ensure_trace(self, mask: np.ndarray, sigma: np.ndarray) -> None:
         """Effective parameters, covariance and finiteness from one Jacobian of the batch
-        (once; ``mask`` (n, 4, m) of the whole cohort, ``sigma`` (4, m))."""
+        (once; ``mask`` and ``sigma`` (n, 4, m) of the whole cohort)."""
         if self.trace is not None:
             return
         _, jac = self.model.curves_jacobian(self.v)
-        self.trace, self.cov, self.occam = _hat_trace_and_cov(jac, mask[self.rows], sigma)
+        self.trace, self.cov, self.occam = _hat_trace_and_cov(
+            jac, mask[self.rows], sigma[self.rows]
+        )
         self.finite = torch.isfinite(jac).reshape(len(self.rows), -1).all(1).numpy()
 
     def criterion(
@@ -205,7 +207,7 @@ def _fit_from(
     v, _, _ = gauss_newton(problem, v0, idx, max_iter=max_iter, loss="l2", tol=1e-6, **keep)
     with torch.no_grad():
         pred = model.curves(v)
-    chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), sigma)
+    chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), np.repeat(sigma[rows], g, 0))
     chi2 = np.nan_to_num(chi2, nan=np.inf, posinf=np.inf).reshape(r, g)
     best = chi2.argmin(1)
     flat = torch.as_tensor(np.arange(r) * g + best)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,13 @@ def residuals_frame(diag: Diagnosis) -> pd.DataFrame:
             for k, m in enumerate(diag.moments):
                 r = s.residuals[j, k]
                 if np.isfinite(r):
-                    sk = float(sig[k]) if sig is not None else diag.sigma_deg
+                    sk = (
+                        float(s.sigma[j, k])
+                        if s.sigma is not None
+                        else float(sig[k])
+                        if sig is not None
+                        else diag.sigma_deg
+                    )
                     rows.append(
                         (s.specimen, lc, m, r, r / sk, final[j, k], final[j, k] / sk, s.verdict)
                     )
@@ -215,7 +222,8 @@ def plot_heatmap(diag: Diagnosis, path: Path) -> None:
     for ax, v in zip(axes.flat, verdicts):
         group: list[SpecimenDiagnosis] = [s for s in diag.specimens if s.verdict == v]
         z = np.stack([s.residuals for s in group]) / sig
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a cell nobody measured: NaN
             mean = np.nanmean(z, 0)
         im = ax.imshow(mean, cmap="RdBu_r", vmin=-4, vmax=4, aspect="auto")
         ax.set_title(f"{v} (n = {len(group)})", fontsize=10)

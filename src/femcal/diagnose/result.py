@@ -53,6 +53,9 @@ class SpecimenDiagnosis:
         Disc-alone residuals, measured - model (deg, NaN where not measured).
     final_residuals : ndarray, shape (4, m)
         The same for the final model.
+    sigma : ndarray, shape (4, m), or None
+        Each point's sigma (deg): the noise over the square root of the point's weight (the
+        mean of ``k`` repeated measurements weighs ``k``) with the surrogate's error.
     curves : dict
         ``moments`` (q,) over the specimen's own measured range and the continuous curves
         (4, q) of the disc alone (``none``) and of the final model (its label).
@@ -82,6 +85,7 @@ class SpecimenDiagnosis:
     curves: dict[str, Any] = field(default_factory=dict)
     discrepancy: dict[str, Any] | None = None
     next_measurement: dict[str, Any] | None = None
+    sigma: np.ndarray | None = None
 
     @property
     def discrepancy_mae_deg(self) -> float | None:

@@ -3,8 +3,10 @@
 For every specimen:
 
 1. calibrate the disc alone (``pgd`` through the surrogate); residuals against the noise
-   ``sigma(M)^2 = noise^2 + surrogate_error(M)^2`` (the surrogate's own error counts as noise,
-   larger beyond its trained moments, otherwise its misfit reads as missing physics);
+   ``sigma(M)^2 = noise^2 / w + surrogate_error(M)^2`` (the surrogate's own error counts as
+   noise, larger beyond its trained moments, otherwise its misfit reads as missing physics;
+   ``w`` the point's weight, e.g. ``k`` for the mean of ``k`` repeated measurements, whose
+   noise averages out but not the surrogate's error);
 2. **forward selection** of registered effects: fit the disc with each candidate (material and
    effect parameters jointly, inside all bounds, from the current solution and a grid over the
    new effect's box; a first effect also from the disc-and-effect combinations nearest the
@@ -86,12 +88,31 @@ from femcal.effects.base import available_effects, get_effect
 from femcal.effects.composite import EffectModel
 from femcal.errors import ConfigError
 from femcal.moments import MomentPolicy
-from femcal.schema import LOAD_CASES
 
 logger = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------------ diagnose
+def _point_weight(point_weight: np.ndarray | None, measured: np.ndarray) -> np.ndarray:
+    """The points' weights (n, 4, m), checked: finite and >= 0 (1 everywhere by default)."""
+    if point_weight is None:
+        return np.ones(measured.shape)
+    w = np.asarray(point_weight, dtype=float)
+    if w.shape != measured.shape:
+        raise ConfigError(
+            f"diagnose: point_weight must have the measurements' shape {measured.shape} "
+            f"(specimen, load case, moment); got {w.shape}."
+        )
+    bad = np.isfinite(measured) & ~(np.isfinite(w) & (w >= 0))
+    if bad.any():
+        raise ConfigError(
+            f"diagnose: point_weight must be finite and >= 0 at every measured point; got "
+            f"{w[bad][:3].tolist()} at {int(bad.sum())} points. A weight is a relative inverse "
+            "noise variance (the mean of k repeated measurements weighs k; 0 leaves a point out)."
+        )
+    return np.where(np.isfinite(w), w, 1.0)
+
+
 def _refine_combination(
     model, measured, weight, sigma, rows, v, pred, chi2, n_points, levels, rounds, max_iter
 ):
@@ -126,6 +147,7 @@ def diagnose(
     specimens: Sequence[str],
     noise_deg: float | None = None,
     surrogate_error_deg: float | np.ndarray = 0.0,
+    point_weight: np.ndarray | None = None,
     candidates: Sequence[str] | None = None,
     start_bank: np.ndarray | None = None,
     min_delta: float = 10.0,
@@ -172,6 +194,11 @@ def diagnose(
         The surrogate's own error (sd, deg) at each moment of the grid (or one value),
         added in quadrature to the noise: larger beyond the trained moments
         (:meth:`femcal.moments.MomentPolicy.sigma_surrogate`).
+    point_weight : ndarray, shape (n, 4, m), optional
+        Each point's weight, a relative inverse noise variance
+        (:attr:`femcal.measurements.Measurements.weight`: the mean of ``k`` repeated
+        measurements weighs ``k``): its sigma is ``sqrt(noise^2 / w + surrogate_error^2)``, the
+        surrogate's error not averaging out. A point of weight 0 is left out. Default: 1.
     candidates : sequence of str, optional
         Effects to try (default: every registered effect).
     start_bank : ndarray, shape (N, 13), optional
@@ -364,6 +391,9 @@ def diagnose(
     rng = np.random.default_rng(seed)
     measured = np.where(np.isfinite(rom_deg), np.asarray(rom_deg, dtype=float), np.nan)
     n, _, m = measured.shape
+    w = _point_weight(point_weight, measured)
+    measured = np.where(w > 0, measured, np.nan)  # weight 0: left out
+    w = np.where(w > 0, w, 1.0)  # (n, 4, m); where not measured it does not count
     mask = np.isfinite(measured)
     n_points = mask.reshape(n, -1).sum(1).astype(float)
     cost = parameter_cost(criterion, n_points)  # what one parameter costs: 2 or ln n
@@ -392,20 +422,22 @@ def diagnose(
             return v, base.curves(v)
 
     if noise_deg is None:
-        v_disc, pred0 = disc_fit(_weights(np.sqrt(0.05**2 + sur**2), measured.shape))
+        v_disc, pred0 = disc_fit(_weights(np.sqrt(0.05**2 / w + sur**2), measured.shape))
         r0 = np.where(mask, measured - pred0.double().numpy(), 0.0)
         dof = float(np.clip(n_points - base.dim / 2, 1, None).sum())
-        total = float((r0**2).sum()) / dof
-        noise_used = float(np.sqrt(max(total - float(np.mean(sur**2)), 1e-12)))
+        # w r^2 estimates noise^2 + w surrogate_error^2 at a point (up to its leverage)
+        total = float((w * r0**2).sum()) / dof
+        sur_part = float(np.mean((w * sur**2)[mask])) if mask.any() else 0.0
+        noise_used = float(np.sqrt(max(total - sur_part, 1e-12)))
         noise_sd = noise_used / np.sqrt(2 * dof)
         logger.info("noise estimated from the disc-alone residuals: %.4f deg", noise_used)
     else:
         if not noise_deg > 0:
             raise ConfigError(f"noise_deg must be > 0; got {noise_deg}.")
         noise_used, noise_sd = float(noise_deg), 0.0
-    sigma_m = np.sqrt(noise_used**2 + sur**2)  # (m,)
-    sigma = np.broadcast_to(sigma_m, (len(LOAD_CASES), m))
-    weight = np.ascontiguousarray(_weights(sigma_m, measured.shape))
+    sigma_m = np.sqrt(noise_used**2 + sur**2)  # (m,): a point of weight 1
+    sigma = np.sqrt(noise_used**2 / w + sur**2)  # (n, 4, m): every point's own
+    weight = np.ascontiguousarray(_weights(sigma, measured.shape))
     v_disc, pred0 = disc_fit(weight)
     all_rows = np.arange(n)
     fits: dict[tuple[str, ...], _Fit] = {

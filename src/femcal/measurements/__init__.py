@@ -6,7 +6,10 @@ intradiscal pressure (IDP) in MPa. :func:`read_measurements` detects one of thre
 
 1. **Long CSV**, one row per measured point, columns ``specimen, load_case, moment_nm,
    rom_deg`` and optionally ``idp_mpa`` and ``weight`` (names are case-insensitive,
-   surrounding spaces are ignored). Every cell must be filled in.
+   surrounding spaces are ignored). Every cell must be filled in. Rows at the same point
+   (specimen, load case, moment) are repeated measurements: they are combined into their
+   weighted mean, whose weight is the sum of theirs (a weight is a relative inverse noise
+   variance: the mean of ``k`` measurements of weight 1 weighs ``k``), and logged.
 2. **Wide CSV** (the study's layout with a specimen and load-case column in front): columns
    ``specimen, load_case`` then one column per moment in Nm (``1,2,3,4,5`` or ``1.0,2.5``),
    one row per specimen and load case. An empty cell means "not measured". A ``0`` column
@@ -89,7 +92,6 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
     col = {c: j for j, c in enumerate(names)}
     rows = _DataRows(path, records, len(names))
     problems = rows.problems
-    seen: dict[tuple[str, int, float], int] = {}
     for line, cells in rows:
         specimen = _specimen(cells[col["specimen"]], line, "specimen", problems)
         if specimen is not None:
@@ -139,15 +141,6 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
                 values[name] = value
         if not valid:
             continue
-        key = (specimen, lc, values["moment_nm"])
-        if key in seen:
-            problems.add(
-                line,
-                f"lines {seen[key]} and {line}: the same point twice (specimen {specimen!r}, "
-                f"{LOAD_CASES[lc]}, {values['moment_nm']:g} Nm); delete one of the two rows.",
-            )
-            continue
-        seen[key] = line
         rows.points.append(
             _Point(
                 specimen,

@@ -35,7 +35,8 @@ class Measurements:
         Measured RoM in degrees (>= 0), NaN where not measured; axis 1 follows
         :data:`~femcal.schema.LOAD_CASES`.
     weight : ndarray, shape (n, 4, m)
-        Weights (>= 0) of the points in the fit; forced to 0 where not measured.
+        Weights (>= 0) of the points in the fit, relative inverse noise variances (the mean
+        of ``k`` repeated measurements weighs ``k``); forced to 0 where not measured.
     idp_mpa : ndarray, shape (n, 4, m), or None
         Measured IDP in MPa (finite where measured, NaN elsewhere), or None.
     source : str, optional

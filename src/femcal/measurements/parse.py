@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -20,6 +21,8 @@ from femcal.measurements.data import (
     _repeated,
 )
 from femcal.schema import LOAD_CASES, canonical_load_case
+
+logger = logging.getLogger(__name__)
 
 #: Required columns of the long layout, in the order of :meth:`Measurements.to_long`.
 LONG_COLUMNS: tuple[str, ...] = ("specimen", "load_case", "moment_nm", "rom_deg")
@@ -330,13 +333,65 @@ def _assemble(
     rom = np.full(shape, np.nan)
     weight = np.zeros(shape)
     idp = np.full(shape, np.nan) if with_idp else None
+    cells: dict[tuple[int, int, int], list[_Point]] = {}
     for p in points:
         cell = (index[p.specimen], p.load_case, int(np.searchsorted(moments, p.moment)))
-        rom[cell] = p.rom
-        weight[cell] = p.weight
+        cells.setdefault(cell, []).append(p)
+    for cell, group in cells.items():
+        rom[cell], weight[cell], idp_mean = _combined(group)
         if idp is not None:
-            idp[cell] = p.idp
+            idp[cell] = idp_mean
+    _log_repeats(source, [g for g in cells.values() if len(g) > 1])
     return Measurements(tuple(order), moments, rom, weight, idp, source)
+
+
+def _combined(group: list[_Point]) -> tuple[float, float, float]:
+    """One point from repeated measurements of it: (RoM, weight, IDP), their weighted means
+    (plain means when every weight is 0) and the sum of their weights."""
+    w = np.array([p.weight for p in group])
+    total = float(w.sum())
+    share = w / total if total > 0 else np.full(len(group), 1.0 / len(group))
+    return (
+        float(share @ np.array([p.rom for p in group])),
+        total,
+        float(share @ np.array([p.idp for p in group])),
+    )
+
+
+def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
+    """Say which points were measured more than once (combined), and warn where two rows
+    repeat one point with the same values (a copied row counts as a second measurement)."""
+    if not repeats:
+        return
+    shown = [
+        f"{g[0].specimen!r} {LOAD_CASES[g[0].load_case]} {g[0].moment:g} Nm "
+        f"({len(g)} rows: lines {_listing([str(p.line) for p in g])})"
+        for g in repeats
+    ]
+    logger.info(
+        "%s: %d point%s measured more than once, each combined into the weighted mean of its "
+        "rows (weight: the sum of theirs): %s.",
+        source,
+        len(repeats),
+        "s" if len(repeats) > 1 else "",
+        _listing(shown),
+    )
+    copies = []
+    for g in repeats:
+        seen: dict[tuple[float, float, float], int] = {}
+        for p in g:
+            key = (p.rom, p.weight, p.idp if not math.isnan(p.idp) else -1.0)
+            if key in seen:
+                copies.append(f"lines {seen[key]} and {p.line}")
+            else:
+                seen[key] = p.line
+    if copies:
+        logger.warning(
+            "%s: %s repeat a point with the same values; each counts as a measurement of its "
+            "own. If one is a copy, delete it.",
+            source,
+            _listing(copies),
+        )
 
 
 def _moment_columns(

@@ -207,6 +207,7 @@ def run_diagnose(
         specimens=meas.specimens,
         noise_deg=noise_deg,
         surrogate_error_deg=policy.sigma_surrogate(meas.moments),
+        point_weight=meas.weight,
         candidates=candidates,
         start_bank=training_configurations(start_bank) if start_bank else None,
         min_delta=min_delta,
