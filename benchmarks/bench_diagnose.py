@@ -411,6 +411,7 @@ def run_diagnosis(cohort: dict[str, Any], ctx: dict[str, Any]):
         candidates=ctx["candidates"],
         start_bank=ctx["start_bank"],
         min_delta=ctx["min_delta"],
+        point_weight=cohort.get("point_weight"),
         moment_policy=policy,
         seed=cohort["seed"],
         **ctx["options"],
@@ -677,6 +678,69 @@ def parameter_table(diag, cohort, named, right) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------------ main
+def setup(
+    model_uri: str | None = None,
+    options: dict[str, Any] | None = None,
+    in_range: float | None = None,
+) -> dict[str, Any]:
+    """What every diagnosis of a benchmark cohort needs, as ``femcal diagnose`` sets it up
+    from params.yaml: the surrogate (``model_uri``, default ``calibrate.model_uri``), its
+    moment policy and error, the start bank, the diagnosis' settings (``options``: keywords
+    of :func:`femcal.diagnose.diagnose` beyond them), the calibration options of the
+    recalibrations, and the Test split's FE curves (``fe_moments``, ``fe_rom``) with the
+    planted cohorts' settings (``plant``)."""
+    params = load_params(REPO / "params.yaml")
+    configure_tracking(store_dir=REPO / section(params, "mlflow", "store_dir"))
+    modules = (params.get("effects") or {}).get("modules") or []
+    if modules:
+        from femcal.effects import load_effect_modules
+
+        load_effect_modules([REPO / m for m in modules])
+    model_uri = model_uri or section(params, "calibrate", "model_uri")
+    surrogate = load_surrogate(model_uri)
+    version = resolve_model_version(model_uri)
+    val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
+    sur_err = val * float(np.sqrt(np.pi / 2)) if np.isfinite(val) else 0.0
+    try:
+        from femcal.moments import MomentPolicy
+    except ImportError:  # a tree without the moment policy: one scalar surrogate error
+        policy = None
+    else:
+        policy = MomentPolicy.for_surrogate(
+            surrogate,
+            growth=float(section(params, "moments", "error_growth")),
+            max_log_ratio=float(section(params, "moments", "max_log_ratio")),
+        )
+    prepared = REPO / section(params, "data", "prepared_dir")
+    test, _ = load_split(prepared, "test")
+    _, fe_moments, fe_rom = wide_rom(test)
+    bank_path = REPO / section(params, "calibrate", "start_bank")
+    return {
+        "surrogate": surrogate,
+        "surrogate_name": f"{version['name']}/{version['version']}" if version else model_uri,
+        "policy": policy,
+        "sur_err": sur_err,
+        "start_bank": training_configurations(bank_path),
+        "candidates": section(params, "diagnose", "candidates"),
+        "min_delta": float(section(params, "diagnose", "min_delta")),
+        "options": dict(options or {}),
+        "in_range": in_range,
+        "cal_opts": calibration_options(
+            "pgd",
+            section(params, "calibrate", "options", "pgd"),
+            surrogate=surrogate,
+            start_bank=bank_path,
+        ),
+        "fe_moments": fe_moments,
+        "fe_rom": fe_rom,
+        "plant": {
+            "n_per_class": section(params, "plant", "n_per_class"),
+            "moments": [float(m) for m in section(params, "plant", "moments")],
+            "noise_deg": section(params, "plant", "noise_deg"),
+        },
+    }
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cohorts", default="three,hidden", help="comma-separated: three, hidden")
@@ -746,53 +810,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     if held and not args.holdout:
         ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
     torch.manual_seed(0)
-    params = load_params(REPO / "params.yaml")
-    configure_tracking(store_dir=REPO / section(params, "mlflow", "store_dir"))
-    modules = (params.get("effects") or {}).get("modules") or []
-    if modules:
-        from femcal.effects import load_effect_modules
-
-        load_effect_modules([REPO / m for m in modules])
-    model_uri = args.model_uri or section(params, "calibrate", "model_uri")
-    surrogate = load_surrogate(model_uri)
-    version = resolve_model_version(model_uri)
-    val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
-    sur_err = val * float(np.sqrt(np.pi / 2)) if np.isfinite(val) else 0.0
-    try:
-        from femcal.moments import MomentPolicy
-    except ImportError:  # a tree without the moment policy: one scalar surrogate error
-        policy = None
-    else:
-        policy = MomentPolicy.for_surrogate(
-            surrogate,
-            growth=float(section(params, "moments", "error_growth")),
-            max_log_ratio=float(section(params, "moments", "max_log_ratio")),
-        )
-    prepared = REPO / section(params, "data", "prepared_dir")
-    test, _ = load_split(prepared, "test")
-    _, fe_moments, fe_rom = wide_rom(test)
-    plant = {
-        "n_per_class": section(params, "plant", "n_per_class"),
-        "moments": [float(m) for m in section(params, "plant", "moments")],
-        "noise_deg": section(params, "plant", "noise_deg"),
-    }
-    bank_path = REPO / section(params, "calibrate", "start_bank")
-    ctx = {
-        "surrogate": surrogate,
-        "policy": policy,
-        "sur_err": sur_err,
-        "start_bank": training_configurations(bank_path),
-        "candidates": section(params, "diagnose", "candidates"),
-        "min_delta": float(section(params, "diagnose", "min_delta")),
-        "options": options,
-        "in_range": args.surrogate_error_in_range,
-        "cal_opts": calibration_options(
-            "pgd",
-            section(params, "calibrate", "options", "pgd"),
-            surrogate=surrogate,
-            start_bank=bank_path,
-        ),
-    }
+    ctx = setup(args.model_uri, options, args.surrogate_error_in_range)
+    fe_moments, fe_rom, plant, policy = (
+        ctx["fe_moments"],
+        ctx["fe_rom"],
+        ctx["plant"],
+        ctx["policy"],
+    )
     jobs = [(k, s) for k in kinds for s in seeds]
     if args.holdout and "hidden" in kinds:
         jobs += [("hidden", s) for s in HOLDOUT_SEEDS if s not in seeds]
@@ -853,8 +877,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         "command": command.strip(),
         "machine": platform.processor() or platform.machine(),
         "torch_threads": torch.get_num_threads(),
-        "surrogate": f"{version['name']}/{version['version']}" if version else model_uri,
-        "surrogate_error_deg": sur_err,
+        "surrogate": ctx["surrogate_name"],
+        "surrogate_error_deg": ctx["sur_err"],
         "moment_policy": None
         if policy is None
         else {"growth": policy.growth, "max_log_ratio": policy.max_log_ratio},

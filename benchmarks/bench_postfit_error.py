@@ -30,35 +30,22 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_diagnose import setup
 from hidden_cohorts import PROTOCOLS, make_hidden_cohort
 
 from femcal.calibration import SurrogateCurveModel
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.pgd import pgd
-from femcal.config import load_params, section
-from femcal.datasets import load_split, training_configurations
 from femcal.diagnose.fits import _weights
-from femcal.moments import MomentPolicy
-from femcal.tidy import wide_rom
-from femcal.tracking import configure_tracking, load_surrogate
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def measure(per_protocol: int, seed: int) -> dict:
     """Disc-alone fits of noise-free Test FE curves; residuals per protocol and moment."""
-    params = load_params(REPO / "params.yaml")
-    configure_tracking(store_dir=REPO / section(params, "mlflow", "store_dir"))
-    surrogate = load_surrogate(section(params, "calibrate", "model_uri"))
-    policy = MomentPolicy.for_surrogate(
-        surrogate,
-        growth=float(section(params, "moments", "error_growth")),
-        max_log_ratio=float(section(params, "moments", "max_log_ratio")),
-    )
-    test, _ = load_split(REPO / section(params, "data", "prepared_dir"), "test")
-    _, fe_moments, fe_rom = wide_rom(test)
-    bank = training_configurations(REPO / section(params, "calibrate", "start_bank"))
-    noise = float(section(params, "plant", "noise_deg"))
+    ctx = setup()  # the surrogate, its moment policy and the start bank as bench_diagnose's
+    policy, fe_moments, fe_rom = ctx["policy"], ctx["fe_moments"], ctx["fe_rom"]
+    noise = float(ctx["plant"]["noise_deg"])
     cohort = make_hidden_cohort(
         fe_moments,
         fe_rom,
@@ -68,14 +55,14 @@ def measure(per_protocol: int, seed: int) -> dict:
         noise_deg=0.0,
     )
     rom, moments = cohort.rom_deg, cohort.moments
-    model = SurrogateCurveModel(surrogate, moments)
+    model = SurrogateCurveModel(ctx["surrogate"], moments)
     prefit = policy.sigma_surrogate(moments)
     weight = _weights(np.sqrt(noise**2 + prefit**2), rom.shape)
     problem = CalibrationProblem.from_arrays(model, rom, weight)
     sol = pgd(
         problem,
         rng=np.random.default_rng(seed),
-        start_bank=bank,
+        start_bank=ctx["start_bank"],
         max_iter=25,
         fit_tolerance=0.0,
         ranges=False,
