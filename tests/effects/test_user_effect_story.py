@@ -166,3 +166,30 @@ def test_unexplained_then_a_user_effect_then_the_error_falls(project, capsys):
     assert after[planted].mean() < before[planted].mean() / 3
     assert after[planted].mean() <= 1.5 * max(after[~planted].mean(), NOISE / 2)
     assert "softening_deg" in (tmp / "after" / "parameters.csv").read_text().splitlines()[0]
+
+
+def test_repeated_measurements_in_the_file_count_as_one_point_of_their_weight(project, caplog):
+    """What to measure next asks for repeated measurements at one point: `femcal diagnose`
+    reads such rows (no error), says so, and scores their mean with the noise over root k
+    (the surrogate's own error, 1e-3 deg here, does not average out)."""
+    tmp, _ = project
+    meas = pd.read_csv("meas.csv")
+    s8 = meas[(meas["specimen"] == "S8") & (meas["load_case"] == "Flexion")]
+    last = s8[s8["moment_nm"] == 5.0].iloc[0]
+    repeats = pd.DataFrame([last] * 3).assign(
+        rom_deg=last["rom_deg"] + np.array([0.0, 0.01, -0.01])
+    )
+    pd.concat([meas, repeats]).to_csv("meas_repeats.csv", index=False)
+    with caplog.at_level("INFO", logger="femcal.measurements"):
+        assert main(["diagnose", "--measurements", "meas_repeats.csv", "--out", "d"]) == 0
+    assert "1 point measured more than once" in caplog.text
+    assert "'S8' Flexion 5 Nm (4 rows" in caplog.text
+    res = pd.read_csv(tmp / "d" / "residuals.csv")
+    point = res[(res["specimen"] == "S8") & (res["load_case"] == "Flexion")]
+    assert len(point) == len(MOMENTS)  # the four rows are one point
+    at5 = point[point["moment_nm"] == 5.0].iloc[0]
+    other = point[point["moment_nm"] == 4.5].iloc[0]
+    sigma5 = at5["residual_deg"] / at5["residual_sigma"]
+    sigma45 = other["residual_deg"] / other["residual_sigma"]
+    assert sigma5 == pytest.approx(np.hypot(NOISE / 2, 1e-3 * np.sqrt(np.pi / 2)), rel=1e-3)
+    assert sigma45 == pytest.approx(np.hypot(NOISE, 1e-3 * np.sqrt(np.pi / 2)), rel=1e-3)

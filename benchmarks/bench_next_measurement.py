@@ -1,0 +1,279 @@
+"""Benchmark: follow *what to measure next*, and see whether it settles the question.
+
+Issue 11, item 6: where two explanations are close, the diagnosis names the measurement that
+would settle it, and how many measurements there (``next_measurement``: load case, moment,
+``repeats_to_settle``). This benchmark takes the diagnosis at its word on the hidden cohorts of
+:mod:`hidden_cohorts` (laws unlike femcal's): for every specimen whose suggestion needs at most
+``--max-repeats`` measurements, it draws that many from the hidden truth at that point (the
+generator's own laws at that moment, Gaussian noise of the cohort's sd, seeded per specimen),
+adds them to the specimen's measurements as ``femcal``'s reader does with repeated rows (their
+mean, of weight ``k``), and diagnoses the specimen again, alone, with and without them (alone
+both times: a batch of other specimens changes the fits' floating-point reductions).
+
+Per specimen it reports the criterion gap between the two models (the rival's minus the
+chosen's) before and after, whether the question is settled (the two ``min_delta`` apart, or
+one of them no longer among the models fitted), whether the model the data then prefer is the
+truth, and the verdict before and after.
+
+Writes ``bench_next_measurement.md`` and ``.json`` into ``--out`` (default ``reports/``).
+
+Usage (from the project root, after ``make repro``)::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_next_measurement.py \\
+        --seeds 0,1,2025,4711 [--holdout] [--max-repeats 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from bench_diagnose import (
+    HOLDOUT_SEEDS,
+    hidden_cohort,
+    judge,
+    named_effects,
+    named_effects_of,
+    run_diagnosis,
+    setup,
+)
+from hidden_cohorts import COMPONENTS, make_hidden_cohort, specimen_curves
+
+from femcal.diagnose.report import PRACTICAL_REPEATS
+from femcal.schema import LOAD_CASES
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def components_of(row: pd.Series) -> dict[str, dict[str, float | str]]:
+    """A hidden specimen's components (law and parameters) from its truth row."""
+    out: dict[str, dict[str, float | str]] = {}
+    for c in COMPONENTS[row["class"]]:
+        out[c] = {
+            k[len(c) + 1 :]: v
+            for k, v in row.items()
+            if k.startswith(c + "_") and not (isinstance(v, float) and np.isnan(v))
+        }
+    return out
+
+
+def one_specimen(cohort: dict[str, Any], i: int, extra: tuple[int, float, float, int] | None):
+    """Specimen ``i`` of ``cohort`` alone, with ``extra`` = (load case, moment, mean of the
+    new measurements, their number) added as one point of that weight."""
+    moments = cohort["moments"]
+    rom = cohort["rom_deg"][i : i + 1]
+    weight = np.ones_like(rom)
+    if extra is not None:
+        j, m, value, k = extra
+        moments = np.union1d(moments, [m])
+        col = int(np.searchsorted(moments, m))
+        grow = np.full((1, 4, len(moments)), np.nan)
+        keep = np.searchsorted(moments, cohort["moments"])
+        grow[..., keep] = rom
+        if np.isfinite(grow[0, j, col]):  # the point was measured already: pool them
+            value = (grow[0, j, col] + k * value) / (k + 1)
+            k += 1
+        grow[0, j, col] = value
+        rom = grow
+        weight = np.ones_like(rom)
+        weight[0, j, col] = k
+    keep = np.isfinite(rom).any(axis=(0, 1))
+    return {
+        **cohort,
+        "specimens": [cohort["specimens"][i]],
+        "moments": moments[keep],
+        "rom_deg": rom[..., keep],
+        "point_weight": weight[..., keep],
+    }
+
+
+def gap_between(diag, pair: Sequence[str]) -> float | None:
+    """The criterion of ``pair[1]`` minus that of ``pair[0]`` in the specimen's ranking (None
+    when one of them was not fitted)."""
+    crit = {r["effect"]: r["criterion"] for r in diag.specimens[0].ranking}
+    if pair[0] not in crit or pair[1] not in crit:
+        return None
+    return float(crit[pair[1]] - crit[pair[0]])
+
+
+def follow(seed: int, ctx: dict[str, Any], max_repeats: int) -> list[dict[str, Any]]:
+    """Every specimen of hidden cohort ``seed`` with a suggestion of at most ``max_repeats``
+    measurements: the diagnosis alone before and after taking them."""
+    fe_moments, fe_rom = ctx["fe_moments"], ctx["fe_rom"]
+    noise = float(ctx["plant"]["noise_deg"])
+    cohort = hidden_cohort(seed, fe_moments, fe_rom, noise)
+    clean = make_hidden_cohort(fe_moments, fe_rom, seed=seed, noise_deg=noise).clean_deg
+    diag, *_ = run_diagnosis(cohort, ctx)
+    rows = []
+    for i, s in enumerate(diag.specimens):
+        n = s.next_measurement
+        k = None if not n else n.get("repeats_to_settle")
+        if k is None or k > max_repeats:
+            continue
+        truth = cohort["truth"].iloc[i]
+        comps = components_of(truth)
+        cfg = int(truth["config_id"])
+        # the truth rebuilt from the truth table reproduces the cohort's own curves
+        ok = np.isfinite(clean[i])
+        again = specimen_curves(comps, fe_moments, fe_rom[cfg], cohort["moments"])
+        assert np.allclose(again[ok], clean[i][ok], atol=1e-6), (seed, s.specimen)
+        j, m = LOAD_CASES.index(n["load_case"]), float(n["moment_nm"])
+        true_value = float(specimen_curves(comps, fe_moments, fe_rom[cfg], np.array([m]))[j, 0])
+        draws = true_value + np.random.default_rng([seed, i]).normal(0.0, noise, k)
+        before, *_ = run_diagnosis(one_specimen(cohort, i, None), ctx)
+        after, *_ = run_diagnosis(one_specimen(cohort, i, (j, m, float(draws.mean()), k)), ctx)
+        pair = n["between"]
+        expected, ool = cohort["expected"][i], bool(cohort["out_of_library"][i])
+        g0, g1 = gap_between(before, pair), gap_between(after, pair)
+        settled = g1 is None or abs(g1) >= ctx["min_delta"]
+        preferred = None if g1 is None else pair[0] if g1 > 0 else pair[1]
+        rows.append(
+            {
+                "seed": seed,
+                "specimen": s.specimen,
+                "class": str(cohort["labels"][i]),
+                "protocol": str(cohort["protocol"][i]),
+                "between": list(pair),
+                "truth_in_pair": (not ool)
+                and any(set(named_effects_of(p)) == set(expected) for p in pair),
+                "load_case": n["load_case"],
+                "moment_nm": m,
+                "repeats": int(k),
+                "difference_sigma": float(n["difference_sigma"]),
+                "gap_cohort": float(n["criterion_gap"]),
+                "gap_before": g0,
+                "gap_after": g1,
+                "settled": bool(settled),
+                "preferred_after": preferred,
+                "preferred_is_truth": preferred is not None
+                and not ool
+                and set(named_effects_of(preferred)) == set(expected),
+                "verdict_cohort": s.verdict,
+                "verdict_before": before.specimens[0].verdict,
+                "verdict_after": after.specimens[0].verdict,
+                "right_before": bool(
+                    judge(
+                        before.specimens[0].verdict,
+                        named_effects(before.specimens[0]),
+                        expected,
+                        ool,
+                    )[0]
+                ),
+                "right_after": bool(
+                    judge(
+                        after.specimens[0].verdict,
+                        named_effects(after.specimens[0]),
+                        expected,
+                        ool,
+                    )[0]
+                ),
+            }
+        )
+        print(
+            f"  {s.specimen} ({rows[-1]['class']}): {pair[0]} vs {pair[1]}, {k}x "
+            f"{n['load_case']} at {m:.3g} Nm: gap {g0} -> {g1}",
+            flush=True,
+        )
+    return rows
+
+
+def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_next_measurement.json").write_text(
+        json.dumps({**meta, "specimens": rows}, indent=2) + "\n"
+    )
+
+    def fmt(g: float | None) -> str:
+        return "not fitted" if g is None else f"{g:+.1f}"
+
+    n = len(rows)
+    settled = sum(r["settled"] for r in rows)
+    toward = sum(r["preferred_is_truth"] for r in rows if r["truth_in_pair"])
+    in_pair = sum(r["truth_in_pair"] for r in rows)
+    lines = [
+        "# What to measure next, followed (issue 11, item 6)",
+        "",
+        f"Reproduce: `{meta['command']}`. Surrogate {meta['surrogate']}; noise "
+        f"{meta['noise_deg']}°; `min_delta` {meta['min_delta']:g}; suggestions of at most "
+        f"{meta['max_repeats']} measurements; hidden cohorts {meta['seeds']}.",
+        "",
+        "For each specimen whose diagnosis names a measurement that settles its close call "
+        "within that many repeats, the measurements were drawn from the hidden truth at that "
+        "point and the specimen diagnosed again, alone, with them (their mean, of weight k) "
+        "and without. Gap: the rival's criterion minus the chosen model's (positive: the "
+        "chosen is preferred); settled: the two at least `min_delta` apart afterwards.",
+        "",
+        f"**{n} suggestions followed; {settled} settled**; of the {in_pair} whose pair holds "
+        f"the true model, the data then prefer the truth in {toward}. Verdicts right before / "
+        f"after: {sum(r['right_before'] for r in rows)} / {sum(r['right_after'] for r in rows)}.",
+        "",
+        "| cohort | specimen | truth | chosen vs rival | measure | gap in the cohort | "
+        "alone, before | after | settled | preferred after | verdict before → after |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['seed']} | {r['specimen']} | {r['class']} | {r['between'][0]} vs "
+            f"{r['between'][1]} | {r['repeats']}x {r['load_case']} at {r['moment_nm']:.3g} Nm "
+            f"({r['difference_sigma']:.1f}σ) | {r['gap_cohort']:+.1f} | {fmt(r['gap_before'])} "
+            f"| {fmt(r['gap_after'])} | {'yes' if r['settled'] else 'no'} | "
+            f"{r['preferred_after'] or '-'}{' (truth)' if r['preferred_is_truth'] else ''} | "
+            f"{r['verdict_before']} → {r['verdict_after']} |"
+        )
+    (out / "bench_next_measurement.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'bench_next_measurement.md'}")
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", default="0,1,2025,4711", help="hidden cohorts")
+    ap.add_argument("--holdout", action="store_true", help="allow the held-out seeds")
+    ap.add_argument(
+        "--max-repeats",
+        type=int,
+        default=PRACTICAL_REPEATS,
+        help="follow suggestions of at most this many measurements (default: the practical "
+        f"number of femcal.diagnose.report, {PRACTICAL_REPEATS})",
+    )
+    ap.add_argument("--out", type=Path, default=REPO / "reports")
+    args = ap.parse_args(argv)
+    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
+    if held and not args.holdout:
+        ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
+    torch.manual_seed(0)
+    ctx = setup()
+    rows = []
+    for seed in seeds:
+        print(f"hidden seed {seed} ...", flush=True)
+        rows += follow(seed, ctx, args.max_repeats)
+    threads = os.environ.get("OMP_NUM_THREADS")
+    command = (
+        (f"OMP_NUM_THREADS={threads} " if threads else "")
+        + ".venv/bin/python benchmarks/bench_next_measurement.py "
+        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    )
+    meta = {
+        "command": command.strip(),
+        "machine": platform.processor() or platform.machine(),
+        "surrogate": ctx["surrogate_name"],
+        "noise_deg": ctx["plant"]["noise_deg"],
+        "min_delta": ctx["min_delta"],
+        "max_repeats": args.max_repeats,
+        "seeds": seeds,
+    }
+    write(rows, meta, args.out)
+
+
+if __name__ == "__main__":
+    main()
