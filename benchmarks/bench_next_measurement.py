@@ -106,9 +106,13 @@ def gap_between(diag, pair: Sequence[str]) -> float | None:
     return float(crit[pair[1]] - crit[pair[0]])
 
 
-def follow(seed: int, ctx: dict[str, Any], max_repeats: int) -> list[dict[str, Any]]:
+def follow(
+    seed: int, ctx: dict[str, Any], max_repeats: int, repeats: int | None = None
+) -> list[dict[str, Any]]:
     """Every specimen of hidden cohort ``seed`` with a suggestion of at most ``max_repeats``
-    measurements: the diagnosis alone before and after taking them."""
+    measurements: the diagnosis alone before and after taking them. With ``repeats``, every
+    specimen with a suggestion, that many measurements at its point (whatever the
+    suggestion's own count: does "no practical measurement settles it" hold?)."""
     fe_moments, fe_rom = ctx["fe_moments"], ctx["fe_rom"]
     noise = float(ctx["plant"]["noise_deg"])
     cohort = hidden_cohort(seed, fe_moments, fe_rom, noise)
@@ -117,8 +121,9 @@ def follow(seed: int, ctx: dict[str, Any], max_repeats: int) -> list[dict[str, A
     rows = []
     for i, s in enumerate(diag.specimens):
         n = s.next_measurement
-        k = None if not n else n.get("repeats_to_settle")
-        if k is None or k > max_repeats:
+        promised = None if not n else n.get("repeats_to_settle")
+        k = promised if repeats is None or not n else repeats
+        if k is None or (repeats is None and k > max_repeats):
             continue
         truth = cohort["truth"].iloc[i]
         comps = components_of(truth)
@@ -149,6 +154,7 @@ def follow(seed: int, ctx: dict[str, Any], max_repeats: int) -> list[dict[str, A
                 "load_case": n["load_case"],
                 "moment_nm": m,
                 "repeats": int(k),
+                "repeats_to_settle": promised,
                 "difference_sigma": float(n["difference_sigma"]),
                 "gap_cohort": float(n["criterion_gap"]),
                 "gap_before": g0,
@@ -188,50 +194,97 @@ def follow(seed: int, ctx: dict[str, Any], max_repeats: int) -> list[dict[str, A
 
 
 def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
+    """``bench_next_measurement.md`` / ``.json`` (with ``--repeats N``:
+    ``bench_next_measurement_repeats-N``)."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_next_measurement.json").write_text(
-        json.dumps({**meta, "specimens": rows}, indent=2) + "\n"
+    name = "bench_next_measurement" + (
+        f"_repeats-{meta['repeats']}" if meta["repeats"] is not None else ""
     )
+    (out / f"{name}.json").write_text(json.dumps({**meta, "specimens": rows}, indent=2) + "\n")
 
     def fmt(g: float | None) -> str:
         return "not fitted" if g is None else f"{g:+.1f}"
 
-    n = len(rows)
-    settled = sum(r["settled"] for r in rows)
-    toward = sum(r["preferred_is_truth"] for r in rows if r["truth_in_pair"])
-    in_pair = sum(r["truth_in_pair"] for r in rows)
+    def settled(g: float | None) -> bool:
+        return g is not None and abs(g) >= meta["min_delta"]
+
+    def prefers_truth(r: dict[str, Any], gap: float | None) -> bool:
+        """Is the model of the pair that ``gap`` prefers the true one?"""
+        if gap is None:
+            return False
+        preferred = r["between"][0] if gap > 0 else r["between"][1]
+        return set(named_effects_of(preferred)) == set(named_effects_of(r["class"]))
+
+    def toward_truth(r: dict[str, Any]) -> bool | None:
+        """Did the new points move the gap towards the true model of the pair?"""
+        if not r["truth_in_pair"] or r["gap_before"] is None or r["gap_after"] is None:
+            return None
+        chosen_is_truth = set(named_effects_of(r["between"][0])) == set(
+            named_effects_of(r["class"])
+        )
+        moved = r["gap_after"] - r["gap_before"]
+        return moved > 0 if chosen_is_truth else moved < 0
+
+    how = (
+        f"{meta['repeats']} measurements at every suggested point, whatever the diagnosis "
+        "said of them"
+        if meta["repeats"] is not None
+        else f"suggestions of at most {meta['max_repeats']} measurements, as many as they say"
+    )
     lines = [
         "# What to measure next, followed (issue 11, item 6)",
         "",
         f"Reproduce: `{meta['command']}`. Surrogate {meta['surrogate']}; noise "
-        f"{meta['noise_deg']}°; `min_delta` {meta['min_delta']:g}; suggestions of at most "
-        f"{meta['max_repeats']} measurements; hidden cohorts {meta['seeds']}.",
+        f"{meta['noise_deg']}°; `min_delta` {meta['min_delta']:g}; {how}; hidden cohorts "
+        f"{meta['seeds']}.",
         "",
-        "For each specimen whose diagnosis names a measurement that settles its close call "
-        "within that many repeats, the measurements were drawn from the hidden truth at that "
-        "point and the specimen diagnosed again, alone, with them (their mean, of weight k) "
-        "and without. Gap: the rival's criterion minus the chosen model's (positive: the "
-        "chosen is preferred); settled: the two at least `min_delta` apart afterwards.",
+        "The measurements were drawn from the hidden truth at the suggested point and the "
+        "specimen diagnosed again, alone, with them (their mean, of weight k, as femcal reads "
+        "repeated rows) and without. Gap: the rival's criterion minus the chosen model's "
+        "(positive: the chosen is preferred); settled: the two at least `min_delta` apart "
+        "afterwards (or the rival no longer fitted).",
         "",
-        f"**{n} suggestions followed; {settled} settled**; of the {in_pair} whose pair holds "
-        f"the true model, the data then prefer the truth in {toward}. Verdicts right before / "
-        f"after: {sum(r['right_before'] for r in rows)} / {sum(r['right_after'] for r in rows)}.",
+        "| what the diagnosis said | followed | settled before (alone) | settled after | "
+        "pair holds the truth | gap moved towards it | the truth preferred, before → after | "
+        "verdict right before → after |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    groups = {
+        "settles within its count": [r for r in rows if r["repeats_to_settle"] is not None],
+        "no number of measurements settles it": [r for r in rows if r["repeats_to_settle"] is None],
+    }
+    for label, rs in groups.items():
+        if not rs:
+            continue
+        pair = [r for r in rs if r["truth_in_pair"]]
+        lines.append(
+            f"| {label} | {len(rs)} | "
+            f"{sum(settled(r['gap_before']) for r in rs)} | "
+            f"{sum(r['settled'] for r in rs)} | {len(pair)} | "
+            f"{sum(bool(toward_truth(r)) for r in pair)} | "
+            f"{sum(prefers_truth(r, r['gap_before']) for r in pair)} → "
+            f"{sum(prefers_truth(r, r['gap_after']) for r in pair)} | "
+            f"{sum(r['right_before'] for r in rs)} → {sum(r['right_after'] for r in rs)} |"
+        )
+    lines += [
         "",
-        "| cohort | specimen | truth | chosen vs rival | measure | gap in the cohort | "
+        "| cohort | specimen | truth | chosen vs rival | measure | it said | gap in the cohort | "
         "alone, before | after | settled | preferred after | verdict before → after |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
+        said = "never" if r["repeats_to_settle"] is None else f"{r['repeats_to_settle']}x"
         lines.append(
             f"| {r['seed']} | {r['specimen']} | {r['class']} | {r['between'][0]} vs "
             f"{r['between'][1]} | {r['repeats']}x {r['load_case']} at {r['moment_nm']:.3g} Nm "
-            f"({r['difference_sigma']:.1f}σ) | {r['gap_cohort']:+.1f} | {fmt(r['gap_before'])} "
-            f"| {fmt(r['gap_after'])} | {'yes' if r['settled'] else 'no'} | "
+            f"({r['difference_sigma']:.1f}σ) | {said} | {r['gap_cohort']:+.1f} | "
+            f"{fmt(r['gap_before'])} | {fmt(r['gap_after'])} | "
+            f"{'yes' if r['settled'] else 'no'} | "
             f"{r['preferred_after'] or '-'}{' (truth)' if r['preferred_is_truth'] else ''} | "
             f"{r['verdict_before']} → {r['verdict_after']} |"
         )
-    (out / "bench_next_measurement.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {out / 'bench_next_measurement.md'}")
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / name}.md")
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -245,8 +298,30 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="follow suggestions of at most this many measurements (default: the practical "
         f"number of femcal.diagnose.report, {PRACTICAL_REPEATS})",
     )
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=None,
+        help="take this many measurements at every suggested point instead (also where the "
+        "diagnosis says no number of them settles it): is that so?",
+    )
     ap.add_argument("--out", type=Path, default=REPO / "reports")
+    ap.add_argument(
+        "--from-json",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="join earlier runs' JSON files (repeatable, same settings) into one report",
+    )
     args = ap.parse_args(argv)
+    if args.from_json:
+        runs = [json.loads(f.read_text()) for f in args.from_json]
+        meta = {k: v for k, v in runs[0].items() if k != "specimens"}
+        meta["command"] = "` and `".join(r["command"] for r in runs)
+        meta["seeds"] = [s for r in runs for s in r["seeds"]]
+        write([row for r in runs for row in r["specimens"]], meta, args.out)
+        return
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
     if held and not args.holdout:
@@ -256,7 +331,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     rows = []
     for seed in seeds:
         print(f"hidden seed {seed} ...", flush=True)
-        rows += follow(seed, ctx, args.max_repeats)
+        rows += follow(seed, ctx, args.max_repeats, args.repeats)
     threads = os.environ.get("OMP_NUM_THREADS")
     command = (
         (f"OMP_NUM_THREADS={threads} " if threads else "")
@@ -270,6 +345,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "noise_deg": ctx["plant"]["noise_deg"],
         "min_delta": ctx["min_delta"],
         "max_repeats": args.max_repeats,
+        "repeats": args.repeats,
         "seeds": seeds,
     }
     write(rows, meta, args.out)
