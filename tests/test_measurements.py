@@ -332,6 +332,8 @@ def test_repeated_rows_are_combined_into_their_weighted_mean(
     assert meas.weight[0, 0, 0] == 1.0
     assert len(meas.to_long()) == 2
     assert "'S1' Extension 6 Nm (3 rows: lines 3, 4, 5)" in caplog.text
+    # 2.0, 2.4, 2.2 about their mean 2.2: sd 0.2 on 2 degrees of freedom
+    assert "The repeats scatter by 0.2 deg (pooled sd, 2 degrees of freedom)" in caplog.text
     assert "same values" not in caplog.text
 
 

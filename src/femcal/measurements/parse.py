@@ -368,13 +368,21 @@ def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
         f"({len(g)} rows: lines {_listing([str(p.line) for p in g])})"
         for g in repeats
     ]
+    # Their scatter measures the noise without any model: the pooled sd of the rows about
+    # their point's plain mean (weights aside)
+    values = [np.array([p.rom for p in g]) for g in repeats]
+    dof = sum(len(v) - 1 for v in values)
+    ss = sum(float(np.sum((v - v.mean()) ** 2)) for v in values)
     logger.info(
         "%s: %d point%s measured more than once, each combined into the weighted mean of its "
-        "rows (weight: the sum of theirs): %s.",
+        "rows (weight: the sum of theirs): %s. The repeats scatter by %.3g deg (pooled sd, "
+        "%d degrees of freedom): a measure of the noise that needs no model.",
         source,
         len(repeats),
         "s" if len(repeats) > 1 else "",
         _listing(shown),
+        float(np.sqrt(ss / dof)),
+        dof,
     )
     copies = []
     for g in repeats:
