@@ -539,12 +539,14 @@ def test_a_point_of_weight_w_counts_as_noise_over_root_w(world):
     assert mixed.sigma_deg == pytest.approx(np.hypot(NOISE, 0.01))  # a point of weight 1
 
 
-def test_a_point_of_weight_zero_is_left_out(world):
+def test_a_point_of_weight_zero_is_left_out(world, caplog):
     base, rom, _, _ = world
     rom = rom[:1].copy()
     w = np.ones(rom.shape)
     w[0, 1, 3] = 0.0
-    left_out = _quick(base, rom, noise_deg=NOISE, point_weight=w)
+    with caplog.at_level("INFO", logger="femcal.diagnose"):
+        left_out = _quick(base, rom, noise_deg=NOISE, point_weight=w)
+    assert "1 measured points of weight 0 are left out of the diagnosis" in caplog.text
     rom_nan = rom.copy()
     rom_nan[0, 1, 3] = np.nan
     missing = _quick(base, rom_nan, noise_deg=NOISE)

@@ -392,6 +392,11 @@ def diagnose(
     measured = np.where(np.isfinite(rom_deg), np.asarray(rom_deg, dtype=float), np.nan)
     n, _, m = measured.shape
     w = _point_weight(point_weight, measured)
+    if np.any((w == 0) & np.isfinite(measured)):
+        logger.info(
+            "%d measured points of weight 0 are left out of the diagnosis",
+            int(np.sum((w == 0) & np.isfinite(measured))),
+        )
     measured = np.where(w > 0, measured, np.nan)  # weight 0: left out
     w = np.where(w > 0, w, 1.0)  # (n, 4, m); where not measured it does not count
     mask = np.isfinite(measured)
