@@ -106,6 +106,12 @@ def gap_between(diag, pair: Sequence[str]) -> float | None:
     return float(crit[pair[1]] - crit[pair[0]])
 
 
+def is_right(diag, expected: frozenset[str], out_of_library: bool) -> bool:
+    """Is the verdict of a one-specimen diagnosis right (bar (a)'s judgement)?"""
+    one = diag.specimens[0]
+    return bool(judge(one.verdict, named_effects(one), expected, out_of_library)[0])
+
+
 def follow(
     seed: int, ctx: dict[str, Any], max_repeats: int, repeats: int | None = None
 ) -> list[dict[str, Any]]:
@@ -167,22 +173,8 @@ def follow(
                 "verdict_cohort": s.verdict,
                 "verdict_before": before.specimens[0].verdict,
                 "verdict_after": after.specimens[0].verdict,
-                "right_before": bool(
-                    judge(
-                        before.specimens[0].verdict,
-                        named_effects(before.specimens[0]),
-                        expected,
-                        ool,
-                    )[0]
-                ),
-                "right_after": bool(
-                    judge(
-                        after.specimens[0].verdict,
-                        named_effects(after.specimens[0]),
-                        expected,
-                        ool,
-                    )[0]
-                ),
+                "right_before": is_right(before, expected, ool),
+                "right_after": is_right(after, expected, ool),
             }
         )
         print(
