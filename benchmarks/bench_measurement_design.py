@@ -89,7 +89,9 @@ def greedy_design(
     return chosen, gains
 
 
-def analyse(seed: int, ctx: dict[str, Any], points: int, repeats: int) -> list[dict[str, Any]]:
+def analyse(
+    seed: int, ctx: dict[str, Any], points: int, repeats: int, surrogate_scale: float = 1.0
+) -> list[dict[str, Any]]:
     """Every close call of hidden cohort ``seed``: the greedy design's gain, point by point."""
     noise = float(ctx["plant"]["noise_deg"])
     cohort = hidden_cohort(seed, ctx["fe_moments"], ctx["fe_rom"], noise)
@@ -109,7 +111,7 @@ def analyse(seed: int, ctx: dict[str, Any], points: int, repeats: int) -> list[d
         ca, ja = _curves_jacobian(dense_base, tuple(best["effects"]), fa, pa)
         cb, jb = _curves_jacobian(dense_base, tuple(rival["effects"]), fb, pb)
         s2 = np.tile(sigma_dense**2 - min(noise, float(sigma_dense.min())) ** 2, 4)
-        per_point = noise**2 / repeats + s2
+        per_point = noise**2 / repeats + surrogate_scale**2 * s2
         picked, gains = greedy_design(ca - cb, per_point, ja, fa.cov[pa], jb, fb.cov[pb], points)
         needed = min_delta + float(out["criterion_gap"])
         rows.append(
@@ -138,6 +140,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--holdout", action="store_true", help="allow the held-out seeds")
     ap.add_argument("--points", type=int, default=4, help="design points at the most")
     ap.add_argument("--repeats", type=int, default=10, help="measurements at each point")
+    ap.add_argument(
+        "--surrogate-error-scale",
+        type=float,
+        default=1.0,
+        help="an ablation: the surrogate's error at the design points times this (0: a perfect "
+        "surrogate), to see what limits the gain",
+    )
     ap.add_argument("--out", type=Path, default=REPO / "reports")
     args = ap.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
@@ -149,7 +158,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     rows = []
     for seed in seeds:
         print(f"hidden seed {seed} ...", flush=True)
-        rows += analyse(seed, ctx, args.points, args.repeats)
+        rows += analyse(seed, ctx, args.points, args.repeats, args.surrogate_error_scale)
     threads = os.environ.get("OMP_NUM_THREADS")
     command = (
         (f"OMP_NUM_THREADS={threads} " if threads else "")
@@ -192,6 +201,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     name = "bench_measurement_design"
     if (args.points, args.repeats) != (4, 10):  # another design beside the default's report
         name += f"_points-{args.points}_repeats-{args.repeats}"
+    if args.surrogate_error_scale != 1.0:
+        name += f"_surrogate-{args.surrogate_error_scale:g}"
     (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
     (args.out / f"{name}.json").write_text(
         json.dumps({"command": command.strip(), "rows": rows}, indent=2) + "\n"
