@@ -461,6 +461,13 @@ def test_line_numbers_count_blank_lines_and_problems_are_listed(tmp_path: Path) 
     assert "line 5, column 'rom_deg'" in message  # header on line 2, blank line 3
 
 
+def test_a_repeated_wide_row_is_a_repeated_curve(tmp_path: Path) -> None:
+    path = write(tmp_path, "specimen,load_case,0,2,3\nS1,Flexion,,1,2\nS1,flexion,,3,\n")
+    meas = read_measurements(path)
+    np.testing.assert_allclose(meas.rom_deg[0, 0], [2.0, 2.0])  # (1 + 3) / 2, and 2 alone
+    np.testing.assert_allclose(meas.weight[0, 0], [2.0, 1.0])
+
+
 @pytest.mark.parametrize(
     ("rows", "match"),
     [
@@ -469,10 +476,6 @@ def test_line_numbers_count_blank_lines_and_problems_are_listed(tmp_path: Path) 
             r"line 2, column '2': 'x' is not a finite number.*, or leave it empty",
         ),
         (["S1,Flexion,,1,-2"], r"line 2, column '3': negative RoM -2\. RoM is a magnitude"),
-        (
-            ["S1,Flexion,,1,2", "S1,flexion,,3,4"],
-            r"lines 2 and 3: specimen 'S1' has two rows for Flexion; keep one row",
-        ),
         (["S1,Flexion,0.1,1,2"], r"line 2, column '0': 0\.1 at 0 Nm; the unloaded state"),
         (["S1,Bend,,1,2"], r"line 2, column 'load_case': unknown load case 'Bend'"),
         ([",Flexion,,1,2"], r"line 2, column 'specimen': empty specimen name"),

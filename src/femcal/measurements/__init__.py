@@ -12,8 +12,9 @@ intradiscal pressure (IDP) in MPa. :func:`read_measurements` detects one of thre
    variance: the mean of ``k`` measurements of weight 1 weighs ``k``), and logged.
 2. **Wide CSV** (the study's layout with a specimen and load-case column in front): columns
    ``specimen, load_case`` then one column per moment in Nm (``1,2,3,4,5`` or ``1.0,2.5``),
-   one row per specimen and load case. An empty cell means "not measured". A ``0`` column
-   (the unloaded state) is allowed and ignored when all its values are 0.
+   one row per specimen and load case (a second row for one is a repeated curve, combined
+   point by point like repeated rows of the long layout). An empty cell means "not measured".
+   A ``0`` column (the unloaded state) is allowed and ignored when all its values are 0.
 3. **A folder holding the study's result files** ``ROM_Results_<LoadCase>*.csv`` (header =
    moments ``0..5`` in Nm, row *i* = specimen ``"i"``). Load cases without a file are
    missing; empty cells and a run of zeros or empty cells up to the last moment (an aborted
@@ -192,7 +193,6 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
     loaded = moments[moments > 0]
     rows = _DataRows(path, records, len(names))
     problems = rows.problems
-    seen: dict[tuple[str, int], int] = {}
     for line, cells in rows:
         specimen = _specimen(cells[col["specimen"]], line, header[col["specimen"]], problems)
         lc = _load_case(cells[col["load_case"]], line, header[col["load_case"]], problems)
@@ -202,14 +202,8 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
         rows.add_row(specimen, line)
         if lc is None:
             continue
-        if (specimen, lc) in seen:
-            problems.add(
-                line,
-                f"lines {seen[specimen, lc]} and {line}: specimen {specimen!r} has two rows for "
-                f"{LOAD_CASES[lc]}; keep one row per specimen and load case.",
-            )
-            continue
-        seen[specimen, lc] = line
+        # a second row of one specimen and load case: a repeated curve, combined point by
+        # point with the first (as repeated rows of the long layout)
         rows.points += [
             _Point(specimen, lc, float(mom), float(v), 1.0, math.nan, line)
             for mom, v in zip(loaded, values)
