@@ -678,6 +678,25 @@ def parameter_table(diag, cohort, named, right) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------------ main
+def hidden_seeds(ap: argparse.ArgumentParser, text: str, holdout: bool) -> list[int]:
+    """The ``--seeds`` of a benchmark; a held-out seed only with ``--holdout``."""
+    seeds = [int(s) for s in text.split(",") if s.strip()]
+    held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
+    if held and not holdout:
+        ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
+    return seeds
+
+
+def reproduce_command(script: str, argv: Sequence[str] | None) -> str:
+    """The command line that reproduces a benchmark's run (its torch thread count in front)."""
+    threads = os.environ.get("OMP_NUM_THREADS")
+    return (
+        (f"OMP_NUM_THREADS={threads} " if threads else "")
+        + f".venv/bin/python benchmarks/{script} "
+        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    ).strip()
+
+
 def setup(
     model_uri: str | None = None,
     options: dict[str, Any] | None = None,
@@ -805,10 +824,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     for k in kinds:
         if k not in ("three", "hidden"):
             ap.error(f"--cohorts: unknown kind '{k}' (three, hidden)")
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
-    if held and not args.holdout:
-        ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
+    seeds = hidden_seeds(ap, args.seeds, args.holdout)
     torch.manual_seed(0)
     ctx = setup(args.model_uri, options, args.surrogate_error_in_range)
     fe_moments, fe_rom, plant, policy = (
@@ -867,14 +883,9 @@ def main(argv: Sequence[str] | None = None) -> None:
             )
         else:
             rows.append(one_cohort(cohort, ctx))
-    threads = os.environ.get("OMP_NUM_THREADS")
-    command = (
-        (f"OMP_NUM_THREADS={threads} " if threads else "")
-        + (".venv/bin/python benchmarks/bench_diagnose.py ")
-        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    )
+    command = reproduce_command("bench_diagnose.py", argv)
     meta = {
-        "command": command.strip(),
+        "command": command,
         "machine": platform.processor() or platform.machine(),
         "torch_threads": torch.get_num_threads(),
         "surrogate": ctx["surrogate_name"],

@@ -26,16 +26,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shlex
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from bench_diagnose import HOLDOUT_SEEDS, hidden_cohort, run_diagnosis, setup
+from bench_diagnose import hidden_cohort, hidden_seeds, reproduce_command, run_diagnosis, setup
 
 import femcal.diagnose.assemble as assemble
 from femcal.effects.composite import EffectModel
@@ -149,22 +146,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
     ap.add_argument("--out", type=Path, default=REPO / "reports")
     args = ap.parse_args(argv)
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
-    if held and not args.holdout:
-        ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
+    seeds = hidden_seeds(ap, args.seeds, args.holdout)
     torch.manual_seed(0)
     ctx = setup()
     rows = []
     for seed in seeds:
         print(f"hidden seed {seed} ...", flush=True)
         rows += analyse(seed, ctx, args.points, args.repeats, args.surrogate_error_scale)
-    threads = os.environ.get("OMP_NUM_THREADS")
-    command = (
-        (f"OMP_NUM_THREADS={threads} " if threads else "")
-        + ".venv/bin/python benchmarks/bench_measurement_design.py "
-        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    )
+    command = reproduce_command("bench_measurement_design.py", argv)
     n = len(rows)
     by_points = [
         sum(r["settles_with"] is not None and r["settles_with"] <= k for r in rows)
@@ -173,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     lines = [
         "# Could several points settle what one cannot? (issue 11, item 6)",
         "",
-        f"Reproduce: `{command.strip()}`. Hidden cohorts {seeds}; {args.repeats} measurements "
+        f"Reproduce: `{command}`. Hidden cohorts {seeds}; {args.repeats} measurements "
         f"at each design point; greedy designs of up to {args.points} points over the moments "
         "the policy accepts (see the module docstring of "
         "`benchmarks/bench_measurement_design.py`). Nothing is measured: the gain is the "
@@ -205,7 +194,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         name += f"_surrogate-{args.surrogate_error_scale:g}"
     (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
     (args.out / f"{name}.json").write_text(
-        json.dumps({"command": command.strip(), "rows": rows}, indent=2) + "\n"
+        json.dumps({"command": command, "rows": rows}, indent=2) + "\n"
     )
     print("\n".join(lines))
 

@@ -27,10 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
-import shlex
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -39,11 +36,12 @@ import numpy as np
 import pandas as pd
 import torch
 from bench_diagnose import (
-    HOLDOUT_SEEDS,
     hidden_cohort,
+    hidden_seeds,
     judge,
     named_effects,
     named_effects_of,
+    reproduce_command,
     run_diagnosis,
     setup,
 )
@@ -314,24 +312,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         meta["seeds"] = [s for r in runs for s in r["seeds"]]
         write([row for r in runs for row in r["specimens"]], meta, args.out)
         return
-    seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-    held = sorted(set(HOLDOUT_SEEDS) & set(seeds))
-    if held and not args.holdout:
-        ap.error(f"seed {held[0]} is a held-out cohort: run it with --holdout")
+    seeds = hidden_seeds(ap, args.seeds, args.holdout)
     torch.manual_seed(0)
     ctx = setup()
     rows = []
     for seed in seeds:
         print(f"hidden seed {seed} ...", flush=True)
         rows += follow(seed, ctx, args.max_repeats, args.repeats)
-    threads = os.environ.get("OMP_NUM_THREADS")
-    command = (
-        (f"OMP_NUM_THREADS={threads} " if threads else "")
-        + ".venv/bin/python benchmarks/bench_next_measurement.py "
-        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
-    )
+    command = reproduce_command("bench_next_measurement.py", argv)
     meta = {
-        "command": command.strip(),
+        "command": command,
         "machine": platform.processor() or platform.machine(),
         "surrogate": ctx["surrogate_name"],
         "noise_deg": ctx["plant"]["noise_deg"],

@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from femcal.diagnose.explain import _repeats
+from femcal.diagnose.explain import _repeats_grid
 from femcal.diagnose.report import PRACTICAL_REPEATS, _next
 from femcal.diagnose.result import SpecimenDiagnosis
+
+
+def _repeats(
+    needed: float, difference_deg: float, noise_deg: float, shared_var: float = 0.0
+) -> int | None:
+    """:func:`_repeats_grid` at one point, ``None`` where no number of repeats settles it."""
+    k = float(_repeats_grid(needed, np.array(difference_deg), np.array(noise_deg), shared_var))
+    return None if not math.isfinite(k) else int(k)
 
 
 def _specimen(next_measurement):

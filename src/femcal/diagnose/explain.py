@@ -3,7 +3,6 @@ models, what each effect adds, where the disc fails, and what to measure next.""
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -225,14 +224,6 @@ def _repeats_grid(
     return k
 
 
-def _repeats(
-    needed: float, difference_deg: float, noise_deg: float, shared_var: float = 0.0
-) -> int | None:
-    """:func:`_repeats_grid` at one point, ``None`` where no number of repeats settles it."""
-    k = float(_repeats_grid(needed, np.array(difference_deg), np.array(noise_deg), shared_var))
-    return None if not math.isfinite(k) else int(k)
-
-
 def _next_measurement(
     ranking,
     fits,
@@ -315,10 +306,11 @@ def _next_measurement(
             break
         c, sd = prediction(r)
         v = np.broadcast_to(best_sd**2 + sd**2, c.shape)  # sd (4, 1) without a covariance
-        if not np.isfinite(best_curve - c).any():
+        delta = best_curve - c
+        if not np.isfinite(delta).any():
             continue
-        k_grid = repeats(r, best_curve - c, v)
-        k = key(r, k_grid, (best_curve - c) / np.sqrt(sigma_dense[None, :] ** 2 + v))
+        k_grid = repeats(r, delta, v)
+        k = key(r, k_grid, delta / np.sqrt(sigma_dense[None, :] ** 2 + v))
         if pick is None or k < pick[0]:
             pick = (k, r, c, v, k_grid)
     if pick is None:
