@@ -974,8 +974,9 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
             lo, hi = g["a_interval"]
             kr = g["a_right_or_rival"]
             lines.append(
-                f"| {g['group']} | {k}/{n} = {_pct(k / n)} | {lo:.0%}-{hi:.0%} | "
-                f"{'-' if kr is None else f'{kr}/{n} = {_pct(kr / n)}'} | "
+                f"| {g['group']} | {k}/{n} = {_pct(k / n if n else np.nan)} | "
+                f"{_pct(lo)}-{_pct(hi)} | "
+                f"{'-' if kr is None else f'{kr}/{n} = {_pct(kr / n if n else np.nan)}'} | "
                 f"{g['b_none_given_effect']}/{g['b_none']} |"
             )
     (out / f"{name}.md").write_text("\n".join(lines) + "\n")
