@@ -80,6 +80,29 @@ def test_log_distance_and_sigma_surrogate(policy: MomentPolicy) -> None:
     assert policy.sigma_surrogate(3.0).shape == (1,)
 
 
+def test_point_weights_are_inverse_variances(policy: MomentPolicy) -> None:
+    moments = np.array([3.0, 7.5])
+    e = VAL_MAE * math.sqrt(math.pi / 2)
+    sd = policy.sigma_surrogate(moments)
+    w = np.array([[1.0, 1.0], [4.0, 4.0], [0.0, 2.0]])  # (3, m): single, mean of 4, left out
+    # Without a noise: the weight scales the whole inverse variance (as before).
+    np.testing.assert_allclose(policy.point_weights(moments, w), w * (e / sd) ** 2)
+    got = policy.point_weights(moments, w, 0.05)
+    var = 0.05**2 / np.where(w > 0, w, 1) + sd**2
+    np.testing.assert_allclose(got[w > 0], ((0.05**2 + e**2) / var)[w > 0], rtol=1e-12)
+    assert got[0, 0] == pytest.approx(1.0)  # one measurement in range
+    assert got[2, 0] == 0.0
+    # Four repeats gain less than 4x: the surrogate's error is not averaged.
+    assert 1.0 < got[1, 0] < 4.0
+    assert got[1, 0] == pytest.approx((0.05**2 + e**2) / (0.05**2 / 4 + e**2))
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), "a", True])
+def test_point_weights_refuse_a_bad_noise(policy: MomentPolicy, bad: object) -> None:
+    with pytest.raises(ConfigError, match=r"measurement noise sd must be a finite number > 0"):
+        policy.point_weights([3.0], [1.0], bad)
+
+
 def test_moments_inside_are_silent(policy: MomentPolicy, caplog: pytest.LogCaptureFixture) -> None:
     with warnings.catch_warnings(), caplog.at_level(logging.WARNING, logger="femcal.moments"):
         warnings.simplefilter("error")

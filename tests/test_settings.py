@@ -551,7 +551,12 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
             "    test: {measurements: data/raw/Test, effects: []}",
             "    test: 3",
             r"calibrate\.datasets\.test: expected a path or \{measurements: path, effects: "
-            r"\[names\]\}, got 3 \(int\)",
+            r"\[names\], noise_deg: sd\}, got 3 \(int\)",
+        ),
+        (
+            "    test: {measurements: data/raw/Test, effects: []}",
+            "    test: {measurements: data/raw/Test, effects: [], noise_deg: 0}",
+            r"calibrate\.datasets\.test\.noise_deg: expected a number > 0 or null, got 0 \(int\)",
         ),
         # URLs and URIs in the file
         (

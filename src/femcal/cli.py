@@ -154,6 +154,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
     p.add_argument("--out", help="output folder (default: calibrate.out_dir/<dataset>)")
     p.add_argument(
+        "--noise-deg",
+        type=float,
+        help="sd of one measurement in degrees: each point weighs 1 / (noise² / weight + the "
+        "surrogate's error²), as in diagnose (default: calibrate.datasets.<name>.noise_deg; "
+        "none: only the surrogate's error is counted)",
+    )
+    p.add_argument(
         "--method", choices=CALIBRATORS, help="calibration method (default: calibrate.method)"
     )
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")

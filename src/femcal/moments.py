@@ -12,7 +12,8 @@ beyond the range, with the larger error counted) and refuses the rest. ``growth`
 ``max_log_ratio`` are measured by ``benchmarks/bench_extrapolation.py`` and set in
 params.yaml's ``moments`` section; ``femcal calibrate`` and ``femcal diagnose`` both use
 :meth:`MomentPolicy.check`, and count the larger error: calibrate weights each point by
-``1 / sd(M)^2`` (:meth:`MomentPolicy.weights`), diagnose adds ``sd(M)`` to the noise
+``1 / sd(M)^2`` (:meth:`MomentPolicy.point_weights`, the measurement noise counted when
+given), diagnose adds ``sd(M)`` to the noise
 (:meth:`MomentPolicy.sigma_surrogate`).
 """
 
@@ -220,6 +221,56 @@ class MomentPolicy:
         1 inside the range; multiply them with the measurement's own weights.
         """
         return 1.0 / self.error_factor(moments) ** 2
+
+    def point_weights(
+        self, moments: Any, weight: Any, noise_deg: float | None = None
+    ) -> np.ndarray:
+        """Relative fit weights of measured points: their inverse variances.
+
+        With a measurement noise ``noise_deg``, a point of weight ``w`` (the mean of ``w``
+        repeated measurements, or a relative inverse noise variance) has the variance
+        ``noise_deg^2 / w + sd(M)^2`` (the surrogate's error is not averaged by repeats, as in
+        the diagnosis), and its fit weight is ``(noise_deg^2 + error_deg^2)`` over that: 1 for
+        a single measurement inside the trained range. Without it (``None``), only the
+        surrogate's error is counted and ``w`` scales the point's whole inverse variance:
+        ``w * exp(-2 * growth * L)``.
+
+        Parameters
+        ----------
+        moments : array_like, shape (m,)
+            Moments in Nm, > 0.
+        weight : array_like, shape (..., m)
+            The measurements' own weights, >= 0 (0: the point does not count).
+        noise_deg : float, optional
+            Measurement noise sd in degrees, > 0.
+
+        Returns
+        -------
+        ndarray, shape (..., m)
+            Relative weights, 0 where ``weight`` is 0.
+
+        Raises
+        ------
+        ConfigError
+            ``noise_deg`` is not a finite number > 0.
+        """
+        w = np.asarray(weight, dtype=float)
+        factor2 = self.error_factor(moments) ** 2
+        if noise_deg is None:
+            return w / factor2
+        try:
+            noise = math.nan if isinstance(noise_deg, bool) else float(noise_deg)
+        except (TypeError, ValueError):
+            noise = math.nan
+        if not (math.isfinite(noise) and noise > 0):
+            raise ConfigError(
+                f"The measurement noise sd must be a finite number > 0 (degrees); got "
+                f"{noise_deg!r}. Give the sd of one measurement, e.g. 0.05, or none to count "
+                "only the surrogate's error."
+            )
+        positive = w > 0
+        var = noise**2 / np.where(positive, w, 1.0) + self.error_deg**2 * factor2
+        return np.where(positive, (noise**2 + self.error_deg**2) / var, 0.0)
 
     def check(self, meas: Measurements) -> None:
         """Check the measured moments (those with at least one measured point).

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import mlflow
 import numpy as np
@@ -175,6 +176,64 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
     assert "calibrate.datasets.broken in" in capsys.readouterr().err
     assert main([*args, "--measurements", str(meas), "--effects", "cartilage"]) == 2
     assert "cartilage" in capsys.readouterr().err
+
+
+def test_measurement_noise_is_counted_in_pgd_error_scale(registry, truth, small_surrogate):
+    # pgd's error scale of one RoM value (its ranges, near-optimal starts and fit tolerance)
+    # is hypot(noise, the surrogate's error) with a measurement noise, the surrogate's alone
+    # without; the MLflow run records both.
+    meas = long_csv(registry / "m.csv", truth[1][:2])
+    for noise in (None, 0.2):
+        run_calibrate(
+            measurements=meas,
+            out_dir=registry / f"out-{noise}",
+            method="pgd",
+            model_uri="models:/ivd-rom-surrogate@champion",
+            holdout_uri=None,
+            start_bank=None,
+            options={"n_bank_uniform": 64},
+            seed=0,
+            noise_deg=noise,
+            **MOMENTS,
+        )
+    runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'")
+    scale = dict(zip(runs["params.noise_deg"], runs["params.option.noise_deg"].astype(float)))
+    sd = small_surrogate.best_val_mae_deg_ * np.sqrt(np.pi / 2)
+    assert scale["none"] == pytest.approx(sd, rel=1e-6)
+    assert scale["0.2"] == pytest.approx(np.hypot(0.2, sd), rel=1e-6)
+
+
+def test_cli_calibrate_takes_the_noise_from_the_dataset_or_the_command_line(
+    registry, truth, capsys, monkeypatch
+):
+    tmp = registry
+    monkeypatch.chdir(tmp)
+    meas = long_csv(tmp / "meas.csv", truth[1][:1])
+    params = {
+        "mlflow": {"store_dir": str(tmp / "mlruns"), "experiment": "test"},
+        "moments": MOMENTS,
+        "calibrate": {
+            "datasets": {"noisy": {"measurements": str(meas), "noise_deg": 0.05}},
+            "out_dir": str(tmp / "cal"),
+            "method": "pgd",
+            "model_uri": "models:/ivd-rom-surrogate@champion",
+            "plots": False,
+            "options": {"pgd": {"n_bank_uniform": 64}},
+        },
+    }
+    (tmp / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    args = ["--params", str(tmp / "params.yaml"), "calibrate", "--no-holdout"]
+    assert main([*args, "--dataset", "noisy"]) == 0
+    assert main([*args, "--dataset", "noisy", "--noise-deg", "0.1"]) == 0
+    assert main([*args, "--measurements", str(meas), "--out", str(tmp / "other")]) == 0
+    capsys.readouterr()
+    runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'")
+    assert sorted(runs["params.noise_deg"]) == ["0.05", "0.1", "none"]
+    assert main([*args, "--dataset", "noisy", "--noise-deg", "-1"]) == 2
+    assert re.search(
+        r"--noise-deg: the measurement noise sd must be a number > 0 in degrees; got -1\.0",
+        capsys.readouterr().err,
+    )
 
 
 def test_missing_registered_model(registry, truth):

@@ -217,6 +217,10 @@ class DatasetSettings:
     effects: tuple[str, ...] = setting(
         ListOf(NAME, unique=True), "effects added to the disc model ([] = the disc alone)", []
     )
+    noise_deg: float | None = optional(
+        Float(0, lo_open=True),
+        "sd of one measurement, degrees (null: only the surrogate's error is counted)",
+    )
 
 
 def _dataset(value: Any, path: tuple, ctx: Context) -> Any:
@@ -224,7 +228,10 @@ def _dataset(value: Any, path: tuple, ctx: Context) -> Any:
         return DatasetSettings(measurements=value)
     if isinstance(value, Mapping):
         return Section(DatasetSettings)(value, path, ctx)
-    raise Invalid(f"expected a path or {{measurements: path, effects: [names]}}, got {got(value)}")
+    raise Invalid(
+        f"expected a path or {{measurements: path, effects: [names], noise_deg: sd}}, got "
+        f"{got(value)}"
+    )
 
 
 def _method_options(value: Any, path: tuple, ctx: Context) -> Any:
@@ -254,7 +261,8 @@ class CalibrateSettings:
             DATASET_NAME,
             what="datasets",
         ),
-        "name -> {measurements: path, effects: [names]}, one calibrate@<name> stage each",
+        "name -> {measurements: path, effects: [names], noise_deg: sd}, one calibrate@<name> "
+        "stage each",
         {},
     )
     holdout_uri: str | None = optional(

@@ -66,6 +66,7 @@ class CalibrateSettings(StageSettings):
     progress: bool = False
     effects: Sequence[str] = ()
     effect_modules: Sequence[Path] = ()
+    noise_deg: float | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> CalibrateSettings:
@@ -114,8 +115,9 @@ class CalibrateSettings(StageSettings):
                     "effects: []}."
                 )
             entry_path, entry_effects = entry["measurements"], list(entry.get("effects") or [])
+            entry_noise = entry.get("noise_deg")
         else:
-            entry_path, entry_effects = entry, []
+            entry_path, entry_effects, entry_noise = entry, [], None
         if args.get("effects") is not None:
             effects = [e.strip() for e in args["effects"].split(",") if e.strip()]
         elif given:
@@ -123,6 +125,12 @@ class CalibrateSettings(StageSettings):
         else:
             effects = entry_effects
         measurements = Path(given) if given else setting_path(params, entry_path)
+        if args.get("noise_deg") is not None:
+            noise = _noise(args["noise_deg"], "--noise-deg")
+        elif given:
+            noise = None  # another file: its noise is not the dataset's
+        else:
+            noise = _noise(entry_noise, f"calibrate.datasets.{name}.noise_deg in {where}")
         # before anything heavy is imported
         out = output_folder(params, args, "calibrate", subfolder=name or "custom")
         check_measurements(measurements)
@@ -142,9 +150,27 @@ class CalibrateSettings(StageSettings):
             progress=bool(args.get("progress")),
             effects=tuple(effects),
             effect_modules=effect_modules(params, args.get("effects_module")),
+            noise_deg=noise,
             metrics_file=args.get("metrics_file"),
             params=params,
         )
+
+
+def _noise(value: Any, where: str) -> float | None:
+    """A measurement noise sd from the settings: None, or a finite number > 0."""
+    if value is None:
+        return None
+    try:
+        noise = float(value) if not isinstance(value, bool) else float("nan")
+    except (TypeError, ValueError):
+        noise = float("nan")
+    if not (np.isfinite(noise) and noise > 0):
+        raise ConfigError(
+            f"{where}: the measurement noise sd must be a number > 0 in degrees; got {value!r}. "
+            "Give the sd of one measurement (e.g. 0.05), or leave it out to count only the "
+            "surrogate's error."
+        )
+    return noise
 
 
 def run(settings: CalibrateSettings) -> dict[str, Any]:
@@ -228,6 +254,7 @@ def run_calibrate(
     max_plots: int | None = None,
     progress: bool = False,
     effects: Sequence[str] = (),
+    noise_deg: float | None = None,
     tracker: LocalTracking | TrackingProcess | None = None,
 ):
     """Calibrate every specimen of a measurement file against the registered surrogate.
@@ -240,12 +267,20 @@ def run_calibrate(
     ``effects`` lists physical effects (:mod:`femcal.effects`) added to the disc: their
     parameters are calibrated jointly with the material parameters.
 
+    ``noise_deg`` is the sd of one measurement in degrees (params.yaml
+    ``calibrate.datasets.<name>.noise_deg``, ``--noise-deg``): each point then weighs its
+    inverse variance ``noise^2 / w + sd(M)^2`` (``w`` its weight, the mean of ``w`` repeats;
+    the surrogate's error sd(M) is not averaged by repeats), as in ``femcal diagnose``, and
+    pgd's ranges count ``hypot(noise, sd)``. None counts the surrogate's error alone, each
+    point's weight scaling its inverse variance (:meth:`femcal.moments.MomentPolicy.
+    point_weights`).
+
     Reads the measurements, loads the surrogate (and the held-out surrogate): a model folder
     (``models/surrogate-large``, the one ``dvc.lock`` pins) or an MLflow model URI. Checks the
     moments with the moment policy (:class:`femcal.moments.MomentPolicy` of ``error_growth``
     and ``max_log_ratio``, params.yaml ``moments``), calibrates the batch
-    with each point weighted by ``1 / sd(M)^2`` of the surrogate's error at its moment (times
-    the measurement's own weight), writes ``out_dir`` (see
+    with each point weighted by its inverse variance (the surrogate's error sd(M) at its moment,
+    the measurement noise when given, the measurement's own weight), writes ``out_dir`` (see
     :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
     per-specimen tables and every output file as artifacts. The run's tags
     ``femcal.model.*`` and ``femcal.holdout.*`` name each surrogate: its URI, the SHA-256 of its
@@ -296,7 +331,8 @@ def run_calibrate(
     surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
     policy.check(meas)
-    weight = meas.weight * policy.weights(meas.moments)  # (n, 4, m): 1 / sd(M)^2, relative
+    # (n, 4, m): relative inverse variances (noise^2 / w + sd(M)^2, or w / sd(M)^2 without noise)
+    weight = policy.point_weights(meas.moments, meas.weight, noise_deg)
     from femcal.effects.composite import EffectModel
 
     model = SurrogateCurveModel(surrogate, meas.moments)
@@ -306,7 +342,9 @@ def run_calibrate(
     reach = assess_reachability(
         meas, model, sigma_model=policy.sigma_surrogate(meas.moments), reference=start_bank
     )
-    opts = calibration_options(method, options, surrogate=surrogate, start_bank=start_bank)
+    opts = calibration_options(
+        method, options, surrogate=surrogate, start_bank=start_bank, noise_deg=noise_deg
+    )
     holdout = None
     holdout_source = open_model(holdout_uri) if holdout_uri else None
     if holdout_source is not None:
@@ -341,6 +379,7 @@ def run_calibrate(
         "chunk_size": chunk_size or 0,
         "moments.error_growth": error_growth,
         "moments.max_log_ratio": max_log_ratio,
+        "noise_deg": "none" if noise_deg is None else noise_deg,
     }
     for key, value in opts.items():
         if key != "start_bank" and not hasattr(value, "predict"):
@@ -396,19 +435,28 @@ def run_calibrate(
 
 
 def calibration_options(
-    method: str, options: Mapping[str, Any], *, surrogate: Any, start_bank: Path | None
+    method: str,
+    options: Mapping[str, Any],
+    *,
+    surrogate: Any,
+    start_bank: Path | None,
+    noise_deg: float | None = None,
 ) -> dict[str, Any]:
     """A calibrator's options completed from the data and the surrogate.
 
     For ``pgd``: the training configurations of ``start_bank`` (a prepared split) as starts,
-    and ``noise_deg`` from the surrogate's validation error (the surrogate's own error is part
-    of the noise of every RoM value; for Gaussian errors sd = MAE * sqrt(pi / 2)).
+    and ``noise_deg`` (the error scale of one RoM value) from the surrogate's validation error
+    (the surrogate's own error is part of the noise of every RoM value; for Gaussian errors
+    sd = MAE * sqrt(pi / 2)), combined in quadrature with the measurement noise ``noise_deg``
+    when given.
     """
     opts = dict(options)
     if method == "pgd":
         if start_bank is not None and "start_bank" not in opts:
             opts["start_bank"] = training_configurations(start_bank)
         val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
-        if "noise_deg" not in opts and np.isfinite(val):
-            opts["noise_deg"] = val * float(np.sqrt(np.pi / 2))
+        sd = val * float(np.sqrt(np.pi / 2)) if np.isfinite(val) else 0.0
+        scale = float(np.hypot(sd, noise_deg or 0.0))
+        if "noise_deg" not in opts and scale > 0:
+            opts["noise_deg"] = scale
     return opts
