@@ -1174,7 +1174,7 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         "",
         "Pooled per group of cohorts, with Wilson 95 % intervals (one cohort's 34-41 eligible "
         "specimens give an interval about ±10 points wide; near ties between a combination and "
-        "its stronger effect flip with float rounding, see the README):",
+        "its stronger effect flip with float rounding, see docs/diagnosis-benchmark.md):",
         "",
         "| cohorts | seeds | (a) right / eligible | 95 % interval | ceiling of (a) | "
         "(b) `none` given an effect | 95 % interval |",

@@ -1,14 +1,14 @@
 """Benchmark: could measurements at several points settle what one point cannot?
 
-``next_measurement`` asks how many measurements at *one* point would settle a close call,
-and on the hidden cohorts the answer is always "none would" (README, "Is that so?"): the rival
-bends to new points at a cost ``delta^2 / v``, so repeats at one point saturate at
-``delta^2 / (s^2 + v)``. But a rival bends along the few directions its parameters leave free:
-points whose differences do not lie along them add up. By the diagnosis' own arithmetic, the
-criteria of two models part by ``delta_P^T (N / k + S + V_P)^-1 delta_P`` for ``k``
-measurements at each point of a set ``P`` (``N``: the noise variance, ``S``: the surrogate's,
-independent per point as the diagnosis counts them; ``V_P``: both models' prediction covariance
-there, from their Jacobians and parameter covariances).
+``next_measurement`` asks how many measurements at *one* point would settle a close call, and
+on the hidden cohorts the answer is always "none would" (docs/diagnosis-benchmark.md, "Is that
+so?"): the rival bends to new points at a cost ``delta^2 / v``, so repeats at one point
+saturate at ``delta^2 / (s^2 + v)``. But a rival bends along the few directions its parameters
+leave free: points whose differences do not lie along them add up. By the diagnosis' own
+arithmetic, the criteria of two models part by ``delta_P^T (N / k + S + V_P)^-1 delta_P`` for
+``k`` measurements at each point of a set ``P`` (``N``: the noise variance, ``S``: the
+surrogate's, independent per point as the diagnosis counts them; ``V_P``: both models'
+prediction covariance there, from their Jacobians and parameter covariances).
 
 For every close call of the hidden cohorts (the chosen model and the rival
 ``next_measurement`` names), this benchmark builds a design greedily from the moments the
