@@ -224,9 +224,11 @@ def test_cli_calibrate_takes_the_noise_from_the_dataset_or_the_command_line(
     (tmp / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     args = ["--params", str(tmp / "params.yaml"), "calibrate", "--no-holdout"]
     assert main([*args, "--dataset", "noisy"]) == 0
+    assert "(measurement noise 0.05 deg counted): MAE" in capsys.readouterr().out
     assert main([*args, "--dataset", "noisy", "--noise-deg", "0.1"]) == 0
+    assert "(measurement noise 0.1 deg counted)" in capsys.readouterr().out
     assert main([*args, "--measurements", str(meas), "--out", str(tmp / "other")]) == 0
-    capsys.readouterr()
+    assert "counted" not in capsys.readouterr().out
     runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'")
     assert sorted(runs["params.noise_deg"]) == ["0.05", "0.1", "none"]
     assert main([*args, "--dataset", "noisy", "--noise-deg", "-1"]) == 2

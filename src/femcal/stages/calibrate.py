@@ -195,6 +195,7 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
         out=str(settings.out_dir),
         user_effects=names,
         user_effect_paths=[str(p) for p in settings.effect_modules],
+        noise_deg=settings.noise_deg,
     )
 
 
@@ -208,7 +209,8 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     lines = describe_user_effects(figures["user_effects"], figures["user_effect_paths"])
     lines.append(
         f"calibrated {figures['n_specimens']} specimens with {figures['method']} against "
-        f"{figures['model_uri']} in {figures['seconds']:.2f} s: MAE {figures['mae_deg']:.4f} deg, "
+        f"{figures['model_uri']} in {figures['seconds']:.2f} s{_noise_note(figures)}: "
+        f"MAE {figures['mae_deg']:.4f} deg, "
         f"mean R² {figures['r2_mean']:.4f}, {figures['n_outside_bounds']} outside the bounds"
         f"{held}" + fit_warnings(figures, out)
     )
@@ -218,6 +220,12 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         )
     lines.append(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
     return lines
+
+
+def _noise_note(figures: Mapping[str, Any]) -> str:
+    """`` (measurement noise 0.05 deg counted)`` when the calibration counted one."""
+    noise = figures.get("noise_deg")
+    return "" if noise is None else f" (measurement noise {noise:g} deg counted)"
 
 
 def fit_warnings(figures: dict, out: str) -> str:
