@@ -153,6 +153,7 @@ def test_unexplained_then_a_user_effect_then_the_error_falls(project, capsys):
     assert main(["diagnose", "--out", "d2", "--effects-module", "my_effects.py"]) == 0
     printed = capsys.readouterr().out
     assert "effects found: disc_softening (6)" in printed
+    assert f"--effects disc_softening --noise-deg {NOISE:.3g})" in printed
     second = _verdicts(tmp / "d2")
     for i, is_planted in enumerate(planted):
         assert second[f"S{i}"]["verdict"] == ("disc_softening" if is_planted else "none")

@@ -118,9 +118,10 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     if found:
         lines.append(
             f"effects found: {', '.join(f'{k} ({counts[k]})' for k in found)}; to add them, list "
-            f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml and run "
-            "`dvc repro` (or: femcal calibrate --measurements FILE --effects "
-            f"{','.join(found)})"
+            f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml (and "
+            f"noise_deg: {diag.noise_deg:.3g}, the noise counted here) and run `dvc repro` (or: "
+            f"femcal calibrate --measurements FILE --effects {','.join(found)} --noise-deg "
+            f"{diag.noise_deg:.3g})"
         )
     close = [(sp.specimen, p) for sp in diag.specimens if (p := practical_next(sp)) is not None]
     if close:
