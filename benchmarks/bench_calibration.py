@@ -115,7 +115,8 @@ def main() -> None:
     params = load_params(args.params)
     cfg = section(params, "calibrate")
     configure_tracking(store_dir=REPO / section(params, "mlflow", "store_dir"))
-    meas = read_measurements(REPO / cfg["measurements"])
+    entry = cfg["datasets"]["test"]  # the Test specimens' dataset (calibrate@test)
+    meas = read_measurements(REPO / (entry["measurements"] if isinstance(entry, dict) else entry))
     test, space = load_split(REPO / section(params, "data", "prepared_dir"), "test")
     x_true = test.drop_duplicates("config_id")[list(space.names)].to_numpy(dtype=float)
     assert len(x_true) == meas.n_specimens, "Test configurations and specimens differ"

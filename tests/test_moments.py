@@ -97,6 +97,25 @@ def test_point_weights_are_inverse_variances(policy: MomentPolicy) -> None:
     assert got[1, 0] == pytest.approx((0.05**2 + e**2) / (0.05**2 / 4 + e**2))
 
 
+def test_average_sd_is_the_scale_of_a_point_of_average_weight(policy: MomentPolicy) -> None:
+    e = VAL_MAE * math.sqrt(math.pi / 2)
+    moments = np.array([1.0, 3.0, 5.0])
+    one = policy.average_sd(moments, np.ones((2, 3)), 0.05)
+    assert one == pytest.approx(math.hypot(0.05, e))
+    # The mean of 4 repeats everywhere: the noise over 2, the surrogate's error whole.
+    assert policy.average_sd(moments, np.full((2, 3), 4.0), 0.05) == pytest.approx(
+        math.sqrt(0.05**2 / 4 + e**2)
+    )
+    # Mixed: 1 / sd^2 is the mean inverse variance of the counted points.
+    w = np.array([[1.0, 4.0, 0.0]])
+    var = np.array([0.05**2 + e**2, 0.05**2 / 4 + e**2])
+    expected = 1 / math.sqrt(np.mean(1 / var))
+    assert policy.average_sd(moments, w, 0.05) == pytest.approx(expected)
+    assert policy.average_sd(moments, w, 0.05, mask=[[True, False, True]]) == pytest.approx(one)
+    with pytest.raises(ConfigError, match="no point has a positive weight"):
+        policy.average_sd(moments, np.zeros((1, 3)), 0.05)
+
+
 @pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), "a", True])
 def test_point_weights_refuse_a_bad_noise(policy: MomentPolicy, bad: object) -> None:
     with pytest.raises(ConfigError, match=r"measurement noise sd must be a finite number > 0"):

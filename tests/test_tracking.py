@@ -148,6 +148,7 @@ def test_folder_and_registry_name_the_same_model(folder):
     # femcal's training record is not part of the model; any model file is.
     (folder / RECORD_FILE).write_text(json.dumps({"registered_model": None, "version": None}))
     assert open_model(str(folder)).sha256 == local.sha256
+    assert open_model(folder).sha256 == local.sha256  # a pathlib.Path works as well
     assert open_model(folder.as_uri()).version is None
     assert open_model(str(folder)).tags("m")["femcal.m.version"] == "unknown"
     (folder / "artifacts" / "surrogate" / "config.json").write_text("{}")

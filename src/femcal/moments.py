@@ -272,6 +272,37 @@ class MomentPolicy:
         var = noise**2 / np.where(positive, w, 1.0) + self.error_deg**2 * factor2
         return np.where(positive, (noise**2 + self.error_deg**2) / var, 0.0)
 
+    def average_sd(self, moments: Any, weight: Any, noise_deg: float, mask: Any = None) -> float:
+        """The error sd of a point of average fit weight: ``sqrt(1 / mean(1 / var))``.
+
+        ``var = noise_deg^2 / w + sd(M)^2`` as in :meth:`point_weights`, averaged over the
+        points with ``w > 0`` (and ``mask``). A calibration normalises each specimen's weights
+        to a mean of 1, so this is the error scale that gives the points their own variances
+        (exactly where every specimen has the same weights): one measurement per point inside
+        the trained range gives ``hypot(noise_deg, error_deg)``; the mean of ``k`` repeats at
+        every point ``sqrt(noise_deg^2 / k + error_deg^2)``.
+
+        Parameters
+        ----------
+        moments : array_like, shape (m,)
+        weight : array_like, shape (..., m)
+            The measurements' own weights, >= 0.
+        noise_deg : float
+            Measurement noise sd in degrees, > 0.
+        mask : array_like of bool, shape (..., m), optional
+            The measured points (default: every point).
+
+        Returns
+        -------
+        float
+            In degrees.
+        """
+        rel = self.point_weights(moments, weight, noise_deg)
+        keep = rel > 0 if mask is None else (rel > 0) & np.asarray(mask, dtype=bool)
+        if not keep.any():
+            raise ConfigError("average_sd: no point has a positive weight; give a measured point.")
+        return float(math.hypot(noise_deg, self.error_deg) / math.sqrt(rel[keep].mean()))
+
     def check(self, meas: Measurements) -> None:
         """Check the measured moments (those with at least one measured point).
 

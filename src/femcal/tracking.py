@@ -387,21 +387,23 @@ def _recorded_version(folder: Path) -> str | None:
     return f"{name}/{version}" if name and version else None
 
 
-def open_model(uri: str) -> ModelSource:
+def open_model(uri: str | os.PathLike[str]) -> ModelSource:
     """Resolve a model folder or an MLflow model URI to a local folder, with its provenance.
 
     Parameters
     ----------
-    uri : str
+    uri : str or path-like
         A folder written by the train stage (``models/surrogate-large``, relative to the
-        working directory, or ``file:``), or an MLflow model URI (``models:/NAME@ALIAS``,
-        ``models:/NAME/VERSION``, ``runs:/...``), downloaded from the tracking store.
+        working directory, or ``file:``; a ``pathlib.Path`` too), or an MLflow model URI
+        (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...``), downloaded from the
+        tracking store.
 
     Raises
     ------
     ModelRegistryError
         The folder does not exist or is a file, or the URI cannot be resolved in the store.
     """
+    uri = os.fspath(uri)
     if is_local_model(uri):
         path = local_path(uri) if uri.startswith("file:") else Path(uri)
         if path is None or not path.exists():
@@ -435,7 +437,7 @@ def open_model(uri: str) -> ModelSource:
 
 
 def load_surrogate(
-    uri: str | ModelSource = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}",
+    uri: str | os.PathLike[str] | ModelSource = f"models:/{DEFAULT_MODEL_NAME}@{CHAMPION_ALIAS}",
 ) -> Any:
     """Load a surrogate as the femcal object (with ``torch_module()`` for gradients).
 
@@ -445,7 +447,7 @@ def load_surrogate(
 
     Parameters
     ----------
-    uri : str or ModelSource
+    uri : str, path-like or ModelSource
         A model folder (``models/surrogate-large``) or an MLflow model URI:
         ``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...`` (see
         :func:`open_model`), or a source :func:`open_model` returned.

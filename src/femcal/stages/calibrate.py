@@ -279,7 +279,8 @@ def run_calibrate(
     ``calibrate.datasets.<name>.noise_deg``, ``--noise-deg``): each point then weighs its
     inverse variance ``noise^2 / w + sd(M)^2`` (``w`` its weight, the mean of ``w`` repeats;
     the surrogate's error sd(M) is not averaged by repeats), as in ``femcal diagnose``, and
-    pgd's ranges count ``hypot(noise, sd)``. None counts the surrogate's error alone, each
+    pgd's ranges count the sd of a point of average weight (``hypot(noise, sd)`` for single
+    measurements in the trained range). None counts the surrogate's error alone, each
     point's weight scaling its inverse variance (:meth:`femcal.moments.MomentPolicy.
     point_weights`).
 
@@ -350,8 +351,11 @@ def run_calibrate(
     reach = assess_reachability(
         meas, model, sigma_model=policy.sigma_surrogate(meas.moments), reference=start_bank
     )
+    point_sd = None
+    if noise_deg is not None:  # the error scale of a point of average weight (pgd's ranges)
+        point_sd = policy.average_sd(meas.moments, meas.weight, noise_deg, meas.mask())
     opts = calibration_options(
-        method, options, surrogate=surrogate, start_bank=start_bank, noise_deg=noise_deg
+        method, options, surrogate=surrogate, start_bank=start_bank, point_sd_deg=point_sd
     )
     holdout = None
     holdout_source = open_model(holdout_uri) if holdout_uri else None
@@ -448,23 +452,23 @@ def calibration_options(
     *,
     surrogate: Any,
     start_bank: Path | None,
-    noise_deg: float | None = None,
+    point_sd_deg: float | None = None,
 ) -> dict[str, Any]:
     """A calibrator's options completed from the data and the surrogate.
 
     For ``pgd``: the training configurations of ``start_bank`` (a prepared split) as starts,
-    and ``noise_deg`` (the error scale of one RoM value) from the surrogate's validation error
-    (the surrogate's own error is part of the noise of every RoM value; for Gaussian errors
-    sd = MAE * sqrt(pi / 2)), combined in quadrature with the measurement noise ``noise_deg``
-    when given.
+    and ``noise_deg`` (the error scale of a RoM value of average weight: its ranges, its
+    near-optimal starts and its fit tolerance) from ``point_sd_deg`` when given (the
+    measurement noise and the surrogate's error, :meth:`femcal.moments.MomentPolicy.
+    average_sd`), else from the surrogate's validation error alone (for Gaussian errors
+    sd = MAE * sqrt(pi / 2)).
     """
     opts = dict(options)
     if method == "pgd":
         if start_bank is not None and "start_bank" not in opts:
             opts["start_bank"] = training_configurations(start_bank)
         val = float(getattr(surrogate, "best_val_mae_deg_", float("nan")))
-        sd = val * float(np.sqrt(np.pi / 2)) if np.isfinite(val) else 0.0
-        scale = float(np.hypot(sd, noise_deg or 0.0))
-        if "noise_deg" not in opts and scale > 0:
-            opts["noise_deg"] = scale
+        scale = point_sd_deg if point_sd_deg is not None else val * float(np.sqrt(np.pi / 2))
+        if "noise_deg" not in opts and np.isfinite(scale) and scale > 0:
+            opts["noise_deg"] = float(scale)
     return opts
