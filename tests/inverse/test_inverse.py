@@ -225,6 +225,7 @@ def test_train_inverse_registers_and_calibrates(store, curve_model: CurveModel, 
     # model: femcal and plain MLflow load it without the store.
     folder = export_model(res.model_uri, store / "models" / "inverse")
     np.testing.assert_array_equal(load_inverse(str(folder)).predict(held), res.model.predict(held))
+    np.testing.assert_array_equal(load_inverse(folder).predict(held), res.model.predict(held))
     out = mlflow.pyfunc.load_model(str(folder)).predict(frame)
     np.testing.assert_allclose(out.to_numpy(), res.model.predict_physical(held), rtol=1e-6)
     from_folder = calibrate(curve_model, held, method="inverse", options={"model_uri": str(folder)})

@@ -8,6 +8,7 @@ imports ``femcal.calibration.inverse.InverseModel``; that name is kept for them.
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -45,12 +46,12 @@ def log_inverse(model: InverseModel, *, name: str = "model") -> Any:
     return log_model_from_code(model, kind="inverse", example=example, name=name)
 
 
-def load_inverse(uri: str = DEFAULT_INVERSE_URI) -> InverseModel:
+def load_inverse(uri: str | os.PathLike[str] = DEFAULT_INVERSE_URI) -> InverseModel:
     """Load an inverse model as an :class:`InverseModel` (weights and JSON only).
 
     Parameters
     ----------
-    uri : str
+    uri : str or path-like
         The folder the train-inverse stage writes (``models/inverse``), or an MLflow model
         URI: ``models:/NAME@ALIAS``, ``models:/NAME/VERSION``, ``runs:/...``.
 
@@ -65,6 +66,7 @@ def load_inverse(uri: str = DEFAULT_INVERSE_URI) -> InverseModel:
 
     from femcal.tracking import is_local_model, open_model
 
+    uri = os.fspath(uri)
     if is_local_model(uri):
         model = find_inverse(open_model(uri).path)
         if model is None:
