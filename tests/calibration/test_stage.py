@@ -27,6 +27,21 @@ from synth import long_csv
 MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 
 
+def _calibrate(measurements, out_dir, **overrides):
+    """``run_calibrate`` with this file's defaults: pgd against the registered champion, no
+    held-out surrogate, no start bank, seed 0, the moment policy above."""
+    kwargs = dict(
+        method="pgd",
+        model_uri="models:/ivd-rom-surrogate@champion",
+        holdout_uri=None,
+        start_bank=None,
+        options={},
+        seed=0,
+        **MOMENTS,
+    )
+    return run_calibrate(measurements=measurements, out_dir=out_dir, **(kwargs | overrides))
+
+
 @pytest.fixture
 def registry(tmp_path, monkeypatch, small_surrogate):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
@@ -45,16 +60,11 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
     curves = truth[1].copy()
     curves[1, 0] = np.nan  # spec-1 has no flexion
     meas = long_csv(tmp / "meas.csv", curves)
-    result, figures = run_calibrate(
-        measurements=meas,
-        out_dir=tmp / "out",
-        method="pgd",
-        model_uri="models:/ivd-rom-surrogate@champion",
+    result, figures = _calibrate(
+        meas,
+        tmp / "out",
         holdout_uri="models:/ivd-rom-surrogate-holdout@champion",
-        start_bank=None,
         options={"n_bank_uniform": 256},
-        seed=0,
-        **MOMENTS,
     )
     assert result.specimens == tuple(f"spec-{i}" for i in range(6))
     # Reachable targets: the fit stops at a quarter of the noise (the small surrogate's error).
@@ -75,17 +85,11 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
 
 def test_run_calibrate_shows_plotting_and_logging_progress(registry, truth, capsys):
     """On a terminal (progress=True): bars over the plots and the files logged to MLflow."""
-    run_calibrate(
-        measurements=long_csv(registry / "meas.csv", truth[1][:3]),
-        out_dir=registry / "out",
-        method="pgd",
-        model_uri="models:/ivd-rom-surrogate@champion",
-        holdout_uri=None,
-        start_bank=None,
+    _calibrate(
+        long_csv(registry / "meas.csv", truth[1][:3]),
+        registry / "out",
         options={"n_bank_uniform": 64},
-        seed=0,
         progress=True,
-        **MOMENTS,
     )
     err = capsys.readouterr().err
     assert "plots: 100%" in err and "3/3" in err
@@ -107,17 +111,7 @@ def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
         match=r"m\.csv: measured moments 9 Nm are too far outside the surrogate's trained moment "
         r"range \[1, 5\] Nm: moments in \[0\.6, 8\.33\] Nm are accepted",
     ):
-        run_calibrate(
-            measurements=meas,
-            out_dir=registry / "out",
-            method="pgd",
-            model_uri="models:/ivd-rom-surrogate@champion",
-            holdout_uri=None,
-            start_bank=None,
-            options={},
-            seed=0,
-            **MOMENTS,
-        )
+        _calibrate(meas, registry / "out")
 
 
 def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypatch):
@@ -184,18 +178,7 @@ def test_measurement_noise_is_counted_in_pgd_error_scale(registry, truth, small_
     # without; the MLflow run records both.
     meas = long_csv(registry / "m.csv", truth[1][:2])
     for noise in (None, 0.2):
-        run_calibrate(
-            measurements=meas,
-            out_dir=registry / f"out-{noise}",
-            method="pgd",
-            model_uri="models:/ivd-rom-surrogate@champion",
-            holdout_uri=None,
-            start_bank=None,
-            options={"n_bank_uniform": 64},
-            seed=0,
-            noise_deg=noise,
-            **MOMENTS,
-        )
+        _calibrate(meas, registry / f"out-{noise}", options={"n_bank_uniform": 64}, noise_deg=noise)
     runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'")
     scale = dict(zip(runs["params.noise_deg"], runs["params.option.noise_deg"].astype(float)))
     sd = small_surrogate.best_val_mae_deg_ * np.sqrt(np.pi / 2)
@@ -243,17 +226,7 @@ def test_missing_registered_model(registry, truth):
     with pytest.raises(
         ModelRegistryError, match="Could not load the model 'models:/nope@champion'"
     ):
-        run_calibrate(
-            measurements=meas,
-            out_dir=registry / "out",
-            method="pgd",
-            model_uri="models:/nope@champion",
-            holdout_uri=None,
-            start_bank=None,
-            options={},
-            seed=0,
-            **MOMENTS,
-        )
+        _calibrate(meas, registry / "out", model_uri="models:/nope@champion")
 
 
 def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
@@ -267,20 +240,10 @@ def test_adding_an_effect_writes_before_and_after(registry, small_surrogate):
     x = small_surrogate.space.sample_uniform(4, np.random.default_rng(2))
     curves = model.predict(np.concatenate([x, [[0.5, 2.0]] * 4], axis=1))
     meas = long_csv(tmp / "meas.csv", curves, moments)
-    common = dict(
-        measurements=meas,
-        method="pgd",
-        model_uri="models:/ivd-rom-surrogate@champion",
-        holdout_uri=None,
-        start_bank=None,
-        options={"n_bank_uniform": 256},
-        seed=0,
-        **MOMENTS,
-        plots=False,
-    )
-    _, disc = run_calibrate(out_dir=tmp / "disc", **common)
+    common = dict(options={"n_bank_uniform": 256}, plots=False)
+    _, disc = _calibrate(meas, tmp / "disc", **common)
     assert not (tmp / "disc" / "comparison.md").exists()  # nothing to compare with yet
-    _, facet = run_calibrate(out_dir=tmp / "facet", effects=["facet_contact"], **common)
+    _, facet = _calibrate(meas, tmp / "facet", effects=["facet_contact"], **common)
     table = json.loads((tmp / "facet" / "comparison.json").read_text())
     rows = {r["metric"]: r for r in table["metrics"]}
     assert table["before"]["effects"] == "none" and table["after"]["effects"] == "facet_contact"
@@ -319,17 +282,8 @@ def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, mon
         match=r"vitro\.csv: measured moments 7\.5 Nm lie outside the surrogate's trained moment "
         r"range \[1, 5\] Nm .* deg at 7\.5 Nm, counted in sigma",
     ):
-        _, figures = run_calibrate(
-            measurements=meas,
-            out_dir=registry / "out",
-            method="pgd",
-            model_uri="models:/ivd-rom-surrogate@champion",
-            holdout_uri=None,
-            start_bank=None,
-            options={"n_bank_uniform": 128},
-            seed=0,
-            plots=False,
-            **MOMENTS,
+        _, figures = _calibrate(
+            meas, registry / "out", options={"n_bank_uniform": 128}, plots=False
         )
     assert figures["n_specimens"] == 2
     # 1 / sd(M)^2 relative to the trained range: exp(-2 g L), L = log(7.5 / 5).

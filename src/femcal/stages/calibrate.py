@@ -126,11 +126,9 @@ class CalibrateSettings(StageSettings):
             effects = entry_effects
         measurements = Path(given) if given else setting_path(params, entry_path)
         if args.get("noise_deg") is not None:
-            noise = _noise(args["noise_deg"], "--noise-deg")
-        elif given:
-            noise = None  # another file: its noise is not the dataset's
-        else:
-            noise = _noise(entry_noise, f"calibrate.datasets.{name}.noise_deg in {where}")
+            noise = _cli_noise(args["noise_deg"])
+        else:  # params.yaml's value, checked by its schema; another file: not the dataset's
+            noise = None if given else entry_noise
         # before anything heavy is imported
         out = output_folder(params, args, "calibrate", subfolder=name or "custom")
         check_measurements(measurements)
@@ -156,21 +154,15 @@ class CalibrateSettings(StageSettings):
         )
 
 
-def _noise(value: Any, where: str) -> float | None:
-    """A measurement noise sd from the settings: None, or a finite number > 0."""
-    if value is None:
-        return None
-    try:
-        noise = float(value) if not isinstance(value, bool) else float("nan")
-    except (TypeError, ValueError):
-        noise = float("nan")
-    if not (np.isfinite(noise) and noise > 0):
+def _cli_noise(value: float) -> float:
+    """``--noise-deg``, checked: a finite number > 0."""
+    if not (np.isfinite(value) and value > 0):
         raise ConfigError(
-            f"{where}: the measurement noise sd must be a number > 0 in degrees; got {value!r}. "
-            "Give the sd of one measurement (e.g. 0.05), or leave it out to count only the "
-            "surrogate's error."
+            "--noise-deg: the measurement noise sd must be a number > 0 in degrees; got "
+            f"{value!r}. Give the sd of one measurement (e.g. 0.05), or leave it out to count "
+            "only the surrogate's error."
         )
-    return noise
+    return float(value)
 
 
 def run(settings: CalibrateSettings) -> dict[str, Any]:
