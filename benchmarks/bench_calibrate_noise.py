@@ -10,8 +10,14 @@ options, the Large split's configurations as starts) twice, with the weights and
 - **without a measurement noise** (``noise_deg`` left out): each point weighs ``w / sd(M)^2``
   and the ranges count the surrogate's error sd alone;
 - **with it** (``--noise-deg 0.05``): each point weighs ``1 / (noise^2 / w + sd(M)^2)``
-  (:meth:`femcal.moments.MomentPolicy.point_weights`) and the ranges count the sd of a point
-  of average weight (:meth:`~femcal.moments.MomentPolicy.average_sd`).
+  (:meth:`femcal.moments.MomentPolicy.point_weights`) and the ranges count each specimen's
+  own sd of a point of average weight (``calibrate(..., weight_sd=hypot(noise, sd))``,
+  :attr:`femcal.calibration.base.CalibrationProblem.point_sd`).
+
+A last case measures half the specimens (the odd ones) ``k`` times at every point and the
+others once, and also calibrates it with one error scale for the whole file (the average,
+:meth:`~femcal.moments.MomentPolicy.average_sd`, as ``femcal calibrate`` did before session
+26): the coverage of each half shows whether each specimen's ranges count its own noise.
 
 Reported per case: MAE against the measured points and against the noise-free FE curves, the
 coverage of the true parameters by the 2-sigma ranges (all 13, and the parameters RoM
@@ -68,14 +74,18 @@ def main() -> None:
     truth = meas.rom_deg  # (64, 4, 5): noise-free FE curves
     rng = np.random.default_rng(args.seed)
 
-    def run(y, weight, noise):
+    def run(y, weight, noise, per_specimen=True):
         # As the calibrate stage does (femcal.stages.calibrate.run_calibrate).
         w = policy.point_weights(meas.moments, weight, noise)
         sd = None if noise is None else policy.average_sd(meas.moments, weight, noise)
         opts = calibration_options(
             "pgd", cfg["options"]["pgd"], surrogate=surrogate, start_bank=bank, point_sd_deg=sd
         )
-        return calibrate(model, y, weight=w, method="pgd", seed=0, options=opts)
+        own = noise is not None and per_specimen
+        weight_sd = float(np.hypot(noise, policy.error_deg)) if own else None
+        return calibrate(
+            model, y, weight=w, method="pgd", seed=0, options=opts, weight_sd=weight_sd
+        )
 
     clean = run(truth, np.ones_like(truth), None)
     determined = (clean.x_high - clean.x_low) / space.width < 0.5  # (64, 13)
@@ -84,25 +94,33 @@ def main() -> None:
     top = np.ones(truth.shape)
     top[..., -1] = max(repeats)  # repeats at the largest moment only: the weights differ
     cases.append((f"{max(repeats)} at {meas.moments[-1]:g} Nm, 1 elsewhere", top))
+    odd = np.arange(len(truth)) % 2 == 1
+    mixed = np.ones(truth.shape)
+    mixed[odd] = max(repeats)  # some specimens repeated, the others not: the scales differ
+    cases.append((f"{max(repeats)} at every point for the odd specimens, 1 for the others", mixed))
+    noise_label = f"noise_deg {args.noise_deg:g}"
     for case, weight in cases:
         y = truth + rng.normal(0.0, 1.0, truth.shape) * args.noise_deg / np.sqrt(weight)
-        for label, noise in (
-            ("without noise_deg", None),
-            (f"noise_deg {args.noise_deg:g}", args.noise_deg),
-        ):
-            res = run(y, weight, noise)
+        runs = [("without noise_deg", None, True), (noise_label, args.noise_deg, True)]
+        if weight is mixed:
+            runs.append((f"{noise_label}, one scale for the file", args.noise_deg, False))
+        for label, noise, per_specimen in runs:
+            res = run(y, weight, noise, per_specimen)
             inside = (x_true >= res.x_low - 1e-9) & (x_true <= res.x_high + 1e-9)
-            rows.append(
-                {
-                    "repeats": case,
-                    "calibration": label,
-                    "mae_measured_deg": float(np.mean(res.mae_deg)),
-                    "mae_fe_truth_deg": float(np.nanmean(np.abs(res.prediction - truth))),
-                    "coverage_all": float(np.mean(coverage(res, x_true))),
-                    "coverage_determined": float(inside[determined].mean()),
-                    "range_width_mean": float(np.mean((res.x_high - res.x_low) / space.width)),
-                }
-            )
+            row = {
+                "repeats": case,
+                "calibration": label,
+                "mae_measured_deg": float(np.mean(res.mae_deg)),
+                "mae_fe_truth_deg": float(np.nanmean(np.abs(res.prediction - truth))),
+                "coverage_all": float(np.mean(coverage(res, x_true))),
+                "coverage_determined": float(inside[determined].mean()),
+                "range_width_mean": float(np.mean((res.x_high - res.x_low) / space.width)),
+            }
+            if weight is mixed:  # each half's own coverage of its determined pairs
+                single, repeated = determined & ~odd[:, None], determined & odd[:, None]
+                row["coverage_determined_single"] = float(inside[single].mean())
+                row["coverage_determined_repeated"] = float(inside[repeated].mean())
+            rows.append(row)
             print(rows[-1], flush=True)
     out = {
         "machine": f"{platform.machine()}, {platform.system()}",
@@ -153,6 +171,23 @@ def _markdown(out: dict, args) -> str:
             f"{r['mae_fe_truth_deg']:.4f} | {r['coverage_all']:.3f} | "
             f"{r['coverage_determined']:.3f} | {r['range_width_mean']:.3f} |"
         )
+    halves = [r for r in out["rows"] if "coverage_determined_single" in r]
+    if halves:
+        lines += [
+            "",
+            "Where some specimens are repeated and others not, the coverage of each half's "
+            "determined pairs (one scale for the file = the average point's sd for every "
+            "specimen):",
+            "",
+            "| calibration | coverage, determined, single measurements | coverage, determined, "
+            "repeated |",
+            "| --- | --- | --- |",
+        ]
+        for r in halves:
+            lines.append(
+                f"| {r['calibration']} | {r['coverage_determined_single']:.3f} | "
+                f"{r['coverage_determined_repeated']:.3f} |"
+            )
     return "\n".join(lines) + "\n"
 
 

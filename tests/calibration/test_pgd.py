@@ -229,3 +229,40 @@ def test_member_subset_jacobian(small_surrogate):
     _, member0 = first_only.curves_jacobian(v, model.moments)
     torch.testing.assert_close(approx, member0)
     assert not torch.allclose(approx, exact)
+
+
+def test_problem_keeps_each_specimens_error_scale(curve_model, truth):
+    rom = truth[1][:2].copy()
+    weight = np.ones_like(rom)
+    weight[1] = 4.0  # inverse variances: the second specimen's points have half the sd
+    weight[1, 0, 0] = np.nan  # a point left out does not count in the mean
+    rom[1, 0, 0] = np.nan
+    problem = CalibrationProblem.from_arrays(curve_model, rom, weight, weight_sd=0.06)
+    # point_sd = weight_sd / sqrt(mean weight over the measured points)
+    np.testing.assert_allclose(problem.point_sd.numpy(), [0.06, 0.03])
+    # the fit weights are still scaled to a mean of 1 per specimen
+    assert torch.allclose(problem.weight[1][problem.mask[1]].mean(), torch.tensor(1.0))
+    np.testing.assert_allclose(problem.subset(slice(1, 2)).point_sd.numpy(), [0.03])
+    assert CalibrationProblem.from_arrays(curve_model, rom, weight).point_sd is None
+    with pytest.raises(ConfigError, match=r"weight_sd must be a finite sd > 0 .*got -1"):
+        CalibrationProblem.from_arrays(curve_model, rom, weight, weight_sd=-1)
+
+
+def test_pgd_counts_each_specimens_own_error_scale(curve_model, truth):
+    # Two copies of one specimen's curves: the second measured as the mean of 16 repeats
+    # (inverse variance 16, sd / 4). Its identifiability ranges must be narrower; with one
+    # scale for the batch (no weight_sd) both get the same ranges.
+    rom = np.repeat(truth[1][:1], 2, axis=0)
+    weight = np.ones_like(rom)
+    weight[1] = 16.0
+    bank = curve_model.space.sample_lhs(128, np.random.default_rng(0))
+    opts = {"start_bank": bank, "noise_deg": 0.05}
+    own = calibrate(curve_model, rom, weight=weight, options=opts, weight_sd=0.05)
+    one = calibrate(curve_model, rom, weight=weight, options=opts)
+    width_own = (own.x_high - own.x_low) / curve_model.space.width
+    width_one = (one.x_high - one.x_low) / curve_model.space.width
+    np.testing.assert_allclose(width_one[0], width_one[1], atol=1e-4)  # float32 batches
+    assert width_own[1].sum() < 0.8 * width_own[0].sum()
+    # the first specimen's scale is 0.05 either way: the same ranges
+    np.testing.assert_allclose(width_own[0], width_one[0], atol=1e-4)
+    assert "each specimen's own" in own.message and own.info["error_scale_deg"] > 0

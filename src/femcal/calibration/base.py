@@ -106,6 +106,11 @@ class CalibrationProblem:
         Measured points.
     measured : ndarray, shape (n, 4, m)
         The targets as given, float64, NaN where not measured.
+    point_sd : Tensor, shape (n,), optional
+        Each specimen's error sd (deg) of a point of normalised weight 1, where the weights
+        given were inverse variances (:meth:`from_arrays`' ``weight_sd``); calibrators that
+        count the error scale (``pgd``'s ranges and fit tolerance) use it per specimen. None:
+        one scale for the batch, the calibrator's own option.
     """
 
     model: CurveModel
@@ -113,6 +118,7 @@ class CalibrationProblem:
     weight: torch.Tensor
     mask: torch.Tensor
     measured: np.ndarray
+    point_sd: torch.Tensor | None = None
 
     @property
     def n_specimens(self) -> int:
@@ -124,9 +130,27 @@ class CalibrationProblem:
 
     @classmethod
     def from_arrays(
-        cls, model: CurveModel, rom_deg: np.ndarray, weight: np.ndarray | None = None
+        cls,
+        model: CurveModel,
+        rom_deg: np.ndarray,
+        weight: np.ndarray | None = None,
+        *,
+        weight_sd: float | None = None,
     ) -> CalibrationProblem:
-        """Build from measured curves (n, 4, m) with NaN = not measured."""
+        """Build from measured curves (n, 4, m) with NaN = not measured.
+
+        Each specimen's weights are scaled to a mean of 1 over its measured points. With
+        ``weight_sd``, the weights given are inverse variances relative to a point of sd
+        ``weight_sd`` (deg; weight 1 = that sd, e.g.
+        :meth:`femcal.moments.MomentPolicy.point_weights` with its ``hypot(noise, error)``), and
+        the problem keeps each specimen's error scale after the scaling:
+        ``point_sd = weight_sd / sqrt(mean weight)`` (shape (n,)).
+        """
+        if weight_sd is not None and not (np.isfinite(weight_sd) and weight_sd > 0):
+            raise ConfigError(
+                f"weight_sd must be a finite sd > 0 in degrees (the error of a point of weight "
+                f"1) or None; got {weight_sd!r}."
+            )
         rom = np.asarray(rom_deg, dtype=float)
         if rom.ndim != 3 or rom.shape[1:] != (len(LOAD_CASES), len(model.moments)):
             raise InputDataError(
@@ -143,13 +167,20 @@ class CalibrationProblem:
                 f"Specimens at positions {bad} have no measured point with a positive weight; "
                 "give at least one RoM value per specimen."
             )
-        w = w * mask.sum(axis=(1, 2), keepdims=True) / total
+        count = mask.sum(axis=(1, 2), keepdims=True)
+        w = w * count / total
+        point_sd = None
+        if weight_sd is not None:  # sd of a point of mean weight: weight_sd / sqrt(mean w)
+            point_sd = torch.tensor(
+                float(weight_sd) * np.sqrt(count / total).reshape(-1), dtype=torch.float64
+            )
         return cls(
             model=model,
             target=torch.tensor(np.where(mask, rom, 0.0), dtype=torch.float32),
             weight=torch.tensor(w, dtype=torch.float32),
             mask=torch.tensor(mask),
             measured=np.where(mask, rom, np.nan),
+            point_sd=point_sd,
         )
 
     def subset(self, index: np.ndarray | slice) -> CalibrationProblem:
@@ -160,6 +191,7 @@ class CalibrationProblem:
             weight=self.weight[index],
             mask=self.mask[index],
             measured=self.measured[index],
+            point_sd=None if self.point_sd is None else self.point_sd[index],
         )
 
     def scores(
@@ -337,6 +369,7 @@ def calibrate(
     chunk_size: int | None = None,
     progress: bool = False,
     options: Mapping[str, Any] | None = None,
+    weight_sd: float | None = None,
 ) -> CalibrationResult:
     """Calibrate a batch of specimens against the surrogate.
 
@@ -361,13 +394,17 @@ def calibrate(
         Show a progress bar over chunks.
     options : mapping, optional
         Keyword options of the calibrator.
+    weight_sd : float, optional
+        ``weight`` are inverse variances relative to a point of this sd (deg): each specimen
+        then has its own error scale (:attr:`CalibrationProblem.point_sd`), which ``pgd``
+        counts in its ranges and fit tolerance instead of its ``noise_deg`` option.
 
     Returns
     -------
     CalibrationResult
     """
     fn = get_calibrator(method)
-    problem = CalibrationProblem.from_arrays(model, rom_deg, weight)
+    problem = CalibrationProblem.from_arrays(model, rom_deg, weight, weight_sd=weight_sd)
     n = problem.n_specimens
     names = tuple(str(i) for i in range(n)) if specimens is None else tuple(map(str, specimens))
     if len(names) != n:

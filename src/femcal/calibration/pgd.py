@@ -19,9 +19,11 @@ effect at its weak end, and with a grid (``effect_levels``) over each effect's o
 the other effects stay at their weak end.
 
 Identifiability: around every start that ends near-optimal (MAE within ``noise_deg`` of the
-best), the linearised posterior ``(J^T J / noise^2 + I / prior^2)^-1`` gives a z-sigma
-interval per parameter; their union, cut to the box, is the parameter's range. A parameter the
-curves do not determine gets (nearly) the whole box.
+best; each specimen's own error scale where the problem carries one,
+:attr:`~femcal.calibration.base.CalibrationProblem.point_sd`), the linearised posterior
+``(J^T J / noise^2 + I / prior^2)^-1`` gives a z-sigma interval per parameter; their union,
+cut to the box, is the parameter's range. A parameter the curves do not determine gets (nearly)
+the whole box.
 
 ``optimizer="adam"`` and ``optimizer="lbfgsb"`` run the same starts with projected Adam or
 SciPy's L-BFGS-B instead, for the measured comparison in ``reports/bench_calibration.md``.
@@ -29,6 +31,7 @@ SciPy's L-BFGS-B instead, for the measured comparison in ``reports/bench_calibra
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -84,7 +87,7 @@ def gauss_newton(
     max_iter: int,
     loss: str,
     tol: float,
-    atol_deg: float = 1e-4,
+    atol_deg: float | torch.Tensor = 1e-4,
     l1_delta: float = 1e-3,
     keep_after: int = 0,
     keep: int = 0,
@@ -104,6 +107,8 @@ def gauss_newton(
     ``keep > 0``, after ``keep_after`` iterations only the ``keep``
     best starts of each specimen go on (successive halving: the others stop where they are);
     with ``keep_first`` each specimen's first start goes on too.
+
+    ``atol_deg`` is one tolerance or one per specimen (a tensor of shape (n_specimens,)).
 
     Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
     """
@@ -162,7 +167,8 @@ def gauss_newton(
         lam[a_idx] = torch.where(ok, lam[a_idx] / 3, lam[a_idx] * 4)
         tiny_step = step.abs().amax(1) < 1e-6
         rms2 = (wa * r_new**2).sum(1) / wa.sum(1)
-        fitted = rms2 < atol_deg**2  # RMS residual below atol_deg
+        atol = atol_deg[rows[a_idx]] if torch.is_tensor(atol_deg) else atol_deg
+        fitted = rms2 < atol**2  # RMS residual below atol_deg
         done = (ok & ((gain < tol) | fitted)) | tiny_step | (lam[a_idx] > 1e6)
         converged[a_idx[done]] = True
         active = a_idx[~done]
@@ -246,20 +252,31 @@ def local_ranges(
     v: torch.Tensor,
     rows: torch.Tensor,
     *,
-    noise_deg: float,
+    noise_deg: float | torch.Tensor,
     z: float,
     prior_sd: float = 0.5,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """z-sigma intervals (B, d) of the linearised posterior around ``v``, cut to [0, 1]."""
+    """z-sigma intervals (B, d) of the linearised posterior around ``v``, cut to [0, 1].
+
+    ``noise_deg`` is one error scale or one per row (shape (B,))."""
     _, jf = problem.model.curves_jacobian(v)
     b, d = v.shape
     mask = problem.mask[rows].reshape(b, -1, 1)
     jj = jf.reshape(b, -1, d) * mask
     w = problem.weight[rows].reshape(b, -1, 1)
-    precision = (jj * w).transpose(1, 2) @ jj / noise_deg**2 + torch.eye(d) / prior_sd**2
+    noise2 = torch.as_tensor(noise_deg, dtype=torch.float32).reshape(-1, 1, 1) ** 2
+    precision = (jj * w).transpose(1, 2) @ jj / noise2 + torch.eye(d) / prior_sd**2
     cov = torch.linalg.inv(precision)
     half = z * torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0).sqrt()
     return (v - half).clamp(0, 1), (v + half).clamp(0, 1)
+
+
+def _tolerance_text(fit_tolerance: float, scale: torch.Tensor, per_specimen: bool) -> str:
+    """The fit tolerance in words: one value, or the range of the specimens' own."""
+    tol = fit_tolerance * scale
+    if not per_specimen or float(tol.min()) == float(tol.max()):
+        return f"({float(tol[0]) if len(tol) else 0.0:.4f} deg RMS)"
+    return f"({float(tol.min()):.4f}-{float(tol.max()):.4f} deg RMS, each specimen's own)"
 
 
 @register_calibrator("pgd")
@@ -332,7 +349,10 @@ def pgd(
         Adam's steps and learning rate (unit coordinates).
     noise_deg : float
         Error scale of one RoM value in degrees (surrogate error and measurement noise): the
-        tolerance for near-optimal starts and the noise of the identifiability ranges.
+        tolerance for near-optimal starts and the noise of the identifiability ranges. Where
+        the problem carries each specimen's own scale
+        (:attr:`~femcal.calibration.base.CalibrationProblem.point_sd`, weights given as inverse
+        variances), that is used instead.
     fit_tolerance : float
         A start stops (and counts as converged) once its RMS residual is below
         ``fit_tolerance * noise_deg``: fitting further would fit the surrogate's own error.
@@ -389,11 +409,15 @@ def pgd(
         )
     n, d = problem.n_specimens, problem.dim
     model = problem.model
+    # The error scale of each specimen (n,): its own where the problem carries one.
+    scale = (
+        problem.point_sd.double()
+        if problem.point_sd is not None
+        else torch.full((n,), float(noise_deg), dtype=torch.float64)
+    )
     if _has_effects(model):
         disc = pgd(
-            CalibrationProblem(
-                model.base, problem.target, problem.weight, problem.mask, problem.measured
-            ),
+            dataclasses.replace(problem, model=model.base),
             rng=rng,
             optimizer=optimizer,
             n_starts=n_starts,
@@ -457,7 +481,7 @@ def pgd(
             keep=keep,
             jacobian_members=jacobian_members,
             exact_final=exact_final,
-            atol_deg=max(fit_tolerance * noise_deg, 1e-4),
+            atol_deg=(fit_tolerance * scale).clamp_min(1e-4).float(),
             keep_first=_has_effects(model),
         )
 
@@ -506,10 +530,10 @@ def pgd(
     x = problem.model.to_physical(v[flat_best].double().numpy())
     x_low = x_high = None
     if ranges:
-        near = mae <= mae.gather(1, best[:, None]) + noise_deg  # (n, k)
+        near = mae <= mae.gather(1, best[:, None]) + scale.float()[:, None]  # (n, k)
         near_flat = torch.nonzero(near.reshape(-1)).reshape(-1)
         lo, hi = local_ranges(
-            problem, v[near_flat], rows[near_flat], noise_deg=noise_deg, z=range_z
+            problem, v[near_flat], rows[near_flat], noise_deg=scale[rows[near_flat]], z=range_z
         )
         v_low = torch.ones((n, d))
         v_high = torch.zeros((n, d))
@@ -531,7 +555,7 @@ def pgd(
             )
             + f"{n_random_starts} random), {nit} iterations, "
             f"{int(conv.sum())}/{n} converged or fitted within {fit_tolerance:g} x noise "
-            f"({fit_tolerance * noise_deg:.4f} deg RMS)"
+            + _tolerance_text(fit_tolerance, scale, problem.point_sd is not None)
         ),
         x_low=x_low,
         x_high=x_high,
@@ -541,5 +565,6 @@ def pgd(
             "select": select,
             "starts_per_specimen": k,
             "nit": int(nit),
+            "error_scale_deg": float(scale.median()) if n else float(noise_deg),
         },
     )

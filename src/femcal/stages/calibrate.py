@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -271,10 +272,11 @@ def run_calibrate(
     ``calibrate.datasets.<name>.noise_deg``, ``--noise-deg``): each point then weighs its
     inverse variance ``noise^2 / w + sd(M)^2`` (``w`` its weight, the mean of ``w`` repeats;
     the surrogate's error sd(M) is not averaged by repeats), as in ``femcal diagnose``, and
-    pgd's ranges count the sd of a point of average weight (``hypot(noise, sd)`` for single
-    measurements in the trained range). None counts the surrogate's error alone, each
-    point's weight scaling its inverse variance (:meth:`femcal.moments.MomentPolicy.
-    point_weights`).
+    pgd's ranges count each specimen's own sd of a point of average weight (``hypot(noise,
+    sd)`` for single measurements in the trained range; :attr:`femcal.calibration.base.
+    CalibrationProblem.point_sd`); the option ``noise_deg`` logged is the file's average.
+    None counts the surrogate's error alone, each point's weight scaling its inverse variance
+    (:meth:`femcal.moments.MomentPolicy.point_weights`).
 
     Reads the measurements, loads the surrogate (and the held-out surrogate): a model folder
     (``models/surrogate-large``, the one ``dvc.lock`` pins) or an MLflow model URI. Checks the
@@ -367,6 +369,8 @@ def run_calibrate(
         chunk_size=chunk_size,
         progress=progress,
         options=opts,
+        # each specimen's own error scale for pgd's ranges: the weights are inverse variances
+        weight_sd=None if noise_deg is None else math.hypot(noise_deg, policy.error_deg),
     )
     lap("calibration")
     missing = meas.missing_load_cases()
