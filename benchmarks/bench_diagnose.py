@@ -19,7 +19,10 @@ noise sd 0.05 deg:
 The surrogate is the registered champion; its own error enters sigma per moment as in the
 diagnose stage (:meth:`femcal.moments.MomentPolicy.sigma_surrogate` with params.yaml
 ``moments``: larger beyond the trained 1..5 Nm), and the recalibration weights the points by
-:meth:`~femcal.moments.MomentPolicy.weights` as ``femcal calibrate`` does.
+their inverse variances ``noise^2 / w + sd(M)^2`` and counts each specimen's error scale as
+``femcal calibrate --noise-deg`` does (:meth:`~femcal.moments.MomentPolicy.point_weights`,
+``calibrate(..., weight_sd=hypot(noise, sd))``; before session 26: ``w / sd(M)^2``, the
+default without a noise, and the surrogate's error alone as pgd's scale).
 
 A verdict is right when the set of registered effects it names equals the truth's; for the
 out-of-library class when it contains ``unexplained`` and names no registered effect; for
@@ -230,7 +233,15 @@ def components_visible(cohort: dict[str, Any], ctx: dict[str, Any], model, weigh
         return visible
     rom = alone[rows, comps]
     w = None if weight is None else weight[rows]
-    res = calibrate(model, rom, weight=w, method="pgd", options=ctx["cal_opts"], seed=0)
+    res = calibrate(
+        model,
+        rom,
+        weight=w,
+        method="pgd",
+        options=ctx["cal_opts"],
+        seed=0,
+        weight_sd=ctx["weight_sd"],
+    )
     seen = np.asarray(res.mae_deg) > 2 * cohort["noise_deg"]
     for r, ok in zip(rows, seen):
         visible[r] &= bool(ok)
@@ -272,6 +283,7 @@ def components_identifiable(
             method="pgd",
             options=ctx["cal_opts"],
             seed=0,
+            weight_sd=ctx["weight_sd"],
         )
         seen = np.asarray(res.mae_deg) > 2 * cohort["noise_deg"]
         for i, ok in zip(rows, seen):
@@ -341,7 +353,9 @@ def truth_preferred(
     bic = {}
     for effects in models:
         m = EffectModel(model, list(effects)) if effects else model
-        res = calibrate(m, rom, weight=w, method="pgd", options=opts, seed=0)
+        res = calibrate(
+            m, rom, weight=w, method="pgd", options=opts, seed=0, weight_sd=ctx["weight_sd"]
+        )
         # the diagnosis' own chi-square: measured points only, a failed prediction there inf
         chi2 = _chi2(torch.as_tensor(res.prediction), rom, sigma)
         # scored by the diagnosis' own criterion (its traces from one Jacobian of the batch)
@@ -398,7 +412,10 @@ def run_diagnosis(cohort: dict[str, Any], ctx: dict[str, Any]):
         sur_err = policy.sigma_surrogate(moments)
         if ctx.get("in_range") is not None:  # --surrogate-error-in-range
             sur_err = np.sqrt(ctx["in_range"] ** 2 + sur_err**2 - policy.error_deg**2)
-        weight = np.ascontiguousarray(np.broadcast_to(policy.weights(moments), rom.shape))
+        # As `femcal calibrate --noise-deg` weighs them: inverse variances noise^2 / w + sd(M)^2
+        own = cohort.get("point_weight")
+        own = np.ones(rom.shape) if own is None else own
+        weight = policy.point_weights(moments, own, cohort["noise_deg"])
     else:
         sur_err, weight = ctx["sur_err"], None
     cpu0, t0 = time.process_time(), time.perf_counter()
@@ -499,10 +516,20 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
     # (d) the user's way: recalibrate the cohort with every registered effect any verdict named.
     found = sorted({e for nm in named for e in nm})
     opts = ctx["cal_opts"]
-    disc = calibrate(model, rom, weight=weight, method="pgd", options=opts, seed=0)
+    disc = calibrate(
+        model, rom, weight=weight, method="pgd", options=opts, seed=0, weight_sd=ctx["weight_sd"]
+    )
     t1 = time.perf_counter()
     full = (
-        calibrate(EffectModel(model, found), rom, weight=weight, method="pgd", options=opts, seed=0)
+        calibrate(
+            EffectModel(model, found),
+            rom,
+            weight=weight,
+            method="pgd",
+            options=opts,
+            seed=0,
+            weight_sd=ctx["weight_sd"],
+        )
         if found
         else disc
     )
@@ -730,6 +757,8 @@ def setup(
             growth=float(section(params, "moments", "error_growth")),
             max_log_ratio=float(section(params, "moments", "max_log_ratio")),
         )
+    noise = float(section(params, "plant", "noise_deg"))
+    weight_sd = None if policy is None else float(np.hypot(noise, policy.error_deg))
     prepared = REPO / section(params, "data", "prepared_dir")
     test, _ = load_split(prepared, "test")
     _, fe_moments, fe_rom = wide_rom(test)
@@ -749,7 +778,10 @@ def setup(
             section(params, "calibrate", "options", "pgd"),
             surrogate=surrogate,
             start_bank=bank_path,
+            point_sd_deg=weight_sd,
         ),
+        # the error sd of a point of fit weight 1: one measurement inside the trained moments
+        "weight_sd": weight_sd,
         "fe_moments": fe_moments,
         "fe_rom": fe_rom,
         "plant": {
