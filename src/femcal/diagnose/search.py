@@ -176,7 +176,6 @@ def diagnose(
     penalty: str = "effective",
     criterion: str = "bic",
     moment_policy: MomentPolicy | None = None,
-    surrogate_error_fitted: float | None = None,
     seed: int = 0,
 ) -> Diagnosis:
     """Diagnose every specimen (see the module docstring).
@@ -442,14 +441,7 @@ def diagnose(
             raise ConfigError(f"noise_deg must be > 0; got {noise_deg}.")
         noise_used, noise_sd = float(noise_deg), 0.0
     sigma_m = np.sqrt(noise_used**2 + sur**2)  # (m,): a point of weight 1
-    sur_pt = np.broadcast_to(sur, measured.shape)
-    if surrogate_error_fitted is not None and moment_policy is not None:
-        lo, hi = moment_policy.trained_range
-        inside = (moments >= lo - 1e-9) & (moments <= hi + 1e-9)  # (m,)
-        only_inside = ~np.any(mask & ~inside, axis=(1, 2))  # (n,)
-        sel = only_inside[:, None, None] & inside[None, None, :]
-        sur_pt = np.where(sel, np.minimum(sur, surrogate_error_fitted), sur_pt)
-    sigma = np.sqrt(noise_used**2 / w + sur_pt**2)  # (n, 4, m): every point's own
+    sigma = np.sqrt(noise_used**2 / w + sur**2)  # (n, 4, m): every point's own
     weight = np.ascontiguousarray(_weights(sigma, measured.shape))
     v_disc, pred0 = disc_fit(weight)
     all_rows = np.arange(n)
