@@ -118,7 +118,8 @@ class SurrogateCurveModel:
         x = np.asarray(x, dtype=float)
         if not clip:
             x = np.where(self.unit_space.is_log, np.maximum(x, 1e-12), x)
-        v = self.unit_space.to_unit(torch.as_tensor(x, dtype=torch.float32))
+        # torch.tensor copies (x may be a read-only view; as_tensor warned "not writable")
+        v = self.unit_space.to_unit(torch.tensor(x, dtype=torch.float32))
         return v.clamp(0.0, 1.0) if clip else v
 
     def from_linear_unit(self, u: torch.Tensor) -> torch.Tensor:
