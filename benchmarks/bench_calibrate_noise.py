@@ -82,7 +82,7 @@ def main() -> None:
             "pgd", cfg["options"]["pgd"], surrogate=surrogate, start_bank=bank, point_sd_deg=sd
         )
         own = noise is not None and per_specimen
-        weight_sd = float(np.hypot(noise, policy.error_deg)) if own else None
+        weight_sd = policy.unit_sd(noise) if own else None
         return calibrate(
             model, y, weight=w, method="pgd", seed=0, options=opts, weight_sd=weight_sd
         )

@@ -758,7 +758,7 @@ def setup(
             max_log_ratio=float(section(params, "moments", "max_log_ratio")),
         )
     noise = float(section(params, "plant", "noise_deg"))
-    weight_sd = None if policy is None else float(np.hypot(noise, policy.error_deg))
+    weight_sd = None if policy is None else policy.unit_sd(noise)
     prepared = REPO / section(params, "data", "prepared_dir")
     test, _ = load_split(prepared, "test")
     _, fe_moments, fe_rom = wide_rom(test)

@@ -272,6 +272,11 @@ class MomentPolicy:
         var = noise**2 / np.where(positive, w, 1.0) + self.error_deg**2 * factor2
         return np.where(positive, (noise**2 + self.error_deg**2) / var, 0.0)
 
+    def unit_sd(self, noise_deg: float) -> float:
+        """The error sd (deg) of a point of fit weight 1 under :meth:`point_weights`: one
+        measurement inside the trained range, ``hypot(noise_deg, error_deg)``."""
+        return float(math.hypot(noise_deg, self.error_deg))
+
     def average_sd(self, moments: Any, weight: Any, noise_deg: float, mask: Any = None) -> float:
         """The error sd of a point of average fit weight: ``sqrt(1 / mean(1 / var))``.
 
@@ -301,7 +306,7 @@ class MomentPolicy:
         keep = rel > 0 if mask is None else (rel > 0) & np.asarray(mask, dtype=bool)
         if not keep.any():
             raise ConfigError("average_sd: no point has a positive weight; give a measured point.")
-        return float(math.hypot(noise_deg, self.error_deg) / math.sqrt(rel[keep].mean()))
+        return self.unit_sd(noise_deg) / math.sqrt(float(rel[keep].mean()))
 
     def check(self, meas: Measurements) -> None:
         """Check the measured moments (those with at least one measured point).

@@ -271,10 +271,10 @@ def local_ranges(
     return (v - half).clamp(0, 1), (v + half).clamp(0, 1)
 
 
-def _tolerance_text(fit_tolerance: float, scale: torch.Tensor, per_specimen: bool) -> str:
+def _tolerance_text(fit_tolerance: float, scale: torch.Tensor) -> str:
     """The fit tolerance in words: one value, or the range of the specimens' own."""
     tol = fit_tolerance * scale
-    if not per_specimen or float(tol.min()) == float(tol.max()):
+    if not len(tol) or float(tol.min()) == float(tol.max()):
         return f"({float(tol[0]) if len(tol) else 0.0:.4f} deg RMS)"
     return f"({float(tol.min()):.4f}-{float(tol.max()):.4f} deg RMS, each specimen's own)"
 
@@ -555,7 +555,7 @@ def pgd(
             )
             + f"{n_random_starts} random), {nit} iterations, "
             f"{int(conv.sum())}/{n} converged or fitted within {fit_tolerance:g} x noise "
-            + _tolerance_text(fit_tolerance, scale, problem.point_sd is not None)
+            + _tolerance_text(fit_tolerance, scale)
         ),
         x_low=x_low,
         x_high=x_high,

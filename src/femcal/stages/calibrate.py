@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -370,7 +369,7 @@ def run_calibrate(
         progress=progress,
         options=opts,
         # each specimen's own error scale for pgd's ranges: the weights are inverse variances
-        weight_sd=None if noise_deg is None else math.hypot(noise_deg, policy.error_deg),
+        weight_sd=None if noise_deg is None else policy.unit_sd(noise_deg),
     )
     lap("calibration")
     missing = meas.missing_load_cases()
