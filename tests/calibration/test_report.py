@@ -158,3 +158,47 @@ def test_one_redrawn_figure_writes_what_a_figure_per_specimen_writes(
         assert alone.shape == images[i].shape
         assert np.mean(np.abs(alone - images[i])) < 0.02
     plot_specimens(res, [])  # nothing to draw: no figure built, no file
+
+
+def test_the_residuals_are_tested_against_the_noise(tmp_path, curve_model, truth):
+    """With an error scale (``weight_sd``) each specimen's residuals are measured in units of
+    its points' own sd: chi2 is ``sum w_k r_k^2 / weight_sd^2`` with the weights as given
+    (inverse variances), and a specimen the model cannot follow is flagged "beyond noise"."""
+    _, clean = truth
+    rng = np.random.default_rng(0)
+    noise = 0.05
+    targets = clean + rng.normal(0.0, noise, clean.shape)
+    # Specimen 0: a zigzag of 6 sd in flexion that no smooth model follows (missing physics).
+    targets[0, 0] += 6 * noise * (-1.0) ** np.arange(targets.shape[2])
+    weight = rng.choice([1.0, 4.0], size=clean.shape)  # some points the mean of 4 repeats
+    res = calibrate(
+        curve_model,
+        targets,
+        specimens=[f"S{i}" for i in range(len(targets))],
+        weight=weight,
+        weight_sd=noise,
+        options={"n_bank_uniform": 256},
+    )
+    resid = targets - res.prediction
+    np.testing.assert_allclose(res.chi2, (weight * resid**2).sum(axis=(1, 2)) / noise**2)
+    assert res.n_points.tolist() == [targets[0].size] * len(targets)
+    # a point of average weight has sd noise / sqrt(mean w)
+    np.testing.assert_allclose(res.error_scale_deg, noise / np.sqrt(weight.mean(axis=(1, 2))))
+    # The zigzag alone is chi2 >= 20 * 36 / 2 with the weights >= 1: p far below 0.01. The
+    # other five are noise: 20 points, p > 0.01 each with probability 0.99 (with the fit
+    # absorbing some noise, more), and this seed's draw passes.
+    assert res.p_value[0] < 1e-6 and res.rms_z[0] > 2
+    assert np.all(res.p_value[1:] > 0.01) and np.all(res.rms_z[1:] < 1.5)
+    figures = write_outputs(res, tmp_path / "out", plots="none")
+    assert figures["n_beyond_noise"] == 1
+    assert figures["rms_z_max"] == pytest.approx(res.rms_z[0])
+    metrics = pd.read_csv(tmp_path / "out" / "metrics.csv", keep_default_na=False)
+    assert {"error_scale_deg", "rms_z", "p_value"} <= set(metrics.columns)
+    assert metrics["flag"].tolist() == ["beyond noise"] + [""] * 5
+    text = (tmp_path / "out" / "summary.md").read_text()
+    assert "1 of 6 specimens are not explained within the noise" in text
+    # Without an error scale there is nothing to test against: no columns, no figures.
+    plain = calibrate(curve_model, targets, weight=weight, options={"n_bank_uniform": 256})
+    assert plain.chi2 is None and plain.rms_z is None and plain.p_value is None
+    assert "rms_z" not in plain.metrics_frame()
+    assert "n_beyond_noise" not in write_outputs(plain, tmp_path / "plain", plots="none")

@@ -187,7 +187,7 @@ def test_measurement_noise_is_counted_in_pgd_error_scale(registry, truth, small_
 
 
 def test_cli_calibrate_takes_the_noise_from_the_dataset_or_the_command_line(
-    registry, truth, capsys, monkeypatch
+    registry, truth, capsys, monkeypatch, small_surrogate
 ):
     tmp = registry
     monkeypatch.chdir(tmp)
@@ -219,6 +219,26 @@ def test_cli_calibrate_takes_the_noise_from_the_dataset_or_the_command_line(
         r"--noise-deg: the measurement noise sd must be a number > 0 in degrees; got -1\.0",
         capsys.readouterr().err,
     )
+    # A specimen the model cannot follow (every other flexion point 8 sd up; the sd of a point is
+    # hypot(noise, the small surrogate's error)) is reported as not explained within the
+    # noise: the printed note, the flag and the metrics file's columns.
+    sd = np.hypot(0.05, small_surrogate.best_val_mae_deg_ * np.sqrt(np.pi / 2))
+    curves = np.concatenate([truth[1][:1], truth[1][:1]])
+    curves[1, 0, ::2] += 8 * sd
+    zigzag = long_csv(tmp / "zigzag.csv", curves)
+    out = tmp / "zz"
+    assert (
+        main([*args, "--measurements", str(zigzag), "--noise-deg", "0.05", "--out", str(out)]) == 0
+    )
+    assert re.search(
+        r"NOTE: 1 of 2 specimens are not explained within the noise \(median residual "
+        r"[0-9.]+ sd\): see .*metrics\.csv \(columns flag, rms_z, p_value\); `femcal diagnose`",
+        capsys.readouterr().out,
+    )
+    metrics = pd.read_csv(out / "metrics.csv", keep_default_na=False)
+    assert metrics.loc[0, "flag"] == "" and "beyond noise" in metrics.loc[1, "flag"]
+    assert metrics.loc[1, "rms_z"] > 2 > 1 > metrics.loc[0, "rms_z"]
+    assert metrics.loc[1, "p_value"] < 0.01 < metrics.loc[0, "p_value"]
 
 
 def test_missing_registered_model(registry, truth):

@@ -286,6 +286,16 @@ class CalibrationResult:
     x_low, x_high : ndarray, shape (n, d), optional
         Identifiability ranges of the near-optimal solutions.
     info : dict
+    error_scale_deg : ndarray, shape (n,), optional
+        Each specimen's error sd (deg) of a point of average weight, where the weights were
+        inverse variances (:func:`calibrate`'s ``weight_sd``, e.g. ``femcal calibrate
+        --noise-deg``: the noise and the surrogate's error); None otherwise.
+    chi2 : ndarray, shape (n,), optional
+        With ``error_scale_deg``: the sum over each specimen's measured points of its squared
+        residuals in units of the point's own sd, ``sum_k ((measured - prediction) / sd_k)^2``
+        with ``sd_k = error_scale_deg / sqrt(normalised weight_k)``.
+    n_points : ndarray of int, shape (n,), optional
+        With ``chi2``: each specimen's measured points (those of weight > 0).
     """
 
     x: np.ndarray
@@ -308,6 +318,31 @@ class CalibrationResult:
     x_low: np.ndarray | None = None
     x_high: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    error_scale_deg: np.ndarray | None = None
+    chi2: np.ndarray | None = None
+    n_points: np.ndarray | None = None
+
+    @property
+    def rms_z(self) -> np.ndarray | None:
+        """Each specimen's RMS residual in units of its points' sd, ``sqrt(chi2 / n_points)``,
+        shape (n,); about 1 where the model explains the data within the noise (a little less,
+        as the fit absorbs some of it); None without an error scale."""
+        if self.chi2 is None or self.n_points is None:
+            return None
+        return np.sqrt(self.chi2 / np.maximum(self.n_points, 1))
+
+    @property
+    def p_value(self) -> np.ndarray | None:
+        """Each specimen's chi-square p-value with as many degrees of freedom as points,
+        shape (n,): small where its residuals exceed what the noise explains. Conservative: the
+        fitted parameters absorb some of the noise, so the residuals' true degrees of freedom
+        are fewer (``femcal diagnose`` counts them, and names what is missing). None without
+        an error scale."""
+        if self.chi2 is None or self.n_points is None:
+            return None
+        from scipy.stats import chi2
+
+        return chi2.sf(self.chi2, np.maximum(self.n_points, 1))
 
     def parameters_frame(self) -> pd.DataFrame:
         """``specimen`` + the d parameters in physical units, one row per specimen."""
@@ -317,7 +352,8 @@ class CalibrationResult:
 
     def metrics_frame(self) -> pd.DataFrame:
         """Per-specimen metrics: specimen, method, mae_deg, r2_mean, per load case, exceedance,
-        seconds, success, missing_load_cases."""
+        seconds, success, missing_load_cases; with an error scale also ``error_scale_deg``,
+        ``rms_z`` and ``p_value`` (:attr:`rms_z`, :attr:`p_value`)."""
         df = pd.DataFrame(
             {
                 "specimen": list(self.specimens),
@@ -337,6 +373,10 @@ class CalibrationResult:
             ";".join(lc for j, lc in enumerate(LOAD_CASES) if not measured[i, j])
             for i in range(len(self.specimens))
         ]
+        if self.error_scale_deg is not None and self.chi2 is not None:
+            df["error_scale_deg"] = self.error_scale_deg
+            df["rms_z"] = self.rms_z
+            df["p_value"] = self.p_value
         return df
 
     def ranges_frame(self) -> pd.DataFrame | None:
@@ -466,6 +506,13 @@ def evaluate_solution(
     info = dict(sol.info)
     info["space_width"] = space.width.tolist()
     info["n_evaluations"] = int(model.n_evaluations)
+    scale = chi2 = n_points = None
+    if problem.point_sd is not None:  # residuals in units of each point's own sd
+        scale = problem.point_sd.double().numpy()
+        w = problem.weight.double().numpy()  # normalised: 0 where not measured
+        resid = np.where(w > 0, measured - pred, 0.0)
+        chi2 = (w * resid**2).sum(axis=(1, 2)) / scale**2
+        n_points = (w > 0).sum(axis=(1, 2))
     return CalibrationResult(
         x=x,
         fun=m["mae"],
@@ -487,4 +534,7 @@ def evaluate_solution(
         x_low=sol.x_low,
         x_high=sol.x_high,
         info=info,
+        error_scale_deg=scale,
+        chi2=chi2,
+        n_points=n_points,
     )

@@ -39,6 +39,10 @@ from femcal.settings.keywords import PLOT_CHOICES  # all, summary, none
 
 logger = logging.getLogger(__name__)
 
+#: A specimen's residuals are "beyond noise" (flag, ``n_beyond_noise``) below this chi-square
+#: p-value (the diagnosis' ``alpha``).
+BEYOND_NOISE_P = 0.01
+
 #: A parameter counts as determined by the data for a specimen when its identifiability range
 #: spans less than this fraction of its bounds.
 DETERMINED_WIDTH = 0.5
@@ -104,19 +108,35 @@ def fit_flags(metrics: pd.DataFrame) -> pd.Series:
     ----------
     metrics : pandas.DataFrame, shape (n, k)
         Per-specimen metrics with ``r2_mean`` and, optionally, ``reachability`` (text, "" when
-        the specimen lies within the model's envelope).
+        the specimen lies within the model's envelope) and ``p_value``
+        (:attr:`~femcal.calibration.base.CalibrationResult.p_value`).
 
     Returns
     -------
     pandas.Series of str, shape (n,)
         "; "-joined flags: ``R2<0`` (the calibrated curves explain less than the specimen's
-        mean: a fit worse than a flat line), ``outside envelope``; "" when none applies.
+        mean: a fit worse than a flat line), ``outside envelope``, ``beyond noise`` (with a
+        ``p_value`` column: its residuals exceed the noise, p < :data:`BEYOND_NOISE_P`); ""
+        when none applies.
     """
     r2 = pd.to_numeric(metrics["r2_mean"], errors="coerce").to_numpy(dtype=float)
     notes = metrics["reachability"] if "reachability" in metrics else pd.Series([""] * len(r2))
+    p = (
+        pd.to_numeric(metrics["p_value"], errors="coerce").to_numpy(dtype=float)
+        if "p_value" in metrics
+        else np.full(len(r2), np.nan)
+    )
     flags = [
-        "; ".join(f for f, on in (("R2<0", r < 0), ("outside envelope", bool(note))) if on)
-        for r, note in zip(r2, notes.fillna("").astype(str))
+        "; ".join(
+            f
+            for f, on in (
+                ("R2<0", r < 0),
+                ("outside envelope", bool(note)),
+                ("beyond noise", pv < BEYOND_NOISE_P),
+            )
+            if on
+        )
+        for r, note, pv in zip(r2, notes.fillna("").astype(str), p)
     ]
     return pd.Series(flags, index=metrics.index, dtype=object)
 
@@ -124,7 +144,10 @@ def fit_flags(metrics: pd.DataFrame) -> pd.Series:
 def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None = None) -> dict:
     """Aggregate figures of a batch (what the DVC metrics file and MLflow record).
 
-    ``n_r2_negative`` counts the specimens whose fit is worse than their mean (R² < 0).
+    ``n_r2_negative`` counts the specimens whose fit is worse than their mean (R² < 0). With
+    an error scale (``femcal calibrate --noise-deg``): ``rms_z_median`` and ``rms_z_max``, the
+    residuals in units of the noise, and ``n_beyond_noise``, the specimens whose residuals the
+    noise does not explain (p < :data:`BEYOND_NOISE_P`).
     """
     out: dict[str, Any] = {
         "method": result.method,
@@ -147,6 +170,11 @@ def summary(result: CalibrationResult, holdout: Mapping[str, np.ndarray] | None 
     if holdout is not None:
         out["holdout_mae_deg"] = float(np.nanmean(holdout["mae"]))
         out["holdout_r2_mean"] = float(np.nanmean(holdout["r2_mean"]))
+    rms_z, p = result.rms_z, result.p_value
+    if rms_z is not None and p is not None:
+        out["rms_z_median"] = float(np.median(rms_z))
+        out["rms_z_max"] = float(np.max(rms_z))
+        out["n_beyond_noise"] = int(np.sum(p < BEYOND_NOISE_P))
     ident = identifiability(result)
     if ident is not None:
         out["range_width_mean"] = float(ident["mean_width"].mean())
@@ -383,6 +411,16 @@ def _warnings(figures: Mapping[str, Any]) -> list[str]:
             "(R² < 0): see metrics.csv (column flag).** Their calibrated curves explain less than "
             "a flat line at the measured mean; check the units and load cases of those "
             "specimens.",
+            "",
+        ]
+    n_beyond = figures.get("n_beyond_noise", 0)
+    if n_beyond:
+        lines += [
+            f"**{n_beyond} of {figures['n_specimens']} specimens are not explained within the "
+            "noise (chi-square p < "
+            f"{BEYOND_NOISE_P:g}): see metrics.csv (columns flag, rms_z, p_value).** The model "
+            "misses something there, or the noise given is too small: `femcal diagnose` asks "
+            "which physical effect is missing.",
             "",
         ]
     if n_out:

@@ -234,6 +234,12 @@ def fit_warnings(figures: dict, out: str) -> str:
             f"WARNING: {figures['n_outside_envelope']} of {n} specimens have points outside "
             f"every curve the model can produce: see {out}/metrics.csv (column reachability)"
         )
+    if figures.get("n_beyond_noise"):
+        parts.append(
+            f"NOTE: {figures['n_beyond_noise']} of {n} specimens are not explained within the "
+            f"noise (median residual {figures['rms_z_median']:.2f} sd): see {out}/metrics.csv "
+            "(columns flag, rms_z, p_value); `femcal diagnose` asks which effect is missing"
+        )
     return "".join(f"\n{p}" for p in parts)
 
 
