@@ -158,9 +158,7 @@ def test_metrics_show_fits_a_terminal(repo):
             assert len(columns) <= MAX_KEYS and columns == metrics, (path, sorted(columns))
     # The keys README, tests and benchmarks read.
     cal = data["reports/calibrate-test.json"]["data"]
-    assert {"n_specimens", "mae_deg", "holdout_mae_deg", "n_outside_bounds", "n_plotted"} <= set(
-        cal
-    )
+    assert {"n_specimens", "mae_deg", "holdout_mae_deg", "n_outside_bounds"} <= set(cal)
     assert {"nn_large_mae_deg", "n_test_rows"} <= set(data["reports/surrogates.json"]["data"])
     assert {"cohort_verdict", "found_effects"} <= set(data["reports/diagnose.json"]["data"])
 

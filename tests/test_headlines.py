@@ -49,8 +49,14 @@ def test_calibration_headline_is_flat_and_small():
     assert not any(isinstance(v, (dict, list)) for v in head.values())
     assert head["determined_mean"] == pytest.approx(0.6)
     assert head["holdout_mae_deg"] is None  # NaN: "-" in dvc metrics show, valid JSON
-    assert {"n_specimens", "mae_deg", "n_outside_bounds", "n_plotted"} <= set(head)
+    assert {"n_specimens", "mae_deg", "n_outside_bounds"} <= set(head)
     assert "determined" not in head and "mae_deg_Flexion" not in head
+    assert "n_plotted" not in head  # how many PNGs: summary.json, not a headline
+    # With a noise, the specimens the model does not explain within it (a headline), their
+    # median residual in sd (summary.json).
+    noisy = {**_calibration_figures(), "n_beyond_noise": 2, "rms_z_median": 0.9}
+    head = calibration_headline(noisy)
+    assert head["n_beyond_noise"] == 2 and "rms_z_median" not in head
     json.dumps(head, allow_nan=False)
 
 

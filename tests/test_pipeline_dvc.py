@@ -117,7 +117,7 @@ def test_repro_produces_the_reports_and_the_registered_model(project):
     # calibrate: the 64 Test specimens through the registered champion, inside the bounds.
     cal = json.loads((root / "reports/calibrate-test.json").read_text())
     assert cal["n_specimens"] == 64 and cal["n_outside_bounds"] == 0
-    assert np.isfinite(cal["holdout_mae_deg"]) and cal["n_plotted"] == 3
+    assert np.isfinite(cal["holdout_mae_deg"])
     metrics = pd.read_csv(root / "reports/calibration/test/metrics.csv")
     assert len(metrics) == 64 and (metrics["exceedance"] == 0).all()
     assert len(list((root / "reports/calibration/test/plots").glob("*.png"))) == 3

@@ -39,10 +39,8 @@ CALIBRATION_KEYS = (
     "n_outside_bounds",
     "n_r2_negative",
     "n_outside_envelope",
-    "rms_z_median",
     "n_beyond_noise",
     "range_width_mean",
-    "n_plotted",
     "seconds",
 )
 
