@@ -183,6 +183,32 @@ class CalibrationProblem:
             point_sd=point_sd,
         )
 
+    def chi2(self, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each specimen's residuals in units of its points' own sd (needs :attr:`point_sd`).
+
+        Parameters
+        ----------
+        pred : ndarray, shape (n, 4, m)
+            Predicted curves, one per specimen.
+
+        Returns
+        -------
+        chi2 : ndarray, shape (n,)
+            ``sum_k w_k (measured_k - pred_k)^2 / point_sd^2`` over the measured points, ``w``
+            the normalised weights (the sd of point k is ``point_sd / sqrt(w_k)``).
+        n_points : ndarray of int, shape (n,)
+            Measured points of weight > 0.
+        """
+        if self.point_sd is None:
+            raise ConfigError(
+                "chi2 needs each specimen's error scale: build the problem with weight_sd "
+                "(the sd of a point of weight 1, in degrees)."
+            )
+        w = self.weight.double().numpy()  # 0 where not measured
+        resid = np.where(w > 0, self.measured - np.asarray(pred, dtype=float), 0.0)
+        scale = self.point_sd.double().numpy()
+        return (w * resid**2).sum(axis=(1, 2)) / scale**2, (w > 0).sum(axis=(1, 2))
+
     def subset(self, index: np.ndarray | slice) -> CalibrationProblem:
         """The problem restricted to some specimens."""
         return dataclasses.replace(
@@ -483,7 +509,16 @@ def _concat(parts: list[Solution]) -> Solution:
         message=parts[0].message,
         x_low=np.concatenate([p.x_low for p in parts]) if ranges else None,
         x_high=np.concatenate([p.x_high for p in parts]) if ranges else None,
-        info={**parts[0].info, "n_chunks": len(parts)},
+        info={
+            **parts[0].info,
+            "n_chunks": len(parts),
+            # counts of specimens (pgd's refits) add up over the chunks
+            **{
+                key: sum(int(p.info.get(key, 0)) for p in parts)
+                for key in ("n_refitted", "n_refit_improved")
+                if key in parts[0].info
+            },
+        },
     )
 
 
@@ -509,10 +544,7 @@ def evaluate_solution(
     scale = chi2 = n_points = None
     if problem.point_sd is not None:  # residuals in units of each point's own sd
         scale = problem.point_sd.double().numpy()
-        w = problem.weight.double().numpy()  # normalised: 0 where not measured
-        resid = np.where(w > 0, measured - pred, 0.0)
-        chi2 = (w * resid**2).sum(axis=(1, 2)) / scale**2
-        n_points = (w > 0).sum(axis=(1, 2))
+        chi2, n_points = problem.chi2(pred)
     return CalibrationResult(
         x=x,
         fun=m["mae"],

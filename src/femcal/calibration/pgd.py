@@ -310,6 +310,7 @@ def pgd(
     effect_keep: int = 24,
     effect_rounds: int = 3,
     effect_max_iter: int | None = 24,
+    retry_alpha: float = 0.01,
 ) -> Solution:
     """Projected gradient-based calibration of a batch (see the module docstring).
 
@@ -391,11 +392,23 @@ def pgd(
         Effect models: Gauss-Newton iterations of the effect rounds (the disc-alone fit that
         comes first keeps ``max_iter``); None: ``max_iter``. The disc's 13 parameters and up to
         11 effect parameters, several of them shapes, need more steps than the disc alone.
+    retry_alpha : float
+        Where the problem carries each specimen's error scale
+        (:attr:`~femcal.calibration.base.CalibrationProblem.point_sd`): a specimen whose fit
+        leaves residuals the noise does not explain (chi-square with as many degrees of freedom
+        as points, p < ``retry_alpha``) is calibrated again from four times the starts, four
+        kept after at least four iterations and at least 40 iterations in all; the better fit
+        (lower chi-square) is kept. The light default settings, fast where the fit explains
+        the data, sometimes leave a specimen in a poorer basin (a Test specimen with noise 0.05
+        deg: MAE 0.075 deg, p 0.002; refitted 0.05 deg, p > 0.2;
+        reports/bench_calibrate_noise.md), and a fit that misses for lack of starts would read
+        as missing physics. 0: no retry.
 
     Returns
     -------
     Solution
     """
+    settings = {k: v for k, v in locals().items() if k not in ("problem", "rng")}
     check_choices(
         "pgd", optimizer=(optimizer, OPTIMIZERS), loss=(loss, LOSSES), select=(select, SELECT)
     )
@@ -406,6 +419,11 @@ def pgd(
     if effect_max_iter is not None and effect_max_iter < 1:
         raise ConfigError(
             f"pgd: effect_max_iter must be >= 1 (or None: max_iter); got {effect_max_iter}."
+        )
+    if not 0 <= retry_alpha < 1:
+        raise ConfigError(
+            f"pgd: retry_alpha must be in [0, 1) (a chi-square p-value; 0: no retry); got "
+            f"{retry_alpha}."
         )
     n, d = problem.n_specimens, problem.dim
     model = problem.model
@@ -437,6 +455,7 @@ def pgd(
             noise_deg=noise_deg,
             fit_tolerance=fit_tolerance,
             ranges=False,
+            retry_alpha=0.0,  # only a start: the effects are there to explain the rest
         )
         if effect_max_iter is not None:
             max_iter = effect_max_iter
@@ -542,7 +561,7 @@ def pgd(
         x_low = problem.model.to_physical(v_low.double().numpy())
         x_high = problem.model.to_physical(v_high.double().numpy())
     conv = converged.reshape(n, k).gather(1, best[:, None])[:, 0].numpy()
-    return Solution(
+    sol = Solution(
         x=x,
         nit=int(nit),
         success=conv,
@@ -567,4 +586,66 @@ def pgd(
             "nit": int(nit),
             "error_scale_deg": float(scale.median()) if n else float(noise_deg),
         },
+    )
+    if retry_alpha > 0 and problem.point_sd is not None and n:
+        sol = _retry_unexplained(problem, sol, rng, settings)
+    return sol
+
+
+def _retry_unexplained(
+    problem: CalibrationProblem, sol: Solution, rng: np.random.Generator, settings: dict
+) -> Solution:
+    """Calibrate again, from more starts, the specimens whose fit the noise does not explain
+    (``settings["retry_alpha"]``; see :func:`pgd`); keep the better fit of each."""
+    from scipy.stats import chi2 as chi2_dist
+
+    model = problem.model
+    chi2, n_points = problem.chi2(model.predict(sol.x))
+    p = chi2_dist.sf(chi2, np.maximum(n_points, 1))
+    bad = np.flatnonzero(p < settings["retry_alpha"])
+    sol.info["n_refitted"] = int(bad.size)
+    sol.info["n_refit_improved"] = 0
+    if bad.size == 0:
+        return sol
+    thorough = {
+        **settings,
+        "n_starts": 4 * settings["n_starts"],
+        "keep_after": max(settings["keep_after"], 4),
+        "keep": max(settings["keep"], 4),
+        "max_iter": max(settings["max_iter"], 40),
+        "retry_alpha": 0.0,
+    }
+    sub = problem.subset(bad)
+    again = pgd(sub, rng=rng, **thorough)
+    chi2_again, _ = sub.chi2(model.predict(again.x))
+    better = chi2_again < chi2[bad]
+    rows = bad[better]
+    x = sol.x.copy()
+    x[rows] = again.x[better]
+    success = np.asarray(sol.success).copy()
+    success[rows] = np.asarray(again.success)[better]
+    x_low, x_high = sol.x_low, sol.x_high
+    if x_low is not None and x_high is not None and again.x_low is not None:
+        x_low, x_high = x_low.copy(), x_high.copy()
+        x_low[rows] = again.x_low[better]
+        x_high[rows] = again.x_high[better]
+    logger.info(
+        "pgd: %d of %d specimens were not explained within the noise (p < %g); refitted from "
+        "%d starts each, %d fit better",
+        bad.size,
+        problem.n_specimens,
+        settings["retry_alpha"],
+        thorough["n_starts"],
+        int(better.sum()),
+    )
+    return dataclasses.replace(
+        sol,
+        x=x,
+        success=success,
+        x_low=x_low,
+        x_high=x_high,
+        nit=max(sol.nit, again.nit),
+        message=f"{sol.message}; {bad.size} not explained within the noise refitted from "
+        f"{thorough['n_starts']} starts, {int(better.sum())} better",
+        info={**sol.info, "n_refitted": int(bad.size), "n_refit_improved": int(better.sum())},
     )
