@@ -408,6 +408,7 @@ def pgd(
     -------
     Solution
     """
+    # this call's options, as given (the refit of unexplained specimens reuses them)
     settings = {k: v for k, v in locals().items() if k not in ("problem", "rng")}
     check_choices(
         "pgd", optimizer=(optimizer, OPTIMIZERS), loss=(loss, LOSSES), select=(select, SELECT)
