@@ -515,6 +515,12 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         ),
         (
             "pgd: {n_starts: 8,",
+            "pgd: {retry_alpha: 1, n_starts: 8,",
+            r"calibrate\.options\.pgd\.retry_alpha: expected a number in \[0, 1\), got 1 "
+            r"\(int\); retry_alpha: with a noise_deg: fit again from 4x the starts",
+        ),
+        (
+            "pgd: {n_starts: 8,",
             "pgd: {start_bank: [[1, 2]], n_starts: 8,",
             r"calibrate\.options\.pgd\.start_bank: not settable here; set calibrate\.start_bank",
         ),

@@ -202,6 +202,11 @@ CALIBRATOR_OPTIONS: dict[str, Keywords] = {
                 Int(1),
                 "effect models: Gauss-Newton iterations once effects join (max_iter: the disc)",
             ),
+            "retry_alpha": (
+                Float(0, 1, hi_open=True),
+                "with a noise_deg: fit again from 4x the starts every specimen left beyond the "
+                "noise (chi-square p below this; 0: off)",
+            ),
         },
         "pgd calibrator",
         refused={
