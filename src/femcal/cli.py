@@ -157,8 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--noise-deg",
         type=float,
         help="sd of one measurement in degrees: each point weighs 1 / (noise² / weight + the "
-        "surrogate's error²), as in diagnose (default: calibrate.datasets.<name>.noise_deg; "
-        "none: only the surrogate's error is counted)",
+        "surrogate's error²), as in diagnose, and each specimen is tested against it "
+        "(metrics.csv: rms_z, p_value, flag 'beyond noise') (default: "
+        "calibrate.datasets.<name>.noise_deg; none: only the surrogate's error is counted)",
     )
     p.add_argument(
         "--method", choices=CALIBRATORS, help="calibration method (default: calibrate.method)"
