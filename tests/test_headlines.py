@@ -12,6 +12,7 @@ import pytest
 from femcal.errors import FemcalError
 from femcal.evaluate import Score, prediction_table, training_curves, write_reports
 from femcal.headlines import (
+    CALIBRATION_KEYS,
     MAX_KEYS,
     HeadlineError,
     calibration_headline,
@@ -58,6 +59,17 @@ def test_calibration_headline_is_flat_and_small():
     head = calibration_headline(noisy)
     assert head["n_beyond_noise"] == 2 and "rms_z_median" not in head
     json.dumps(head, allow_nan=False)
+
+
+def test_every_calibration_headline_key_at_once_fits():
+    # A calibration with every figure a headline can take (a held-out surrogate, ranges,
+    # reachability and a noise) still fits the limit: session 27's n_beyond_noise made the
+    # planted stage's headline 17 keys until n_plotted left it.
+    figures = {**_calibration_figures(), "holdout_mae_deg": 0.02, "holdout_r2_mean": 0.99}
+    figures.update({k: 1 for k in CALIBRATION_KEYS if k not in figures})
+    head = calibration_headline(figures)
+    assert set(head) == {*CALIBRATION_KEYS, "determined_mean"}
+    assert len(head) <= MAX_KEYS
 
 
 def test_diagnosis_headline_counts():
