@@ -283,6 +283,14 @@ class Solution:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+def chi2_p_value(chi2: np.ndarray, n_points: np.ndarray) -> np.ndarray:
+    """Chi-square p-values with as many degrees of freedom as points (at least 1), shape (n,):
+    the test of :attr:`CalibrationResult.p_value` and of ``pgd``'s refit."""
+    from scipy.stats import chi2 as chi2_dist
+
+    return chi2_dist.sf(chi2, np.maximum(n_points, 1))
+
+
 @dataclass
 class CalibrationResult:
     """Calibrated parameters of a batch of specimens, with their fit through the surrogate.
@@ -366,9 +374,7 @@ class CalibrationResult:
         an error scale."""
         if self.chi2 is None or self.n_points is None:
             return None
-        from scipy.stats import chi2
-
-        return chi2.sf(self.chi2, np.maximum(self.n_points, 1))
+        return chi2_p_value(self.chi2, self.n_points)
 
     def parameters_frame(self) -> pd.DataFrame:
         """``specimen`` + the d parameters in physical units, one row per specimen."""

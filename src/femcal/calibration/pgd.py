@@ -41,6 +41,7 @@ from femcal.calibration.base import (
     CalibrationProblem,
     Solution,
     check_choices,
+    chi2_p_value,
     register_calibrator,
 )
 from femcal.calibration.starts import (
@@ -598,12 +599,9 @@ def _retry_unexplained(
 ) -> Solution:
     """Calibrate again, from more starts, the specimens whose fit the noise does not explain
     (``settings["retry_alpha"]``; see :func:`pgd`); keep the better fit of each."""
-    from scipy.stats import chi2 as chi2_dist
-
     model = problem.model
     chi2, n_points = problem.chi2(model.predict(sol.x))
-    p = chi2_dist.sf(chi2, np.maximum(n_points, 1))
-    bad = np.flatnonzero(p < settings["retry_alpha"])
+    bad = np.flatnonzero(chi2_p_value(chi2, n_points) < settings["retry_alpha"])
     sol.info["n_refitted"] = int(bad.size)
     sol.info["n_refit_improved"] = 0
     if bad.size == 0:
