@@ -468,13 +468,14 @@ def test_the_evidence_penalty_is_laplaces_occam_factor_over_the_unit_box():
     ``1 / 2 pi`` has the unit box's volume)."""
     import torch
 
-    from femcal.diagnose.fits import _Fit, _hat_trace_and_cov
+    from femcal.calibration.base import hat_trace_and_cov
+    from femcal.diagnose.fits import _Fit
 
     sigma = np.full((1, 4, 3), 0.1)
     mask = np.ones((1, 4, 3), dtype=bool)
     jac = torch.zeros(1, 4, 3, 2, dtype=torch.float64)
     jac[0, 0, :, 0] = 0.5  # three points, 5 sd per unit
-    _, cov, occam = _hat_trace_and_cov(jac, mask, sigma)
+    _, cov, occam = hat_trace_and_cov(jac, mask, sigma)
     info = 3 * (0.5 / 0.1) ** 2  # the second parameter: no information at all
     assert occam[0] == pytest.approx(np.log(1 + info / (2 * np.pi)))
     assert cov[0, 1, 1] == pytest.approx(1.0)

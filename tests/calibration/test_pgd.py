@@ -321,3 +321,38 @@ def test_chi2_needs_an_error_scale(curve_model, truth):
     chi2, n_points = scaled.chi2(truth[1] + 0.1)  # every point 1 sd off
     np.testing.assert_allclose(chi2, n_points)
     assert n_points.tolist() == [20] * 6
+
+
+def test_effective_parameters_are_the_hat_trace_of_the_fit(curve_model, truth):
+    """The effective parameters at x are ``tr(I (I + 1)^-1)`` with ``I = J^T Σ^-1 J`` in the
+    network's unit coordinates, every point weighed by its own sd: checked against a central
+    finite-difference Jacobian of the curves (float32 network: steps of 1e-3 in the unit box,
+    the trace agrees to 1e-2). More noise makes the data see fewer parameters; the trace never
+    exceeds the parameters or the points."""
+    x, clean = truth
+    weight = np.ones_like(clean)
+    weight[:, :, -1] = 4.0  # the 5 Nm points the mean of four repeats
+    problem = CalibrationProblem.from_arrays(curve_model, clean, weight, weight_sd=0.05)
+    with pytest.raises(ConfigError, match=r"effective_parameters needs each specimen's error"):
+        CalibrationProblem.from_arrays(curve_model, clean).effective_parameters(x)
+    k = problem.effective_parameters(x, batch=4)  # two batches
+    v = curve_model.from_physical(x).double()
+    h = 1e-3
+    d = v.shape[1]
+    jac = np.zeros((*clean.shape, d))
+    with torch.no_grad():
+        for j in range(d):
+            step = torch.zeros_like(v)
+            step[:, j] = h
+            up = curve_model.curves((v + step).float()).double()
+            down = curve_model.curves((v - step).float()).double()
+            jac[..., j] = ((up - down) / (2 * h)).numpy()
+    w = problem.weight.double().numpy()
+    sd = problem.point_sd.double().numpy()[:, None, None] / np.sqrt(w)
+    j = (jac / sd[..., None]).reshape(len(x), -1, d)
+    info = np.einsum("npi,npj->nij", j, j)
+    expected = np.einsum("nij,nji->n", info, np.linalg.inv(info + np.eye(d)))
+    np.testing.assert_allclose(k, expected, atol=1e-2)
+    assert np.all((k > 0) & (k < min(d, clean[0].size)))
+    noisier = CalibrationProblem.from_arrays(curve_model, clean, weight, weight_sd=0.5)
+    assert np.all(noisier.effective_parameters(x) < k)

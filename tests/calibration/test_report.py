@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.stats import chi2 as chi2_dist
 
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import (
@@ -167,10 +168,10 @@ def test_the_residuals_are_tested_against_the_noise(tmp_path, curve_model, truth
     _, clean = truth
     rng = np.random.default_rng(0)
     noise = 0.05
-    targets = clean + rng.normal(0.0, noise, clean.shape)
+    weight = rng.choice([1.0, 4.0], size=clean.shape)  # some points the mean of 4 repeats
+    targets = clean + rng.normal(0.0, noise, clean.shape) / np.sqrt(weight)
     # Specimen 0: a zigzag of 6 sd in flexion that no smooth model follows (missing physics).
     targets[0, 0] += 6 * noise * (-1.0) ** np.arange(targets.shape[2])
-    weight = rng.choice([1.0, 4.0], size=clean.shape)  # some points the mean of 4 repeats
     res = calibrate(
         curve_model,
         targets,
@@ -184,21 +185,27 @@ def test_the_residuals_are_tested_against_the_noise(tmp_path, curve_model, truth
     assert res.n_points.tolist() == [targets[0].size] * len(targets)
     # a point of average weight has sd noise / sqrt(mean w)
     np.testing.assert_allclose(res.error_scale_deg, noise / np.sqrt(weight.mean(axis=(1, 2))))
+    # The fit of 13 parameters to 20 points takes some of them: the residuals' degrees of
+    # freedom are the points less the fit's effective parameters (the trace of the hat matrix).
+    assert np.all((res.n_effective > 1) & (res.n_effective < 13))
+    np.testing.assert_allclose(res.dof, res.n_points - res.n_effective)
+    np.testing.assert_allclose(res.p_value, chi2_dist.sf(res.chi2, res.dof))
     # The zigzag alone is chi2 >= 20 * 36 / 2 with the weights >= 1: p far below 0.01. The
-    # other five are noise: 20 points, p > 0.01 each with probability 0.99 (with the fit
-    # absorbing some noise, more), and this seed's draw passes.
+    # other five are noise at the sd their weights declare: p > 0.01 each with probability
+    # 0.99, and this seed's draw passes.
     assert res.p_value[0] < 1e-6 and res.rms_z[0] > 2
     assert np.all(res.p_value[1:] > 0.01) and np.all(res.rms_z[1:] < 1.5)
     figures = write_outputs(res, tmp_path / "out", plots="none")
     assert figures["n_beyond_noise"] == 1
     assert figures["rms_z_max"] == pytest.approx(res.rms_z[0])
     metrics = pd.read_csv(tmp_path / "out" / "metrics.csv", keep_default_na=False)
-    assert {"error_scale_deg", "rms_z", "p_value"} <= set(metrics.columns)
+    assert {"error_scale_deg", "rms_z", "dof", "p_value"} <= set(metrics.columns)
     assert metrics["flag"].tolist() == ["beyond noise"] + [""] * 5
     text = (tmp_path / "out" / "summary.md").read_text()
     assert "1 of 6 specimens are not explained within the noise" in text
     # Without an error scale there is nothing to test against: no columns, no figures.
     plain = calibrate(curve_model, targets, weight=weight, options={"n_bank_uniform": 256})
     assert plain.chi2 is None and plain.rms_z is None and plain.p_value is None
+    assert plain.n_effective is None and plain.dof is None
     assert "rms_z" not in plain.metrics_frame()
     assert "n_beyond_noise" not in write_outputs(plain, tmp_path / "plain", plots="none")

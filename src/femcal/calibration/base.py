@@ -209,6 +209,40 @@ class CalibrationProblem:
         scale = self.point_sd.double().numpy()
         return (w * resid**2).sum(axis=(1, 2)) / scale**2, (w > 0).sum(axis=(1, 2))
 
+    def effective_parameters(self, x: np.ndarray, *, batch: int = 256) -> np.ndarray:
+        """Each specimen's effective number of fitted parameters at ``x`` (needs
+        :attr:`point_sd`): the trace of the hat matrix of the linearised fit, every point
+        weighed by its own sd, the unit box as a prior (:func:`hat_trace_and_cov`, as
+        ``femcal diagnose`` counts them). A parameter the data do not see counts 0.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n, d)
+            Parameters in physical units, one row per specimen (clipped to the box).
+        batch : int
+            Specimens per Jacobian (bounds memory).
+
+        Returns
+        -------
+        ndarray, shape (n,)
+        """
+        if self.point_sd is None:
+            raise ConfigError(
+                "effective_parameters needs each specimen's error scale: build the problem "
+                "with weight_sd (the sd of a point of weight 1, in degrees)."
+            )
+        w = self.weight.double().numpy()
+        mask = w > 0
+        sd = self.point_sd.double().numpy()[:, None, None] / np.sqrt(np.where(mask, w, 1.0))
+        v = self.model.from_physical(np.asarray(x, dtype=float))
+        out = np.zeros(self.n_specimens)
+        for lo in range(0, self.n_specimens, batch):
+            hi = min(lo + batch, self.n_specimens)
+            with torch.no_grad():
+                _, jac = self.model.curves_jacobian(v[lo:hi])
+            out[lo:hi] = hat_trace_and_cov(jac, mask[lo:hi], sd[lo:hi])[0]
+        return out
+
     def subset(self, index: np.ndarray | slice) -> CalibrationProblem:
         """The problem restricted to some specimens."""
         return dataclasses.replace(
@@ -283,12 +317,55 @@ class Solution:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def chi2_p_value(chi2: np.ndarray, n_points: np.ndarray) -> np.ndarray:
-    """Chi-square p-values with as many degrees of freedom as points (at least 1), shape (n,):
-    the test of :attr:`CalibrationResult.p_value` and of ``pgd``'s refit."""
+def chi2_p_value(chi2: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """Chi-square survival function, shape (n,): the p-value of residuals whose chi-square is
+    ``chi2`` on ``dof`` degrees of freedom (floored at 1; fractional degrees of freedom, such
+    as points minus a fit's effective parameters, are fine). The test of
+    :attr:`CalibrationResult.p_value`, of ``pgd``'s refit and of ``femcal diagnose``'s
+    adequacy."""
     from scipy.stats import chi2 as chi2_dist
 
-    return chi2_dist.sf(chi2, np.maximum(n_points, 1))
+    return chi2_dist.sf(chi2, np.maximum(np.asarray(dof, dtype=float), 1.0))
+
+
+def hat_trace_and_cov(
+    jac: torch.Tensor | np.ndarray, mask: np.ndarray, sigma: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Effective number of fitted parameters, their covariance and Laplace's Occam factor.
+
+    The linearised fit of ``d`` parameters in unit coordinates with the unit box as a prior of
+    sd 1 per axis: with the information ``I = J^T Σ^-1 J``, the covariance is ``(I + 1)^-1``
+    and the effective number of parameters the trace of the hat matrix, ``tr(I (I + 1)^-1)``
+    (0 for an axis the data do not see, 1 for one they fix).
+
+    Parameters
+    ----------
+    jac : Tensor or ndarray, shape (n, 4, m, d)
+        The curves' Jacobian in unit coordinates; non-finite entries count as 0.
+    mask : ndarray of bool, shape (n, 4, m)
+        Measured points.
+    sigma : ndarray, shape (n, 4, m) or broadcastable
+        Each point's sd (deg).
+
+    Returns
+    -------
+    trace : ndarray, shape (n,)
+    cov : ndarray, shape (n, d, d)
+    occam : ndarray, shape (n,)
+        ``ln det(1 + I / 2 pi)``: the posterior's volume over the box's (a Gaussian of
+        variance ``1 / 2 pi`` per axis has the box's volume, so an axis the data do not fix
+        costs nothing and a fixed one ``ln(information / 2 pi)``).
+    """
+    jac = jac.double().numpy() if isinstance(jac, torch.Tensor) else np.asarray(jac, float)
+    n, d = jac.shape[0], jac.shape[-1]
+    j = jac / np.broadcast_to(sigma, mask.shape)[..., None]
+    j = np.where(mask[..., None], np.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    j = j.reshape(n, -1, d)
+    info = np.einsum("npi,npj->nij", j, j)
+    cov = np.linalg.inv(info + np.eye(d))
+    trace = np.einsum("nij,nji->n", info, cov)
+    _, occam = np.linalg.slogdet(np.eye(d) + info / (2 * np.pi))
+    return trace, cov, occam
 
 
 @dataclass
@@ -330,6 +407,10 @@ class CalibrationResult:
         with ``sd_k = error_scale_deg / sqrt(normalised weight_k)``.
     n_points : ndarray of int, shape (n,), optional
         With ``chi2``: each specimen's measured points (those of weight > 0).
+    n_effective : ndarray, shape (n,), optional
+        With ``chi2``: each specimen's effective number of fitted parameters at ``x``
+        (:meth:`CalibrationProblem.effective_parameters`), which the residuals' degrees of
+        freedom lose (``n_points - n_effective``, :attr:`p_value`).
     """
 
     x: np.ndarray
@@ -355,6 +436,7 @@ class CalibrationResult:
     error_scale_deg: np.ndarray | None = None
     chi2: np.ndarray | None = None
     n_points: np.ndarray | None = None
+    n_effective: np.ndarray | None = None
 
     @property
     def rms_z(self) -> np.ndarray | None:
@@ -367,14 +449,22 @@ class CalibrationResult:
 
     @property
     def p_value(self) -> np.ndarray | None:
-        """Each specimen's chi-square p-value with as many degrees of freedom as points,
-        shape (n,): small where its residuals exceed what the noise explains. Conservative: the
-        fitted parameters absorb some of the noise, so the residuals' true degrees of freedom
-        are fewer (``femcal diagnose`` counts them, and names what is missing). None without
-        an error scale."""
+        """Each specimen's chi-square p-value, shape (n,): small where its residuals exceed
+        what the noise explains. The degrees of freedom are the points less the fit's
+        effective parameters (:attr:`n_effective`, as ``femcal diagnose`` counts them), or the
+        points where those are not known (conservative). None without an error scale."""
         if self.chi2 is None or self.n_points is None:
             return None
-        return chi2_p_value(self.chi2, self.n_points)
+        return chi2_p_value(self.chi2, self.dof)
+
+    @property
+    def dof(self) -> np.ndarray | None:
+        """The residuals' degrees of freedom, shape (n,): ``n_points - n_effective`` (or
+        ``n_points`` without :attr:`n_effective`), at least 1; None without an error scale."""
+        if self.n_points is None:
+            return None
+        used = 0.0 if self.n_effective is None else self.n_effective
+        return np.maximum(self.n_points - used, 1.0)
 
     def parameters_frame(self) -> pd.DataFrame:
         """``specimen`` + the d parameters in physical units, one row per specimen."""
@@ -385,7 +475,7 @@ class CalibrationResult:
     def metrics_frame(self) -> pd.DataFrame:
         """Per-specimen metrics: specimen, method, mae_deg, r2_mean, per load case, exceedance,
         seconds, success, missing_load_cases; with an error scale also ``error_scale_deg``,
-        ``rms_z`` and ``p_value`` (:attr:`rms_z`, :attr:`p_value`)."""
+        ``rms_z``, ``dof`` and ``p_value`` (:attr:`rms_z`, :attr:`dof`, :attr:`p_value`)."""
         df = pd.DataFrame(
             {
                 "specimen": list(self.specimens),
@@ -408,6 +498,7 @@ class CalibrationResult:
         if self.error_scale_deg is not None and self.chi2 is not None:
             df["error_scale_deg"] = self.error_scale_deg
             df["rms_z"] = self.rms_z
+            df["dof"] = self.dof
             df["p_value"] = self.p_value
         return df
 
@@ -547,10 +638,11 @@ def evaluate_solution(
     info = dict(sol.info)
     info["space_width"] = space.width.tolist()
     info["n_evaluations"] = int(model.n_evaluations)
-    scale = chi2 = n_points = None
+    scale = chi2 = n_points = n_effective = None
     if problem.point_sd is not None:  # residuals in units of each point's own sd
         scale = problem.point_sd.double().numpy()
         chi2, n_points = problem.chi2(pred)
+        n_effective = problem.effective_parameters(x)
     return CalibrationResult(
         x=x,
         fun=m["mae"],
@@ -575,4 +667,5 @@ def evaluate_solution(
         error_scale_deg=scale,
         chi2=chi2,
         n_points=n_points,
+        n_effective=n_effective,
     )

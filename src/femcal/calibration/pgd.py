@@ -396,14 +396,15 @@ def pgd(
     retry_alpha : float
         Where the problem carries each specimen's error scale
         (:attr:`~femcal.calibration.base.CalibrationProblem.point_sd`): a specimen whose fit
-        leaves residuals the noise does not explain (chi-square with as many degrees of freedom
-        as points, p < ``retry_alpha``) is calibrated again from four times the starts, four
-        kept after at least four iterations and at least 40 iterations in all; the better fit
-        (lower chi-square) is kept. The light default settings, fast where the fit explains
-        the data, sometimes leave a specimen in a poorer basin (a Test specimen with noise 0.05
-        deg: MAE 0.075 deg, p 0.002; refitted 0.037 deg, p 0.91;
-        reports/bench_calibrate_noise.md), and a fit that misses for lack of starts would read
-        as missing physics. 0: no retry.
+        leaves residuals the noise does not explain (chi-square on the points less the fit's
+        effective parameters, p < ``retry_alpha``: the test of
+        :attr:`~femcal.calibration.base.CalibrationResult.p_value`) is calibrated again from
+        four times the starts, four kept after at least four iterations and at least 40
+        iterations in all; the better fit (lower chi-square) is kept. The light default
+        settings, fast where the fit explains the data, sometimes leave a specimen in a poorer
+        basin (a Test specimen with noise 0.05 deg: MAE 0.075 deg, p 0.002; refitted 0.037
+        deg, p 0.91; reports/bench_calibrate_noise.md), and a fit that misses for lack of
+        starts would read as missing physics. 0: no retry.
 
     Returns
     -------
@@ -601,7 +602,8 @@ def _retry_unexplained(
     (``settings["retry_alpha"]``; see :func:`pgd`); keep the better fit of each."""
     model = problem.model
     chi2, n_points = problem.chi2(model.predict(sol.x))
-    bad = np.flatnonzero(chi2_p_value(chi2, n_points) < settings["retry_alpha"])
+    dof = n_points - problem.effective_parameters(sol.x)
+    bad = np.flatnonzero(chi2_p_value(chi2, dof) < settings["retry_alpha"])
     sol.info["n_refitted"] = int(bad.size)
     sol.info["n_refit_improved"] = 0
     if bad.size == 0:

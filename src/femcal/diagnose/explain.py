@@ -8,12 +8,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from femcal.calibration.base import chi2_p_value
 from femcal.calibration.model import SurrogateCurveModel
 from femcal.diagnose.discrepancy import (
     runs_p_value,
 )
 from femcal.diagnose.fits import (
-    _chi2_sf,
     _Fit,
 )
 from femcal.diagnose.result import (
@@ -37,7 +37,7 @@ def _adequacy(
     chi2 = float(np.nansum(z**2))
     n = int(np.isfinite(z).sum())
     dof = max(dof, 1.0)
-    p_chi2 = _chi2_sf(chi2, dof)
+    p_chi2 = float(chi2_p_value(chi2, dof))
     p_runs = runs_p_value(res)
     # Runs of one sign only matter where the residuals are not small against the noise: a
     # smooth surrogate error well inside sigma makes runs, not missing physics.
@@ -53,7 +53,7 @@ def _adequacy(
             if n_j < 2:
                 p_lc.append(1.0)
                 continue
-            p_lc.append(_chi2_sf(float(np.sum(row[ok] ** 2)), n_j - used * n_j / n))
+            p_lc.append(float(chi2_p_value(np.sum(row[ok] ** 2), n_j - used * n_j / n)))
         out["p_chi2_load_case"] = p_lc
         lc_bad = min(p_lc) < alpha / len(p_lc)
     out["adequate"] = bool(p_chi2 >= alpha and not runs_bad and not lc_bad)

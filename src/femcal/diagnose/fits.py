@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from femcal.calibration.base import CalibrationProblem
+from femcal.calibration.base import CalibrationProblem, hat_trace_and_cov
 from femcal.calibration.pgd import gauss_newton
 from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
@@ -94,33 +94,6 @@ def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[i
     return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
 
 
-def _hat_trace_and_cov(jac: torch.Tensor, mask: np.ndarray, sigma: np.ndarray):
-    """Effective number of parameters and the parameter covariance (unit box prior).
-
-    ``jac`` (n, 4, m, d); returns trace (n,) and covariance (n, d, d) in unit coordinates.
-    """
-    n = jac.shape[0]
-    d = jac.shape[-1]
-    j = jac.double().numpy() / np.broadcast_to(sigma, mask.shape)[..., None]
-    j = np.where(mask[..., None], np.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
-    j = j.reshape(n, -1, d)
-    info = np.einsum("npi,npj->nij", j, j)
-    cov = np.linalg.inv(info + np.eye(d))
-    trace = np.einsum("nij,nji->n", info, cov)
-    # Laplace's Occam factor with the unit box as a flat prior: the posterior's volume over
-    # the box's (a Gaussian of variance 1/(2 pi) per unit axis has the box's volume, so an
-    # axis the data do not fix costs nothing and a fixed one ln(information / 2 pi)).
-    _, occam = np.linalg.slogdet(np.eye(d) + info / (2 * np.pi))
-    return trace, cov, occam
-
-
-def _chi2_sf(x: float, k: float) -> float:
-    """Survival function of the chi-square distribution (SciPy)."""
-    from scipy.stats import chi2
-
-    return float(chi2.sf(x, max(k, 1.0)))
-
-
 #: How a model's criterion counts its parameters (:func:`_Fit.criterion`).
 PENALTIES = ("effective", "count", "evidence")
 
@@ -173,9 +146,7 @@ class _Fit:
         if self.trace is not None:
             return
         _, jac = self.model.curves_jacobian(self.v)
-        self.trace, self.cov, self.occam = _hat_trace_and_cov(
-            jac, mask[self.rows], sigma[self.rows]
-        )
+        self.trace, self.cov, self.occam = hat_trace_and_cov(jac, mask[self.rows], sigma[self.rows])
         self.finite = torch.isfinite(jac).reshape(len(self.rows), -1).all(1).numpy()
 
     def criterion(
