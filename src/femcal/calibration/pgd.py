@@ -402,8 +402,8 @@ def pgd(
         four times the starts, four kept after at least four iterations and at least 40
         iterations in all; the better fit (lower chi-square) is kept. The light default
         settings, fast where the fit explains the data, sometimes leave a specimen in a poorer
-        basin (a Test specimen with noise 0.05 deg: MAE 0.075 deg, p 0.002; refitted 0.037
-        deg, p 0.91; reports/bench_calibrate_noise.md), and a fit that misses for lack of
+        basin (a Test specimen with noise 0.05 deg: MAE 0.075 deg, p < 1e-4; refitted 0.037
+        deg, p 0.51; reports/bench_calibrate_noise.md), and a fit that misses for lack of
         starts would read as missing physics. 0: no retry.
 
     Returns
