@@ -291,46 +291,25 @@ def components_identifiable(
     return out
 
 
-def truth_preferred(
+def model_criteria(
     cohort: dict[str, Any],
     ctx: dict[str, Any],
     model,
     weight,
     sigma_m: np.ndarray,
+    idx: np.ndarray,
     diag: Diagnosis | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per specimen: is its true combination the library's preferred model (the diagnosis'
-    criterion, the BIC by default)?
-
-    Every model the diagnosis could name (the disc alone, each registered effect, each pair,
-    the triple) is calibrated to each combination specimen with a thorough ``pgd``
-    (:data:`THOROUGH`) and scored as the diagnosis scores it: ``chi^2 + cost k`` with the
-    noise and the surrogate's error ``sigma_m`` (m,), ``k`` counted as the diagnosis'
-    ``penalty`` option says (by default the effective number of parameters at the thorough
-    fit, the trace of its hat matrix; :meth:`femcal.diagnose.fits._Fit.criterion`); with the
-    ``diag`` given, a model the diagnosis also fitted counts with the lower of the two. Where
-    another model scores lower than the true combination, no search with that criterion can
-    name the combination whole: this is the ceiling of
-    bar (a) that the data allow. True for
-    every specimen that is not a combination of registered effects.
+) -> dict[tuple[str, ...], np.ndarray]:
+    """Every model the diagnosis could name (the disc alone, each registered effect, each pair,
+    the triple), calibrated to the specimens ``idx`` (r,) with the thorough ``pgd``
+    (:data:`THOROUGH`) and scored as the diagnosis scores it (see :func:`truth_preferred`); with
+    ``diag`` given, a model the diagnosis also fitted counts with the lower of the two.
 
     Returns
     -------
-    preferred : ndarray of bool, shape (n,)
-    margin : ndarray, shape (n,)
-        Criterion of the best other model minus the truth's (> 0: the truth is preferred); NaN where
-        the specimen is not a combination.
+    dict
+        Sorted effect tuple -> criterion, ndarray of shape (r,).
     """
-    n = len(cohort["specimens"])
-    preferred, margin = np.ones(n, dtype=bool), np.full(n, np.nan)
-    rows = [
-        i
-        for i, expected in enumerate(cohort["expected"])
-        if len(expected) >= 2 and not cohort["out_of_library"][i]
-    ]
-    if not rows:
-        return preferred, margin
-    idx = np.asarray(rows)
     rom = cohort["rom_deg"][idx]
     # what one parameter costs, as the diagnosis prices it (2 with the AIC, ln n with the BIC)
     criterion = ctx["options"].get("criterion", DIAGNOSE_DEFAULTS["criterion"])
@@ -367,6 +346,51 @@ def truth_preferred(
                 for k in range(len(idx))
             ]
         )
+    return bic
+
+
+def truth_preferred(
+    cohort: dict[str, Any],
+    ctx: dict[str, Any],
+    model,
+    weight,
+    sigma_m: np.ndarray,
+    diag: Diagnosis | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per specimen: is its true combination the library's preferred model (the diagnosis'
+    criterion, the BIC by default)?
+
+    Every model the diagnosis could name (the disc alone, each registered effect, each pair,
+    the triple) is calibrated to each combination specimen with a thorough ``pgd``
+    (:data:`THOROUGH`) and scored as the diagnosis scores it: ``chi^2 + cost k`` with the
+    noise and the surrogate's error ``sigma_m`` (m,), ``k`` counted as the diagnosis'
+    ``penalty`` option says (by default the effective number of parameters at the thorough
+    fit, the trace of its hat matrix; :meth:`femcal.diagnose.fits._Fit.criterion`); with the
+    ``diag`` given, a model the diagnosis also fitted counts with the lower of the two. Where
+    another model scores lower than the true combination, no search with that criterion can
+    name the combination whole: this is the ceiling of
+    bar (a) that the data allow for combinations. True for
+    every specimen that is not a combination of registered effects, so it does not bound what
+    a search can name: ``bench_selection_ceiling.py`` asks it of single effects too.
+
+    Returns
+    -------
+    preferred : ndarray of bool, shape (n,)
+    margin : ndarray, shape (n,)
+        Criterion of the best other model minus the truth's (> 0: the truth is preferred); NaN where
+        the specimen is not a combination.
+    """
+    n = len(cohort["specimens"])
+    preferred, margin = np.ones(n, dtype=bool), np.full(n, np.nan)
+    rows = [
+        i
+        for i, expected in enumerate(cohort["expected"])
+        if len(expected) >= 2 and not cohort["out_of_library"][i]
+    ]
+    if not rows:
+        return preferred, margin
+    idx = np.asarray(rows)
+    bic = model_criteria(cohort, ctx, model, weight, sigma_m, idx, diag)
     for k, i in enumerate(idx):
         truth = tuple(sorted(cohort["expected"][i]))
         other = min(float(b[k]) for e, b in bic.items() if e != truth)
