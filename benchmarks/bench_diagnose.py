@@ -291,6 +291,16 @@ def components_identifiable(
     return out
 
 
+def own_criteria(diag: Diagnosis, idx: np.ndarray) -> dict[tuple[int, tuple[str, ...]], float]:
+    """The diagnosis' own criterion of every model it fitted to the specimens ``idx`` (r,):
+    ``(position in idx, sorted effects) -> criterion``."""
+    return {
+        (k, tuple(sorted(r["effects"]))): float(r["criterion"])
+        for k, i in enumerate(idx)
+        for r in diag.specimens[i].ranking
+    }
+
+
 def model_criteria(
     cohort: dict[str, Any],
     ctx: dict[str, Any],
@@ -324,11 +334,7 @@ def model_criteria(
     # The diagnosis' own fits of the same models: the thorough ``pgd`` is not reliably the better
     # one (seeds 3 and 4: the diagnosis' fit scored lower by more than 1 in 175 of 483
     # specimen-model pairs, higher in 188), so each model counts with the better of the two.
-    own = {}
-    if diag is not None:
-        for k, i in enumerate(idx):
-            for r in diag.specimens[i].ranking:
-                own[(k, tuple(sorted(r["effects"])))] = float(r["criterion"])
+    own = {} if diag is None else own_criteria(diag, idx)
     bic = {}
     for effects in models:
         m = EffectModel(model, list(effects)) if effects else model

@@ -43,6 +43,7 @@ from bench_diagnose import (
     hidden_seeds,
     judge_cohort,
     model_criteria,
+    own_criteria,
     reproduce_command,
     restrict,
     run_diagnosis,
@@ -83,10 +84,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
     rows = np.flatnonzero(j["eligible"] & ~ool)
     sigma_m = np.asarray(diag.sigma_by_moment)
     thorough = model_criteria(cohort, ctx, model, weight, sigma_m, rows, diag)
-    own = {e: np.full(len(rows), np.inf) for e in thorough}
-    for k, i in enumerate(rows):
-        for r in diag.specimens[i].ranking:
-            own[tuple(sorted(r["effects"]))][k] = float(r["criterion"])
+    own = own_criteria(diag, rows)
     label = "+".join
     specimens = []
     for k, i in enumerate(rows):
@@ -98,7 +96,7 @@ def one_cohort(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
                 "verdict": str(j["verdicts"][i]),
                 "right": bool(j["right"][i]),
                 "criteria": {label(e): float(b[k]) for e, b in thorough.items()},
-                "own": {label(e): float(b[k]) for e, b in own.items() if np.isfinite(b[k])},
+                "own": {label(e): c for (kk, e), c in own.items() if kk == k},
             }
         )
     return {
