@@ -175,7 +175,7 @@ PROTOCOLS: dict[str, tuple[float, ...]] = {
 NOISE_DEG = 0.05
 ROM_MAX_DEG = 20.0
 REDRAWS = 25
-BISECTIONS = 80
+BISECTIONS = 60
 TEST_FOLDER, TEST_INFIX = "Test", "TestData_64_"
 
 
