@@ -17,8 +17,8 @@ module's own:
 * **Ligament tension** (``ligaments``), parallel in Flexion (supraspinous, interspinous,
   flavum, capsules) and LateralBending (intertransverse, capsules), each load case with its own
   law, slack and stiffness. Laws: the trilinear force-strain curve of lumbar ligaments
-  (slopes ``k``, ``r2 k``, ``r2 r3 k``; ratios from the ligament table of Pintar et al. 1992 as
-  used in FE models) or a bilinear toe (quadratic toe of length ``t``, then linear).
+  (slopes ``k``, ``r2 k``, ``r2 r3 k``; ratios of the ligament tables of lumbar FE models) or
+  a bilinear toe (quadratic toe of length ``t``, then linear).
 * **Neutral zone** (``laxity``), in series in every load case, amplitude and transition moment
   per load case (per plane, Panjabi 1992; L4-L5 values of Yamamoto et al. 1989). Laws: tanh
   laxity ``a tanh(M / m0)``, a hyperbolic laxity ``a M / (M + m0)`` or a piecewise-linear one
@@ -36,23 +36,25 @@ applied moment. Every parallel element is sized by the ratio of segment RoM to d
 
 References
 ----------
-* Adams & Hutton 1980, J Bone Joint Surg Br 62(3):358-362: the apophyseal joints resist about
-  16 % of the intervertebral compressive force in lordotic standing, none when flexed.
-* Sharma, Langrana & Rodriguez 1995, Spine 20(8):887-900: ligaments resist flexion, the facets
-  extension; facet loads depend on their orientation.
+* Adams & Hutton 1980, J Bone Joint Surg Br 62(3):358-362: the facets resist about 16 % of the
+  compressive force in lordotic standing, none when flexed.
+* Sharma, Langrana & Rodriguez 1995, Spine 20(8):887-900: ligaments resist flexion, facets
+  extension.
 * Zeng et al. 2017, J Healthc Eng 7981513: bilateral facetectomy raises L4-L5 extension
   rotation by 41 % (segment-to-disc ratio about 0.71).
 * Heuer, Schmidt, Klezl, Claes & Wilke 2007, J Biomech 40(2):271-280: stepwise reduction of
   L4-L5 segments; RoM grows as ligaments and facets are removed, by load case.
-* Pintar et al. 1992, J Biomech 25(11):1351-1356 and Chazal et al. 1985, J Biomech 18:167-176;
-  their trilinear ligament table as FE models use it (PMC8147546, Table 2): slope ratios
-  1.1-6.4, then 2.4-10 (SSL 2.5 -> 5.3 -> 34, ITL 0.3 -> 1.8 -> 10.7, CL 36 -> 159 -> 384 N/mm).
+* Ligament force-strain laws of lumbar FE models: trilinear (PMC8147546, Table 2: SSL 2.5 ->
+  5.3 -> 34 N/mm, ITL 0.3 -> 1.8 -> 10.7, CL 36 -> 159 -> 384; slope ratios 1.1-6.4, then
+  2.4-10) and bilinear moduli (PMC5592017, Table 2: ISL 10 -> 11.6 MPa, SSL 8 -> 15, ITL 10 ->
+  58.7, CL 7.5 -> 32.9 at 6-25 % strain): flexion and lateral-bending ligaments differ. They
+  rest on Pintar et al. 1992 (J Biomech 25:1351) and Chazal et al. 1985 (J Biomech 18:167);
+  Rohlmann et al. 2004 (J Biomech 37:1107): literature stiffnesses vary widely.
 * Hindle, Pearcy & Cross 1990, J Biomed Eng 12:340-344: interspinous and supraspinous
   ligaments carry very little load in the first half of flexion.
-* Panjabi 1992, J Spinal Disord 5(4):390-396: the neutral zone, per plane.
-* Yamamoto, Panjabi, Crisco & Oxland 1989, Spine 14(11):1256-1260: L4-L5 neutral zones
-  1.8 deg (flexion-extension), 1.6 deg (lateral bending), 0.4 deg (axial rotation); RoM at
-  10 Nm 8.9 / 5.8 / 5.7 / 2.2 deg (flexion / extension / lateral bending / axial rotation).
+* Panjabi 1992, J Spinal Disord 5(4):390-396: the neutral zone, per plane. Yamamoto et al.
+  1989, Spine 14(11):1256-1260: L4-L5 neutral zones 1.8 deg (flexion-extension), 1.6 (lateral
+  bending), 0.4 (axial rotation); RoM at 10 Nm 8.9 / 5.8 / 5.7 / 2.2 deg (F / E / LB / AR).
 * Wilke et al. 1998, Eur Spine J 7:148-154: the pure-moment in-vitro protocol (up to 7.5 Nm).
 
 ``python benchmarks/anatomy_cohorts.py --seed S --out DIR`` writes a cohort folder.
