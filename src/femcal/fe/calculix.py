@@ -87,6 +87,7 @@ minimum, increment limit) and a timeout are not retryable.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import math
@@ -112,7 +113,9 @@ from femcal.fe.base import (
 from femcal.fe.dat import read_dat
 from femcal.fe.geometry import DiscGeometry, DiscMesh
 from femcal.fe.materials import region_materials, validate_parameters
+from femcal.fe.posterior import posterior_deck
 from femcal.schema import PARAMETER_NAMES, STATUS_FAILED, STATUS_OK
+from femcal.settings.fe import PosteriorSettings, posterior_settings
 
 logger = logging.getLogger(__name__)
 
@@ -182,6 +185,10 @@ class CalculixDisc:
         The first increment is multiplied by this on each retry.
     nucleus_d1, annulus_d1 : float
         Compressibility ``D1`` (1/MPa) of the nucleus and the annulus ground substance.
+    posterior : PosteriorSettings, mapping or None
+        Posterior elements joined to the disc (:mod:`femcal.fe.posterior`): ``facets``
+        and/or ``ligaments``; None (or none present): the disc alone, whose deck does not
+        change with this setting.
     """
 
     name = "calculix"
@@ -199,8 +206,10 @@ class CalculixDisc:
         retry_factor: float = 0.3,
         nucleus_d1: float = 0.01,
         annulus_d1: float = 0.3,
+        posterior: PosteriorSettings | dict | None = None,
     ) -> None:
         self.geometry = DiscGeometry.from_value(geometry)
+        self.posterior = posterior_settings(posterior, where="CalculixDisc(posterior=...)")
         if kappa not in ("scale", "ignore"):
             raise ConfigError(f"kappa must be 'scale' or 'ignore', got {kappa!r}.")
         if not 0.0 < initial_increment <= 1.0:
@@ -291,13 +300,17 @@ class CalculixDisc:
             lines += _id_lines(ids)
         ref = mesh.n_nodes + 1
         rx, ry, rz = mesh.geometry.reference_point
+        posterior = posterior_deck(
+            self.posterior, mesh.node_sets["TOP"], ref + 2, mesh.n_elements + 1
+        )
         lines += [
             "** Reference node (translations) and rotation node of the rigid top endplate",
             "*NODE, NSET=REFNODE",
             f"{ref}, {rx:.10g}, {ry:.10g}, {rz:.10g}",
             "*NODE, NSET=ROTNODE",
             f"{ref + 1}, {rx:.10g}, {ry:.10g}, {rz:.10g}",
-            f"*RIGID BODY, NSET=TOP, REF NODE={ref}, ROT NODE={ref + 1}",
+            *posterior.lines,
+            f"*RIGID BODY, NSET={posterior.rigid_set}, REF NODE={ref}, ROT NODE={ref + 1}",
             "*BOUNDARY",
             "BOTTOM, 1, 3",
             "** Local axes of the annulus elements: radial (normal to the ellipse), "
@@ -392,6 +405,8 @@ class CalculixDisc:
             *(f"** {name} = {_fmt(parameters[name])}" for name in PARAMETER_NAMES),
             f"** load case {job.load_case}, levels {[_fmt(v) for v in job.levels]}",
         ]
+        if self.posterior.active:
+            header.append(f"** posterior elements: {dataclasses.asdict(self.posterior)}")
         text = "\n".join(header) + "\n" + self._mesh_block()
         text += self._material_block(parameters) + step
         return text, info

@@ -11,11 +11,18 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.settings._checks import Choice, Float, FnCheck, Int, KeyChoice, ListOf
 from femcal.settings._messages import BAD, Context, Invalid, got, unknown_message, yaml_repr
 from femcal.settings._validate import MapOf, Section, optional, setting
-from femcal.settings.keywords import CALIBRATOR_OPTIONS, SOLVERS, SPLITS, SURROGATE_FIXED
+from femcal.settings.keywords import (
+    CALIBRATOR_OPTIONS,
+    SOLVER_SETTINGS,
+    SOLVERS,
+    SPLITS,
+    SURROGATE_FIXED,
+)
 from femcal.settings.values import DASK_ADDRESS, MODEL_URI, MOMENTS, NAME, PATH
 
 
@@ -213,3 +220,252 @@ class ValidateSettings:
     refine: RefineSettings | None = optional(
         Section(RefineSettings), "FE-in-the-loop refinement (null: validate the calibration as is)"
     )
+
+
+# ------------------------------------------------------------------ posterior elements
+# The posterior elements of the CalculiX model (femcal.fe.posterior): their parameters, units,
+# ranges and defaults, declared here once. Axes as the disc model's: x lateral (right), y
+# anterior, z cranial; the lower endplate at z = 0, the disc centre at x = y = 0. Sources:
+# docs/fe-posterior-elements.md.
+
+#: The ligaments the model knows, caudal-cranial tension-only springs.
+LIGAMENTS: tuple[str, ...] = (
+    "supraspinous",
+    "interspinous",
+    "flavum",
+    "capsular",
+    "intertransverse",
+)
+
+#: Default properties and attachment of each ligament (keys: the fields of
+#: :class:`LigamentSettings`). Stiffness of the linear region: Pintar et al. 1992 (supraspinous,
+#: interspinous, flavum, capsular), the tri-linear table quoted by Guo et al. 2021 (PMC8147546)
+#: for the intertransverse; toe strain: the first transition strain of that table; rest lengths:
+#: Naserkhaki et al. 2018 (L4-L5). Positions: estimates for the 50 x 35 mm disc.
+LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
+    "supraspinous": {
+        "stiffness_n_per_mm": 23.7,
+        "toe_strain": 0.20,
+        "slack_strain": 0.0,
+        "lateral_mm": 0.0,
+        "posterior_mm": 60.0,
+        "height_mm": 5.5,
+        "length_mm": 27.49,
+    },
+    "interspinous": {
+        "stiffness_n_per_mm": 11.6,
+        "toe_strain": 0.139,
+        "slack_strain": 0.0,
+        "lateral_mm": 0.0,
+        "posterior_mm": 45.0,
+        "height_mm": 5.5,
+        "length_mm": 8.85,
+    },
+    "flavum": {
+        "stiffness_n_per_mm": 27.2,
+        "toe_strain": 0.059,
+        "slack_strain": 0.0,
+        "lateral_mm": 0.0,
+        "posterior_mm": 35.0,
+        "height_mm": 5.5,
+        "length_mm": 15.89,
+    },
+    "capsular": {
+        "stiffness_n_per_mm": 33.9,
+        "toe_strain": 0.25,
+        "slack_strain": 0.0,
+        "lateral_mm": 18.0,
+        "posterior_mm": 30.0,
+        "height_mm": 5.5,
+        "length_mm": 2.17,
+    },
+    "intertransverse": {
+        "stiffness_n_per_mm": 10.7,
+        "toe_strain": 0.182,
+        "slack_strain": 0.0,
+        "lateral_mm": 35.0,
+        "posterior_mm": 22.0,
+        "height_mm": 5.5,
+        "length_mm": 18.69,
+    },
+}
+
+
+@dataclass(frozen=True)
+class FacetSettings:
+    """``fe.settings.posterior.facets``: two facet joints, each one unilateral gap element.
+
+    Each joint is a CalculiX ``GAPUNI`` between a node tied to the upper (moving) endplate and a
+    coincident node of the fixed lower vertebra, at ``(+-lateral_mm, -posterior_mm,
+    height_mm)``. It closes when the upper node has moved ``gap_mm`` along the joint's contact
+    normal: in the transverse plane at ``axial_angle_deg`` from the lateral direction
+    (the joint plane's angle to the sagittal plane), tilted ``inclination_deg`` downwards.
+    """
+
+    _complete: ClassVar[bool] = True
+
+    gap_mm: float = setting(Float(0, 3), "facet joint clearance, mm, in [0, 3]", 0.5)
+    stiffness_n_per_mm: float = setting(
+        Float(1, 1e5), "contact stiffness of each closed facet, N/mm, in [1, 1e5]", 200.0
+    )
+    lateral_mm: float = setting(
+        Float(5, 40), "distance of each facet from the mid-sagittal plane, mm, in [5, 40]", 16.0
+    )
+    posterior_mm: float = setting(
+        Float(18, 60), "distance of the facets behind the disc centre, mm, in [18, 60]", 30.0
+    )
+    height_mm: float = setting(
+        Float(-20, 30), "height of the facet centres above the lower endplate, mm", 5.5
+    )
+    axial_angle_deg: float = setting(
+        Float(0, 90), "joint plane to the sagittal plane (transverse view), deg, in [0, 90]", 45.0
+    )
+    inclination_deg: float = setting(
+        Float(0, 80), "downward tilt of the contact normal, deg, in [0, 80]", 30.0
+    )
+
+
+@dataclass(frozen=True)
+class LigamentSettings:
+    """One ligament: a tension-only nonlinear spring (``SPRINGA``), one per side if lateral.
+
+    The spring is vertical, centred at ``(+-lateral_mm, -posterior_mm, height_mm)`` with rest
+    length ``length_mm``; it carries no force below the elongation ``slack_strain *
+    length_mm``, a quadratic toe over the next ``toe_strain * length_mm`` whose slope reaches
+    ``stiffness_n_per_mm``, then that slope (linear region). Defaults per ligament:
+    :data:`LIGAMENT_DEFAULTS`.
+    """
+
+    _complete: ClassVar[bool] = True
+
+    stiffness_n_per_mm: float = setting(
+        Float(0.1, 1000), "stiffness of the linear region (each side), N/mm, in [0.1, 1000]"
+    )
+    toe_strain: float = setting(Float(0, 1), "strain span of the toe region, in [0, 1]")
+    slack_strain: float = setting(
+        Float(-0.3, 0.5), "strain at which force starts (< 0: pre-strained), in [-0.3, 0.5]"
+    )
+    lateral_mm: float = setting(
+        Float(0, 60), "distance from the mid-sagittal plane (0: one midline spring), mm"
+    )
+    posterior_mm: float = setting(Float(0, 100), "distance behind the disc centre, mm")
+    height_mm: float = setting(Float(-30, 40), "centre above the lower endplate, mm")
+    length_mm: float = setting(Float(0.5, 60), "rest length (upper to lower attachment), mm")
+
+
+def _ligaments(value: Any, path: tuple, ctx: Context) -> Any:
+    if value is None:
+        return {}
+    if isinstance(value, list | tuple):
+        value = {name: {} for name in value}
+    if not isinstance(value, Mapping):
+        raise Invalid(
+            f"expected a list of ligament names or a mapping name -> settings, got {got(value)}"
+        )
+    out, bad = {}, False
+    for name, overrides in value.items():
+        where = (*path, name)
+        if name not in LIGAMENTS:
+            ctx.report(where, unknown_message(name, path, LIGAMENTS, {}, (), "unknown ligament"))
+            bad = True
+            continue
+        if overrides is not None and not isinstance(overrides, Mapping):
+            ctx.report_at(where, f"expected a mapping of ligament settings, got {got(overrides)}")
+            bad = True
+            continue
+        merged = {**LIGAMENT_DEFAULTS[name], **(overrides or {})}
+        out[name] = ctx.check(Section(LigamentSettings), merged, where)
+        bad |= out[name] is BAD
+    return BAD if bad else out
+
+
+@dataclass(frozen=True)
+class PosteriorSettings:
+    """``fe.settings.posterior``: the posterior elements joined to the disc (all optional).
+
+    Absent (or null) ``facets`` and an empty ``ligaments``: the disc alone.
+    """
+
+    _complete: ClassVar[bool] = True
+
+    facets: FacetSettings | None = optional(
+        Section(FacetSettings), "facet joints (GAPUNI contact; null: none)"
+    )
+    ligaments: dict = setting(
+        FnCheck("a list of ligament names or a mapping name -> settings", _ligaments),
+        f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides",
+        {},
+    )
+
+    @property
+    def active(self) -> bool:
+        """Whether any posterior element is present."""
+        return self.facets is not None or bool(self.ligaments)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _posterior(value: Any, path: tuple, ctx: Context) -> Any:
+    # Validated against PosteriorSettings; kept as plain data (it is hashed into job keys).
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise Invalid(f"expected a mapping (facets, ligaments) or null, got {got(value)}")
+    checked = Section(PosteriorSettings)(value, path, ctx)
+    return BAD if checked is BAD else _plain(value)
+
+
+#: The check of ``fe.settings.posterior`` (a CalculixDisc keyword).
+POSTERIOR_KEYWORD = (
+    FnCheck("null or a mapping of posterior elements (facets, ligaments)", _posterior),
+    "posterior elements joined to the disc: facets, ligaments (leave out for the disc alone)",
+)
+SOLVER_SETTINGS["calculix"].table.setdefault("posterior", POSTERIOR_KEYWORD)
+
+
+def posterior_settings(
+    value: PosteriorSettings | Mapping | None, where: str = "fe/params.yaml"
+) -> PosteriorSettings:
+    """Validated posterior elements from their settings (a mapping, an instance or None).
+
+    Parameters
+    ----------
+    value : PosteriorSettings, mapping or None
+        ``fe.settings.posterior``; None or an empty mapping is the disc alone.
+    where : str
+        The file the value came from, named in messages.
+
+    Returns
+    -------
+    PosteriorSettings
+
+    Raises
+    ------
+    ConfigError
+        Unknown elements or fields, values out of range: the file, the field, what was given
+        and what is allowed.
+    """
+    if isinstance(value, PosteriorSettings):
+        return value
+    if value is None:
+        return PosteriorSettings()
+    ctx = Context(complete=True)
+    path = ("fe", "settings", "posterior")
+    if not isinstance(value, Mapping):
+        ctx.report_at(path, f"expected a mapping (facets, ligaments) or null, got {got(value)}")
+        checked = BAD
+    else:
+        checked = Section(PosteriorSettings)(value, path, ctx)
+    if ctx.problems or checked is BAD:
+        problems = "\n".join(f"  - {message}" for _, message in ctx.problems)
+        raise ConfigError(
+            f"{where}: invalid posterior elements:\n{problems}\nFix the values in {where} "
+            "(docs/fe-posterior-elements.md lists every field, its unit and range)."
+        )
+    return checked
