@@ -360,13 +360,15 @@ def write_report(runs: list[dict[str, Any]], pooled: dict[str, Any] | None, meta
         "",
         "## Headline",
         "",
-        "| criterion | " + " | ".join(f"seed {r['seed']}" for r in scored) + " | pooled | bar |",
-        "|---|" + "---|" * (len(scored) + 2),
+        "| "
+        + " | ".join(["criterion", *(f"seed {r['seed']}" for r in scored), "pooled", "bar"])
+        + " |",
+        "|---" * (len(scored) + 3) + "|",
     ]
     for key, (label, bar) in BARS.items():
-        cells = " | ".join(_fmt(r["summary"]["headline"][key]) for r in scored)
+        cells = [_fmt(r["summary"]["headline"][key]) for r in scored]
         pool = _fmt(pooled["headline"][key]) if pooled else "-"
-        lines.append(f"| {label} | {cells} | {pool} | {bar} |")
+        lines.append("| " + " | ".join([label, *cells, pool, bar]) + " |")
     lines += ["", "## Wall time of the whole command", ""]
     for r in runs:
         status = "ok" if r["returncode"] == 0 else f"failed (exit {r['returncode']})"
