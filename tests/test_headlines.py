@@ -63,8 +63,8 @@ def test_calibration_headline_is_flat_and_small():
 
 def test_every_calibration_headline_key_at_once_fits():
     # A calibration with every figure a headline can take (a held-out surrogate, ranges,
-    # reachability and a noise) still fits the limit: session 27's n_beyond_noise made the
-    # planted stage's headline 17 keys until n_plotted left it.
+    # reachability and a noise) still fits the limit: n_beyond_noise and n_plotted together
+    # would make the planted stage's headline 17 keys, so n_plotted stays in summary.json.
     figures = {**_calibration_figures(), "holdout_mae_deg": 0.02, "holdout_r2_mean": 0.99}
     figures.update({k: 1 for k in CALIBRATION_KEYS if k not in figures})
     head = calibration_headline(figures)

@@ -1,8 +1,8 @@
 """A small real CalculiX campaign (coarse mesh, two Dask workers), shared by the FE tests.
 
 Every FE test runs the real solver (``ccx`` on PATH; ``make install`` installs it); none
-fakes it. The session campaign holds three configurations (one per split: Large, Small,
-Test) x four load cases = 12 jobs.
+fakes it. The shared campaign (built once per test run) holds three configurations (one per
+split: Large, Small, Test) x four load cases = 12 jobs.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from synth import study_space
 
 @pytest.fixture(scope="session")
 def coarse_campaign(tmp_path_factory) -> tuple[Path, object, CampaignResult]:
-    """(folder, design, result) of the session campaign; the store is ``folder/runs.jsonl``."""
+    """(folder, design, result) of the shared campaign; the store is ``folder/runs.jsonl``."""
     if shutil.which("ccx") is None:
         pytest.skip("CalculiX (ccx) is not installed; `make install`")
     folder = tmp_path_factory.mktemp("campaign")

@@ -194,7 +194,7 @@ def test_adapt_errors(surrogate):
 def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
     coarse_campaign, tmp_path, mlflow_store
 ):
-    """``femcal adapt`` on the session's real CalculiX campaign: one round, MLflow for real."""
+    """``femcal adapt`` on the shared real CalculiX campaign: one round, MLflow for real."""
     import json
 
     import mlflow

@@ -177,7 +177,7 @@ def test_restart_after_a_torn_append_reruns_only_that_job(coarse_campaign, tmp_p
 
     Linux may stop a write to a regular file between pages when SIGKILL arrives, so a torn
     last line is possible; this test builds the store such a kill leaves (11 whole records and
-    the first half of the 12th) from the session campaign's real records.
+    the first half of the 12th) from the shared campaign's real records.
     """
     folder, design_df, first = coarse_campaign
     lines = (folder / "runs.jsonl").read_bytes().splitlines(keepends=True)
