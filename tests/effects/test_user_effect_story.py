@@ -1,4 +1,4 @@
-"""The README's story of a user-written effect, end to end through the `femcal` command.
+"""The story of a user-written effect (docs/how-to/effect-plugin.md), end to end through `femcal`.
 
 `femcal diagnose` says `unexplained` and describes what is missing -> the user writes that
 effect as a class in a file of their own -> `femcal diagnose --effects-module FILE` names it ->
