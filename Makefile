@@ -2,7 +2,7 @@
 VENV ?= .venv
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 
-.PHONY: repro test lint install lock remote
+.PHONY: repro test lint install lock remote docs
 install: $(VENV)/.installed  ## also installs CalculiX (ccx, the open FE solver) when missing
 	command -v ccx >/dev/null || { sudo=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
 	  $$sudo apt-get update -qq && $$sudo apt-get install -y -qq calculix-ccx; }
@@ -22,6 +22,13 @@ test: install  ## the test suite (slow tests excluded; `make test PYTEST_ARGS="-
 lint: install
 	ruff check src tests benchmarks
 	ruff format --check src tests benchmarks
+
+# The docs site (mkdocs.yml, docs/): the tutorial's figures from the pipeline's outputs (absent
+# on a fresh clone: the script says so and the pages build without them), then the strict build
+# into site/. `mkdocs serve` previews it at http://127.0.0.1:8000.
+docs: install
+	python docs/scripts/tutorial_figures.py
+	NO_MKDOCS_2_WARNING=1 mkdocs build --strict
 
 # constraints.txt: every package of the working venv at its exact version (femcal itself left
 # out), which `make install` installs. To move to newer versions: `.venv/bin/pip install
