@@ -108,10 +108,23 @@ def _check_rows(check: object, key: str) -> list[tuple[str, str, str, str]]:
     table = getattr(check, "table", None)
     if isinstance(table, dict):  # Keywords: keyword -> (check, doc)
         return [
-            (f"{key}.{k}", c.describe(), "", doc)
+            (f"{key}.{k}", c.describe(), "the function's", doc)
             for k, (c, doc) in table.items()
             if hasattr(c, "describe")
         ]
+    return []
+
+
+def _hidden_rows(key: str) -> list[tuple[str, str, str, str]]:
+    """Settings behind a check function the walk cannot see into: a dataset entry of
+    ``calibrate.datasets`` and each calibrator's options (``calibrate.options.<method>``)."""
+    import femcal.settings as settings
+
+    if key == "calibrate.datasets" and hasattr(settings, "DatasetSettings"):
+        return _class_rows(settings.DatasetSettings, f"{key}.<name>")
+    if key == "calibrate.options":
+        options = getattr(settings, "CALIBRATOR_OPTIONS", {})
+        return [row for m, check in options.items() for row in _check_rows(check, f"{key}.{m}")]
     return []
 
 
@@ -139,7 +152,7 @@ def _class_rows(cls: type, prefix: str) -> list[tuple[str, str, str, str]]:
         else:
             default = "required"
         rows.append((key, check.describe(), default, f.metadata.get("doc", "")))
-        rows += _check_rows(check, key)
+        rows += _check_rows(check, key) or _hidden_rows(key)
     opened = getattr(cls, "_open", None)  # e.g. train's splits: (attribute, check, what)
     if isinstance(opened, tuple) and len(opened) >= 2:
         rows += _check_rows(opened[1], f"{prefix}.<name>")
