@@ -568,3 +568,43 @@ def test_data_rows_without_rows(tmp_path: Path) -> None:
     assert list(rows) == []
     with pytest.raises(InputDataError, match=r"m\.csv has a header \(line 1\) .* per thing\.$"):
         rows.measurements(1, one_row_per="thing", with_idp=False)
+
+
+# ------------------------------------------------------------------- leaving points out
+def _three_moments() -> object:
+    rom = np.arange(2 * 4 * 3, dtype=float).reshape(2, 4, 3) + 1.0
+    idp = rom / 10.0
+    return from_arrays(["A", "B"], [0.25, 1.0, 2.0], rom, idp_mpa=idp, source="w.csv")
+
+
+def test_without_drops_points_then_empty_moments_and_specimens() -> None:
+    meas = _three_moments()
+    drop = np.zeros((2, 4, 3), dtype=bool)
+    drop[:, :, 0] = True  # every point at 0.25 Nm
+    drop[1] = True  # all of B
+    out = meas.without(drop)
+    assert out.specimens == ("A",) and out.moments.tolist() == [1.0, 2.0]
+    np.testing.assert_array_equal(out.rom_deg, meas.rom_deg[:1, :, 1:])
+    np.testing.assert_array_equal(out.idp_mpa, meas.idp_mpa[:1, :, 1:])
+    assert out.source == "w.csv"
+    one = np.zeros((2, 4, 3), dtype=bool)
+    one[0, 2, 1] = True  # one point: the grid stays, the point is not measured
+    kept = meas.without(one)
+    assert kept.moments.tolist() == [0.25, 1.0, 2.0] and np.isnan(kept.rom_deg[0, 2, 1])
+    assert kept.weight[0, 2, 1] == 0.0 and int(kept.mask().sum()) == 23
+
+
+def test_without_every_point_is_refused() -> None:
+    with pytest.raises(
+        InputDataError,
+        match=r"^w\.csv: dropping those points leaves no measured point; keep at least one point",
+    ):
+        _three_moments().without(np.ones((2, 4, 3), dtype=bool))
+
+
+def test_without_needs_one_flag_per_point() -> None:
+    with pytest.raises(
+        InputDataError,
+        match=r"w\.csv: the points to drop have shape \(2, 4\); expected \(2, 4, 3\) .*one flag",
+    ):
+        _three_moments().without(np.zeros((2, 4), dtype=bool))

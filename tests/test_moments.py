@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
 from femcal.errors import ConfigError, InputDataError
 from femcal.measurements import Measurements, from_arrays
-from femcal.moments import MomentPolicy, log_distance
+from femcal.moments import DROPPED_COLUMNS, DROPPED_FILE, MomentPolicy, log_distance
+from femcal.schema import LOAD_CASES
 from femcal.stages.common import moment_settings as _moment_settings
 
 GROWTH = 3.2
@@ -43,7 +46,7 @@ def policy(surrogate: SimpleNamespace) -> MomentPolicy:
 def test_for_surrogate_converts_the_validation_mae_to_an_sd(policy: MomentPolicy) -> None:
     assert policy.trained_range == (1.0, 5.0)
     assert policy.error_deg == pytest.approx(VAL_MAE * math.sqrt(math.pi / 2))
-    assert (policy.growth, policy.max_log_ratio) == (GROWTH, LMAX)
+    assert (policy.growth, policy.max_log_ratio) == ((GROWTH, GROWTH), (LMAX, LMAX))
     assert policy.accepted_range == pytest.approx((math.exp(-LMAX), 5 * math.exp(LMAX)))
 
 
@@ -123,10 +126,13 @@ def test_point_weights_refuse_a_bad_noise(policy: MomentPolicy, bad: object) -> 
 
 
 def test_moments_inside_are_silent(policy: MomentPolicy, caplog: pytest.LogCaptureFixture) -> None:
+    meas = measured(1.0, 1.25, 2.5, 3.75, 5.0)
     with warnings.catch_warnings(), caplog.at_level(logging.WARNING, logger="femcal.moments"):
         warnings.simplefilter("error")
-        policy.check(measured(1.0, 1.25, 2.5, 3.75, 5.0))
+        screened = policy.screen(meas)
     assert caplog.text == ""
+    assert screened.measurements is meas
+    assert screened.dropped.empty and list(screened.dropped.columns) == list(DROPPED_COLUMNS)
 
 
 def test_the_in_vitro_protocol_is_accepted_with_a_warning(
@@ -136,8 +142,9 @@ def test_the_in_vitro_protocol_is_accepted_with_a_warning(
     meas = measured(1.25, 2.5, 3.75, 5.0, 6.25, 7.5)
     with caplog.at_level(logging.WARNING, logger="femcal.moments"):
         with pytest.warns(UserWarning) as record:
-            policy.check(meas)
+            screened = policy.screen(meas)
     assert len(record) == 1
+    assert record[0].filename == __file__  # the warning points at the caller
     text = str(record[0].message)
     assert text.startswith(
         "unit.csv: measured moments 6.25, 7.5 Nm lie outside the surrogate's trained moment "
@@ -146,6 +153,7 @@ def test_the_in_vitro_protocol_is_accepted_with_a_warning(
         "counted in sigma"
     )
     assert text in caplog.text
+    assert screened.measurements is meas and screened.dropped.empty
 
 
 def test_unmeasured_moments_are_not_checked(policy: MomentPolicy) -> None:
@@ -154,48 +162,170 @@ def test_unmeasured_moments_are_not_checked(policy: MomentPolicy) -> None:
     meas = from_arrays(["A"], [1.0, 2.0, 12.0], rom, source="unit.csv")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        policy.check(meas)
+        assert policy.screen(meas).measurements is meas
 
 
 @pytest.mark.parametrize(
-    ("moments", "refused"),
-    [((1.0, 5.0, 7.5, 12.0), "12"), ((0.5, 1.0, 5.0), "0.5"), ((2.0, 9.0, 10.0), "9, 10")],
+    ("moments", "dropped", "kept"),
+    [
+        ((1.0, 5.0, 7.5, 12.0), "12", (1.0, 5.0, 7.5)),
+        ((0.5, 1.0, 5.0), "0.5", (1.0, 5.0)),
+        ((2.0, 9.0, 10.0), "9, 10", (2.0,)),
+    ],
 )
-def test_moments_far_outside_are_refused(
-    policy: MomentPolicy, moments: tuple, refused: str
+def test_points_beyond_the_limits_are_dropped_with_a_warning_naming_them(
+    policy: MomentPolicy, moments: tuple, dropped: str, kept: tuple
 ) -> None:
-    with pytest.raises(InputDataError) as info:
-        policy.check(measured(*moments))
-    message = str(info.value)
+    meas = measured(*moments)
+    with pytest.warns(UserWarning, match="dropped") as record:
+        screened = policy.screen(meas)
+    message = str(next(r.message for r in record if "dropped" in str(r.message)))
+    n = 2 * 4 * (len(moments) - len(kept))
     assert message.startswith(
-        f"unit.csv: measured moments {refused} Nm are too far outside the surrogate's trained "
-        "moment range [1, 5] Nm: moments in [0.6, 8.33] Nm are accepted (the trained range "
-        "widened by the factor e^0.51 = 1.67 on each side, moments.max_log_ratio"
+        f"unit.csv: dropped {n} measured point(s) at moments {dropped} Nm, outside the moments "
+        "the surrogate is used at, [0.6, 8.33] Nm (moments.max_log_ratio below 0.51, above "
+        f"0.51): specimen 'A' Flexion {dropped.split(',')[0]} Nm; "
     )
     assert message.endswith(
-        "Delete the points at those moments from the measurements, or train the surrogate on a "
-        "wider moment range."
+        f"The outputs list them (dropped_points.csv); the other {2 * 4 * len(kept)} points are "
+        "used. To use them, train the surrogate on a wider moment range."
     )
-    assert "N·mm" not in message
+    assert screened.measurements.moments.tolist() == list(kept)
+    assert screened.measurements.specimens == ("A", "B")
+    table = screened.dropped
+    assert len(table) == n and set(table["source"]) == {"unit.csv"}
+    assert set(table["specimen"]) == {"A", "B"} and set(table["load_case"]) == set(LOAD_CASES)
+    assert {f"{m:g}" for m in table["moment_nm"]} == set(dropped.split(", "))
+    assert table["reason"].str.contains(r"Nm (?:below|above) the accepted 0\.6\.\.8\.33 Nm").all()
+
+
+def test_a_specimen_with_only_dropped_points_is_left_out_whole_and_named(
+    policy: MomentPolicy,
+) -> None:
+    rom = np.full((3, 4, 3), 2.0)
+    rom[2, :, :2] = np.nan  # C: only at 12 Nm
+    weight = np.ones_like(rom)
+    weight[1, :, :2] = 0.0  # B: its points at 1 and 2 Nm count for nothing
+    meas = from_arrays(["A", "B", "C"], [1.0, 2.0, 12.0], rom, weight=weight, source="u.csv")
+    with pytest.warns(UserWarning, match=r"Specimens left out whole \(no point left\): B, C\."):
+        screened = policy.screen(meas)
+    assert screened.measurements.specimens == ("A",)
+    assert screened.measurements.moments.tolist() == [1.0, 2.0]
+    table = screened.dropped
+    assert sorted(set(table["specimen"])) == ["A", "B", "C"]
+    b_rest = table[(table["specimen"] == "B") & (table["moment_nm"] < 12)]
+    assert len(b_rest) == 8 and (b_rest["weight"] == 0).all()
+    assert b_rest["reason"].eq("its specimen has no other point of positive weight").all()
+
+
+def test_dropped_points_are_written_for_the_outputs(policy: MomentPolicy, tmp_path: Path) -> None:
+    with pytest.warns(UserWarning, match="dropped 8 measured point"):
+        screened = policy.screen(measured(1.0, 2.0, 12.0))
+    path = screened.write(tmp_path)
+    assert path == tmp_path / DROPPED_FILE
+    table = pd.read_csv(path)
+    assert list(table.columns) == list(DROPPED_COLUMNS) and len(table) == 8
+    assert table["rom_deg"].tolist() == [12.0] * 8  # the values the user measured
+    MomentPolicy((1, 5), 0.03, GROWTH, LMAX).screen(measured(2.0)).write(tmp_path)
+    assert pd.read_csv(path).empty  # a header only: nothing was dropped
+
+
+@pytest.mark.parametrize(
+    ("moments", "where"),
+    [((12.0, 20.0), "12, 20"), ((0.1, 0.2), "0.1, 0.2")],
+)
+def test_a_file_without_a_usable_point_is_refused(
+    policy: MomentPolicy, moments: tuple, where: str
+) -> None:
+    with pytest.raises(
+        InputDataError,
+        match=rf"^unit\.csv: no measured point is usable: every measured moment \(field "
+        rf"moment_nm: {where} Nm\) lies outside the moments the surrogate is used at, \[0\.6, "
+        r"8\.33\] Nm \(its trained range \[1, 5\] Nm widened as far as its error was measured: "
+        r"moments\.max_log_ratio below 0\.51, above 0\.51\)\. Give the moments in Nm within "
+        r"that interval, or train the surrogate on a wider moment range\.$",
+    ):
+        policy.screen(measured(*moments))
 
 
 def test_newton_millimetres_are_recognised(policy: MomentPolicy) -> None:
     with pytest.raises(
         InputDataError,
-        match=r"measured moments 1250, 2500, 5000, 7500 Nm are too far outside .* The moments "
-        r"look like N·mm \(1250, 2500, 5000, 7500\): divide them by 1000 \(femcal reads moments "
-        r"in Nm\)\. Delete the points",
+        match=r"no measured point is usable: every measured moment \(field moment_nm: 1250, 2500, "
+        r"5000, 7500 Nm\) .* The moments look like N·mm \(1250, 2500, 5000, 7500\): divide "
+        r"them by 1000 \(femcal reads moments in Nm\)\. Give the moments",
     ):
-        policy.check(measured(1250.0, 2500.0, 5000.0, 7500.0))
+        policy.screen(measured(1250.0, 2500.0, 5000.0, 7500.0))
+
+
+# -------------------------------------------------------------- both ends of the trained range
+BELOW, ABOVE = (0.8, 1.1), (3.2, 0.51)  # (growth, max_log_ratio) of each side
+
+
+@pytest.fixture
+def two_sided(surrogate: SimpleNamespace) -> MomentPolicy:
+    return MomentPolicy.for_surrogate(
+        surrogate,
+        growth={"below": BELOW[0], "above": ABOVE[0]},
+        max_log_ratio={"below": BELOW[1], "above": ABOVE[1]},
+    )
+
+
+def test_each_side_has_its_own_growth_and_limit(two_sided: MomentPolicy) -> None:
+    assert two_sided.growth == (0.8, 3.2) and two_sided.max_log_ratio == (1.1, 0.51)
+    assert two_sided.accepted_range == pytest.approx((math.exp(-1.1), 5 * math.exp(0.51)))
+    e = two_sided.error_deg
+    sd = two_sided.sigma_surrogate([0.5, 0.75, 1.0, 5.0, 10.0])
+    expected = [
+        e * 2.0**0.8,  # 0.5 Nm: L = log 2 below
+        e * (4 / 3) ** 0.8,
+        e,
+        e,
+        e * 2.0**3.2,  # 10 Nm: L = log 2 above
+    ]
+    np.testing.assert_allclose(sd, expected, rtol=1e-12)
+    assert two_sided.accepts([0.3, 0.34, 8.3, 8.4]).tolist() == [False, True, True, False]
+    assert two_sided.as_params() == {
+        "moments.error_growth.below": 0.8,
+        "moments.error_growth.above": 3.2,
+        "moments.max_log_ratio.below": 1.1,
+        "moments.max_log_ratio.above": 0.51,
+    }
+
+
+def test_a_pair_a_mapping_and_one_number_are_the_same_policy() -> None:
+    pair = MomentPolicy((1, 5), 0.03, (0.8, 3.2), [1.1, 0.51])
+    mapping = MomentPolicy(
+        (1, 5), 0.03, {"above": 3.2, "below": 0.8}, {"below": 1.1, "above": 0.51}
+    )
+    assert pair == mapping
+    assert MomentPolicy((1, 5), 0.03, 2, 0.5).growth == (2.0, 2.0)
+
+
+def test_half_a_newton_metre_is_used_where_the_low_end_was_measured(
+    two_sided: MomentPolicy,
+) -> None:
+    """The study's grid starts at 0.5 Nm: accepted with a warning; 0.25 Nm is dropped."""
+    with pytest.warns(UserWarning) as record:
+        screened = two_sided.screen(measured(0.25, 0.5, 1.0, 2.0, 5.0))
+    messages = [str(r.message) for r in record]
+    assert any("dropped 8 measured point(s) at moments 0.25 Nm" in m for m in messages)
+    outside = next(m for m in messages if "lie outside" in m)
+    assert "measured moments 0.5 Nm lie outside" in outside
+    assert f"{two_sided.sigma_surrogate(0.5)[0]:.3g} deg at 0.5 Nm" in outside
+    assert screened.measurements.moments.tolist() == [0.5, 1.0, 2.0, 5.0]
 
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"growth": -1.0}, r"growth \(moments\.error_growth\) must be a finite number >= 0; "),
-        ({"growth": "fast"}, r"growth \(moments\.error_growth\) .*; got 'fast'"),
-        ({"max_log_ratio": float("nan")}, r"max_log_ratio \(moments\.max_log_ratio\) .*got nan"),
-        ({"max_log_ratio": -0.1}, r"max_log_ratio .* got -0\.1\. Set it to a non-negative"),
+        ({"growth": -1.0}, r"growth \(moments\.error_growth, .*\) must be a number >= 0 or "),
+        ({"growth": "fast"}, r"growth \(moments\.error_growth, .*; got 'fast'"),
+        ({"growth": (1.0, 2.0, 3.0)}, r"one per side .*; got \(1\.0, 2\.0, 3\.0\)"),
+        ({"growth": {"low": 1.0, "above": 2.0}}, r"\{below: \.\.\., above: \.\.\.\}; got \{'low'"),
+        ({"growth": {"above": 2.0}}, r"got \{'above': 2\.0\}\. Set each side"),
+        ({"max_log_ratio": float("nan")}, r"max_log_ratio \(moments\.max_log_ratio, .*got nan"),
+        ({"max_log_ratio": (0.5, -0.1)}, r"max_log_ratio .* got \(0\.5, -0\.1\)\. Set each side"),
         ({"error_deg": float("inf")}, r"error_deg \(the surrogate's error sd in degrees\)"),
         ({"error_deg": True}, r"error_deg .*; got True"),
         ({"trained_range": (5, 1)}, r"two finite moments in Nm with 0 < lo < hi; got \(5, 1\)"),
@@ -224,17 +354,37 @@ def test_the_shipped_settings_accept_the_in_vitro_protocol(params_file: str) -> 
         (1, 5), 0.03, growth=settings["error_growth"], max_log_ratio=settings["max_log_ratio"]
     )
     with pytest.warns(UserWarning, match=r"measured moments 7\.5 Nm lie outside"):
-        policy.check(measured(1.25, 2.5, 5.0, 7.5))
-    with pytest.raises(InputDataError, match=r"measured moments 12 Nm are too far outside"):
-        policy.check(measured(1.25, 12.0))
+        policy.screen(measured(1.25, 2.5, 5.0, 7.5))
+    with pytest.warns(UserWarning, match=r"dropped 8 measured point\(s\) at moments 12 Nm"):
+        assert policy.screen(measured(1.25, 12.0)).measurements.moments.tolist() == [1.25]
+
+
+def test_the_shipped_settings_use_the_studys_half_newton_metre() -> None:
+    """params.yaml's low end is measured: 0.5 Nm (the study's first point) is used."""
+    settings = _moment_settings(yaml.safe_load((ROOT / "params.yaml").read_text()))
+    growth, limit = settings["error_growth"], settings["max_log_ratio"]
+    assert growth[0] < growth[1]  # measured: the error grows more slowly below the range
+    policy = MomentPolicy((1, 5), 0.03, growth=growth, max_log_ratio=limit)
+    with pytest.warns(UserWarning, match=r"measured moments 0\.5 Nm lie outside"):
+        screened = policy.screen(measured(0.5, 1.0, 2.5, 5.0))
+    assert screened.dropped.empty and screened.measurements.moments[0] == 0.5
 
 
 def test_cli_settings_errors() -> None:
     with pytest.raises(ConfigError, match=r"p\.yaml: missing setting 'moments'\. Add it"):
         _moment_settings({"_path": "p.yaml"})
-    with pytest.raises(
-        ConfigError, match=r"p\.yaml: moments\.max_log_ratio must be a number >= 0; got 'far'"
-    ):
-        _moment_settings(
-            {"_path": "p.yaml", "moments": {"error_growth": 3, "max_log_ratio": "far"}}
-        )
+    for bad in ("far", {"below": 1.0}, {"below": 1.0, "above": True}, float("nan")):
+        with pytest.raises(
+            ConfigError,
+            match=r"p\.yaml: moments\.max_log_ratio must be a number >= 0 per side of the "
+            r"trained moment range, \{below: \.\.\., above: \.\.\.\} \(or one number for both\); "
+            rf"got {re.escape(repr(bad))}\. Use the values measured by",
+        ):
+            _moment_settings(
+                {"_path": "p.yaml", "moments": {"error_growth": 3, "max_log_ratio": bad}}
+            )
+    two = {"error_growth": {"below": 0.8, "above": 3}, "max_log_ratio": 0.5}
+    assert _moment_settings({"moments": two}) == {
+        "error_growth": (0.8, 3.0),
+        "max_log_ratio": (0.5, 0.5),
+    }

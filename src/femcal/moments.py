@@ -3,18 +3,20 @@
 A surrogate is trained on moments ``[lo, hi]`` (its ``moment_range_``, 1..5 Nm for the
 champion). Outside that range it extrapolates, and its error grows with the log-moment distance
 ``L = log(M / hi)`` above the range and ``log(lo / M)`` below it (``L = 0`` inside). The policy
-models the surrogate's error sd at a moment ``M`` as ``error_deg * exp(growth * L)``, i.e.
-``error_deg * (M / hi) ** growth`` above the range: measured on our own surrogate, the ratio
-sd(M) / sd(in range) grows faster than linearly in ``L``, and ``exp(growth * L)`` fits it with
-one ``growth`` at every distance measured (``1 + growth * L`` does not; see
-``reports/extrapolation.md``). The policy accepts moments with ``L <= max_log_ratio`` (warning
-beyond the range, with the larger error counted) and refuses the rest. ``growth`` and
-``max_log_ratio`` are measured by ``benchmarks/bench_extrapolation.py`` and set in
-params.yaml's ``moments`` section; ``femcal calibrate`` and ``femcal diagnose`` both use
-:meth:`MomentPolicy.check`, and count the larger error: calibrate weights each point by
-``1 / sd(M)^2`` (:meth:`MomentPolicy.point_weights`, the measurement noise counted when
-given), diagnose adds ``sd(M)`` to the noise
-(:meth:`MomentPolicy.sigma_surrogate`).
+models the surrogate's error sd at a moment ``M`` as ``error_deg * exp(growth[side] * L)``, one
+growth rate per side of the range (``side`` is ``below`` or ``above``): above the range that is
+``error_deg * (M / hi) ** growth``. Each side's growth rate and its limit ``max_log_ratio[side]``
+(the largest ``L`` the error was measured at on that side) are measured by the same code for
+both ends, ``benchmarks/bench_extrapolation.py`` on the Test split's held-out FE curves
+(``reports/extrapolation.md``), and set in params.yaml's ``moments`` section.
+
+``femcal calibrate`` and ``femcal diagnose`` both screen a file with :meth:`MomentPolicy.screen`:
+points at moments within the limits are used (a warning beyond the trained range, with the
+larger error counted); points beyond them are dropped with a warning naming each one (file,
+specimen, load case, moment) and listed in the outputs (:data:`DROPPED_FILE`); a file none of
+whose points is usable is refused. Both count the larger error: calibrate weights each point by
+``1 / sd(M)^2`` (:meth:`MomentPolicy.point_weights`, the measurement noise counted when given),
+diagnose adds ``sd(M)`` to the noise (:meth:`MomentPolicy.sigma_surrogate`).
 """
 
 from __future__ import annotations
@@ -22,8 +24,9 @@ from __future__ import annotations
 import logging
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -39,6 +42,13 @@ logger = logging.getLogger(__name__)
 NMM_THRESHOLD = 100.0
 _MAX_LISTED = 6
 _BENCH = "benchmarks/bench_extrapolation.py (reports/extrapolation.md)"
+_TOL = 1e-9
+#: The sides of the trained moment range, in the order of the per-side pairs.
+SIDES = ("below", "above")
+#: The file of a stage's outputs listing the points the policy dropped.
+DROPPED_FILE = "dropped_points.csv"
+#: Its columns: where each dropped point came from, its values and why it was dropped.
+DROPPED_COLUMNS = ("source", "specimen", "load_case", "moment_nm", "rom_deg", "weight", "reason")
 
 
 def _fmt(values: Sequence[float] | np.ndarray) -> str:
@@ -95,6 +105,36 @@ def log_distance(moments: Any, trained_range: tuple[float, float]) -> np.ndarray
     return np.maximum(0.0, np.maximum(np.log(m / hi), np.log(lo / m)))
 
 
+def _pair(value: Any, name: str) -> tuple[float, float]:
+    """A per-side setting as ``(below, above)``: one number for both sides, a mapping
+    ``{below, above}`` or a pair; each a finite number >= 0."""
+    if isinstance(value, Mapping):
+        unknown = sorted(set(map(str, value)) - set(SIDES))
+        raw = [value.get(side, math.nan) for side in SIDES] if not unknown else None
+    elif isinstance(value, str | bytes) or not isinstance(value, Sequence | np.ndarray):
+        raw = [value, value]
+    else:
+        raw = list(value) if len(value) == 2 else None
+    out = []
+    for item in raw or []:
+        try:
+            number = math.nan if isinstance(item, bool) else float(item)
+        except (TypeError, ValueError):
+            number = math.nan
+        out.append(number)
+    if len(out) != 2 or not all(math.isfinite(x) and x >= 0 for x in out):
+        what = {
+            "growth": "moments.error_growth, the growth of the error sd per unit of L",
+            "max_log_ratio": "moments.max_log_ratio, the largest L used",
+        }[name]
+        raise ConfigError(
+            f"MomentPolicy: {name} ({what}) must be a number >= 0 or one per side of the "
+            f"trained range, {{below: ..., above: ...}}; got {value!r}. Set each side to the "
+            f"value measured by {_BENCH}."
+        )
+    return out[0], out[1]
+
+
 @dataclass(frozen=True)
 class MomentPolicy:
     """The moments a surrogate may be used at, and its error there.
@@ -106,14 +146,16 @@ class MomentPolicy:
         ``moment_range_``), ``0 < lo < hi``.
     error_deg : float
         The surrogate's own error sd (deg) inside the trained range, >= 0.
-    growth : float
-        Growth rate of the error sd per unit of log-moment distance ``L`` beyond the range:
-        ``sd(M) = error_deg * exp(growth * L)``, >= 0 (measured: params.yaml
-        ``moments.error_growth``).
-    max_log_ratio : float
-        Moments with ``L > max_log_ratio`` are refused, >= 0: the accepted moments are
-        ``lo * exp(-max_log_ratio) .. hi * exp(max_log_ratio)`` Nm (measured: params.yaml
-        ``moments.max_log_ratio``, the largest ``L`` the growth was measured at).
+    growth : float or (float, float) or mapping
+        Growth rate of the error sd per unit of log-moment distance ``L`` beyond the range,
+        ``(below, above)`` (a mapping ``{below, above}`` or one number for both sides), each
+        >= 0: ``sd(M) = error_deg * exp(growth[side] * L)`` (measured: params.yaml
+        ``moments.error_growth``). Stored as the pair.
+    max_log_ratio : float or (float, float) or mapping
+        The largest ``L`` used on each side, ``(below, above)`` as ``growth``, each >= 0: the
+        accepted moments are ``lo * exp(-max_log_ratio[0]) .. hi * exp(max_log_ratio[1])`` Nm
+        (measured: params.yaml ``moments.max_log_ratio``, the largest ``L`` the growth was
+        measured at on that side). Stored as the pair.
 
     Raises
     ------
@@ -123,36 +165,32 @@ class MomentPolicy:
 
     trained_range: tuple[float, float]
     error_deg: float
-    growth: float
-    max_log_ratio: float
+    growth: tuple[float, float]
+    max_log_ratio: tuple[float, float]
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "trained_range", _range(self.trained_range))
-        checks = (
-            ("error_deg", "the surrogate's error sd in degrees", "e.g. 0.03"),
-            ("growth", "moments.error_growth", f"measured by {_BENCH}"),
-            ("max_log_ratio", "moments.max_log_ratio", f"measured by {_BENCH}"),
-        )
-        for name, what, hint in checks:
-            raw = getattr(self, name)
-            try:
-                value = float(raw)
-            except (TypeError, ValueError):
-                value = math.nan
-            if isinstance(raw, bool) or not (math.isfinite(value) and value >= 0):
-                raise ConfigError(
-                    f"MomentPolicy: {name} ({what}) must be a finite number >= 0; got {raw!r}. "
-                    f"Set it to a non-negative value ({hint})."
-                )
-            object.__setattr__(self, name, value)
+        raw = self.error_deg
+        try:
+            value = math.nan if isinstance(raw, bool) else float(raw)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0):
+            raise ConfigError(
+                f"MomentPolicy: error_deg (the surrogate's error sd in degrees) must be a finite "
+                f"number >= 0; got {raw!r}. Set it to a non-negative value, e.g. 0.03."
+            )
+        object.__setattr__(self, "error_deg", value)
+        object.__setattr__(self, "growth", _pair(self.growth, "growth"))
+        object.__setattr__(self, "max_log_ratio", _pair(self.max_log_ratio, "max_log_ratio"))
 
     @classmethod
     def for_surrogate(
         cls,
         surrogate: Any,
         *,
-        growth: float,
-        max_log_ratio: float,
+        growth: Any,
+        max_log_ratio: Any,
         error_deg: float | None = None,
     ) -> MomentPolicy:
         """The policy of a fitted surrogate.
@@ -162,9 +200,9 @@ class MomentPolicy:
         surrogate : object
             A fitted surrogate with ``moment_range_`` (models saved without it were trained on
             1..5 Nm) and ``best_val_mae_deg_``.
-        growth, max_log_ratio : float
+        growth, max_log_ratio : float or (float, float) or mapping
             See :class:`MomentPolicy` (params.yaml ``moments.error_growth`` and
-            ``moments.max_log_ratio``).
+            ``moments.max_log_ratio``, one value per side).
         error_deg : float, optional
             The in-range error sd; default ``best_val_mae_deg_ * sqrt(pi / 2)`` (Gaussian
             errors), or 0 (with a logged warning) when the surrogate has no validation error.
@@ -186,19 +224,38 @@ class MomentPolicy:
                 error_deg = 0.0
         return cls(trained, error_deg, growth, max_log_ratio)
 
+    def as_params(self) -> dict[str, float]:
+        """The per-side settings as flat names (``moments.error_growth.below``, ...), to log."""
+        out = {}
+        for key, pair in (("error_growth", self.growth), ("max_log_ratio", self.max_log_ratio)):
+            out.update({f"moments.{key}.{side}": v for side, v in zip(SIDES, pair)})
+        return out
+
     @property
     def accepted_range(self) -> tuple[float, float]:
-        """``(lo * exp(-max_log_ratio), hi * exp(max_log_ratio))``: the accepted moments, Nm."""
+        """``(lo * exp(-max_log_ratio[0]), hi * exp(max_log_ratio[1]))``: the accepted moments,
+        Nm."""
         lo, hi = self.trained_range
-        return lo * math.exp(-self.max_log_ratio), hi * math.exp(self.max_log_ratio)
+        below, above = self.max_log_ratio
+        return lo * math.exp(-below), hi * math.exp(above)
 
     def log_distance(self, moments: Any) -> np.ndarray:
         """``L`` of each moment (shape (m,)); see :func:`log_distance`."""
         return log_distance(moments, self.trained_range)
 
+    def _per_side(self, pair: tuple[float, float], moments: Any) -> np.ndarray:
+        """``pair[1]`` above the trained range, ``pair[0]`` elsewhere, shape (m,)."""
+        m = np.atleast_1d(np.asarray(moments, dtype=np.float64))
+        return np.where(m > self.trained_range[1], pair[1], pair[0])
+
     def error_factor(self, moments: Any) -> np.ndarray:
-        """``sd(M) / error_deg = exp(growth * L)``, shape (m,); 1 inside the range."""
-        return np.exp(self.growth * self.log_distance(moments))
+        """``sd(M) / error_deg = exp(growth[side] * L)``, shape (m,); 1 inside the range."""
+        return np.exp(self._per_side(self.growth, moments) * self.log_distance(moments))
+
+    def accepts(self, moments: Any) -> np.ndarray:
+        """Whether each moment is within the limits, ``L <= max_log_ratio[side]``, shape (m,)."""
+        limit = self._per_side(self.max_log_ratio, moments)
+        return self.log_distance(moments) <= limit + _TOL
 
     def sigma_surrogate(self, moments: Any) -> np.ndarray:
         """The surrogate's error sd at each moment.
@@ -308,61 +365,168 @@ class MomentPolicy:
             raise ConfigError("average_sd: no point has a positive weight; give a measured point.")
         return self.unit_sd(noise_deg) / math.sqrt(float(rel[keep].mean()))
 
-    def check(self, meas: Measurements) -> None:
-        """Check the measured moments (those with at least one measured point).
+    def screen(self, meas: Measurements) -> Screened:
+        """The usable part of a file: its points at accepted moments.
 
-        Inside the trained range: silent. Beyond it but within ``max_log_ratio``: one
-        ``UserWarning`` (also logged) naming the moments, the trained range and the larger
-        error counted. Beyond ``max_log_ratio``: refused.
+        Inside the trained range: silent. Beyond it but within ``max_log_ratio`` of its side:
+        one ``UserWarning`` (also logged) naming the moments, the trained range and the larger
+        error counted. Beyond ``max_log_ratio``: the points are dropped, with a ``UserWarning``
+        (also logged) naming each (file, specimen, load case, moment); a specimen left without
+        a point of positive weight is dropped whole. Moments nobody measured are not looked at.
 
         Parameters
         ----------
         meas : Measurements
 
+        Returns
+        -------
+        Screened
+            ``measurements``: ``meas`` less the dropped points (``meas`` itself when none is
+            dropped); ``dropped``: one row per dropped point (:data:`DROPPED_COLUMNS`).
+
         Raises
         ------
         InputDataError
-            A measured moment lies beyond ``max_log_ratio``; the message names the file, the
-            moments, the accepted interval and the fixes.
+            No measured point is usable; the message names the file, the field
+            (``moment_nm``), the accepted moments and the fixes.
 
         Warns
         -----
         UserWarning
-            A measured moment lies outside the trained range but is accepted.
+            Points are dropped, or a measured moment lies outside the trained range but is
+            accepted.
         """
+        measured = meas.mask()
+        used_cols = measured.any(axis=(0, 1))
+        used = np.asarray(meas.moments)[used_cols]
+        accepted = self.accepts(meas.moments)
+        if not np.any(accepted & used_cols):
+            self._refuse_all(meas, used)
+        drop = measured & ~accepted[None, None, :]
+        lost = ~np.any(measured & ~drop & (np.asarray(meas.weight) > 0), axis=(1, 2))
+        reasons = np.where(drop, "moment", "")
+        drop = drop | (measured & lost[:, None, None])
+        reasons = np.where(drop & (reasons == ""), "specimen", reasons)
+        dropped = self._dropped_table(meas, drop, reasons)
+        kept = meas
+        if drop.any():
+            kept = meas.without(drop)
+            _warn(self._dropped_message(meas, dropped, lost, kept))
+        self._warn_outside(kept)
+        return Screened(kept, dropped)
+
+    def _refuse_all(self, meas: Measurements, used: np.ndarray) -> None:
+        lo, hi = self.trained_range
+        a_lo, a_hi = self.accepted_range
+        hint = (
+            f" The moments look like N·mm ({_fmt(used)}): divide them by 1000 (femcal reads "
+            "moments in Nm)."
+            if used.size and np.all(used >= NMM_THRESHOLD)
+            else ""
+        )
+        raise InputDataError(
+            f"{meas.source}: no measured point is usable: every measured moment (field "
+            f"moment_nm: {_fmt(used)} Nm) lies outside the moments the surrogate is used at, "
+            f"[{a_lo:.3g}, {a_hi:.3g}] Nm (its trained range [{lo:g}, {hi:g}] Nm widened as far "
+            f"as its error was measured: {self._limits()}).{hint} Give the moments in Nm within "
+            "that interval, or train the surrogate on a wider moment range."
+        )
+
+    def _limits(self) -> str:
+        below, above = self.max_log_ratio
+        return f"moments.max_log_ratio below {below:g}, above {above:g}"
+
+    def _dropped_table(self, meas: Measurements, drop: np.ndarray, reasons: np.ndarray):
+        import pandas as pd
+
+        from femcal.schema import LOAD_CASES
+
+        lo, hi = self.trained_range
+        a_lo, a_hi = self.accepted_range
+        i, k, j = np.nonzero(drop)
+        moments = np.asarray(meas.moments)
+        why = {
+            "moment": lambda m: (
+                f"{m:g} Nm {'below' if m < lo else 'above'} the accepted "
+                f"{a_lo:.3g}..{a_hi:.3g} Nm ({self._limits()})"
+            ),
+            "specimen": lambda m: "its specimen has no other point of positive weight",
+        }
+        return pd.DataFrame(
+            {
+                "source": [meas.source] * len(i),
+                "specimen": [meas.specimens[a] for a in i],
+                "load_case": [LOAD_CASES[a] for a in k],
+                "moment_nm": moments[j].astype(float),
+                "rom_deg": np.asarray(meas.rom_deg)[i, k, j].astype(float),
+                "weight": np.asarray(meas.weight)[i, k, j].astype(float),
+                "reason": [why[r](moments[b]) for r, b in zip(reasons[i, k, j], j)],
+            },
+            columns=list(DROPPED_COLUMNS),
+        )
+
+    def _dropped_message(self, meas: Measurements, dropped, lost: np.ndarray, kept) -> str:
+        a_lo, a_hi = self.accepted_range
+        points = [
+            f"specimen {s!r} {lc} {m:g} Nm"
+            for s, lc, m in zip(dropped["specimen"], dropped["load_case"], dropped["moment_nm"])
+        ]
+        shown = "; ".join(points[:_MAX_LISTED])
+        more = f" (and {len(points) - _MAX_LISTED} more)" if len(points) > _MAX_LISTED else ""
+        gone = [s for s, x in zip(meas.specimens, lost) if x]
+        whole = f" Specimens left out whole (no point left): {', '.join(gone)}." if gone else ""
+        return (
+            f"{meas.source}: dropped {len(points)} measured point(s) at moments "
+            f"{_fmt(np.unique(dropped['moment_nm']))} Nm, outside the moments the surrogate is "
+            f"used at, [{a_lo:.3g}, {a_hi:.3g}] Nm ({self._limits()}): {shown}{more}.{whole} "
+            f"The outputs list them ({DROPPED_FILE}); the other {int(kept.mask().sum())} points "
+            "are used. To use them, train the surrogate on a wider moment range."
+        )
+
+    def _warn_outside(self, meas: Measurements) -> None:
         lo, hi = self.trained_range
         used = np.asarray(meas.moments)[meas.mask().any(axis=(0, 1))]
         L = self.log_distance(used)
-        tol = 1e-9
-        refused = used[L > self.max_log_ratio + tol]
-        a_lo, a_hi = self.accepted_range
-        if refused.size:
-            hint = (
-                f" The moments look like N·mm ({_fmt(used)}): divide them by 1000 (femcal reads "
-                "moments in Nm)."
-                if used.size and np.all(used >= NMM_THRESHOLD)
-                else ""
-            )
-            raise InputDataError(
-                f"{meas.source}: measured moments {_fmt(refused)} Nm are too far outside the "
-                f"surrogate's trained moment range [{lo:g}, {hi:g}] Nm: moments in "
-                f"[{a_lo:.3g}, {a_hi:.3g}] Nm are accepted (the trained range widened by the "
-                f"factor e^{self.max_log_ratio:g} = {math.exp(self.max_log_ratio):.3g} on each "
-                "side, moments.max_log_ratio, as far as the surrogate's extrapolation error was "
-                f"measured).{hint} Delete the points at those moments from the measurements, or "
-                "train the surrogate on a wider moment range."
-            )
-        outside = L > tol
+        outside = L > _TOL
         if not np.any(outside):
             return
         far = np.sort(used[outside][np.argsort(-L[outside], kind="stable")[:3]])  # the 3 farthest
         at = ", ".join(f"{s:.3g} deg at {m:g} Nm" for m, s in zip(far, self.sigma_surrogate(far)))
-        message = (
+        a_lo, a_hi = self.accepted_range
+        _warn(
             f"{meas.source}: measured moments {_fmt(used[outside])} Nm lie outside the "
             f"surrogate's trained moment range [{lo:g}, {hi:g}] Nm (accepted up to "
             f"[{a_lo:.3g}, {a_hi:.3g}] Nm); the surrogate extrapolates there: surrogate error sd "
             f"{self.error_deg:.3g} deg in range, {at}, counted in sigma (those points weigh "
-            "less in the fit)."
+            "less in the fit).",
+            stacklevel=4,
         )
-        logger.warning(message)
-        warnings.warn(message, UserWarning, stacklevel=2)
+
+
+def _warn(message: str, stacklevel: int = 3) -> None:
+    """Log ``message`` and warn with it at the caller of :meth:`MomentPolicy.screen`."""
+    logger.warning(message)
+    warnings.warn(message, UserWarning, stacklevel=stacklevel)
+
+
+@dataclass(frozen=True, eq=False)
+class Screened:
+    """A file screened by :meth:`MomentPolicy.screen`.
+
+    Parameters
+    ----------
+    measurements : Measurements
+        The usable points.
+    dropped : pandas.DataFrame, shape (k, 7)
+        One row per dropped point, columns :data:`DROPPED_COLUMNS`.
+    """
+
+    measurements: Measurements
+    dropped: Any
+
+    def write(self, folder: Any) -> Path:
+        """Write ``dropped`` to ``folder/dropped_points.csv`` (a header only when none was
+        dropped); returns its path."""
+        path = Path(folder) / DROPPED_FILE
+        self.dropped.to_csv(path, index=False)
+        return path

@@ -104,14 +104,20 @@ def test_run_calibrate_shows_plotting_and_logging_progress(registry, truth, caps
     assert {"calibration/summary.md", "calibration/plots"} <= top
 
 
-def test_moments_far_outside_the_trained_range_are_refused(registry, truth):
+def test_points_far_outside_the_trained_range_are_dropped_and_listed(registry, truth):
     meas = long_csv(registry / "m.csv", truth[1][:1], moments=(1, 2, 3, 4, 9))
+    with pytest.warns(UserWarning, match=r"m\.csv: dropped 4 measured point\(s\) at moments 9 Nm"):
+        _, figures = _calibrate(meas, registry / "out")
+    assert figures["n_dropped_points"] == 4
+    dropped = pd.read_csv(registry / "out" / "dropped_points.csv")
+    assert set(dropped["moment_nm"]) == {9.0} and set(dropped["specimen"]) == {"spec-0"}
+    only_far = long_csv(registry / "far.csv", truth[1][:1, :, :1], moments=(9,))
     with pytest.raises(
         InputDataError,
-        match=r"m\.csv: measured moments 9 Nm are too far outside the surrogate's trained moment "
-        r"range \[1, 5\] Nm: moments in \[0\.6, 8\.33\] Nm are accepted",
+        match=r"far\.csv: no measured point is usable: every measured moment \(field moment_nm: "
+        r"9 Nm\) lies outside the moments the surrogate is used at, \[0\.6, 8\.33\] Nm",
     ):
-        _calibrate(meas, registry / "out")
+        _calibrate(only_far, registry / "out2")
 
 
 def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypatch):

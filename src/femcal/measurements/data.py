@@ -146,8 +146,48 @@ class Measurements:
                 f"{_listing([repr(s) for s in self.specimens])}; give each wanted name once "
                 "(names are case-sensitive)."
             )
-        idx = [self.specimens.index(s) for s in names]
-        rom = self.rom_deg[idx]
+        return self._select([self.specimens.index(s) for s in names])
+
+    def without(self, drop: np.ndarray) -> Measurements:
+        """The measurements less some points.
+
+        Parameters
+        ----------
+        drop : array_like of bool, shape (n, 4, m)
+            The points to leave out (unmeasured points may be marked too).
+
+        Returns
+        -------
+        Measurements
+            Same source; the dropped points are not measured; specimens left without a
+            measured point and moments that no specimen measured any more are removed.
+
+        Raises
+        ------
+        InputDataError
+            ``drop`` has the wrong shape, or it leaves no measured point; or a specimen keeps
+            measured points that all have weight 0 (drop those too).
+        """
+        mask = np.asarray(drop, dtype=bool)
+        if mask.shape != self.rom_deg.shape:
+            raise InputDataError(
+                f"{self.source}: the points to drop have shape {mask.shape}; expected "
+                f"{self.rom_deg.shape} (specimens, load cases, moments). Pass one flag per point."
+            )
+        left = self.mask() & ~mask
+        keep = [i for i in range(self.n_specimens) if left[i].any()]
+        if not keep:
+            raise InputDataError(
+                f"{self.source}: dropping those points leaves no measured point; keep at least "
+                "one point, or fix the file."
+            )
+        return self._select(keep, np.where(mask, np.nan, self.rom_deg))
+
+    def _select(self, idx: Sequence[int], rom_deg: np.ndarray | None = None) -> Measurements:
+        """The specimens at positions ``idx`` (in that order) of ``rom_deg`` (default
+        :attr:`rom_deg`; NaN: not measured), without the moments none of them measured."""
+        names = [self.specimens[i] for i in idx]
+        rom = (self.rom_deg if rom_deg is None else rom_deg)[idx]
         keep = ~np.all(np.isnan(rom), axis=(0, 1))
         return Measurements(
             specimens=tuple(names),

@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 from femcal.schema import TARGETS
 from femcal.settings._checks import Bool, Choice, Float, FnCheck, Int, KeyChoice, ListOf
-from femcal.settings._messages import Context, Invalid, got
+from femcal.settings._messages import BAD, Context, Invalid, got
 from femcal.settings._validate import Keywords, MapOf, Section, optional, setting
 from femcal.settings.keywords import (
     BASELINE_MODELS,
@@ -182,15 +182,34 @@ class InverseSettings:
     search_space: dict = _search_space(INVERSE_FIXED)
 
 
+_PER_SIDE = Float(0)
+
+
+def _per_side(value: Any, path: tuple, ctx: Context) -> Any:
+    """A number >= 0 for both sides of the trained range, or ``{below: ..., above: ...}``."""
+    if isinstance(value, Mapping):
+        if set(value) != {"below", "above"}:
+            raise Invalid(f"expected {{below: number >= 0, above: number >= 0}}, got {got(value)}")
+        out = {side: ctx.check(_PER_SIDE, value[side], (*path, side)) for side in value}
+        return BAD if any(v is BAD for v in out.values()) else out
+    return _PER_SIDE(value, path, ctx)
+
+
 @dataclass(frozen=True)
 class MomentSettings:
-    """``moments``: the moment policy every command shares (femcal.moments.MomentPolicy)."""
+    """``moments``: the moment policy every command shares (femcal.moments.MomentPolicy).
 
-    error_growth: float = setting(
-        Float(0), "growth of the surrogate's error sd per unit log-moment distance beyond range"
+    Each setting is one value per side of the trained range, ``{below, above}`` (one number
+    serves both sides).
+    """
+
+    error_growth: Any = setting(
+        FnCheck("{below, above} numbers >= 0, or one number >= 0", _per_side),
+        "growth of the surrogate's error sd per unit log-moment distance beyond range, per side",
     )
-    max_log_ratio: float = setting(
-        Float(0), "log-moment distance beyond the trained range above which moments are refused"
+    max_log_ratio: Any = setting(
+        FnCheck("{below, above} numbers >= 0, or one number >= 0", _per_side),
+        "log-moment distance beyond the trained range up to which moments are used, per side",
     )
 
 

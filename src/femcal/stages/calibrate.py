@@ -25,6 +25,7 @@ from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
     StageSettings,
     check_measurements,
+    dropped_note,
     moment_settings,
     output_folder,
     write_metrics,
@@ -58,8 +59,8 @@ class CalibrateSettings(StageSettings):
     start_bank: Path | None
     options: Mapping[str, Any]
     seed: int
-    error_growth: float
-    max_log_ratio: float
+    error_growth: tuple[float, float]
+    max_log_ratio: tuple[float, float]
     chunk_size: int | None = None
     plots: str = "all"
     max_plots: int | None = None
@@ -211,6 +212,8 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)"
         )
     lines.append(f"outputs: {out}/parameters.csv, {out}/metrics.csv, {out}/summary.md")
+    if figures.get("n_dropped_points"):
+        lines.append(dropped_note(figures["n_dropped_points"], out))
     return lines
 
 
@@ -253,8 +256,8 @@ def run_calibrate(
     start_bank: Path | None,
     options: Mapping[str, Any],
     seed: int,
-    error_growth: float,
-    max_log_ratio: float,
+    error_growth: tuple[float, float],
+    max_log_ratio: tuple[float, float],
     chunk_size: int | None = None,
     plots: bool | str = True,
     max_plots: int | None = None,
@@ -284,9 +287,11 @@ def run_calibrate(
     (:meth:`femcal.moments.MomentPolicy.point_weights`).
 
     Reads the measurements, loads the surrogate (and the held-out surrogate): a model folder
-    (``models/surrogate-large``, the one ``dvc.lock`` pins) or an MLflow model URI. Checks the
+    (``models/surrogate-large``, the one ``dvc.lock`` pins) or an MLflow model URI. Screens the
     moments with the moment policy (:class:`femcal.moments.MomentPolicy` of ``error_growth``
-    and ``max_log_ratio``, params.yaml ``moments``), calibrates the batch
+    and ``max_log_ratio``, ``(below, above)`` each, params.yaml ``moments``): points beyond
+    its limits are dropped with a warning and listed in ``out_dir/dropped_points.csv``
+    (``n_dropped_points`` in the figures). Calibrates the batch
     with each point weighted by its inverse variance (the surrogate's error sd(M) at its moment,
     the measurement noise when given, the measurement's own weight), writes ``out_dir`` (see
     :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
@@ -338,7 +343,8 @@ def run_calibrate(
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
-    policy.check(meas)
+    screened = policy.screen(meas)  # points beyond the measured limits dropped, with a warning
+    meas = screened.measurements
     # (n, 4, m): relative inverse variances (noise^2 / w + sd(M)^2, or w / sd(M)^2 without noise)
     weight = policy.point_weights(meas.moments, meas.weight, noise_deg)
     from femcal.effects.composite import EffectModel
@@ -390,8 +396,7 @@ def run_calibrate(
         "holdout_uri": holdout_uri or "",
         "seed": seed,
         "chunk_size": chunk_size or 0,
-        "moments.error_growth": error_growth,
-        "moments.max_log_ratio": max_log_ratio,
+        **policy.as_params(),
         "noise_deg": "none" if noise_deg is None else noise_deg,
     }
     for key, value in opts.items():
@@ -421,6 +426,8 @@ def run_calibrate(
                 reachability=reach.notes(),
                 progress=progress,
             )
+            screened.write(stage.path)
+            figures["n_dropped_points"] = len(screened.dropped)
             lap(f"outputs (tables, plots: {plots})")
             stage.note(mlflow_run_id=tracker.result())
             tracker.call(

@@ -147,17 +147,39 @@ def optuna_storage(params: Mapping[str, Any]) -> str:
     return storage
 
 
-def moment_settings(params: Mapping[str, Any]) -> dict[str, float]:
-    """params.yaml's ``moments`` section (one moment policy for every command) as keywords."""
+def moment_settings(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
+    """params.yaml's ``moments`` section (one moment policy for every command) as keywords.
+
+    Returns ``{"error_growth": (below, above), "max_log_ratio": (below, above)}``: each
+    setting is ``{below: ..., above: ...}`` in the file, or one number for both sides.
+    """
     out = {}
     for key in ("error_growth", "max_log_ratio"):
         value = section(params, "moments", key)
+        sides = ("below", "above")
+        items = [value.get(s) for s in sides] if isinstance(value, Mapping) else [value] * 2
         try:
-            out[key] = float(value)
+            pair = tuple(float(x) for x in items)
+            valid = not any(isinstance(x, bool) for x in items) and all(
+                x >= 0 and x != float("inf") for x in pair
+            )
+            valid = valid and (not isinstance(value, Mapping) or set(value) == set(sides))
         except (TypeError, ValueError):
+            valid = False
+        if not valid:
             raise ConfigError(
-                f"{params.get('_path', 'params.yaml')}: moments.{key} must be a number >= 0; "
-                f"got {value!r}. Use the value measured by benchmarks/bench_extrapolation.py "
-                "(reports/extrapolation.md)."
-            ) from None
+                f"{params.get('_path', 'params.yaml')}: moments.{key} must be a number >= 0 "
+                f"per side of the trained moment range, {{below: ..., above: ...}} (or one "
+                f"number for both); got {value!r}. Use the values measured by "
+                "benchmarks/bench_extrapolation.py (reports/extrapolation.md)."
+            )
+        out[key] = pair
     return out
+
+
+def dropped_note(n_dropped: int, out: str) -> str:
+    """The line naming the points the moment policy dropped and where they are listed."""
+    return (
+        f"WARNING: {n_dropped} measured points lie beyond the moments the surrogate is used at "
+        f"and were left out: see {out}/dropped_points.csv (moments.max_log_ratio)"
+    )

@@ -13,6 +13,7 @@ from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
     StageSettings,
     check_measurements,
+    dropped_note,
     moment_settings,
     output_folder,
     path_setting,
@@ -40,8 +41,8 @@ class DiagnoseSettings(StageSettings):
     alpha: float
     max_effects: int
     seed: int
-    error_growth: float
-    max_log_ratio: float
+    error_growth: tuple[float, float]
+    max_log_ratio: tuple[float, float]
     plots: bool = True
     max_plots: int | None = None
     effect_modules: Sequence[Path] = ()
@@ -93,6 +94,7 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
     write_metrics(settings.metrics_file, diagnosis_headline(summary))
     return dict(
         summary,
+        out_dir=str(settings.out_dir),
         diagnosis=diag,
         user_effects=names,
         user_effect_paths=[str(p) for p in settings.effect_modules],
@@ -115,12 +117,13 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     )
     counts = diag.effect_counts()
     found = diag.found_effects()
+    forms = diag.found_forms()
     if found:
         lines.append(
             f"effects found: {', '.join(f'{k} ({counts[k]})' for k in found)}; to add them, list "
-            f"[{', '.join(found)}] under calibrate.datasets.<name>.effects in params.yaml (and "
+            f"[{', '.join(forms)}] under calibrate.datasets.<name>.effects in params.yaml (and "
             f"noise_deg: {diag.noise_deg:.3g}, the noise counted here) and run `dvc repro` (or: "
-            f"femcal calibrate --measurements FILE --effects {','.join(found)} --noise-deg "
+            f"femcal calibrate --measurements FILE --effects {','.join(forms)} --noise-deg "
             f"{diag.noise_deg:.3g})"
         )
     close = [(sp.specimen, p) for sp in diag.specimens if (p := practical_next(sp)) is not None]
@@ -134,6 +137,8 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             f"close calls a few measurements would settle: {shown}{more} (summary.md says "
             "between which models, plots/ marks the point)"
         )
+    if figures.get("n_dropped_points"):
+        lines.append(dropped_note(figures["n_dropped_points"], str(figures["out_dir"])))
     if counts.get("unexplained"):
         lines.append(
             f"unexplained: {counts['unexplained']} specimens are not explained within the noise "
@@ -154,8 +159,8 @@ def run_diagnose(
     start_bank: Path | None,
     min_delta: float,
     seed: int,
-    error_growth: float,
-    max_log_ratio: float,
+    error_growth: tuple[float, float],
+    max_log_ratio: tuple[float, float],
     alpha: float = 0.01,
     max_effects: int = 3,
     plots: bool = True,
@@ -163,9 +168,12 @@ def run_diagnose(
 ):
     """Diagnose every specimen of a measurement file; write DIR; log one MLflow run.
 
-    The moments are checked with the moment policy (:class:`femcal.moments.MomentPolicy` of
-    ``error_growth`` and ``max_log_ratio``, params.yaml ``moments``), and the surrogate's own
-    error at each moment (shape (m,), larger beyond the trained range) is part of the noise.
+    The moments are screened with the moment policy (:class:`femcal.moments.MomentPolicy` of
+    ``error_growth`` and ``max_log_ratio``, ``(below, above)`` each, params.yaml ``moments``):
+    points beyond its limits are dropped with a warning and listed in
+    ``out_dir/dropped_points.csv`` (``n_dropped_points`` in the returned summary). The
+    surrogate's own error at each moment (shape (m,), larger beyond the trained range) is
+    part of the noise.
 
     ``out_dir`` is all or nothing, as for :func:`run_calibrate` (:mod:`femcal.outputs`).
     ``model_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI; the
@@ -191,7 +199,8 @@ def run_diagnose(
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
-    policy.check(meas)
+    screened = policy.screen(meas)  # points beyond the measured limits dropped, with a warning
+    meas = screened.measurements
     # Before the fit: can the disc, with every candidate effect, produce these curves at all?
     assess_reachability(
         meas,
@@ -225,6 +234,8 @@ def run_diagnose(
         mlflow.set_tag("femcal.stage", "diagnose")
         mlflow.set_tags(source.tags("model"))
         summary = write_diagnosis(diag, meas.rom_deg, stage.path, plots=plots, max_plots=max_plots)
+        screened.write(stage.path)
+        summary = dict(summary, n_dropped_points=len(screened.dropped))
         mlflow.log_params(
             {
                 "measurements": str(measurements),
@@ -235,8 +246,7 @@ def run_diagnose(
                 "alpha": alpha,
                 "max_effects": max_effects,
                 "cohort_verdict": diag.cohort_verdict(),
-                "moments.error_growth": error_growth,
-                "moments.max_log_ratio": max_log_ratio,
+                **policy.as_params(),
             }
         )
         mlflow.log_metrics(
