@@ -13,13 +13,15 @@ trained on     tested at   L
 1, 2, 3 Nm     4, 5 Nm     0.29, 0.51 (above)
 1, 2, 3, 4 Nm  5 Nm        0.22 (above)
 3, 4, 5 Nm     2, 1 Nm     0.41, 1.10 (below)
+2, 3, 4, 5 Nm  1 Nm        0.69 (below: the 1..5 Nm champion's L at 0.5 Nm)
 =============  ==========  ===========================
 
 and at its trained moments (the in-range error). Error sd = MAE * sqrt(pi / 2) (Gaussian
 errors; the conversion femcal.stages.train uses for the validation error), the ratio = sd at ``M``
 over the in-range sd of the same model (pooled over its trained moments). One-parameter growth
-models are fitted to the ratios (least squares) and translated to the 1..5 Nm champion, next to
-a colleague's measurement of the champion on the study's held-out 0.5-10 Nm FE curves.
+models are fitted to the ratios (least squares) on each side of the range, by the same code
+for both ends, and translated to the 1..5 Nm champion, next to a colleague's measurement of the
+champion on the study's held-out 0.5-10 Nm FE curves.
 
 Writes ``reports/extrapolation.md`` and ``reports/extrapolation.json``.
 
@@ -27,9 +29,10 @@ Usage (from the project root, after ``make repro``; run it alone: torch on 2 sha
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_extrapolation.py [--members 2] [--seeds 0 1]
 
-``--render`` re-analyses ``reports/extrapolation.json`` and rewrites the report without training.
-The measured ``error_growth`` and ``max_log_ratio`` go into params.yaml's ``moments`` section by
-hand (the report names them).
+``--select 3 --merge`` measures only the fourth experiment and keeps the others of
+``reports/extrapolation.json``; ``--render`` re-analyses that file and rewrites the report without
+training. The measured ``error_growth`` and ``max_log_ratio`` of each side go into params.yaml's
+``moments`` section by hand (the report names them).
 """
 
 from __future__ import annotations
@@ -58,7 +61,10 @@ EXPERIMENTS: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...] = (
     ((1.0, 2.0, 3.0), (4.0, 5.0)),
     ((1.0, 2.0, 3.0, 4.0), (5.0,)),
     ((3.0, 4.0, 5.0), (2.0, 1.0)),
+    ((2.0, 3.0, 4.0, 5.0), (1.0,)),
 )
+#: The sides of the trained range, in the order of femcal.moments.SIDES.
+SIDES = ("below", "above")
 #: A colleague's measurement of the 1..5 Nm champion against the study's held-out FE curves
 #: (0.5-10 Nm; not available here): error in deg per moment band (0.5 Nm steps assumed).
 COLLEAGUE = (
@@ -66,6 +72,13 @@ COLLEAGUE = (
     {"band": "5.5-7.5 Nm", "moments": [5.5, 7.5], "error_deg": 0.065},
     {"band": "8-10 Nm", "moments": [8.0, 10.0], "error_deg": 0.135},
 )
+#: The same colleague's champion error below the range (issue 42): deg at 0.5 Nm.
+COLLEAGUE_BELOW = {"band": "0.5 Nm", "moments": [0.5, 0.5], "error_deg": 0.017}
+#: The champion's moments translated in the report, per side.
+CHAMPION_MOMENTS = {
+    "below": (0.25, 0.3, 0.4, 0.5, 0.6, 0.75, 0.9),
+    "above": (5.5, 6.0, 6.5, 7.0, 7.5, 8.0, 8.3, 9.0, 10.0),
+}
 #: The model femcal.moments.MomentPolicy uses (see the notes).
 CHOSEN = "exponential"
 #: One-parameter growth models of the ratio sd(M) / sd(in range), g >= 0.
@@ -223,39 +236,50 @@ def champion_in_range(test: pd.DataFrame) -> dict | None:
 
 
 def analyse(report: dict) -> dict:
-    """Fits, the chosen policy and its translation to the champion (from the raw results)."""
+    """Fits, the chosen policy and its translation to the champion (from the raw results).
+
+    Both ends of the trained range go through the same code: per side, ``exp(g L)`` fitted to
+    that side's points, and ``max_log_ratio`` the largest ``L`` measured on that side.
+    """
     points = summarise(report["experiments"])
-    above = [p for p in points if p["side"] == "above"]
+    side_points = {side: [p for p in points if p["side"] == side] for side in SIDES}
     L = np.array([p["L"] for p in points])
     ratio = np.array([p["ratio"] for p in points])
-    fits = {
-        "all": fit_models(L, ratio),
-        "above": fit_models(
-            np.array([p["L"] for p in above]), np.array([p["ratio"] for p in above])
-        ),
-    }
+    fits = {"all": fit_models(L, ratio)}
+    for side in SIDES:
+        fits[side] = fit_models(
+            np.array([p["L"] for p in side_points[side]]),
+            np.array([p["ratio"] for p in side_points[side]]),
+        )
     bands_L, bands_ratio = colleague_bands()
     fits["colleague"] = fit_models(bands_L, bands_ratio, band_means=True)
-    # The policy's model (femcal.moments): exp(g L), g fitted above the range, where the
-    # champion is used beyond its range (below, the error grows more slowly: conservative).
-    growth = fits["above"][CHOSEN]["growth"]
-    lmax = round(max(p["L"] for p in above), 2)
+    growth = {side: fits[side][CHOSEN]["growth"] for side in SIDES}
+    lmax = {side: round(max(p["L"] for p in side_points[side]), 2) for side in SIDES}
     champ = report.get("champion_in_range")
     error_deg = champ["error_deg"] if champ else COLLEAGUE[0]["error_deg"] * SD_PER_MAE
-    policy = MomentPolicy((1.0, 5.0), error_deg, growth, lmax)
-    ms = np.array([5.5, 6.0, 6.5, 7.0, 7.5, 8.0, 8.3, 9.0, 10.0])
-    champion_rows = [
-        {
-            "moment_nm": float(m),
-            "L": float(Lm),
-            "ratio": float(f),
-            "sd_deg": float(sd),
-            "accepted": bool(Lm <= lmax + 1e-9),
-        }
+    policy = MomentPolicy(
+        (1.0, 5.0),
+        error_deg,
+        tuple(growth[s] for s in SIDES),
+        tuple(lmax[s] for s in SIDES),
+    )
+    a_lo, a_hi = policy.accepted_range
+    champion_rows = []
+    for side in SIDES:
+        ms = np.array(CHAMPION_MOMENTS[side])
         for m, Lm, f, sd in zip(
             ms, policy.log_distance(ms), policy.error_factor(ms), policy.sigma_surrogate(ms)
-        )
-    ]
+        ):
+            champion_rows.append(
+                {
+                    "moment_nm": float(m),
+                    "side": side,
+                    "L": float(Lm),
+                    "ratio": float(f),
+                    "sd_deg": float(sd),
+                    "accepted": bool(a_lo - 1e-9 <= m <= a_hi + 1e-9),
+                }
+            )
     colleague = []
     for band, Ls, r in zip(COLLEAGUE[1:], bands_L, bands_ratio):
         ms_band = 5.0 * np.exp(np.array(Ls))
@@ -273,13 +297,27 @@ def analyse(report: dict) -> dict:
                 ),
             }
         )
-    a_lo, a_hi = policy.accepted_range
+    m_below = COLLEAGUE_BELOW["moments"][0]
+    model_below = float(policy.error_factor(np.array([m_below]))[0])
+    colleague.append(
+        {
+            "band": COLLEAGUE_BELOW["band"],
+            "L_range": [math.log(1.0 / m_below)] * 2,
+            "measured_deg": COLLEAGUE_BELOW["error_deg"],
+            "measured_ratio": COLLEAGUE_BELOW["error_deg"] / COLLEAGUE[0]["error_deg"],
+            "model_ratio": model_below,
+            "model_deg_from_colleague_in_range": model_below * COLLEAGUE[0]["error_deg"],
+            "linear_ratio": float(
+                MODELS["linear"](math.log(1.0 / m_below), fits["below"]["linear"]["growth"])
+            ),
+        }
+    )
     return {
         "points": points,
         "fits": fits,
         "chosen": {
             "model": CHOSEN,
-            "formula": "sd(M) = error_deg * exp(error_growth * L)",
+            "formula": "sd(M) = error_deg * exp(error_growth[side] * L)",
             "error_growth": growth,
             "max_log_ratio": lmax,
             "error_deg_champion": error_deg,
@@ -351,12 +389,13 @@ def markdown(report: dict) -> str:
         "|---|---|---|---|---|",
     ]
     labels = {
+        "below": "our points below the range",
         "above": "our points above the range",
         "all": "all our points (above and below)",
         "colleague": "the colleague's two bands (champion)",
     }
     formulas = {"linear": "1 + g L", "squared": "(1 + g L)²", "exponential": "exp(g L)"}
-    for key in ("above", "all", "colleague"):
+    for key in ("above", "below", "all", "colleague"):
         for name, f in a["fits"][key].items():
             pred = ", ".join(f"{x:.2f}" for x in f["predicted"])
             lines.append(
@@ -365,32 +404,36 @@ def markdown(report: dict) -> str:
             )
     lines += [
         "",
-        f"**Chosen** (params.yaml `moments`): `{ch['formula']}` with **error_growth = "
-        f"{ch['error_growth']:.2f}** (fitted above the range) and **max_log_ratio = "
-        f"{ch['max_log_ratio']:.2f}**, the largest L measured above the range (1..3 Nm -> 5 Nm). "
-        f"For the 1..5 Nm champion: moments {ch['accepted_range_champion_nm'][0]:.2f}.."
-        f"{ch['accepted_range_champion_nm'][1]:.2f} Nm are accepted.",
+        f"**Chosen** (params.yaml `moments`, each side fitted to its own points by the same "
+        f"code): `{ch['formula']}` with **error_growth = {{below: "
+        f"{ch['error_growth']['below']:.2f}, above: {ch['error_growth']['above']:.2f}}}** and "
+        f"**max_log_ratio = {{below: {ch['max_log_ratio']['below']:.2f}, above: "
+        f"{ch['max_log_ratio']['above']:.2f}}}**, the largest L measured on each side. For the "
+        f"1..5 Nm champion: moments {ch['accepted_range_champion_nm'][0]:.2f}.."
+        f"{ch['accepted_range_champion_nm'][1]:.2f} Nm are accepted; points at other moments "
+        "are dropped with a warning (the rest of the file is used).",
         "",
         "## What it means for the 1..5 Nm champion",
         "",
         f"In-range error sd of the champion: {ch['error_deg_champion']:.4f}° (its validation MAE "
         "x sqrt(pi/2)).",
         "",
-        "| M (Nm) | L | ratio exp(g L) | sd (°) | |",
-        "|---|---|---|---|---|",
+        "| M (Nm) | side | L | ratio exp(g L) | sd (°) | |",
+        "|---|---|---|---|---|---|",
     ]
     for r in a["champion_extrapolated"]:
         lines.append(
-            f"| {r['moment_nm']:g} | {r['L']:.3f} | {r['ratio']:.2f} | {r['sd_deg']:.4f} | "
-            f"{'accepted, warning' if r['accepted'] else 'refused'} |"
+            f"| {r['moment_nm']:g} | {r['side']} | {r['L']:.3f} | {r['ratio']:.2f} | "
+            f"{r['sd_deg']:.4f} | {'accepted, warning' if r['accepted'] else 'dropped'} |"
         )
     lines += [
         "",
         "Against a colleague's measurement of the champion on the study's held-out 0.5-10 Nm FE "
-        "curves (not available here; 0.029° at 1..5 Nm; the bands taken in 0.5 Nm steps):",
+        "curves (not available here; 0.029° at 1..5 Nm; the bands taken in 0.5 Nm steps; 0.5 Nm "
+        "from issue 42):",
         "",
         "| band | L | measured | ratio to 0.029° | exp(g L), mean over the band | "
-        "-> (°) | 1 + g L (g fitted above), mean |",
+        "-> (°) | 1 + g L (g fitted on that side), mean |",
         "|---|---|---|---|---|---|---|",
     ]
     for c in a["colleague"]:
@@ -408,7 +451,18 @@ def main() -> None:
     ap.add_argument("--members", type=int, default=2, help="ensemble members per model")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--max-epochs", type=int, default=None, help="default: the recipe's")
-    ap.add_argument("--experiments", type=int, default=len(EXPERIMENTS))
+    ap.add_argument(
+        "--select",
+        type=int,
+        nargs="+",
+        default=list(range(len(EXPERIMENTS))),
+        help="indices into EXPERIMENTS to measure (default: all)",
+    )
+    ap.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep OUT.json's experiments of the other trained ranges (and its champion)",
+    )
     ap.add_argument("--out", default=str(REPO / "reports" / "extrapolation"))
     ap.add_argument(
         "--render", action="store_true", help="re-analyse and rewrite from OUT.json (no training)"
@@ -419,6 +473,8 @@ def main() -> None:
         report = json.loads(out.with_suffix(".json").read_text())
     else:
         report = measure(args)
+        if args.merge:
+            report = merged(json.loads(out.with_suffix(".json").read_text()), report)
     report["analysis"] = analyse(report)
     report["notes"] = notes(report)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -446,7 +502,7 @@ def measure(args: argparse.Namespace) -> dict:
     t0 = time.perf_counter()
     experiments = []
     for seed in args.seeds:
-        for trained, tested in EXPERIMENTS[: args.experiments]:
+        for trained, tested in (EXPERIMENTS[i] for i in args.select):
             ex = run_experiment(
                 trained,
                 tested,
@@ -478,6 +534,16 @@ def measure(args: argparse.Namespace) -> dict:
     }
 
 
+def merged(old: dict, new: dict) -> dict:
+    """``new``'s experiments with ``old``'s of the trained ranges ``new`` did not measure."""
+    measured = {tuple(ex["trained_moments"]) for ex in new["experiments"]}
+    kept = [ex for ex in old["experiments"] if tuple(ex["trained_moments"]) not in measured]
+    out = dict(new, experiments=kept + new["experiments"])
+    out["seconds"] = old.get("seconds", 0.0) + new["seconds"]
+    out["champion_in_range"] = new.get("champion_in_range") or old.get("champion_in_range")
+    return out
+
+
 def notes(report: dict) -> str:
     """The reading of the measurements (numbers of this run; the wording of the 2026-11 run)."""
     a = report["analysis"]
@@ -490,7 +556,11 @@ def notes(report: dict) -> str:
     champ = report.get("champion_in_range") or {}
     per = {r["moment_nm"]: r["mae_deg"] for r in champ.get("per_moment", [])}
     at75 = next(r for r in a["champion_extrapolated"] if r["moment_nm"] == 7.5)
-    top = pts.get(("above", round(ch["max_log_ratio"], 2)))
+    top = pts.get(("above", round(ch["max_log_ratio"]["above"], 2)))
+    at05 = next(r for r in a["champion_extrapolated"] if r["moment_nm"] == 0.5)
+    at075 = next(r for r in a["champion_extrapolated"] if r["moment_nm"] == 0.75)
+    exp_below = fits["below"]["exponential"]
+    lo_nm, hi_nm = ch["accepted_range_champion_nm"]
     rom = {r["moment_nm"]: r["rom_mean_deg"] for r in report["experiments"][0]["per_moment"]}
 
     def slope(m0: float, m1: float) -> float:
@@ -503,7 +573,7 @@ def notes(report: dict) -> str:
         f"{exp_['rms_log_residual']:.3f}); `1 + g L` (best g = {lin['growth']:.2f}) misses by "
         f"{lin['rms_log_residual']:.2f} and underestimates the farthest point "
         f"({lin['predicted'][-1]:.2f} vs {above[-1]['ratio']:.2f}). Chosen: `exp(g L)`, i.e. "
-        f"above the range the error sd grows like (M / hi)^{ch['error_growth']:.2f}.",
+        f"above the range the error sd grows like (M / hi)^{ch['error_growth']['above']:.2f}.",
         "Part of the ratio is the RoM itself: the network models log RoM, so its error is "
         "relative and grows with the moment inside the range too (the champion: "
         + (
@@ -525,17 +595,29 @@ def notes(report: dict) -> str:
         f"colleague's champion measurement it agrees at 5.5-7.5 Nm ({col[0]['model_ratio']:.2f} "
         f"vs {col[0]['measured_ratio']:.2f}) and overstates at 8-10 Nm "
         f"({col[1]['model_ratio']:.2f} vs {col[1]['measured_ratio']:.2f}; above 8.33 Nm the "
-        "policy refuses anyway).",
+        "policy drops the points anyway).",
         "Below the range the error grows much more slowly ("
-        + ", ".join(f"{p['ratio']:.2f} at L = {p['L']:.2f}" for p in below)
-        + ": the RoM shrinks towards 0 Nm). The one growth rate, fitted above, overstates the "
-        "error below: conservative (those points get less weight and a wider band).",
-        f"max_log_ratio = {ch['max_log_ratio']:.2f}, the largest L measured above the range; the "
-        "larger L measured below does not widen the (symmetric) limit. For the champion "
-        f"({ch['error_deg_champion']:.3f}° in range): {ch['accepted_range_champion_nm'][0]:.2f}"
-        f"..{ch['accepted_range_champion_nm'][1]:.2f} Nm accepted; a 1.25..7.5 Nm protocol passes "
-        f"with a warning (sd {at75['sd_deg']:.3f}° = {at75['ratio']:.2f} x at 7.5 Nm); 9 and "
-        "10 Nm are refused.",
+        + ", ".join(
+            f"{p['ratio']:.2f} at L = {p['L']:.2f} ("
+            + ",".join(f"{m:g}" for m in p["trained_moments"])
+            + f" -> {p['moment_nm']:g} Nm)"
+            for p in below
+        )
+        + f": the RoM shrinks towards 0 Nm). Measured by the same code as above the range, its "
+        f"own `exp(g L)` has g = {exp_below['growth']:.2f} (RMS log residual "
+        f"{exp_below['rms_log_residual']:.3f}). The 2..5 -> 1 Nm model is the champion's mirror "
+        "at 0.5 Nm: four trained moments (a cubic in log-moment, the champion five), L = log 2.",
+        f"For the champion ({ch['error_deg_champion']:.4f}° in range): "
+        f"{at075['sd_deg']:.4f}° at 0.75 Nm (x {at075['ratio']:.2f}), {at05['sd_deg']:.4f}° at "
+        f"0.5 Nm (x {at05['ratio']:.2f}); the colleague measured {col[-1]['measured_deg']:.3f}° "
+        f"at 0.5 Nm (x {col[-1]['measured_ratio']:.2f} of its 0.029° in range): the ratio, "
+        "pooled over the whole trained range, overstates the error at small moments, "
+        "conservatively (those points weigh less).",
+        f"max_log_ratio = {ch['max_log_ratio']['below']:.2f} below and "
+        f"{ch['max_log_ratio']['above']:.2f} above, the largest L measured on each side. For the "
+        f"champion: {lo_nm:.2f}..{hi_nm:.2f} Nm accepted; a 0.5..5 Nm protocol and a 1.25..7.5 "
+        f"Nm protocol pass with a warning (sd {at75['sd_deg']:.3f}° = {at75['ratio']:.2f} x at "
+        "7.5 Nm); points at 9 and 10 Nm are dropped with a warning, the rest of the file is used.",
         "Spread: two seeds with two members each (min-max in the first table); a 5-member "
         "ensemble has a lower in-range error, the ratio is what the policy transfers.",
     ]

@@ -349,5 +349,11 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     np.testing.assert_allclose(sigma, np.sqrt(0.05**2 + sur**2), rtol=1e-6)
     assert summary["n_specimens"] == 1 and (registry / "diag" / "diagnosis.json").exists()
     far = long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
-    with pytest.raises(InputDataError, match=r"far\.csv: measured moments 12 Nm are too far"):
-        run_diagnose(measurements=far, **common)
+    with pytest.warns(UserWarning, match=r"far\.csv: dropped 4 measured point\(s\) at moments 12"):
+        diag, summary = run_diagnose(measurements=far, **common)
+    assert diag.sigma_by_moment.shape == (4,) and summary["n_dropped_points"] == 4
+    listed = pd.read_csv(registry / "diag" / "dropped_points.csv")
+    assert set(listed["moment_nm"]) == {12.0} and len(listed) == 4
+    only_far = long_csv(registry / "only.csv", truth[1][:1, :, :1], moments=(12,))
+    with pytest.raises(InputDataError, match=r"only\.csv: no measured point is usable"):
+        run_diagnose(measurements=only_far, **common)
