@@ -241,7 +241,9 @@ LIGAMENTS: tuple[str, ...] = (
 #: :class:`LigamentSettings`). Stiffness of the linear region: Pintar et al. 1992 (supraspinous,
 #: interspinous, flavum, capsular), the tri-linear table quoted by Guo et al. 2021 (PMC8147546)
 #: for the intertransverse; toe strain: the first transition strain of that table; rest lengths:
-#: Naserkhaki et al. 2018 (L4-L5). Positions: estimates for the 50 x 35 mm disc.
+#: Naserkhaki et al. 2018 (L4-L5) but the capsule's, its vertical span across the joint (an
+#: estimate: a shorter vertical spring's nodes pass each other in extension and it pulls
+#: again). Positions: estimates for the 50 x 35 mm disc.
 LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     "supraspinous": {
         "stiffness_n_per_mm": 23.7,
@@ -277,7 +279,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
         "lateral_mm": 18.0,
         "posterior_mm": 30.0,
         "height_mm": 5.5,
-        "length_mm": 2.17,
+        "length_mm": 10.0,
     },
     "intertransverse": {
         "stiffness_n_per_mm": 10.7,
