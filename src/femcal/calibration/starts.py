@@ -137,7 +137,11 @@ def single_effect_starts(
     grid parameters (over all of them, shape included, with ``grid_shapes``; the others at their
     classic start), then ``shape_starts`` points of :func:`shape_design` when some parameters
     are not gridded. A law far from the family's classic member (a soft contact onset, say) is
-    not reached from the classic member's basin."""
+    not reached from the classic member's basin. A split form (:mod:`femcal.effects.split`)
+    starts from its tied effect's starts, each value copied into every load case."""
+    tied = getattr(effect, "tied", None)
+    if tied is not None:
+        return effect.expand_tied(single_effect_starts(tied, levels, shape_starts, grid_shapes))
     p = len(effect.parameters)
     start = torch.tensor([q.start for q in effect.parameters], dtype=torch.float32)
     cols = [j for j, q in enumerate(effect.parameters) if getattr(q, "grid", True) or grid_shapes]

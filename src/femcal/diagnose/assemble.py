@@ -10,7 +10,6 @@ import numpy as np
 
 from femcal.diagnose.discrepancy import (
     dense_grid,
-    describe,
     discrepancy_posterior,
     fit_discrepancy,
     similarity,
@@ -20,6 +19,7 @@ from femcal.diagnose.explain import (
     _dense_base,
     _dense_curves,
     _failures,
+    _missing_text,
     _next_measurement,
     _own_range,
     _ranking,
@@ -37,6 +37,7 @@ from femcal.diagnose.result import (
     model_label,
     verdict_label,
 )
+from femcal.effects.split import base_name
 
 
 def _assemble(
@@ -117,7 +118,12 @@ def _assemble(
                 sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma[i])
                 best_sim = max(sim, key=sim.get) if sim else None
                 resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
-                text = describe(dense, mu, sdev, float(sigma_m.min()))
+                final = adequacy[i]["final"]
+                f, at = per_spec[i][effects]
+                final_res = measured[i] - f.pred[at].double().numpy()
+                text = _missing_text(
+                    dense, mu, sdev, float(sigma_m.min()), final_res, sigma[i], final
+                )
                 disc_info[i] = {
                     "model": model_label(effects),
                     "mean": mu,
@@ -125,7 +131,7 @@ def _assemble(
                     "mae_deg": float(dfit.mae_deg[pos]),
                     "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
                     "description": text,
-                    "summary": _summary(text, resembles, sim),
+                    "summary": _summary(text, resembles, sim, final),
                     "similarity": sim,
                     "resembles": resembles,
                 }
@@ -188,7 +194,8 @@ def _assemble(
                 ranking=ranking,
                 residuals=resid,
                 failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
-                effects=effects,
+                effects=[base_name(e) for e in effects],
+                model=effects,
                 adequate=adequate,
                 adequacy=adequacy[i],
                 final_mae_deg=float(np.nanmean(np.abs(final_res))),

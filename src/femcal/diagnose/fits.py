@@ -83,6 +83,22 @@ def _slices_of(effects: Sequence[str]) -> dict[str, tuple[int, int]]:
     return out
 
 
+def _split_start(v: torch.Tensor, effects: Sequence[str], split: Sequence[str]) -> torch.Tensor:
+    """A fit of ``effects`` (r, dim) as a start (r, dim') of ``split``, the same effects with
+    some in their split form (:mod:`femcal.effects.split`): each tied value copied into every
+    load case, so the split form starts where the tied fit is."""
+    n_disc = v.shape[1] - sum(len(get_effect(e).parameters) for e in effects)
+    offsets = _slices_of(effects)
+    parts = [v[:, :n_disc]]
+    for name in split:
+        cls = get_effect(name)
+        tied = getattr(cls, "tied", None)
+        a, b = offsets[tied.name if tied is not None and tied.name in offsets else name]
+        block = v[:, n_disc + a : n_disc + b]
+        parts.append(cls.expand_tied(block) if tied is not None and name not in offsets else block)
+    return torch.cat(parts, dim=1)
+
+
 def _solutions(per_spec: list[dict], rows, effects: tuple[str, ...]) -> torch.Tensor:
     """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
     return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])

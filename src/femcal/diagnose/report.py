@@ -242,7 +242,7 @@ def plot_heatmap(diag: Diagnosis, path: Path) -> None:
 
 
 def _parameters(s: SpecimenDiagnosis) -> str:
-    best = next((r for r in s.ranking if r["effects"] == list(s.effects)), None)
+    best = next((r for r in s.ranking if r["effects"] == list(s.model or s.effects)), None)
     if best is None:
         return ""
     return ", ".join(

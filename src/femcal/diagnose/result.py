@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from femcal.effects.split import base_name
+
 NONE = "none"
 
 
@@ -19,8 +21,9 @@ RESEMBLES = 0.8
 
 
 def verdict_label(effects: Sequence[str], adequate: bool) -> str:
-    """``none``, ``unexplained``, ``a+b`` or ``a+b+unexplained``."""
-    parts = list(effects)
+    """``none``, ``unexplained``, ``a+b`` or ``a+b+unexplained``: the effects by name, tied or
+    split alike (``facet_contact:split`` is ``facet_contact``)."""
+    parts = [base_name(e) for e in effects]
     if not adequate:
         parts.append(UNEXPLAINED)
     return "+".join(parts) if parts else NONE
@@ -41,7 +44,10 @@ class SpecimenDiagnosis:
         ``none``, ``unexplained``, the effects found joined by ``+``, possibly ending in
         ``+unexplained``.
     effects : list of str
-        The registered effects found, in the order forward selection added them.
+        The registered effects found, by name.
+    model : list of str
+        The chosen model's effects as fitted, each tied or in its split form
+        (``facet_contact:split``): what ``femcal calibrate --effects`` takes.
     adequate : bool
         The final model explains the data within the noise.
     ranking : list of dict
@@ -78,6 +84,7 @@ class SpecimenDiagnosis:
     residuals: np.ndarray
     failures: dict[str, Any] = field(default_factory=dict)
     effects: list[str] = field(default_factory=list)
+    model: list[str] = field(default_factory=list)
     adequate: bool = True
     adequacy: dict[str, Any] = field(default_factory=dict)
     final_mae_deg: float = float("nan")
@@ -93,7 +100,7 @@ class SpecimenDiagnosis:
 
     @property
     def final_label(self) -> str:
-        return model_label(self.effects)
+        return model_label(self.model or self.effects)
 
     def to_dict(self) -> dict[str, Any]:
         disc = None
@@ -107,6 +114,7 @@ class SpecimenDiagnosis:
             "specimen": self.specimen,
             "verdict": self.verdict,
             "effects": list(self.effects),
+            "model": list(self.model),
             "adequate": bool(self.adequate),
             "adequacy": self.adequacy,
             "baseline_mae_deg": self.baseline_mae_deg,
@@ -154,6 +162,19 @@ class Diagnosis:
         """Registered effects named for at least one specimen, most frequent first."""
         counts = {k: v for k, v in self.effect_counts().items() if k != UNEXPLAINED}
         return sorted(counts, key=lambda k: (-counts[k], k))
+
+    def found_forms(self) -> list[str]:
+        """The found effects as ``femcal calibrate --effects`` takes them: each in the form
+        (tied or split) most of its specimens were fitted with, most frequent first."""
+        counts: dict[str, dict[str, int]] = {}
+        for s in self.specimens:
+            for form in s.model:
+                by_form = counts.setdefault(base_name(form), {})
+                by_form[form] = by_form.get(form, 0) + 1
+        return [
+            max(counts[e], key=lambda f, e=e: (counts[e][f], f)) if e in counts else e
+            for e in self.found_effects()
+        ]
 
     def cohort_verdict(self) -> str:
         """The most frequent verdict other than ``none`` if it covers at least a quarter of

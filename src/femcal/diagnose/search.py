@@ -81,6 +81,7 @@ from femcal.diagnose.fits import (
     _weights,
     parameter_cost,
 )
+from femcal.diagnose.forms import choose_forms
 from femcal.diagnose.result import (
     Diagnosis,
 )
@@ -575,6 +576,23 @@ def diagnose(
             ):
                 still.append(i)
         active = np.asarray(still, dtype=int)
+
+    # 2'. Tied or split: each chosen effect's parameters per load case where that pays.
+    def fit_model(effects: tuple[str, ...], rows: np.ndarray, v0: torch.Tensor) -> None:
+        model = effect_model(effects)
+        v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, 1, max_iter)
+        fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
+        for pos, i in enumerate(rows):
+            per_spec[i][effects] = (fit, pos)
+
+    choose_forms(
+        chosen,
+        per_spec,
+        fit_model,
+        lambda effects, i: criterion_of(*per_spec[i][effects], i),
+        min_delta_inadequate,
+        specimens,
+    )
 
     # 2a. Backward check (stepwise selection): each effect of a combination must still pay
     # given the others. The sub-model, refitted from the combination's solution without that

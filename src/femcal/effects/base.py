@@ -81,6 +81,9 @@ class EffectParameter:
     #: Part of the start grids (calibration, diagnosis). Shape parameters of a law family are
     #: not: they start at the family's classic member (``start``) and move from there.
     grid: bool = True
+    #: May differ per load case: the effect's split form (``<effect>:split``,
+    #: :mod:`femcal.effects.split`) gives each of its load cases its own copy.
+    per_load_case: bool = False
 
     @property
     def scale(self) -> str:
@@ -107,6 +110,8 @@ class Effect:
     load_cases : tuple of str
         The load cases it acts on (others are the disc alone).
     parameters : tuple of EffectParameter
+        Those with ``per_load_case=True`` may differ per load case: the effect's split form,
+        ``<name>:split`` (:mod:`femcal.effects.split`), has one copy per load case.
     """
 
     name: ClassVar[str] = ""
@@ -124,6 +129,26 @@ class Effect:
     def rotation(self, moment_nm: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """Rotation (deg) a series element adds at an applied moment (Nm)."""
         raise NotImplementedError
+
+    def moment_at(
+        self,
+        rotation_deg: torch.Tensor,
+        p: Mapping[str, torch.Tensor],
+        cases: Sequence[int] | None = None,
+    ) -> torch.Tensor:
+        """:meth:`moment` where axis 1 of ``rotation_deg`` (B, c, m) holds the load cases
+        ``cases`` (indices into :data:`~femcal.schema.LOAD_CASES`; all four by default)."""
+        return self.moment(rotation_deg, p)
+
+    def rotation_at(
+        self,
+        moment_nm: torch.Tensor,
+        p: Mapping[str, torch.Tensor],
+        cases: Sequence[int] | None = None,
+    ) -> torch.Tensor:
+        """:meth:`rotation` where axis 1 of ``moment_nm`` (B, c, m) holds the load cases
+        ``cases`` (all four by default)."""
+        return self.rotation(moment_nm, p)
 
     # ------------------------------------------------------------------ helpers
     @classmethod
@@ -193,6 +218,12 @@ def _check_effect(name: str, cls: type[Effect]) -> None:
             f"Effect {cls.__name__} needs a name and kind 'parallel' or 'series'; got "
             f"name={cls.name!r}, kind={cls.kind!r}."
         )
+    if any(c in cls.name for c in ":+[] "):
+        raise ConfigError(
+            f"Effect {cls.__name__}: its name {cls.name!r} holds one of ':', '+', '[', ']' or a "
+            "space, which femcal uses in verdicts (a+b) and split forms (a:split); name it with "
+            "letters, digits and underscores."
+        )
     if name != cls.name:
         raise ConfigError(
             f"Effect {cls.__name__} is named {cls.name!r} (its class attribute `name`) but was "
@@ -247,8 +278,12 @@ def available_effects() -> list[str]:
 
 
 def get_effect(name: str) -> type[Effect]:
-    """The effect class registered under ``name`` (ConfigError listing the names otherwise)."""
-    return effect_registry.get(name)
+    """The effect class registered under ``name`` (ConfigError listing the names otherwise);
+    ``<name>:split`` is its split form (:func:`femcal.effects.split.split_effect`)."""
+    from femcal.effects.split import base_name, is_split, split_effect
+
+    cls = effect_registry.get(base_name(name))
+    return split_effect(cls) if is_split(name) else cls
 
 
 def load_effect_modules(paths: Sequence[str | Path]) -> list[str]:

@@ -14,6 +14,13 @@ diagnosis like any other):
 * neutral-zone laxity, ``phi = range (1 - exp(-(M / m0)^b))`` with ``b`` in [0.5, 3]: a slow
   saturating laxity (b < 1), the classic exponential (b = 1) to a sigmoid that flattens
   abruptly (b > 1).
+
+Where each engages and how stiff it is may differ per load case (``per_load_case``): facets
+are compressed in extension and impinge in axial rotation; the supraspinous, interspinous and
+flavum ligaments resist flexion, the intertransverse ligaments lateral bending; the neutral
+zone differs per plane. Their split forms (``facet_contact:split``, ...,
+:mod:`femcal.effects.split`) give gap, slack, stiffness and laxity one value per load case; the
+shape of the law stays shared.
 """
 
 from __future__ import annotations
@@ -46,8 +53,10 @@ class FacetContact(Effect):
     kind = "parallel"
     load_cases = ("Extension", "AxialRotation")
     parameters = (
-        EffectParameter("facet_gap_deg", "deg", 0.0, 6.0, start=1.0),
-        EffectParameter("facet_stiffness", "Nm/deg^n", 1e-4, 5.0, log=True, start=0.0),
+        EffectParameter("facet_gap_deg", "deg", 0.0, 6.0, start=1.0, per_load_case=True),
+        EffectParameter(
+            "facet_stiffness", "Nm/deg^n", 1e-4, 5.0, log=True, start=0.0, per_load_case=True
+        ),
         EffectParameter("facet_exponent", "1", 1.0, 3.0, start=0.5, grid=False),
         # How gradually contact engages: the width of the rounded corner at the gap (start:
         # 0.05 deg, a sharp onset; up to 2 deg, cartilage-like soft engagement).
@@ -84,8 +93,10 @@ class LigamentTension(Effect):
     kind = "parallel"
     load_cases = ("Flexion", "LateralBending")
     parameters = (
-        EffectParameter("ligament_slack_deg", "deg", 0.0, 12.0, start=1.0),
-        EffectParameter("ligament_stiffness", "Nm", 1e-4, 3.0, log=True, start=0.0),
+        EffectParameter("ligament_slack_deg", "deg", 0.0, 12.0, start=1.0, per_load_case=True),
+        EffectParameter(
+            "ligament_stiffness", "Nm", 1e-4, 3.0, log=True, start=0.0, per_load_case=True
+        ),
         # start: s = 1.5 deg, the classic member (0.5 * 16 ** u = 1.5).
         EffectParameter("ligament_toe_deg", "deg", 0.5, 8.0, log=True, start=0.3962406, grid=False),
     )
@@ -108,8 +119,8 @@ class NeutralZone(Effect):
     kind = "series"
     load_cases = ("Flexion", "Extension", "LateralBending", "AxialRotation")
     parameters = (
-        EffectParameter("nz_range_deg", "deg", 0.0, 3.0, start=0.0),
-        EffectParameter("nz_moment_nm", "Nm", 0.1, 1.5, log=True),
+        EffectParameter("nz_range_deg", "deg", 0.0, 3.0, start=0.0, per_load_case=True),
+        EffectParameter("nz_moment_nm", "Nm", 0.1, 1.5, log=True, per_load_case=True),
         # start: b = 1, the classic exponential (0.5 * 6 ** u = 1).
         EffectParameter("nz_shape", "1", 0.5, 3.0, log=True, start=0.3868528, grid=False),
     )

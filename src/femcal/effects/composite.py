@@ -47,7 +47,8 @@ class EffectModel:
     base : SurrogateCurveModel
         The disc surrogate on the moment grid.
     effects : sequence of str
-        Registered effect names (:func:`~femcal.effects.available_effects`); empty = the disc.
+        Registered effect names (:func:`~femcal.effects.available_effects`), or their split
+        forms (``facet_contact:split``, :mod:`femcal.effects.split`); empty = the disc.
     """
 
     def __init__(self, base: CurveModel, effects: Sequence[str]) -> None:
@@ -216,7 +217,7 @@ class EffectModel:
                 phi = phi_disc(md, detached=True, slope=False)[0]
                 g = md - target
                 for (e, p), lc in zip(parallel, masks):
-                    g = g + e.moment(phi, p) * lc
+                    g = g + e.moment_at(phi, p, cases) * lc
                 up = g > 0
                 hi = torch.where(up, mid, hi)
                 lo = torch.where(up, lo, mid)
@@ -267,7 +268,8 @@ class EffectModel:
                 total = None
                 for e, p in parallel:
                     pp = {k: t.detach() for k, t in p.items()} if p_detach else p
-                    term = e.moment(phi, pp) * constant_like(e.load_case_mask()[None, :, None], phi)
+                    mask = constant_like(e.load_case_mask()[None, :, None], phi)
+                    term = e.moment_at(phi, pp) * mask
                     total = term if total is None else total + term
                 return total
 
@@ -292,7 +294,7 @@ class EffectModel:
         for e, p in zip(self.effects, params):
             if e.kind == "series":
                 mask = constant_like(e.load_case_mask()[None, :, None], v)
-                phi = phi + e.rotation(applied, p) * mask
+                phi = phi + e.rotation_at(applied, p) * mask
         return phi
 
     def curves_jacobian(
