@@ -248,6 +248,19 @@ def test_a_file_without_a_usable_point_is_refused(
         policy.screen(measured(*moments))
 
 
+def test_a_file_whose_usable_points_all_weigh_nothing_is_refused(policy: MomentPolicy) -> None:
+    rom = np.ones((1, 4, 2))
+    weight = np.array([0.0, 1.0])[None, None, :].repeat(4, axis=1)  # 0 at 2 Nm, 1 at 12 Nm
+    meas = from_arrays(["A"], [2.0, 12.0], rom, weight=weight, source="w.csv")
+    with pytest.raises(
+        InputDataError,
+        match=r"^w\.csv: no measured point is usable: the points at moments in \[0\.6, 8\.33\] "
+        r"Nm all have weight 0 \(field weight\) and the others lie outside that interval \(field "
+        r"moment_nm: 12 Nm; .*\)\. Give the points inside it a positive weight\.$",
+    ):
+        policy.screen(meas)
+
+
 def test_newton_millimetres_are_recognised(policy: MomentPolicy) -> None:
     with pytest.raises(
         InputDataError,

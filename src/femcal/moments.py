@@ -404,6 +404,14 @@ class MomentPolicy:
             self._refuse_all(meas, used)
         drop = measured & ~accepted[None, None, :]
         lost = ~np.any(measured & ~drop & (np.asarray(meas.weight) > 0), axis=(1, 2))
+        if lost.all():
+            a_lo, a_hi = self.accepted_range
+            raise InputDataError(
+                f"{meas.source}: no measured point is usable: the points at moments in "
+                f"[{a_lo:.3g}, {a_hi:.3g}] Nm all have weight 0 (field weight) and the others "
+                f"lie outside that interval (field moment_nm: {_fmt(used[~accepted[used_cols]])} "
+                f"Nm; {self._limits()}). Give the points inside it a positive weight."
+            )
         reasons = np.where(drop, "moment", "")
         drop = drop | (measured & lost[:, None, None])
         reasons = np.where(drop & (reasons == ""), "specimen", reasons)
