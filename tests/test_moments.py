@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import re
@@ -401,3 +402,12 @@ def test_cli_settings_errors() -> None:
         "error_growth": (0.8, 3.0),
         "max_log_ratio": (0.5, 0.5),
     }
+
+
+def test_the_shipped_settings_are_the_measured_ones() -> None:
+    """params.yaml's moments are what bench_extrapolation measured at each end."""
+    chosen = json.loads((ROOT / "reports" / "extrapolation.json").read_text())["analysis"]
+    settings = _moment_settings(yaml.safe_load((ROOT / "params.yaml").read_text()))
+    for key in ("error_growth", "max_log_ratio"):
+        measured_pair = tuple(chosen["chosen"][key][side] for side in ("below", "above"))
+        assert settings[key] == pytest.approx(measured_pair), key
