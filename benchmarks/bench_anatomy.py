@@ -152,6 +152,7 @@ def score_specimens(
     rows = []
     for a in answers.itertuples(index=False):
         s = by_name[str(a.specimen)]
+        named = [str(e).split(":")[0] for e in s.get("effects") or []]  # a split form's effect
         expected = frozenset(e for e in str(a.expected_effects or "").split("+") if e)
         if a.expected_effects != a.expected_effects:  # NaN from an empty CSV cell
             expected = frozenset()
@@ -164,8 +165,9 @@ def score_specimens(
                 "protocol": a.protocol,
                 "expected": "+".join(sorted(expected)),
                 "verdict": s["verdict"],
-                "effects": "+".join(s.get("effects") or []),
-                **judge(s["verdict"], s.get("effects") or [], expected, bool(a.out_of_library)),
+                "effects": "+".join(named),
+                "model": "+".join(s.get("model") or []),
+                **judge(s["verdict"], named, expected, bool(a.out_of_library)),
                 "visible": float(s["baseline_mae_deg"]) > 2.0 * noise_deg,
                 "disc_rejected": float(disc.get("p_chi2", np.nan)) < alpha,
                 "baseline_mae_deg": float(s["baseline_mae_deg"]),
@@ -222,18 +224,18 @@ def headline(table: pd.DataFrame) -> dict[str, dict[str, Any]]:
 
 
 def reliability(table: pd.DataFrame) -> dict[str, Any] | None:
-    """Calibration of the inclusion probabilities over every effect x specimen pair (5 bins),
+    """Calibration of the inclusion probabilities over every effect x specimen pair (5 bins;
+    the effects are those any specimen's probabilities or truth name, absent ones count as 0),
     of ``outside_library`` against the out-of-library truth, and the share of visible
     single-effect specimens whose true effect has inclusion >= 0.5; None without
     probabilities."""
     have = table[table["inclusion"].astype(bool)]
     if have.empty:
         return None
-    pairs = []
-    for r in have.itertuples(index=False):
-        truth = set(r.expected.split("+")) - {""}
-        for effect, p in (json.loads(r.inclusion) or {}).items():
-            pairs.append((float(p), effect in truth))
+    included = [json.loads(r) or {} for r in have["inclusion"]]
+    truths = [set(e.split("+")) - {""} for e in have["expected"]]
+    library = sorted(set().union(*included, *truths))  # an effect never fitted has p = 0
+    pairs = [(float(inc.get(e, 0.0)), e in t) for inc, t in zip(included, truths) for e in library]
     pred, obs = np.array([p for p, _ in pairs]), np.array([o for _, o in pairs], dtype=float)
     ool = have[np.isfinite(have["outside_library"])]
 
@@ -258,6 +260,7 @@ def reliability(table: pd.DataFrame) -> dict[str, Any] | None:
         ),
         "true_effect_inclusion_ge_half": _rate(pd.Series(hits, dtype=object)),
         "n_specimens": len(have),
+        "effects": library,
     }
 
 

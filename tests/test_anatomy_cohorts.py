@@ -230,7 +230,8 @@ def test_score_and_summaries():
     assert (h["none_given_effect_all"]["k"], h["none_given_effect_all"]["n"]) == (1, 5)
     assert h["none_given_effect_visible"]["n"] == 4 and h["false_alarm"]["k"] == 0
     rel = ba.reliability(table)
-    assert sum(b["n"] for b in rel["inclusion"]) == 6
+    assert rel["effects"] == ["facet_contact", "ligament_tension", "neutral_zone"]
+    assert sum(b["n"] for b in rel["inclusion"]) == 18  # absent effects count as p = 0
     top = rel["inclusion"][-1]
     assert top["n"] == 2 and top["observed"] == 1.0
     assert rel["true_effect_inclusion_ge_half"]["k"] == 2
@@ -239,6 +240,13 @@ def test_score_and_summaries():
     assert mae["classes"]["facet_contact"]["ratio"] == pytest.approx(0.0575 / 0.04)
     by_class = {r["truth"]: r for r in ba.grouped_rates(table, "truth")}
     assert by_class["facet_contact"]["visible"] == 2 and by_class["none"]["strict"]["k"] == 1
+
+
+def test_split_forms_count_as_their_effect():
+    diag = _diagnosis(False)
+    diag[1]["effects"] = ["facet_contact:split"]
+    table = ba.score_specimens(ANSWERS, diag, noise_deg=0.05, alpha=0.01)
+    assert table.loc[1, "effects"] == "facet_contact" and table.loc[1, "strict"]
 
 
 def test_no_probabilities_is_skipped():
