@@ -29,6 +29,7 @@ from femcal.diagnose.explain import (
 from femcal.diagnose.fits import (
     _solutions,
 )
+from femcal.diagnose.probabilities import specimen_probabilities
 from femcal.diagnose.result import (
     NONE,
     RESEMBLES,
@@ -38,6 +39,27 @@ from femcal.diagnose.result import (
     verdict_label,
 )
 from femcal.effects.split import base_name
+
+
+def _outside_criteria(base, effect_model, finals, per_spec, measured, sigma, cost) -> np.ndarray:
+    """Per specimen (n,): the criterion of its final model with a smooth discrepancy,
+    ``-2 log ML - sum ln sigma^2 + (k + a) ln n`` (``k`` the model's effective parameters,
+    ``a`` the load cases whose discrepancy amplitude is not zero), comparable with the
+    models' ``chi^2 + k ln n``."""
+    out = np.full(len(per_spec), np.inf)
+    for effects, members in finals.items():
+        rows = np.asarray(members)
+        model = base if not effects else effect_model(effects)
+        v = _solutions(per_spec, rows, effects)
+        dfit = fit_discrepancy(model, v, measured[rows], sigma[rows], amplitude_deg="ml")
+        ok = np.isfinite(measured[rows])
+        log_noise = np.where(ok, np.log(sigma[rows] ** 2), 0.0).sum(axis=(1, 2))
+        n_amp = (np.asarray(dfit.amplitude_deg) > 0).sum(axis=1)
+        for pos, i in enumerate(rows):
+            f, at = per_spec[i][effects]
+            k = float(f.trace[at]) + float(n_amp[pos])
+            out[i] = float(dfit.neg2_log_ml[pos] - log_noise[pos]) + k * float(cost[i])
+    return out
 
 
 def _assemble(
@@ -61,6 +83,7 @@ def _assemble(
     effect_model,
     alpha,
     min_delta,
+    further_delta,
     penalty,
     discrepancy,
     curve_points,
@@ -100,6 +123,24 @@ def _assemble(
             }
         )
 
+    # 3'. How probable each explanation is: every fitted model, and each final model with the
+    # discrepancy it needs (type-II maximum likelihood), by its marginal likelihood
+    # (femcal.diagnose.probabilities). The verdict says `unexplained` where that is more
+    # probable than the model alone.
+    outside = _outside_criteria(base, effect_model, finals, per_spec, measured, sigma, cost)
+    probabilities = [
+        specimen_probabilities(
+            {
+                m: f.criterion(pos, float(cost[i]), penalty, mask, sigma)
+                for m, (f, pos) in per_spec[i].items()
+            },
+            (chosen[i], outside[i]),
+            min_delta,
+            further_delta,
+        )
+        for i in range(n)
+    ]
+
     # 4. The discrepancy on top of each final model.
     dense = dense_grid(moments, curve_points)
     disc_info: list[dict[str, Any] | None] = [None] * n
@@ -118,7 +159,7 @@ def _assemble(
                 sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma[i])
                 best_sim = max(sim, key=sim.get) if sim else None
                 resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
-                final = adequacy[i]["final"]
+                final = probabilities[i]
                 f, at = per_spec[i][effects]
                 final_res = measured[i] - f.pred[at].double().numpy()
                 text = _missing_text(
@@ -131,7 +172,7 @@ def _assemble(
                     "mae_deg": float(dfit.mae_deg[pos]),
                     "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
                     "description": text,
-                    "summary": _summary(text, resembles, sim, final),
+                    "summary": _summary(text, resembles, sim, adequacy[i]["final"], final),
                     "similarity": sim,
                     "resembles": resembles,
                 }
@@ -163,7 +204,7 @@ def _assemble(
     for i, spec in enumerate(specimens):
         ranking = _ranking(per_spec[i], i, measured, sigma, cost, base, penalty, mask)
         effects = list(chosen[i])
-        adequate = bool(adequacy[i]["final"]["adequate"])
+        adequate = not probabilities[i]["unexplained"]
         f, pos = per_spec[i][chosen[i]]
         final_res = measured[i] - f.pred[pos].double().numpy()
         own = _own_range(dense, moments, mask[i])
@@ -203,6 +244,7 @@ def _assemble(
                 curves=curves,
                 discrepancy=disc_info[i],
                 next_measurement=nxt,
+                probabilities=probabilities[i],
                 sigma=np.where(mask[i], sigma[i], np.nan),
             )
         )

@@ -4,7 +4,8 @@ Where the chosen effects still leave a specimen's data unexplained, each effect 
 a smooth discrepancy (the Gaussian process of :mod:`femcal.diagnose.discrepancy`) sized for every
 model by its own marginal likelihood (or to the larger model's misfit): an effect that only let
 the disc bend towards physics nobody registered is dropped (backward elimination), one that
-explains its own load cases stays.
+explains its own load cases stays, and so does one that removes most of the disc-alone misfit
+(an effect that does not finish the job keeps its place beside ``unexplained``).
 """
 
 from __future__ import annotations
@@ -22,6 +23,21 @@ from femcal.diagnose.fits import _columns, _Fit, _fit_from, _solutions
 from femcal.effects.base import get_effect
 
 logger = logging.getLogger(__name__)
+
+
+def _explains_most(
+    fits: dict, current: tuple[str, ...], rest: tuple[str, ...], n_points: float
+) -> bool:
+    """Whether the effects ``current`` has and ``rest`` lacks remove most of the disc-alone
+    misfit: refitted without them, the chi-square rises by more than half of the disc alone's
+    excess over its expectation (its ``n_points`` measured points). Such an effect is needed,
+    even where a smooth discrepancy would take its place; ``fits`` is one specimen's fitted
+    models."""
+    if rest not in fits or () not in fits:
+        return False
+    chi2 = {m: float(fits[m][0].chi2[fits[m][1]]) for m in (current, rest, ())}
+    excess = chi2[()] - n_points
+    return excess > 0 and chi2[rest] - chi2[current] > 0.5 * excess
 
 
 def open_world_elimination(
@@ -191,7 +207,9 @@ def open_world_elimination(
                 logger.debug(
                     "%s: GP-BIC loss of dropping from %s: %s", specimens[i], current, losses
                 )
-                if losses[rest] < min_delta:
+                if losses[rest] < min_delta and not _explains_most(
+                    per_spec[i], current, rest, float(n_points[i])
+                ):
                     logger.info(
                         "%s: %s does not pay beyond a smooth discrepancy (%.1f); dropped",
                         specimens[i],

@@ -148,16 +148,17 @@ def _missing_text(
     sigma_deg: float,
     residuals: np.ndarray,
     sigma: np.ndarray,
-    adequacy: dict[str, Any],
+    probabilities: dict[str, Any],
 ) -> list[str]:
-    """What is missing, in words (:func:`~femcal.diagnose.discrepancy.describe`). Where the
-    adequacy test says the model does not explain the data but no deviation stands out at two
-    sd, the description says so at one sd and, failing that, names the load case of the
+    """What is missing, in words (:func:`~femcal.diagnose.discrepancy.describe`). Where
+    something outside the library is the more probable explanation (``probabilities``,
+    :func:`~femcal.diagnose.probabilities.specimen_probabilities`) but no deviation stands out
+    at two sd, the description says so at one sd and, failing that, names the load case of the
     largest residuals (``residuals`` and ``sigma`` (4, m); ``sigma_deg`` the noise that sizes
     a deviation in words): the report never says "nothing
     missing" beside an ``unexplained`` verdict."""
     text = describe(dense, mean, sd, sigma_deg)
-    if text or adequacy["adequate"]:
+    if text or not probabilities["unexplained"]:
         return text
     text = [f"{t} (at one sd)" for t in describe(dense, mean, sd, sigma_deg, z=1.0)]
     if text:
@@ -177,10 +178,15 @@ def _summary(
     resembles: str | None,
     sim: dict[str, float],
     adequacy: dict[str, Any] | None = None,
+    probabilities: dict[str, Any] | None = None,
 ) -> str:
     sure = ""
-    if adequacy is not None and not adequacy["adequate"]:
-        sure = f" The model does not explain the data (chi-square p = {adequacy['p_chi2']:.2g})."
+    if probabilities is not None and probabilities["unexplained"]:
+        sure = (
+            " Something outside the library is missing with probability "
+            f"{probabilities['outside_library']:.2f}"
+            + (f" (chi-square test p = {adequacy['p_chi2']:.2g})." if adequacy else ".")
+        )
     if not text:
         return "nothing missing beyond the noise" + sure
     lcs = [t.split(":")[0] for t in text]

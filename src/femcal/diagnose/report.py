@@ -241,6 +241,42 @@ def plot_heatmap(diag: Diagnosis, path: Path) -> None:
     plt.close(fig)
 
 
+def plot_inclusion(diag: Diagnosis, path: Path) -> None:
+    """Cohort heat map of inclusion probabilities: each effect (and something outside the
+    library) x each specimen, 0 to 1 (:mod:`femcal.diagnose.probabilities`)."""
+    plt = _plt()
+    rows = sorted({e for s in diag.specimens for e in s.probabilities.get("inclusion", {})})
+    names = [s.specimen for s in diag.specimens]
+    p = np.array(
+        [[s.probabilities.get("inclusion", {}).get(e, 0.0) for s in diag.specimens] for e in rows]
+        + [[s.probabilities.get("outside_library", 0.0) for s in diag.specimens]]
+    )
+    labels = [*rows, "outside the library"]
+    fig, ax = plt.subplots(
+        figsize=(max(6.0, 0.22 * len(names) + 3.0), 0.5 * len(labels) + 1.8),
+        constrained_layout=True,
+    )
+    im = ax.imshow(p, cmap="viridis", vmin=0.0, vmax=1.0, aspect="auto")
+    ax.set_yticks(range(len(labels)), labels, fontsize=9)
+    step = max(1, int(np.ceil(len(names) / 60)))
+    ax.set_xticks(range(0, len(names), step), names[::step], fontsize=7, rotation=90)
+    ax.set_xlabel("specimen", fontsize=9)
+    fig.colorbar(im, ax=ax, label="inclusion probability", shrink=0.9)
+    ax.set_title("How probable each explanation is, per specimen", fontsize=11)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _probable(s: SpecimenDiagnosis) -> str:
+    """The most probable models (p >= 0.05) and the effects' inclusion probabilities."""
+    pr = s.probabilities
+    if not pr:
+        return ""
+    top = [f"{k} {v:.2f}" for k, v in pr.get("models", {}).items() if v >= 0.05][:3]
+    inc = [f"{k} {v:.2f}" for k, v in pr.get("inclusion", {}).items() if v >= 0.05]
+    return "; ".join(top) + (f" (inclusion: {', '.join(inc)})" if inc else "")
+
+
 def _parameters(s: SpecimenDiagnosis) -> str:
     best = next((r for r in s.ranking if r["effects"] == list(s.model or s.effects)), None)
     if best is None:
@@ -315,20 +351,22 @@ def write_diagnosis(
         "# Diagnosis",
         "",
         f"Noise σ = {sig_text} (measurement {diag.noise_deg:.4f} ± {diag.noise_sd_deg:.4f}°, "
-        f"surrogate's own error in quadrature). A model explains a specimen when its χ² and "
-        f"its sign runs are consistent with σ (p ≥ {diag.alpha:g}); otherwise the verdict says "
-        f"`unexplained`. Verdicts {diag.verdicts()}; effects named {diag.effect_counts()}; "
-        f"{diag.seconds:.1f} s.",
+        "surrogate's own error in quadrature). Each explanation's probability weighs its "
+        "criterion with the evidence the search asks before naming it; the verdict says "
+        "`unexplained` where a smooth discrepancy on top of the model is more probable than "
+        f"the model alone (the χ² test's p beside it). Verdicts {diag.verdicts()}; effects "
+        f"named {diag.effect_counts()}; {diag.seconds:.1f} s.",
         "",
-        "| specimen | verdict | disc-alone MAE (°) | final MAE (°) | χ² p | effect parameters | "
-        "what is missing | to settle it, measure |",
-        "|---|---|---|---|---|---|---|---|",
+        "| specimen | verdict | probabilities | disc-alone MAE (°) | final MAE (°) | χ² p | "
+        "effect parameters | what is missing | to settle it, measure |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for s in diag.specimens:
         missing = s.discrepancy["summary"] if s.discrepancy else ""
         p = s.adequacy.get("final", {}).get("p_chi2", float("nan")) if s.adequacy else np.nan
         lines.append(
-            f"| {s.specimen} | {s.verdict} | {s.baseline_mae_deg:.3f} | {s.final_mae_deg:.3f} | "
+            f"| {s.specimen} | {s.verdict} | {_probable(s)} | {s.baseline_mae_deg:.3f} | "
+            f"{s.final_mae_deg:.3f} | "
             f"{p:.2g} | {_parameters(s)} | {missing} | {_next(s)} |"
         )
     (out_dir / "summary.md").write_text("\n".join(lines) + "\n")
@@ -341,4 +379,5 @@ def write_diagnosis(
                 diag, i, measured[i], pdir / f"{safe_file_name(diag.specimens[i].specimen)}.png"
             )
         plot_heatmap(diag, out_dir / "heatmap.png")
+        plot_inclusion(diag, out_dir / "inclusion.png")
     return summary

@@ -75,6 +75,11 @@ class SpecimenDiagnosis:
         ``moment_nm``, ``difference_deg`` and ``difference_sigma`` (in the sigma at that
         moment); with a moment policy also ``within_measured_range`` and, when the point lies
         beyond the specimen's protocol, ``within_protocol`` (the best point within it).
+    probabilities : dict
+        ``models`` (label -> posterior probability of every model fitted, and of the chosen
+        one with a discrepancy, ``<model>+unexplained``), ``inclusion`` (effect ->
+        probability), ``outside_library`` and ``most_probable``
+        (:mod:`femcal.diagnose.probabilities`).
     """
 
     specimen: str
@@ -92,6 +97,7 @@ class SpecimenDiagnosis:
     curves: dict[str, Any] = field(default_factory=dict)
     discrepancy: dict[str, Any] | None = None
     next_measurement: dict[str, Any] | None = None
+    probabilities: dict[str, Any] = field(default_factory=dict)
     sigma: np.ndarray | None = None
 
     @property
@@ -122,6 +128,7 @@ class SpecimenDiagnosis:
             "ranking": self.ranking,
             "discrepancy": disc,
             "next_measurement": self.next_measurement,
+            "probabilities": self.probabilities,
             "failures": self.failures,
         }
 

@@ -687,6 +687,7 @@ def diagnose(
         effect_model=effect_model,
         alpha=alpha,
         min_delta=min_delta,
+        further_delta=min_delta_inadequate,
         penalty=penalty,
         discrepancy=discrepancy,
         curve_points=curve_points,

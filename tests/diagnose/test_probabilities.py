@@ -1,0 +1,73 @@
+"""Posterior probabilities of a specimen's explanations (femcal.diagnose.probabilities)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from femcal.diagnose.elimination import _explains_most
+from femcal.diagnose.probabilities import prior_cost, specimen_probabilities
+
+FIRST, FURTHER = 10.0, 2.0
+
+
+def test_prior_cost_charges_the_first_effect_each_further_one_and_each_split():
+    assert prior_cost((), FIRST, FURTHER) == 0.0
+    assert prior_cost(("facet_contact",), FIRST, FURTHER) == FIRST
+    assert prior_cost(("facet_contact", "neutral_zone"), FIRST, FURTHER) == FIRST + FURTHER
+    assert prior_cost(("facet_contact:split",), FIRST, FURTHER) == FIRST + FURTHER
+
+
+def test_probabilities_are_the_criteria_weights_with_the_prior():
+    crit = {(): 100.0, ("facet_contact",): 80.0, ("facet_contact:split",): 78.0}
+    p = specimen_probabilities(crit, None, FIRST, FURTHER)
+    # scores 100, 90, 90: the disc e^-5 against 1 and 1
+    w = np.exp(-np.array([10.0, 0.0, 0.0]) / 2)
+    want = w / w.sum()
+    assert p["models"]["none"] == pytest.approx(want[0], abs=1e-4)
+    assert p["models"]["facet_contact"] == pytest.approx(want[1], abs=1e-4)
+    assert p["inclusion"]["facet_contact"] == pytest.approx(want[1] + want[2], abs=1e-4)
+    assert sum(p["models"].values()) == pytest.approx(1.0, abs=1e-3)
+    assert p["outside_library"] == 0.0 and not p["unexplained"]
+
+
+def test_two_explanations_that_fit_equally_share_the_probability():
+    crit = {(): 200.0, ("facet_contact",): 50.0, ("facet_contact", "neutral_zone"): 48.0}
+    p = specimen_probabilities(crit, None, FIRST, FURTHER)
+    assert p["models"]["facet_contact"] == pytest.approx(0.5, abs=1e-3)
+    assert p["inclusion"]["neutral_zone"] == pytest.approx(0.5, abs=1e-3)
+    assert p["inclusion"]["facet_contact"] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_a_discrepancy_that_pays_its_prior_makes_the_verdict_unexplained():
+    crit = {(): 300.0, ("ligament_tension",): 120.0}
+    # the discrepancy on the ligament model: 40 below it, beyond the first effect's 10
+    p = specimen_probabilities(crit, (("ligament_tension",), 80.0), FIRST, FURTHER)
+    assert p["unexplained"] and p["most_probable"] == "ligament_tension+unexplained"
+    assert p["outside_library"] > 0.99 and p["inclusion"]["ligament_tension"] > 0.99
+    q = specimen_probabilities(crit, (("ligament_tension",), 115.0), FIRST, FURTHER)
+    assert not q["unexplained"] and q["most_probable"] == "ligament_tension"
+    assert q["outside_library"] == pytest.approx(1 / (1 + np.exp(2.5)), abs=1e-3)
+
+
+def test_no_finite_criterion_gives_no_probabilities():
+    p = specimen_probabilities({(): np.inf}, None, FIRST, FURTHER)
+    assert p["models"] == {} and p["most_probable"] is None and not p["unexplained"]
+
+
+class _Fit:
+    def __init__(self, chi2):
+        self.chi2 = np.array([chi2])
+
+
+@pytest.mark.parametrize(
+    ("chi2_rest", "needed"),
+    [(400.0, True), (150.0, False)],  # disc-alone excess 464: the facet removes 340 or 90
+)
+def test_an_effect_that_removes_most_of_the_misfit_is_needed(chi2_rest, needed):
+    fits = {(): (_Fit(500.0), 0), ("facet_contact",): (_Fit(60.0), 0)}
+    fits[("neutral_zone",)] = (_Fit(chi2_rest), 0)
+    current = ("facet_contact", "neutral_zone")
+    fits[current] = (_Fit(60.0), 0)
+    assert _explains_most(fits, current, ("neutral_zone",), 36.0) is needed
+    assert not _explains_most(fits, current, ("no_such",), 36.0)  # never fitted: no claim
