@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import inspect
 import itertools
 import json
 import os
@@ -92,8 +91,8 @@ from scipy.stats import binomtest
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.config import load_params, section
 from femcal.datasets import load_split, training_configurations
-from femcal.diagnose import Diagnosis, diagnose
-from femcal.diagnose.fits import _chi2, _Fit, parameter_cost
+from femcal.diagnose import DiagnoseOptions, Diagnosis, diagnose
+from femcal.diagnose.fits import _chi2, _Fit
 from femcal.diagnose.report import PRACTICAL_REPEATS, practical_next
 from femcal.effects.base import available_effects
 from femcal.effects.composite import EffectModel
@@ -104,12 +103,6 @@ from femcal.tidy import wide_rom
 from femcal.tracking import configure_tracking, load_surrogate, resolve_model_version
 
 REPO = Path(__file__).resolve().parents[1]
-#: ``diagnose``'s keyword defaults: what an option not given on the command line is.
-DIAGNOSE_DEFAULTS = {
-    k: p.default
-    for k, p in inspect.signature(diagnose).parameters.items()
-    if p.default is not inspect.Parameter.empty
-}
 UNEXPLAINED = "unexplained"
 THREE_CLASSES = (NONE, "facet_contact", "ligament_tension", "neutral_zone")
 #: The planted parameters reported with their uncertainty, per effect (three-class cohorts).
@@ -321,13 +314,11 @@ def model_criteria(
         Sorted effect tuple -> criterion, ndarray of shape (r,).
     """
     rom = cohort["rom_deg"][idx]
-    # what one parameter costs, as the diagnosis prices it (2 with the AIC, ln n with the BIC)
-    criterion = ctx["options"].get("criterion", DIAGNOSE_DEFAULTS["criterion"])
-    cost = parameter_cost(criterion, np.isfinite(rom).reshape(len(idx), -1).sum(1))
+    # what one parameter costs, as the diagnosis prices it: ln n
+    cost = np.log(np.maximum(np.isfinite(rom).reshape(len(idx), -1).sum(1), 2.0))
     names = sorted(ctx["candidates"] or available_effects())
     models = [c for k in range(len(names) + 1) for c in itertools.combinations(names, k)]
     opts = {**ctx["cal_opts"], **THOROUGH}
-    penalty = ctx["options"].get("penalty", DIAGNOSE_DEFAULTS["penalty"])
     w = None if weight is None else weight[idx]
     mask = np.isfinite(rom)
     sigma = np.broadcast_to(sigma_m, rom.shape)
@@ -348,7 +339,7 @@ def model_criteria(
         fit = _Fit(effects, m, v, np.arange(len(idx)), None, chi2, m.dim)
         bic[effects] = np.array(
             [
-                min(fit.criterion(k, cost[k], penalty, mask, sigma), own.get((k, effects), np.inf))
+                min(fit.criterion(k, cost[k], mask, sigma), own.get((k, effects), np.inf))
                 for k in range(len(idx))
             ]
         )
@@ -457,11 +448,11 @@ def run_diagnosis(cohort: dict[str, Any], ctx: dict[str, Any]):
         surrogate_error_deg=sur_err,
         candidates=ctx["candidates"],
         start_bank=ctx["start_bank"],
-        min_delta=ctx["min_delta"],
         point_weight=cohort.get("point_weight"),
         moment_policy=policy,
-        seed=cohort["seed"],
-        **ctx["options"],
+        options=DiagnoseOptions(
+            **{"min_delta": ctx["min_delta"], "seed": cohort["seed"], **ctx["options"]}
+        ),
     )
     return diag, time.perf_counter() - t0, time.process_time() - cpu0, model, weight
 

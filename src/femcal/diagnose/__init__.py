@@ -5,14 +5,19 @@ effects, selects per specimen by an honest criterion and asks whether the chosen
 the data within the noise; what it says of each specimen is a :class:`SpecimenDiagnosis`
 (:mod:`.result`). The pieces:
 
+* :mod:`.options`: :class:`DiagnoseOptions`, how the search searches and decides;
+* :mod:`.state`: what its steps share; :mod:`.forward`, :mod:`.forms` (tied or split per
+  load case), :mod:`.elimination` (open world): the steps;
+* :mod:`.probabilities`: how probable each model, effect and unexplained residue is;
 * :mod:`.fits`: fitting a model to many specimens at once (starts, Gauss-Newton, chi-square);
 * :mod:`.explain`: adequacy tests, rankings, what each effect adds, what to measure next;
 * :mod:`.discrepancy`: the smooth model discrepancy (Kennedy & O'Hagan) and its description;
 * :mod:`.report`: the files, plots and tables a diagnosis writes.
 
-Measured figures: ``reports/bench_diagnose.md``.
+Measured figures: the docs' benchmark pages.
 """
 
+from femcal.diagnose.options import DiagnoseOptions
 from femcal.diagnose.result import (
     NONE,
     UNEXPLAINED,
@@ -26,6 +31,7 @@ from femcal.diagnose.search import diagnose
 __all__ = [
     "NONE",
     "UNEXPLAINED",
+    "DiagnoseOptions",
     "Diagnosis",
     "SpecimenDiagnosis",
     "diagnose",

@@ -1,5 +1,5 @@
-"""The last steps of a diagnosis: adequacy of the chosen models, the discrepancy and what is
-missing, continuous curves, rankings and what to measure next."""
+"""The last steps of a diagnosis: adequacy of the chosen models, how probable each explanation
+is, the discrepancy and what is missing, continuous curves, rankings and what to measure next."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from femcal.diagnose.discrepancy import (
+    DiscrepancyFit,
     dense_grid,
     discrepancy_posterior,
     fit_discrepancy,
@@ -26,9 +27,7 @@ from femcal.diagnose.explain import (
     _signatures,
     _summary,
 )
-from femcal.diagnose.fits import (
-    _solutions,
-)
+from femcal.diagnose.fits import _Fit
 from femcal.diagnose.probabilities import specimen_probabilities
 from femcal.diagnose.result import (
     NONE,
@@ -38,195 +37,79 @@ from femcal.diagnose.result import (
     model_label,
     verdict_label,
 )
+from femcal.diagnose.state import DiagnosisState, Model
 from femcal.effects.split import base_name
 
 
-def _outside_criteria(base, effect_model, finals, per_spec, measured, sigma, cost) -> np.ndarray:
-    """Per specimen (n,): the criterion of its final model with a smooth discrepancy,
-    ``-2 log ML - sum ln sigma^2 + (k + a) ln n`` (``k`` the model's effective parameters,
-    ``a`` the load cases whose discrepancy amplitude is not zero), comparable with the
-    models' ``chi^2 + k ln n``."""
-    out = np.full(len(per_spec), np.inf)
-    for effects, members in finals.items():
-        rows = np.asarray(members)
-        model = base if not effects else effect_model(effects)
-        v = _solutions(per_spec, rows, effects)
-        dfit = fit_discrepancy(model, v, measured[rows], sigma[rows], amplitude_deg="ml")
-        ok = np.isfinite(measured[rows])
-        log_noise = np.where(ok, np.log(sigma[rows] ** 2), 0.0).sum(axis=(1, 2))
-        n_amp = (np.asarray(dfit.amplitude_deg) > 0).sum(axis=1)
-        for pos, i in enumerate(rows):
-            f, at = per_spec[i][effects]
-            k = float(f.trace[at]) + float(n_amp[pos])
-            out[i] = float(dfit.neg2_log_ml[pos] - log_noise[pos]) + k * float(cost[i])
-    return out
-
-
 def _assemble(
+    state: DiagnosisState,
     *,
-    base,
-    specimens,
-    candidates,
-    measured,
-    mask,
-    n_points,
-    cost,
-    sigma,
-    sigma_m,
-    sur,
-    moments,
-    chosen,
-    per_spec,
-    fits,
-    pred0,
-    v_disc,
-    effect_model,
-    alpha,
-    min_delta,
-    further_delta,
-    penalty,
-    discrepancy,
-    curve_points,
-    noise_used,
-    noise_sd,
+    disc: _Fit,
+    sur: np.ndarray,
+    noise_used: float,
+    noise_sd: float,
     moment_policy,
-    t0,
-    n,
+    t0: float,
 ) -> Diagnosis:
-    """Steps 3-5 of :func:`diagnose` for the models it chose: adequacy, the discrepancy and
-    what is missing, continuous curves, rankings and what to measure next."""
-    # 3. Adequacy of the final models (and of the disc alone), with the exact Jacobian.
-    out: list[SpecimenDiagnosis] = []
-    finals: dict[tuple[str, ...], list[int]] = {}
+    """The verdicts of the models the search chose (``disc``: the disc alone's fit of every
+    specimen; ``sur`` (m,) the surrogate's error; ``t0`` the start, for the time taken)."""
+    n, measured, mask, sigma = state.n, state.measured, state.mask, state.sigma
+    finals: dict[Model, list[int]] = {}
     for i in range(n):
-        finals.setdefault(chosen[i], []).append(i)
-    # One Jacobian per fitted batch (all its specimens at once): effective parameters and
-    # the parameter covariance of every model in every ranking.
+        finals.setdefault(state.chosen[i], []).append(i)
+    # One Jacobian per fitted batch: effective parameters and covariance of every model.
     for i in range(n):
-        for f, _ in per_spec[i].values():
+        for f, _ in state.per_spec[i].values():
             f.ensure_trace(mask, sigma)
-
-    adequacy: list[dict[str, Any]] = []
-    f0 = fits[()]
-    for i in range(n):
-        f, pos = per_spec[i][chosen[i]]
-        res = measured[i] - f.pred[pos].double().numpy()
-        adequacy.append(
-            {
-                "final": _adequacy(res, sigma[i], float(n_points[i] - f.trace[pos]), alpha),
-                "disc_alone": _adequacy(
-                    measured[i] - pred0[i].double().numpy(),
-                    sigma[i],
-                    float(n_points[i] - f0.trace[i]),
-                    alpha,
-                ),
-            }
-        )
-
-    # 3'. How probable each explanation is: every fitted model, and each final model with the
-    # discrepancy it needs (type-II maximum likelihood), by its marginal likelihood
-    # (femcal.diagnose.probabilities). The verdict says `unexplained` where that is more
-    # probable than the model alone.
-    outside = _outside_criteria(base, effect_model, finals, per_spec, measured, sigma, cost)
+    adequacy = _adequacies(state, disc)
+    # Each final model with the discrepancy it needs (type-II maximum likelihood): how
+    # probable something outside the library is, and what it looks like.
+    gp = {effects: _gp_fit(state, effects, rows) for effects, rows in finals.items()}
+    outside = _outside_criteria(state, finals, gp)
+    options = state.options
     probabilities = [
         specimen_probabilities(
-            {
-                m: f.criterion(pos, float(cost[i]), penalty, mask, sigma)
-                for m, (f, pos) in per_spec[i].items()
-            },
-            (chosen[i], outside[i]),
-            min_delta,
-            further_delta,
+            {m: state.criterion(m, i) for m in state.per_spec[i]},
+            (state.chosen[i], outside[i]),
+            options.min_delta,
+            options.min_delta_inadequate,
         )
         for i in range(n)
     ]
-
-    # 4. The discrepancy on top of each final model.
-    dense = dense_grid(moments, curve_points)
-    disc_info: list[dict[str, Any] | None] = [None] * n
-    if discrepancy:
-        signatures = _signatures(per_spec, candidates, pred0, n)
-        for effects, members in finals.items():
-            rows = np.asarray(members)
-            model = base if not effects else effect_model(effects)
-            v = _solutions(per_spec, rows, effects)
-            dfit = fit_discrepancy(model, v, measured[rows], sigma[rows])
-            mean, sd = discrepancy_posterior(dfit, moments, dense, mask[rows])
-            for pos, i in enumerate(rows):
-                own = _own_range(dense, moments, mask[i])
-                mu = np.where(own, mean[pos], np.nan)
-                sdev = np.where(own, sd[pos], np.nan)
-                sim = similarity(dfit.delta_at_points[pos], signatures[i], sigma[i])
-                best_sim = max(sim, key=sim.get) if sim else None
-                resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
-                final = probabilities[i]
-                f, at = per_spec[i][effects]
-                final_res = measured[i] - f.pred[at].double().numpy()
-                text = _missing_text(
-                    dense, mu, sdev, float(sigma_m.min()), final_res, sigma[i], final
-                )
-                disc_info[i] = {
-                    "model": model_label(effects),
-                    "mean": mu,
-                    "sd": sdev,
-                    "mae_deg": float(dfit.mae_deg[pos]),
-                    "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
-                    "description": text,
-                    "summary": _summary(text, resembles, sim, adequacy[i]["final"], final),
-                    "similarity": sim,
-                    "resembles": resembles,
-                }
-
-    # 5. Continuous curves, rankings, what to measure next.
-    dense_base = _dense_base(base, dense)
-    curves0 = _dense_curves(dense_base, (), v_disc)
-    final_curves: dict[int, np.ndarray] = {}
-    for effects, members in finals.items():
-        if not effects:
-            for i in members:
-                final_curves[i] = curves0[i]
-            continue
-        v = _solutions(per_spec, members, effects)
-        cv = _dense_curves(dense_base, effects, v)
-        for pos, i in enumerate(members):
-            final_curves[i] = cv[pos]
-    sigma_dense = np.interp(np.log(dense), np.log(moments), sigma_m)
-    # What to measure next: over every moment the policy accepts (with the surrogate's larger
-    # error there), else over the measured range.
-    probe_base, probe, sigma_probe = dense_base, dense, sigma_dense
-    if moment_policy is not None and dense_base is not None:
-        lo, hi = moment_policy.accepted_range
-        probe = np.unique(np.concatenate([np.geomspace(lo, hi, curve_points), moments]))
-        probe_base = _dense_base(base, probe)
-        sigma_probe = np.sqrt(noise_used**2 + moment_policy.sigma_surrogate(probe) ** 2)
-    mae0 = np.nanmean(np.abs(measured - pred0.double().numpy()).reshape(n, -1), axis=1)
-    unit_disc = base.space.to_unit(base.to_physical(v_disc.double().numpy()))
-    for i, spec in enumerate(specimens):
-        ranking = _ranking(per_spec[i], i, measured, sigma, cost, base, penalty, mask)
-        effects = list(chosen[i])
+    moments = state.base.moments.double().numpy()
+    dense = dense_grid(moments, options.curve_points)
+    described: list[dict[str, Any] | None] = [None] * n
+    if options.discrepancy:
+        described = _describe(state, finals, gp, dense, adequacy, probabilities, disc.pred)
+    curves0, final_curves = _curves(state, finals, dense, disc.v)
+    probe_base, probe, sigma_probe = _probe(state, dense, noise_used, moment_policy)
+    pred0 = disc.pred.double().numpy()
+    mae0 = np.nanmean(np.abs(measured - pred0).reshape(n, -1), axis=1)
+    base = state.base
+    unit_disc = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
+    out: list[SpecimenDiagnosis] = []
+    for i, spec in enumerate(state.specimens):
+        ranking = _ranking(state.per_spec[i], i, measured, sigma, state.log_n, base, mask)
+        effects = list(state.chosen[i])
         adequate = not probabilities[i]["unexplained"]
-        f, pos = per_spec[i][chosen[i]]
+        f, pos = state.per_spec[i][state.chosen[i]]
         final_res = measured[i] - f.pred[pos].double().numpy()
         own = _own_range(dense, moments, mask[i])
-        own_lc = [moments[mask[i][j]] for j in range(mask.shape[1])]
-        curves = {
-            "moments": dense,
-            NONE: np.where(own, curves0[i], np.nan),
-        }
+        curves = {"moments": dense, NONE: np.where(own, curves0[i], np.nan)}
         if effects:
             curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
             ranking,
-            per_spec[i],
+            state.per_spec[i],
             probe_base,
             probe,
             sigma_probe,
-            min_delta,
-            chosen[i],
-            own_lc,
+            options.min_delta,
+            state.chosen[i],
+            [moments[mask[i][j]] for j in range(mask.shape[1])],
             noise_deg=noise_used,
         )
-        resid = measured[i] - pred0[i].double().numpy()
+        resid = measured[i] - pred0[i]
         out.append(
             SpecimenDiagnosis(
                 specimen=str(spec),
@@ -242,7 +125,7 @@ def _assemble(
                 final_mae_deg=float(np.nanmean(np.abs(final_res))),
                 final_residuals=final_res,
                 curves=curves,
-                discrepancy=disc_info[i],
+                discrepancy=described[i],
                 next_measurement=nxt,
                 probabilities=probabilities[i],
                 sigma=np.where(mask[i], sigma[i], np.nan),
@@ -250,12 +133,133 @@ def _assemble(
         )
     return Diagnosis(
         specimens=out,
-        sigma_deg=float(sigma_m.min()),
+        sigma_deg=float(state.sigma_m.min()),
         noise_deg=noise_used,
         noise_sd_deg=float(noise_sd),
         surrogate_error_deg=float(sur.min()),
         moments=moments,
         seconds=time.perf_counter() - t0,
-        sigma_by_moment=sigma_m,
-        alpha=alpha,
+        sigma_by_moment=state.sigma_m,
+        alpha=options.alpha,
     )
+
+
+def _adequacies(state: DiagnosisState, disc: _Fit) -> list[dict[str, Any]]:
+    """Per specimen: the chi-square and runs tests of the final model and of the disc alone."""
+    out = []
+    alpha = state.options.alpha
+    for i in range(state.n):
+        f, pos = state.per_spec[i][state.chosen[i]]
+        res = state.measured[i] - f.pred[pos].double().numpy()
+        res0 = state.measured[i] - disc.pred[i].double().numpy()
+        n_i = float(state.n_points[i])
+        out.append(
+            {
+                "final": _adequacy(res, state.sigma[i], n_i - float(f.trace[pos]), alpha),
+                "disc_alone": _adequacy(res0, state.sigma[i], n_i - float(disc.trace[i]), alpha),
+            }
+        )
+    return out
+
+
+def _gp_fit(state: DiagnosisState, effects: Model, rows: list[int]) -> DiscrepancyFit:
+    """Model ``effects`` refitted to specimens ``rows`` with the discrepancy it needs."""
+    rows_a = np.asarray(rows)
+    v = state.solutions(rows_a, effects)
+    return fit_discrepancy(
+        state.model(effects),
+        v,
+        state.measured[rows_a],
+        state.sigma[rows_a],
+        amplitude_deg="ml",
+    )
+
+
+def _outside_criteria(
+    state: DiagnosisState, finals: dict[Model, list[int]], gp: dict[Model, DiscrepancyFit]
+) -> np.ndarray:
+    """Per specimen (n,): the criterion of its final model with its discrepancy,
+    ``-2 log ML - sum ln sigma^2 + (k + a) ln n`` (``k`` the model's effective parameters,
+    ``a`` the load cases whose discrepancy amplitude is not zero), comparable with the
+    models' ``chi^2 + k ln n``."""
+    out = np.full(state.n, np.inf)
+    for effects, members in finals.items():
+        rows = np.asarray(members)
+        dfit = gp[effects]
+        ok = state.mask[rows]
+        log_noise = np.where(ok, np.log(state.sigma[rows] ** 2), 0.0).sum(axis=(1, 2))
+        n_amp = (np.asarray(dfit.amplitude_deg) > 0).sum(axis=1)
+        for pos, i in enumerate(rows):
+            f, at = state.per_spec[i][effects]
+            k = float(f.trace[at]) + float(n_amp[pos])
+            out[i] = float(dfit.neg2_log_ml[pos] - log_noise[pos]) + k * float(state.log_n[i])
+    return out
+
+
+def _describe(state, finals, gp, dense, adequacy, probabilities, pred0) -> list:
+    """Per specimen: the discrepancy on top of its final model on ``dense`` (q,) and what is
+    missing, in words, compared with each registered effect's signature."""
+    out: list[dict[str, Any] | None] = [None] * state.n
+    moments = state.base.moments.double().numpy()
+    signatures = _signatures(state.per_spec, state.candidates, pred0, state.n)
+    sigma_deg = float(state.sigma_m.min())
+    for effects, members in finals.items():
+        rows = np.asarray(members)
+        dfit = gp[effects]
+        mean, sd = discrepancy_posterior(dfit, moments, dense, state.mask[rows])
+        for pos, i in enumerate(rows):
+            own = _own_range(dense, moments, state.mask[i])
+            mu = np.where(own, mean[pos], np.nan)
+            sdev = np.where(own, sd[pos], np.nan)
+            sim = similarity(dfit.delta_at_points[pos], signatures[i], state.sigma[i])
+            best_sim = max(sim, key=sim.get) if sim else None
+            resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
+            f, at = state.per_spec[i][effects]
+            final_res = state.measured[i] - f.pred[at].double().numpy()
+            text = _missing_text(
+                dense, mu, sdev, sigma_deg, final_res, state.sigma[i], probabilities[i]
+            )
+            out[i] = {
+                "model": model_label(effects),
+                "mean": mu,
+                "sd": sdev,
+                "mae_deg": float(dfit.mae_deg[pos]),
+                "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
+                "description": text,
+                "summary": _summary(text, resembles, sim, adequacy[i]["final"], probabilities[i]),
+                "similarity": sim,
+                "resembles": resembles,
+            }
+    return out
+
+
+def _curves(state: DiagnosisState, finals, dense: np.ndarray, v_disc):
+    """Continuous curves on ``dense`` of the disc alone (n, 4, q) and, per specimen, of its
+    final model (4, q)."""
+    dense_base = _dense_base(state.base, dense)
+    curves0 = _dense_curves(dense_base, (), v_disc)
+    final_curves: dict[int, np.ndarray] = {}
+    for effects, members in finals.items():
+        if not effects:
+            for i in members:
+                final_curves[i] = curves0[i]
+            continue
+        cv = _dense_curves(dense_base, effects, state.solutions(members, effects))
+        for pos, i in enumerate(members):
+            final_curves[i] = cv[pos]
+    return curves0, final_curves
+
+
+def _probe(state: DiagnosisState, dense: np.ndarray, noise_used: float, moment_policy):
+    """Where a next measurement may be taken: every moment the policy accepts (with the
+    surrogate's larger error there), else the measured range. The dense model, the moments
+    and their sigma."""
+    moments = state.base.moments.double().numpy()
+    dense_base = _dense_base(state.base, dense)
+    sigma_dense = np.interp(np.log(dense), np.log(moments), state.sigma_m)
+    if moment_policy is None or dense_base is None:
+        return dense_base, dense, sigma_dense
+    lo, hi = moment_policy.accepted_range
+    probe = np.unique(np.concatenate([np.geomspace(lo, hi, state.options.curve_points), moments]))
+    sigma_probe = np.sqrt(noise_used**2 + moment_policy.sigma_surrogate(probe) ** 2)
+    return _dense_base(state.base, probe), probe, sigma_probe

@@ -11,15 +11,14 @@ explains its own load cases stays, and so does one that removes most of the disc
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
 
-from femcal.calibration.model import CurveModel
 from femcal.diagnose.discrepancy import fit_discrepancy
 from femcal.diagnose.explain import _adequate_quick
 from femcal.diagnose.fits import _columns, _Fit, _fit_from, _solutions
+from femcal.diagnose.state import DiagnosisState
 from femcal.effects.base import get_effect
 
 logger = logging.getLogger(__name__)
@@ -40,45 +39,26 @@ def _explains_most(
     return excess > 0 and chi2[rest] - chi2[current] > 0.5 * excess
 
 
-def open_world_elimination(
-    *,
-    base: CurveModel,
-    effect_model: Callable[[tuple[str, ...]], CurveModel],
-    specimens: Sequence[str],
-    measured: np.ndarray,
-    weight: np.ndarray,
-    mask: np.ndarray,
-    sigma: np.ndarray,
-    sigma_m: np.ndarray,
-    n_points: np.ndarray,
-    log_n: np.ndarray,
-    chosen: list[tuple[str, ...]],
-    per_spec: list[dict[tuple[str, ...], tuple[_Fit, int]]],
-    alpha: float,
-    min_delta: float,
-    max_effects: int,
-    max_iter: int,
-    gp_amplitude: str,
-    elimination_cap: float,
-    exact_dof: bool,
-) -> None:
+def open_world_elimination(state: DiagnosisState) -> None:
     """Drop, specimen by specimen, the effects that do not pay beyond a smooth discrepancy.
 
-    Updates ``chosen`` (per specimen, the effects kept) and ``per_spec`` (every fitted model
-    of every specimen: ``(fit, row in the fit)``) in place; the other arguments are those of
-    :func:`femcal.diagnose.diagnose` and its intermediate arrays: ``measured`` (n, 4, m) with
-    NaN where not measured, ``weight``, ``mask`` and ``sigma`` (every point's noise with the
-    surrogate's error) of the same shape, ``sigma_m`` (m,) that of a point of weight 1,
-    ``n_points`` and ``log_n`` (n,).
+    Updates ``state.chosen`` (per specimen, the effects kept) and ``state.per_spec`` (every
+    fitted model of every specimen) in place.
     """
+    base, specimens, measured = state.base, state.specimens, state.measured
+    weight, mask, sigma = state.weight, state.mask, state.sigma
+    n_points, log_n = state.n_points, state.log_n
+    chosen, per_spec = state.chosen, state.per_spec
+    min_delta, max_effects = state.options.min_delta, state.options.max_effects
+    max_iter, elimination_cap = state.options.max_iter, state.options.elimination_cap
+    alpha = state.options.alpha
     n = len(chosen)
     # 2b. Open world: where the chosen effects still leave the data unexplained, keep an effect
     # only if it pays beyond a smooth discrepancy (the GP of step 4) sized to what the chosen
     # model leaves unexplained: effects that merely let the disc bend towards physics nobody
     # registered are dropped (backward elimination, BIC of the GLS fit with that GP).
     for i in range(n):
-        if exact_dof:
-            per_spec[i][chosen[i]][0].ensure_trace(mask, sigma)
+        per_spec[i][chosen[i]][0].ensure_trace(mask, sigma)
     pending = [
         i
         for i in range(n)
@@ -89,23 +69,15 @@ def open_world_elimination(
     gls_amp: dict[tuple[int, tuple[str, ...]], np.ndarray] = {}  # (4,) GP amplitude per LC
     reached: dict[int, torch.Tensor] = {}  # where elimination left a specimen (unit coords)
 
-    def misfit_amplitude(i: int, effects: tuple[str, ...]) -> np.ndarray:
-        """Per load case (4,): the RMS misfit ``effects`` leave beyond the noise."""
-        f, pos = per_spec[i][effects]
-        r = np.where(mask[i], measured[i] - f.pred[pos].double().numpy(), 0.0)
-        noise = np.where(mask[i], sigma[i] ** 2, 0.0).sum(1)
-        excess = ((r**2).sum(1) - noise) / np.maximum(mask[i].sum(1), 1)
-        return np.clip(np.sqrt(np.clip(excess, 0.0, None)), sigma_m.min(), 5.0)
-
     def gls_fit(
         effects: tuple[str, ...],
         rows: list[int],
         v: torch.Tensor,
-        amp,
         again: bool = False,
         cap: np.ndarray | None = None,
     ) -> None:
-        """The GLS fit of ``effects`` with the GP from ``v`` (keeps the better with ``again``).
+        """The fit of ``effects`` with its maximum-likelihood GP from ``v`` (keeps the better
+        with ``again``).
 
         ``cap`` (len(rows), 4): the largest GP amplitude per load case (``inf``: free).
         """
@@ -114,22 +86,18 @@ def open_world_elimination(
             return
         idx = [k for k, _ in todo]
         ids = np.asarray([i for _, i in todo])
-        model = base if not effects else effect_model(effects)
-        if gp_amplitude == "ml":
-            # Each model gets the discrepancy it needs (type-II maximum likelihood per load
-            # case) and pays for it in log det C: -2 log marginal likelihood.
-            fit = fit_discrepancy(
-                model,
-                v[idx],
-                measured[ids],
-                sigma[ids],
-                amplitude_deg="ml",
-                amplitude_cap=None if cap is None else cap[idx],
-            )
-            score = fit.neg2_log_ml
-        else:
-            fit = fit_discrepancy(model, v[idx], measured[ids], sigma[ids], amplitude_deg=amp[idx])
-            score = fit.cost
+        model = base if not effects else state.model(effects)
+        # Each model gets the discrepancy it needs (type-II maximum likelihood per load case)
+        # and pays for it in log det C: -2 log marginal likelihood.
+        fit = fit_discrepancy(
+            model,
+            v[idx],
+            measured[ids],
+            sigma[ids],
+            amplitude_deg="ml",
+            amplitude_cap=None if cap is None else cap[idx],
+        )
+        score = fit.neg2_log_ml
         for pos, i in enumerate(ids):
             key = (int(i), effects)
             if key not in gls or float(score[pos]) < gls[key][0]:
@@ -144,7 +112,7 @@ def open_world_elimination(
                 missing.setdefault(chosen[i], []).append(i)
         for effects, members in missing.items():
             rows = np.asarray(members)
-            model = effect_model(effects)
+            model = state.model(effects)
             v0 = torch.stack([reached[i] for i in members])
             v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, 1, max_iter)
             fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
@@ -161,8 +129,7 @@ def open_world_elimination(
         gls.clear()  # the GP's size changes with the model under test
         for current, members in groups.items():
             v_cur = _solutions(per_spec, members, current)
-            amp = np.array([misfit_amplitude(i, current) for i in members])
-            gls_fit(current, members, v_cur, amp)
+            gls_fit(current, members, v_cur)
             v_gls = torch.stack([gls[(i, current)][1] for i in members])
             for drop in current:
                 rest = tuple(e for e in current if e != drop)
@@ -180,7 +147,7 @@ def open_world_elimination(
                             for i in members
                         ]
                     )
-                gls_fit(rest, members, v_gls[:, cols], amp, cap=cap)
+                gls_fit(rest, members, v_gls[:, cols], cap=cap)
                 # The reduced model's own fit is a second start: from the larger model's
                 # parameters the disc may stay bent towards what the dropped effect did.
                 own = [i for i in members if rest in per_spec[i]]
@@ -191,7 +158,6 @@ def open_world_elimination(
                         rest,
                         own,
                         v_own,
-                        amp[sel],
                         again=True,
                         cap=None if cap is None else cap[sel],
                     )

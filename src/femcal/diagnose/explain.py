@@ -85,7 +85,6 @@ def _ranking(
     sigma: np.ndarray,
     cost: np.ndarray,
     base,
-    penalty: str,
     mask: np.ndarray,
 ) -> list[dict[str, Any]]:
     """Every model fitted for specimen ``i``: MAE, the search's criterion (``cost`` (n,) per
@@ -100,7 +99,7 @@ def _ranking(
             "effect": model_label(effects),
             "effects": list(effects),
             "mae_deg": mae,
-            "criterion": f.criterion(pos, float(cost[i]), penalty, mask, sigma),
+            "criterion": f.criterion(pos, float(cost[i]), mask, sigma),
             "effective_parameters": float(f.trace[pos]),
             "parameters": {},
         }

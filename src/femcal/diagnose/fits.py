@@ -15,7 +15,6 @@ from femcal.calibration.pgd import gauss_newton
 from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
 from femcal.effects.composite import EffectModel
-from femcal.errors import ConfigError
 
 
 # ------------------------------------------------------------------------ fitting helpers
@@ -110,38 +109,6 @@ def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[i
     return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
 
 
-#: How a model's criterion counts its parameters (:func:`_Fit.criterion`).
-PENALTIES = ("effective", "count", "evidence")
-
-#: What one parameter costs in a model's criterion (:func:`parameter_cost`).
-CRITERIA = ("aic", "bic")
-
-
-def parameter_cost(criterion: str, n_points: np.ndarray) -> np.ndarray:
-    """The price of one (effective) parameter in ``chi^2 + cost k``: 2 for Akaike's
-    information criterion (``"aic"``), ``ln n`` for the Bayesian one (``"bic"``).
-
-    Parameters
-    ----------
-    criterion : {"aic", "bic"}
-    n_points : ndarray, shape (n,)
-        Measured points per specimen.
-
-    Returns
-    -------
-    ndarray, shape (n,)
-    """
-    n_points = np.asarray(n_points, dtype=float)
-    if criterion == "bic":
-        return np.log(np.maximum(n_points, 2.0))
-    if criterion == "aic":
-        return np.full(n_points.shape, 2.0)
-    raise ConfigError(
-        f"criterion must be one of {', '.join(map(repr, CRITERIA))} (what one parameter "
-        f"costs: 2 or ln n); got {criterion!r}."
-    )
-
-
 @dataclass
 class _Fit:
     effects: tuple[str, ...]
@@ -165,21 +132,12 @@ class _Fit:
         self.trace, self.cov, self.occam = hat_trace_and_cov(jac, mask[self.rows], sigma[self.rows])
         self.finite = torch.isfinite(jac).reshape(len(self.rows), -1).all(1).numpy()
 
-    def criterion(
-        self, pos: int, cost: float, penalty: str, mask: np.ndarray, sigma: np.ndarray
-    ) -> float:
-        """Criterion of specimen ``pos`` of the batch: ``chi^2 + cost k`` (``cost`` 2 for the
-        AIC, ``ln n`` for the BIC, :func:`parameter_cost`) with ``k`` the effective number of
-        parameters (``penalty="effective"``: the trace of the hat matrix under the unit-box
-        prior, :meth:`ensure_trace`) or the count of parameters (``"count"``); with
-        ``"evidence"`` minus twice Laplace's log evidence under a flat prior on the unit box,
-        ``chi^2 + ln det(I + J^T J / 2 pi)`` (up to a constant common to every model; ``cost``
-        unused)."""
-        if penalty == "count":
-            return float(self.chi2[pos] + self.k * cost)
+    def criterion(self, pos: int, cost: float, mask: np.ndarray, sigma: np.ndarray) -> float:
+        """Criterion of specimen ``pos`` of the batch: ``chi^2 + cost k``, ``cost`` = ``ln n``
+        (the Bayesian information criterion) and ``k`` the effective number of parameters,
+        the trace of the hat matrix under the unit-box prior (:meth:`ensure_trace`): the
+        disc's parameters that RoM does not determine cost nothing."""
         self.ensure_trace(mask, sigma)
-        if penalty == "evidence":
-            return float(self.chi2[pos] + self.occam[pos])
         return float(self.chi2[pos] + float(self.trace[pos]) * cost)
 
 

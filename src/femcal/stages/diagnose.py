@@ -185,7 +185,7 @@ def run_diagnose(
     import mlflow
 
     from femcal.calibration import SurrogateCurveModel
-    from femcal.diagnose import diagnose
+    from femcal.diagnose import DiagnoseOptions, diagnose
     from femcal.diagnose.report import write_diagnosis
     from femcal.effects import available_effects
     from femcal.effects.composite import EffectModel
@@ -220,11 +220,10 @@ def run_diagnose(
         point_weight=meas.weight,
         candidates=candidates,
         start_bank=training_configurations(start_bank) if start_bank else None,
-        min_delta=min_delta,
-        alpha=alpha,
-        max_effects=max_effects,
         moment_policy=policy,
-        seed=seed,
+        options=DiagnoseOptions(
+            min_delta=min_delta, alpha=alpha, max_effects=max_effects, seed=seed
+        ),
     )
     with (
         staged_output(out_dir, command="diagnose") as stage,

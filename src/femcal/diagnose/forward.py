@@ -1,0 +1,153 @@
+"""Forward selection, a step of :func:`femcal.diagnose.diagnose`: add registered effects while
+they pay, batched over the specimens that share a current model."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from femcal.calibration.base import CalibrationProblem
+from femcal.calibration.starts import _combination_starts, effect_bank, nearest_starts
+from femcal.diagnose.fits import _Fit, _fit_from, _grid, _starts
+from femcal.diagnose.state import DiagnosisState, Model
+
+logger = logging.getLogger(__name__)
+
+
+def forward_selection(state: DiagnosisState) -> None:
+    """Add, level by level, the effect that lowers each specimen's criterion most.
+
+    A new effect's fit starts from the current model's solution with a grid over the new
+    effect's box, and from the disc-and-effect combinations of the start bank nearest the
+    specimen's curves (the disc fitted alone has bent towards the missing physics). The first
+    effect needs ``min_delta``; a further one ``min_delta_inadequate`` where the current model
+    does not explain the data and ``min_delta_adequate`` where it does (None: stop there).
+    Every model within ``beam_delta`` of the best of a level is extended at the next one.
+    Updates ``state.chosen`` and ``state.per_spec``.
+    """
+    options = state.options
+    frontier: list[list[Model]] = [[()] for _ in range(state.n)]
+    beam = options.min_delta if options.beam_delta is None else float(options.beam_delta)
+    banks: dict[Model, tuple[torch.Tensor, torch.Tensor]] = {}
+    active = np.arange(state.n)
+    for _level in range(options.max_effects):
+        if active.size == 0:
+            return
+        children = _extend(state, active, frontier, banks)
+        improved: list[int] = []
+        for i in active:
+            current = state.chosen[i]
+            crits = {e: state.criterion(e, i) for e in children[int(i)]}
+            if not crits:
+                continue
+            cur_crit = state.criterion(current, i)
+            logger.debug(
+                "%s: forward from %s: criterion gains %s",
+                state.specimens[i],
+                frontier[i],
+                {e: round(cur_crit - b, 1) for e, b in crits.items()},
+            )
+            best_eff = min(crits, key=crits.get)
+            best_crit = crits[best_eff]
+            need = options.min_delta
+            if current:
+                if not state.adequate(current, i):
+                    need = options.min_delta_inadequate
+                elif options.min_delta_adequate is not None:
+                    need = options.min_delta_adequate
+            if cur_crit - best_crit >= need:
+                state.chosen[i] = best_eff
+                frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
+                improved.append(int(i))
+        # Keep adding while it pays; with min_delta_adequate None only where the chosen model
+        # still does not explain the data.
+        active = np.asarray(
+            [
+                i
+                for i in improved
+                if options.min_delta_adequate is not None or not state.adequate(state.chosen[i], i)
+            ],
+            dtype=int,
+        )
+
+
+def _extend(
+    state: DiagnosisState,
+    active: np.ndarray,
+    frontier: list[list[Model]],
+    banks: dict[Model, tuple[torch.Tensor, torch.Tensor]],
+) -> dict[int, list[Model]]:
+    """Fit every model one effect larger than a frontier model, each once per specimen (from
+    its best parent in the frontier); per specimen, the models fitted."""
+    options = state.options
+    jobs: dict[tuple[Model, str], list[int]] = {}
+    children: dict[int, list[Model]] = {}
+    for i in active:
+        parents = sorted(frontier[i], key=lambda e, i=i: state.criterion(e, i))
+        seen: set[Model] = set()
+        for current in parents:
+            for new in state.candidates:
+                effects = tuple(sorted((*current, new)))
+                if new in current or effects in seen:
+                    continue
+                seen.add(effects)
+                jobs.setdefault((current, new), []).append(int(i))
+        children[int(i)] = sorted(seen)
+    for (current, new), members in jobs.items():
+        rows = np.asarray(members)
+        v_prev = state.solutions(rows, current)
+        effects = tuple(sorted((*current, new)))
+        model = state.model(effects)
+        levels, shapes, grids = options.effect_levels, options.shape_starts, options.grid_shapes
+        g = len(_grid(model, new, levels, shapes, grids)[1])
+        v0 = _starts(model, current, v_prev, new, levels, shapes, grids)
+        if state.start_bank is not None and options.bank_starts > 0:
+            if effects not in banks:
+                banks[effects] = effect_bank(
+                    model, state.start_bank, state.rng, options.bank_samples
+                )
+            problem = CalibrationProblem.from_arrays(
+                model, state.measured[rows], state.weight[rows]
+            )
+            near = nearest_starts(problem, *banks[effects], options.bank_starts)  # (r, K)
+            v0 = torch.cat([v0.reshape(len(rows), g, -1), banks[effects][0][near]], dim=1)
+            g = v0.shape[1]
+            v0 = v0.reshape(len(rows) * g, -1)
+        fit = state.fit(effects, rows, v0, g)
+        if len(effects) > 1:
+            _refine_combination(state, fit)
+    return children
+
+
+def _refine_combination(state: DiagnosisState, fit: _Fit) -> None:
+    """More rounds for the specimens whose combination fit does not explain the data yet
+    (``chi2`` above ``n - k/2``): each effect again from its grid and a small design, the disc
+    and the other effects as found (:func:`femcal.calibration.starts._combination_starts`);
+    the better fit is kept (``fit`` updated in place)."""
+    model, rows = fit.model, fit.rows
+    for _ in range(state.options.combination_rounds):
+        bad = np.flatnonzero(fit.chi2 > np.maximum(state.n_points[rows] - model.dim / 2, 1.0))
+        if bad.size == 0:
+            return
+        v1 = _combination_starts(model, fit.v[bad], state.options.effect_levels, 8)
+        g = v1.shape[1]
+        v2, p2, c2 = _fit_from(
+            model,
+            state.measured,
+            state.weight,
+            state.sigma,
+            rows[bad],
+            v1.reshape(len(bad) * g, -1),
+            g,
+            state.options.max_iter,
+        )
+        better = c2 < fit.chi2[bad]
+        if not better.any():
+            return
+        at = torch.as_tensor(bad[better])
+        fit.v, fit.pred, fit.chi2 = fit.v.clone(), fit.pred.clone(), fit.chi2.copy()
+        fit.v[at] = v2[torch.as_tensor(better)]
+        fit.pred[at] = p2[torch.as_tensor(better)]
+        fit.chi2[bad[better]] = c2[better]
