@@ -49,7 +49,8 @@ def on_config(config, **kwargs):
             continue
         for entry in nav:
             if isinstance(entry, dict) and section in entry:
-                entry[section].append({title: name})
+                if {title: name} not in entry[section]:  # `mkdocs serve` rebuilds
+                    entry[section].append({title: name})
                 break
     return config
 
