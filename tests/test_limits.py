@@ -39,7 +39,6 @@ ALLOWED_LONG_FUNCTIONS: dict[str, str] = {
     "src/femcal/calibration/pgd.py:pgd": "not split yet (issue 44)",
     "src/femcal/calibration/pgd_study.py:pgd_study": "not split yet (issue 44)",
     "src/femcal/diagnose/discrepancy.py:fit_discrepancy": "not split yet (issue 44)",
-    "src/femcal/diagnose/elimination.py:open_world_elimination": "not split yet (issue 44)",
     "src/femcal/diagnose/explain.py:_next_measurement": "not split yet (issue 44)",
     "src/femcal/fe/adaptive.py:adapt_surrogate": "not split yet (issue 44)",
     "src/femcal/fe/campaign.py:run_campaign": "not split yet (issue 44)",

@@ -16,8 +16,7 @@ import numpy as np
 import torch
 
 from femcal.diagnose.discrepancy import fit_discrepancy
-from femcal.diagnose.explain import _adequate_quick
-from femcal.diagnose.fits import _columns, _Fit, _fit_from, _solutions
+from femcal.diagnose.fits import _columns
 from femcal.diagnose.state import DiagnosisState
 from femcal.effects.base import get_effect
 
@@ -42,149 +41,153 @@ def _explains_most(
 def open_world_elimination(state: DiagnosisState) -> None:
     """Drop, specimen by specimen, the effects that do not pay beyond a smooth discrepancy.
 
-    Updates ``state.chosen`` (per specimen, the effects kept) and ``state.per_spec`` (every
-    fitted model of every specimen) in place.
+    Where the chosen effects leave the data unexplained, an effect stays only if the model with
+    it and its discrepancy beats the model without it and its own (``-2 log ML + k ln n``, ``k``
+    the parameter count) by ``min_delta``, or if it removes most of the disc-alone misfit.
+    Updates ``state.chosen`` and ``state.per_spec`` in place.
     """
-    base, specimens, measured = state.base, state.specimens, state.measured
-    weight, mask, sigma = state.weight, state.mask, state.sigma
-    n_points, log_n = state.n_points, state.log_n
-    chosen, per_spec = state.chosen, state.per_spec
-    min_delta, max_effects = state.options.min_delta, state.options.max_effects
-    max_iter, elimination_cap = state.options.max_iter, state.options.elimination_cap
-    alpha = state.options.alpha
-    n = len(chosen)
-    # 2b. Open world: where the chosen effects still leave the data unexplained, keep an effect
-    # only if it pays beyond a smooth discrepancy (the GP of step 4) sized to what the chosen
-    # model leaves unexplained: effects that merely let the disc bend towards physics nobody
-    # registered are dropped (backward elimination, BIC of the GLS fit with that GP).
-    for i in range(n):
-        per_spec[i][chosen[i]][0].ensure_trace(mask, sigma)
-    pending = [
-        i
-        for i in range(n)
-        if chosen[i]
-        and not _adequate_quick(*per_spec[i][chosen[i]], i, measured, sigma, n_points, alpha)
-    ]
-    gls: dict[tuple[int, tuple[str, ...]], tuple[float, torch.Tensor]] = {}
-    gls_amp: dict[tuple[int, tuple[str, ...]], np.ndarray] = {}  # (4,) GP amplitude per LC
-    reached: dict[int, torch.Tensor] = {}  # where elimination left a specimen (unit coords)
+    _Elimination(state).run()
 
-    def gls_fit(
+
+class _Elimination:
+    """The rounds of :func:`open_world_elimination` and the fits they share."""
+
+    def __init__(self, state: DiagnosisState) -> None:
+        self.state = state
+        #: (specimen, model) -> (-2 log ML, unit coordinates) of the model with its discrepancy
+        self.gls: dict[tuple[int, tuple[str, ...]], tuple[float, torch.Tensor]] = {}
+        #: (specimen, model) -> (4,) its discrepancy's amplitude per load case
+        self.gls_amp: dict[tuple[int, tuple[str, ...]], np.ndarray] = {}
+        #: where elimination left a specimen (unit coordinates)
+        self.reached: dict[int, torch.Tensor] = {}
+
+    def run(self) -> None:
+        state = self.state
+        pending = []
+        for i in range(state.n):
+            if state.chosen[i] and not state.adequate(state.chosen[i], i):
+                pending.append(i)
+        for _round in range(state.options.max_effects):
+            if not pending:
+                return
+            groups: dict[tuple[str, ...], list[int]] = {}
+            for i in pending:
+                groups.setdefault(state.chosen[i], []).append(i)
+            still = []
+            self.gls.clear()  # the discrepancy's size changes with the model under test
+            for current, members in groups.items():
+                self._fit_group(current, members)
+                still += self._decide(current, members)
+            self._ensure_fitted()
+            pending = still
+
+    def _gls_fit(
+        self,
         effects: tuple[str, ...],
         rows: list[int],
         v: torch.Tensor,
         again: bool = False,
         cap: np.ndarray | None = None,
     ) -> None:
-        """The fit of ``effects`` with its maximum-likelihood GP from ``v`` (keeps the better
-        with ``again``).
-
-        ``cap`` (len(rows), 4): the largest GP amplitude per load case (``inf``: free).
-        """
-        todo = [(k, i) for k, i in enumerate(rows) if again or (i, effects) not in gls]
+        """The fit of ``effects`` with its maximum-likelihood discrepancy from ``v`` (keeps the
+        better with ``again``). ``cap`` (len(rows), 4): the largest amplitude per load case
+        (``inf``: free)."""
+        todo = [(k, i) for k, i in enumerate(rows) if again or (i, effects) not in self.gls]
         if not todo:
             return
         idx = [k for k, _ in todo]
         ids = np.asarray([i for _, i in todo])
-        model = base if not effects else state.model(effects)
+        state = self.state
         # Each model gets the discrepancy it needs (type-II maximum likelihood per load case)
         # and pays for it in log det C: -2 log marginal likelihood.
         fit = fit_discrepancy(
-            model,
+            state.model(effects),
             v[idx],
-            measured[ids],
-            sigma[ids],
+            state.measured[ids],
+            state.sigma[ids],
             amplitude_deg="ml",
             amplitude_cap=None if cap is None else cap[idx],
         )
         score = fit.neg2_log_ml
         for pos, i in enumerate(ids):
             key = (int(i), effects)
-            if key not in gls or float(score[pos]) < gls[key][0]:
-                gls[key] = (float(score[pos]), fit.v[pos])
-                gls_amp[key] = fit.amplitude_deg[pos]
+            if key not in self.gls or float(score[pos]) < self.gls[key][0]:
+                self.gls[key] = (float(score[pos]), fit.v[pos])
+                self.gls_amp[key] = fit.amplitude_deg[pos]
 
-    def ensure_fitted() -> None:
-        """Fit (without the GP) the models elimination reached that were never fitted."""
-        missing: dict[tuple[str, ...], list[int]] = {}
-        for i in range(n):
-            if chosen[i] not in per_spec[i]:
-                missing.setdefault(chosen[i], []).append(i)
-        for effects, members in missing.items():
-            rows = np.asarray(members)
-            model = state.model(effects)
-            v0 = torch.stack([reached[i] for i in members])
-            v, pred, chi2 = _fit_from(model, measured, weight, sigma, rows, v0, 1, max_iter)
-            fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
-            for pos, i in enumerate(rows):
-                per_spec[i][effects] = (fit, pos)
+    def _fit_group(self, current: tuple[str, ...], members: list[int]) -> None:
+        """``current`` and each model one effect smaller, with their discrepancies."""
+        state, cap_factor = self.state, self.state.options.elimination_cap
+        self._gls_fit(current, members, state.solutions(members, current))
+        v_gls = torch.stack([self.gls[(i, current)][1] for i in members])
+        for drop in current:
+            rest = tuple(e for e in current if e != drop)
+            cols = _columns(state.base.dim, current, rest)
+            # In the dropped effect's own load cases the discrepancy may be no larger than the
+            # model with the effect needed there: it may not take over what the effect
+            # explained; elsewhere it is free, so the disc can stop bending towards physics
+            # nobody registered (which is what a compensating effect was doing).
+            cap = None
+            if cap_factor:
+                own_lc = get_effect(drop).load_case_mask().numpy()
+                cap = np.stack(
+                    [
+                        np.where(own_lc, cap_factor * self.gls_amp[(i, current)], np.inf)
+                        for i in members
+                    ]
+                )
+            self._gls_fit(rest, members, v_gls[:, cols], cap=cap)
+            # The reduced model's own fit is a second start: from the larger model's
+            # parameters the disc may stay bent towards what the dropped effect did.
+            own = [i for i in members if rest in state.per_spec[i]]
+            if own:
+                sel = [members.index(i) for i in own]
+                self._gls_fit(
+                    rest,
+                    own,
+                    state.solutions(own, rest),
+                    again=True,
+                    cap=None if cap is None else cap[sel],
+                )
 
-    for _round in range(max_effects):
-        if not pending:
-            break
-        groups = {}
-        for i in pending:
-            groups.setdefault(chosen[i], []).append(i)
+    def _decide(self, current: tuple[str, ...], members: list[int]) -> list[int]:
+        """Drop the effect whose loss is smallest where it is below ``min_delta`` and the
+        effect is not needed; the specimens left with effects to examine again."""
+        state = self.state
+        k_cur = state.base.dim + sum(len(get_effect(e).parameters) for e in current)
         still = []
-        gls.clear()  # the GP's size changes with the model under test
-        for current, members in groups.items():
-            v_cur = _solutions(per_spec, members, current)
-            gls_fit(current, members, v_cur)
-            v_gls = torch.stack([gls[(i, current)][1] for i in members])
+        for i in members:
+            here = self.gls[(i, current)][0] + k_cur * state.log_n[i]
+            losses = {}
             for drop in current:
                 rest = tuple(e for e in current if e != drop)
-                cols = _columns(base.dim, current, rest)
-                # In the dropped effect's own load cases the discrepancy may be no larger than
-                # the model with the effect needed there: it may not take over what the effect
-                # explained; elsewhere it is free, so the disc can stop bending towards physics
-                # nobody registered (which is what a compensating effect was doing).
-                cap = None
-                if elimination_cap:
-                    own_lc = get_effect(drop).load_case_mask().numpy()
-                    cap = np.stack(
-                        [
-                            np.where(own_lc, elimination_cap * gls_amp[(i, current)], np.inf)
-                            for i in members
-                        ]
-                    )
-                gls_fit(rest, members, v_gls[:, cols], cap=cap)
-                # The reduced model's own fit is a second start: from the larger model's
-                # parameters the disc may stay bent towards what the dropped effect did.
-                own = [i for i in members if rest in per_spec[i]]
-                if own:
-                    v_own = _solutions(per_spec, own, rest)
-                    sel = [members.index(i) for i in own]
-                    gls_fit(
-                        rest,
-                        own,
-                        v_own,
-                        again=True,
-                        cap=None if cap is None else cap[sel],
-                    )
-            k_cur = base.dim + sum(len(get_effect(e).parameters) for e in current)
-            for i in members:
-                here = gls[(i, current)][0] + k_cur * log_n[i]
-                losses = {}
-                for drop in current:
-                    rest = tuple(e for e in current if e != drop)
-                    k_rest = k_cur - len(get_effect(drop).parameters)
-                    losses[rest] = gls[(i, rest)][0] + k_rest * log_n[i] - here
-                rest = min(losses, key=losses.get)
-                logger.debug(
-                    "%s: GP-BIC loss of dropping from %s: %s", specimens[i], current, losses
+                k_rest = k_cur - len(get_effect(drop).parameters)
+                losses[rest] = self.gls[(i, rest)][0] + k_rest * state.log_n[i] - here
+            rest = min(losses, key=losses.get)
+            logger.debug(
+                "%s: GP-BIC loss of dropping from %s: %s", state.specimens[i], current, losses
+            )
+            needed = _explains_most(state.per_spec[i], current, rest, float(state.n_points[i]))
+            if losses[rest] < state.options.min_delta and not needed:
+                logger.info(
+                    "%s: %s does not pay beyond a smooth discrepancy (%.1f); dropped",
+                    state.specimens[i],
+                    set(current) - set(rest),
+                    losses[rest],
                 )
-                if losses[rest] < min_delta and not _explains_most(
-                    per_spec[i], current, rest, float(n_points[i])
-                ):
-                    logger.info(
-                        "%s: %s does not pay beyond a smooth discrepancy (%.1f); dropped",
-                        specimens[i],
-                        set(current) - set(rest),
-                        losses[rest],
-                    )
-                    chosen[i] = rest
-                    reached[i] = gls[(i, rest)][1]
-                    if rest:
-                        still.append(i)
-        ensure_fitted()
-        pending = still
+                state.chosen[i] = rest
+                self.reached[i] = self.gls[(i, rest)][1]
+                if rest:
+                    still.append(i)
+        return still
+
+    def _ensure_fitted(self) -> None:
+        """Fit (without the discrepancy) the models elimination reached that were never
+        fitted, from where it reached them."""
+        state = self.state
+        missing: dict[tuple[str, ...], list[int]] = {}
+        for i in range(state.n):
+            if state.chosen[i] not in state.per_spec[i]:
+                missing.setdefault(state.chosen[i], []).append(i)
+        for effects, members in missing.items():
+            state.fit(effects, np.asarray(members), torch.stack([self.reached[i] for i in members]))

@@ -22,7 +22,10 @@ parameters. A new effect is a new module::
         def rotation(self, moment_nm, p):
             return p["friction_deg"] * torch.tanh(moment_nm)
 
-and listing ``capsule_friction`` under ``effects`` in params.yaml.
+and listing ``capsule_friction`` under ``effects`` in params.yaml. A parameter declared
+``EffectParameter(..., per_load_case=True)`` may differ per load case: the effect's split form
+``capsule_friction:split`` (:mod:`femcal.effects.split`) has one copy of it per load case, and
+the diagnosis tries it wherever the effect is found.
 
 Where an effect module can live (every one registers its effects when imported):
 
