@@ -175,9 +175,9 @@ PROTOCOLS: dict[str, tuple[float, ...]] = {
     "0.5-5 Nm x 0.5": (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0),
 }
 NOISE_DEG = 0.05
-ROM_MAX_DEG = 20.0
-REDRAWS = 25
-BISECTIONS = 60
+#: A draw is redrawn when its RoM exceeds both ROM_MAX_DEG and ROM_GROWTH x the disc's own.
+ROM_MAX_DEG, ROM_GROWTH = 20.0, 1.25
+REDRAWS, BISECTIONS = 25, 60
 TEST_FOLDER, TEST_INFIX = "Test", "TestData_64_"
 
 
@@ -496,7 +496,7 @@ def make_cohort(
         moments = np.asarray(PROTOCOLS[proto], dtype=float)
         disc = DiscCurve(fe_moments, fe_rom[cfg])
         alone = disc.rotation(moments)
-        ceiling = max(ROM_MAX_DEG, float(alone.max()))  # the disc alone is never redrawn
+        ceiling = max(ROM_MAX_DEG, ROM_GROWTH * float(alone.max()))
         for _ in range(REDRAWS):
             drawn = {s: draw_structure(s, disc, rng) for s in STRUCTURES[label]}
             rom = specimen_rom(drawn, disc, moments)
