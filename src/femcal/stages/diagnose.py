@@ -144,7 +144,7 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             f"unexplained: {counts['unexplained']} specimens are not explained within the noise "
             "by the disc and the registered effects; summary.md and plots/ describe what is "
             "missing (load cases, laxity or stiffening, from which moment, how large). Write "
-            "it as an effect (README: 'a new effect') and pass --effects-module FILE."
+            "it as an effect (docs/how-to/effect-plugin.md) and pass --effects-module FILE."
         )
     return lines
 
