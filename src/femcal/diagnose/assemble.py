@@ -32,6 +32,7 @@ from femcal.diagnose.probabilities import specimen_probabilities
 from femcal.diagnose.result import (
     NONE,
     RESEMBLES,
+    UNEXPLAINED,
     Diagnosis,
     SpecimenDiagnosis,
     model_label,
@@ -61,21 +62,30 @@ def _assemble(
     for i in range(n):
         for f, _ in state.per_spec[i].values():
             f.ensure_trace(mask, sigma)
-    adequacy = _adequacies(state, disc)
+    options = state.options
     # Each final model with the discrepancy it needs (type-II maximum likelihood): how
     # probable something outside the library is, and what it looks like.
     gp = {effects: _gp_fit(state, effects, rows) for effects, rows in finals.items()}
-    outside = _outside_criteria(state, finals, gp)
-    options = state.options
-    probabilities = [
-        specimen_probabilities(
-            {m: state.criterion(m, i) for m in state.per_spec[i]},
-            (state.chosen[i], outside[i]),
-            options.min_delta,
-            options.min_delta_inadequate,
-        )
-        for i in range(n)
+    probabilities = _probabilities(state, finals, gp)
+    # The verdict is the most probable explanation: where a fitted model is more probable
+    # than the search's choice with or without a discrepancy, that model is the verdict.
+    switched = [
+        i
+        for i, p in enumerate(probabilities)
+        if not p["most_probable"].endswith(UNEXPLAINED)
+        and tuple(p["most_probable_effects"]) != state.chosen[i]
     ]
+    if switched:
+        for i in switched:
+            state.chosen[i] = tuple(probabilities[i]["most_probable_effects"])
+        old, finals = finals, {}
+        for i in range(n):
+            finals.setdefault(state.chosen[i], []).append(i)
+        for effects, rows in finals.items():
+            if rows != old.get(effects):  # the fits are per group, in its order
+                gp[effects] = _gp_fit(state, effects, rows)
+        probabilities = _probabilities(state, finals, gp)
+    adequacy = _adequacies(state, disc)
     moments = state.base.moments.double().numpy()
     dense = dense_grid(moments, options.curve_points)
     described: list[dict[str, Any] | None] = [None] * n
@@ -173,6 +183,22 @@ def _gp_fit(state: DiagnosisState, effects: Model, rows: list[int]) -> Discrepan
         state.sigma[rows_a],
         amplitude_deg="ml",
     )
+
+
+def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
+    """Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities` of every
+    fitted model and of its final model with its discrepancy (``gp``, per final model, fitted
+    to ``finals[model]`` in that order)."""
+    outside = _outside_criteria(state, finals, gp)
+    return [
+        specimen_probabilities(
+            {m: state.criterion(m, i) for m in state.per_spec[i]},
+            (state.chosen[i], outside[i]),
+            state.options.min_delta,
+            state.options.min_delta_inadequate,
+        )
+        for i in range(state.n)
+    ]
 
 
 def _outside_criteria(

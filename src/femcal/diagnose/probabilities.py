@@ -62,8 +62,8 @@ def specimen_probabilities(
         ``models``: label -> probability (``a+b``, ``a:split``, ``none``, and
         ``<model>+unexplained`` for the discrepancy), most probable first; ``inclusion``:
         effect name -> probability; ``outside_library``: the discrepancy's probability;
-        ``most_probable``: the top label; ``unexplained``: the discrepancy is more probable
-        than the model it sits on alone.
+        ``most_probable``: the top label and ``most_probable_effects`` its model's effects;
+        ``unexplained``: the discrepancy is more probable than the model it sits on alone.
     """
     scores = {model_label(m): (m, c + prior_cost(m, first, further)) for m, c in criteria.items()}
     if outside is not None:
@@ -78,6 +78,7 @@ def specimen_probabilities(
             "inclusion": {},
             "outside_library": 0.0,
             "most_probable": None,
+            "most_probable_effects": [],
         }
     low = min(c for _, c in finite.values())
     weight = {k: float(np.exp(-(c - low) / 2)) for k, (_, c) in finite.items()}
@@ -95,4 +96,5 @@ def specimen_probabilities(
         "inclusion": {k: round(v, 4) for k, v in sorted(inclusion.items())},
         "outside_library": round(prob.get(out_label, 0.0), 4) if out_label else 0.0,
         "most_probable": next(iter(prob)),
+        "most_probable_effects": list(finite[next(iter(prob))][0]),
     }

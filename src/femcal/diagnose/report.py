@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 import warnings
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -277,6 +280,34 @@ def _probable(s: SpecimenDiagnosis) -> str:
     return "; ".join(top) + (f" (inclusion: {', '.join(inc)})" if inc else "")
 
 
+#: What the plotting workers read: (diagnosis, measured, folder), set before they fork.
+_PLOTTING: tuple[Diagnosis, np.ndarray, Path] | None = None
+
+
+def _plot_one(i: int) -> None:
+    diag, measured, pdir = _PLOTTING
+    name = safe_file_name(diag.specimens[i].specimen)
+    plot_specimen(diag, i, measured[i], pdir / f"{name}.png")
+
+
+def _plot_specimens(diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int) -> None:
+    """The first ``n`` specimens' plots, in one worker process per core where the platform
+    forks (the figures are independent; matplotlib takes most of a diagnosis' time)."""
+    global _PLOTTING
+    _PLOTTING = (diag, measured, pdir)
+    try:
+        workers = min(os.cpu_count() or 1, n)
+        if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
+            ctx = multiprocessing.get_context("fork")
+            with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+                list(pool.map(_plot_one, range(n), chunksize=max(1, n // (4 * workers))))
+        else:
+            for i in range(n):
+                _plot_one(i)
+    finally:
+        _PLOTTING = None
+
+
 def _parameters(s: SpecimenDiagnosis) -> str:
     best = next((r for r in s.ranking if r["effects"] == list(s.model or s.effects)), None)
     if best is None:
@@ -374,10 +405,7 @@ def write_diagnosis(
         pdir = out_dir / "plots"
         pdir.mkdir(exist_ok=True)
         n = len(diag.specimens) if max_plots is None else min(len(diag.specimens), max_plots)
-        for i in range(n):
-            plot_specimen(
-                diag, i, measured[i], pdir / f"{safe_file_name(diag.specimens[i].specimen)}.png"
-            )
+        _plot_specimens(diag, measured, pdir, n)
         plot_heatmap(diag, out_dir / "heatmap.png")
         plot_inclusion(diag, out_dir / "inclusion.png")
     return summary
