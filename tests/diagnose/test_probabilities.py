@@ -29,6 +29,8 @@ def test_probabilities_are_the_criteria_weights_with_the_prior():
     assert p["inclusion"]["facet_contact"] == pytest.approx(want[1] + want[2], abs=1e-4)
     assert sum(p["models"].values()) == pytest.approx(1.0, abs=1e-3)
     assert p["outside_library"] == 0.0 and not p["unexplained"]
+    assert p["most_probable"] in ("facet_contact", "facet_contact:split")
+    assert tuple(p["most_probable_effects"]) in crit
 
 
 def test_two_explanations_that_fit_equally_share_the_probability():
