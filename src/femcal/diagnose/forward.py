@@ -10,8 +10,9 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.starts import _combination_starts, effect_bank, nearest_starts
-from femcal.diagnose.fits import _Fit, _fit_from, _grid, _starts
+from femcal.diagnose.fits import _Fit, _fit_from, _grid, _split_start, _starts
 from femcal.diagnose.state import DiagnosisState, Model
+from femcal.effects.split import SPLIT_SUFFIX, base_name, has_split_form, is_split
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +62,11 @@ def forward_selection(state: DiagnosisState) -> None:
                 state.chosen[i] = best_eff
                 frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
                 improved.append(int(i))
+        if _level == 0:
+            split = _split_first(state, [int(i) for i in active if int(i) not in improved])
+            for i in split:
+                frontier[i] = [state.chosen[i]]
+            improved += split
         # Keep adding while it pays; with min_delta_adequate None only where the chosen model
         # still does not explain the data.
         active = np.asarray(
@@ -71,6 +77,32 @@ def forward_selection(state: DiagnosisState) -> None:
             ],
             dtype=int,
         )
+
+
+def _split_first(state: DiagnosisState, rows: list[int]) -> list[int]:
+    """Where no effect pays in its tied form, each effect split per load case, from its tied
+    fit: a law tied across load cases may not fit a specimen whose anatomy differs between
+    them. A split form needs ``min_delta`` and a split's prior cost (``min_delta_inadequate``).
+    The specimens that took one."""
+    if not rows:
+        return []
+    options = state.options
+    need = options.min_delta + options.min_delta_inadequate
+    for name in state.candidates:
+        if has_split_form(name):
+            split = (name + SPLIT_SUFFIX,)
+            v = state.solutions(rows, (name,))
+            state.fit(split, np.asarray(rows), _split_start(v, (name,), split))
+    took = []
+    for i in rows:
+        splits = [e for e in state.per_spec[i] if len(e) == 1 and is_split(e[0])]
+        if not splits:
+            continue
+        best = min(splits, key=lambda e, i=i: state.criterion(e, i))
+        if state.criterion((), i) - state.criterion(best, i) >= need:
+            state.chosen[i] = best
+            took.append(i)
+    return took
 
 
 def _extend(
@@ -88,9 +120,10 @@ def _extend(
         parents = sorted(frontier[i], key=lambda e, i=i: state.criterion(e, i))
         seen: set[Model] = set()
         for current in parents:
+            held = {base_name(e) for e in current}
             for new in state.candidates:
                 effects = tuple(sorted((*current, new)))
-                if new in current or effects in seen:
+                if new in held or effects in seen:
                     continue
                 seen.add(effects)
                 jobs.setdefault((current, new), []).append(int(i))
