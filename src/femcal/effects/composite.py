@@ -30,10 +30,7 @@ from femcal.surrogates.romnet import forward_tangents
 logger = logging.getLogger(__name__)
 
 #: Bisections of the disc's share in log M over the bracket [1e-3 M, M]: ln(1000) / 2^28 = 3e-8
-#: relative. 16 would do for the curves (the Newton step of :meth:`EffectModel.curves` squares
-#: the error; they change by < 1e-5 deg) and save ~10 % of the diagnosis' time, but they flip
-#: near-tie verdicts (docs/diagnosis-benchmark.md, "How sure are these rates?"): a change for
-#: a full benchmark run.
+#: relative; the Newton step of :meth:`EffectModel.curves` then squares the error.
 _BISECTIONS = 28
 _JAC_ROWS = 8192
 _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
