@@ -259,8 +259,7 @@ def local_ranges(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """z-sigma intervals (B, d) of the linearised posterior around ``v``, cut to [0, 1].
 
-    ``noise_deg`` is one error scale or one per row (shape (B,)). A row whose precision is not
-    finite or not invertible (a Jacobian that overflowed) gets the whole box."""
+    ``noise_deg`` is one error scale or one per row (B,); a singular row gets the whole box."""
     _, jf = problem.model.curves_jacobian(v)
     b, d = v.shape
     mask = problem.mask[rows].reshape(b, -1, 1)
@@ -268,11 +267,9 @@ def local_ranges(
     w = problem.weight[rows].reshape(b, -1, 1)
     noise2 = torch.as_tensor(noise_deg, dtype=torch.float32).reshape(-1, 1, 1) ** 2
     precision = (jj * w).transpose(1, 2) @ jj / noise2 + torch.eye(d) / prior_sd**2
-    finite = torch.isfinite(precision).reshape(b, -1).all(1)
-    cov, info = torch.linalg.inv_ex(torch.where(finite[:, None, None], precision, torch.eye(d)))
-    unknown = ~finite | (info != 0)
+    cov, info = torch.linalg.inv_ex(precision)
     half = z * torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0).sqrt()
-    half = torch.where(unknown[:, None] | ~torch.isfinite(half), torch.ones_like(half), half)
+    half = torch.where((info != 0)[:, None] | ~torch.isfinite(half), 1.0, half)
     return (v - half).clamp(0, 1), (v + half).clamp(0, 1)
 
 
