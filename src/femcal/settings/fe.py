@@ -222,6 +222,60 @@ class ValidateSettings:
     )
 
 
+def _range_of(lo: float, hi: float, unit: str) -> FnCheck:
+    """A ``[low, high]`` pair of numbers within ``[lo, hi]``, ``low <= high``."""
+    what = f"a pair [low, high] of numbers in [{lo:g}, {hi:g}] {unit}".rstrip()
+
+    def check(value: Any, path: tuple, ctx: Context) -> Any:
+        ok = isinstance(value, list | tuple) and len(value) == 2
+        ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        if not ok or not lo <= value[0] <= value[1] <= hi:
+            raise Invalid(f"expected {what} with low <= high, got {got(value)}")
+        return (float(value[0]), float(value[1]))
+
+    return FnCheck(what, check)
+
+
+@dataclass(frozen=True)
+class CohortSettings:
+    """``cohort``: an FE-made cohort with hidden posterior elements (femcal.fe.cohort).
+
+    Four balanced classes (the disc alone, facets, ligaments, both); each specimen's disc
+    parameters are drawn uniformly from ``fe.bounds`` (trimmed by ``disc_margin`` at each
+    side) and its elements' properties uniformly (log-uniformly for the stiffnesses) from the
+    ranges below, around the defaults of ``fe.settings.posterior`` (docs/fe-cohort.md).
+    """
+
+    _complete: ClassVar[bool] = True
+
+    out_dir: str = setting(PATH, "cohort folder: the study's layout (Test/) and answers.csv")
+    store: str = setting(PATH, "durable store of the cohort's FE jobs (.jsonl.gz to commit it)")
+    per_class: int = setting(Int(1), "specimens per class (4 classes)", 26)
+    seed: int = setting(Int(0), "seed of the draws and of the measurement noise", 0)
+    noise_deg: float = setting(Float(0), "sd of the Gaussian noise added to the RoM, deg", 0.05)
+    disc_margin: float = setting(
+        Float(0, 0.45), "fraction of each parameter's range left out at both ends", 0.05
+    )
+    facet_gap_mm: tuple = setting(
+        _range_of(0, 3, "mm"), "facet clearance drawn from [low, high], mm", [0.25, 1.0]
+    )
+    facet_stiffness_n_per_mm: tuple = setting(
+        _range_of(1, 1e5, "N/mm"),
+        "facet contact stiffness drawn log-uniformly from [low, high], N/mm",
+        [25.0, 100.0],
+    )
+    ligament_stiffness_scale: tuple = setting(
+        _range_of(0.1, 10, ""),
+        "factor on every ligament's default stiffness, drawn log-uniformly from [low, high]",
+        [0.5, 2.0],
+    )
+    ligament_slack_shift: tuple = setting(
+        _range_of(-0.3, 0.5, ""),
+        "added to every ligament's default slack strain (then clipped to its range)",
+        [-0.15, 0.05],
+    )
+
+
 # ------------------------------------------------------------------ posterior elements
 # The posterior elements of the CalculiX model (femcal.fe.posterior): their parameters, units,
 # ranges and defaults, declared here once. Axes as the disc model's: x lateral (right), y
@@ -243,12 +297,14 @@ LIGAMENTS: tuple[str, ...] = (
 #: for the intertransverse; toe strain: the first transition strain of that table; rest lengths:
 #: Naserkhaki et al. 2018 (L4-L5) but the capsule's, its vertical span across the joint (an
 #: estimate: a shorter vertical spring's nodes pass each other in extension and it pulls
-#: again). Positions: estimates for the 50 x 35 mm disc.
+#: again). Positions: estimates for the 50 x 35 mm disc. Slack strain 0.45 of the four
+#: posterior ligaments (0 of the intertransverse): calibrated so that the segment-to-disc RoM
+#: ratios at 10 Nm fall near the published ones (docs/fe-posterior-elements.md).
 LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     "supraspinous": {
         "stiffness_n_per_mm": 23.7,
         "toe_strain": 0.20,
-        "slack_strain": 0.0,
+        "slack_strain": 0.45,
         "lateral_mm": 0.0,
         "posterior_mm": 60.0,
         "height_mm": 5.5,
@@ -257,7 +313,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     "interspinous": {
         "stiffness_n_per_mm": 11.6,
         "toe_strain": 0.139,
-        "slack_strain": 0.0,
+        "slack_strain": 0.45,
         "lateral_mm": 0.0,
         "posterior_mm": 45.0,
         "height_mm": 5.5,
@@ -266,7 +322,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     "flavum": {
         "stiffness_n_per_mm": 27.2,
         "toe_strain": 0.059,
-        "slack_strain": 0.0,
+        "slack_strain": 0.45,
         "lateral_mm": 0.0,
         "posterior_mm": 35.0,
         "height_mm": 5.5,
@@ -275,7 +331,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     "capsular": {
         "stiffness_n_per_mm": 33.9,
         "toe_strain": 0.25,
-        "slack_strain": 0.0,
+        "slack_strain": 0.45,
         "lateral_mm": 18.0,
         "posterior_mm": 30.0,
         "height_mm": 5.5,
@@ -308,7 +364,7 @@ class FacetSettings:
 
     gap_mm: float = setting(Float(0, 3), "facet joint clearance, mm, in [0, 3]", 0.5)
     stiffness_n_per_mm: float = setting(
-        Float(1, 1e5), "contact stiffness of each closed facet, N/mm, in [1, 1e5]", 200.0
+        Float(1, 1e5), "contact stiffness of each closed facet, N/mm, in [1, 1e5]", 50.0
     )
     lateral_mm: float = setting(
         Float(5, 40), "distance of each facet from the mid-sagittal plane, mm, in [5, 40]", 16.0

@@ -18,7 +18,7 @@ from typing import Any
 from femcal.errors import ConfigError
 from femcal.settings._messages import BAD, Context, Index, closest, unknown_message
 from femcal.settings._validate import Section, settings_of
-from femcal.settings.fe import AdaptSettings, FeSettings, ValidateSettings
+from femcal.settings.fe import AdaptSettings, CohortSettings, FeSettings, ValidateSettings
 from femcal.settings.keywords import SOLVER_SETTINGS, SOLVERS
 from femcal.settings.root import (
     BaselinesSettings,
@@ -60,6 +60,7 @@ _SECTIONS: dict[str, tuple[type, dict[str, bool]]] = {
     "fe": (FeSettings, _FE),
     "validate": (ValidateSettings, _FE),
     "adapt": (AdaptSettings, _FE_OPTIONAL),
+    "cohort": (CohortSettings, _FE_OPTIONAL),
 }
 
 
@@ -92,6 +93,7 @@ class Settings:
     fe: FeSettings | None = None
     validate: ValidateSettings | None = None
     adapt: AdaptSettings | None = None
+    cohort: CohortSettings | None = None
 
 
 # ====================================================================== validation entry points
