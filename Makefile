@@ -20,8 +20,8 @@ test: install  ## the test suite (slow tests excluded; `make test PYTEST_ARGS="-
 	pytest $(PYTEST_ARGS)
 
 lint: install
-	ruff check src tests benchmarks
-	ruff format --check src tests benchmarks
+	ruff check src tests experiments benchmarks
+	ruff format --check src tests experiments benchmarks
 
 # The docs site (mkdocs.yml, docs/): the tutorial's figures from the pipeline's outputs (absent
 # on a fresh clone: the script says so and the pages build without them), then the strict build

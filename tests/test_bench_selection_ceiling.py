@@ -1,15 +1,10 @@
-"""The selection rule of benchmarks/bench_selection_ceiling.py (issue 11's bound on bar (a))."""
+"""The selection rule of experiments/bench_selection_ceiling.py (issue 11's bound on bar (a))."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-from bench_selection_ceiling import rule_right, select  # noqa: E402
+from experiments.bench_selection_ceiling import rule_right, select
 
 #: criteria of one specimen: the pair 1.5 below the facet alone, the triple 0.7 below the pair
 CRITERIA = {

@@ -1,18 +1,12 @@
-"""The hidden cohorts of benchmarks/hidden_cohorts.py (issue 11's measurement harness)."""
+"""The hidden cohorts of experiments/hidden_cohorts.py (issue 11's measurement harness)."""
 
 from __future__ import annotations
-
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-import hidden_cohorts as hc  # noqa: E402
-
-from femcal.schema import LOAD_CASES  # noqa: E402
+import experiments.hidden_cohorts as hc
+from femcal.schema import LOAD_CASES
 
 
 def _fe(n: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

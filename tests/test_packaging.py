@@ -59,13 +59,14 @@ def test_every_package_src_imports_is_a_dependency():
     assert _undeclared([ROOT / "src"], declared, local={"femcal"}) == {}
 
 
-def test_every_package_tests_and_benchmarks_import_is_declared():
+def test_every_package_tests_and_experiments_import_is_declared():
     declared = {
         _requirement_name(r)
         for r in [*PYPROJECT["dependencies"], *PYPROJECT["optional-dependencies"]["dev"]]
     }
-    folders = [ROOT / "tests", ROOT / "benchmarks"]
-    local = {"femcal"} | {p.stem for f in folders for p in f.rglob("*.py")}
+    folders = [ROOT / "tests", ROOT / "experiments", ROOT / "benchmarks"]
+    folders = [f for f in folders if f.is_dir()]
+    local = {"femcal", "experiments"} | {p.stem for f in folders for p in f.rglob("*.py")}
     assert _undeclared(folders, declared, local) == {}
 
 

@@ -5,7 +5,7 @@ kernels work out each result's shape through Python meta functions (pytorch/pyto
 operation between a dual tensor and a plain constant costs ~250 us instead of ~10 us on the CPU
 (torch 2.13). :meth:`femcal.effects.composite.EffectModel.curves_jacobian` runs every curve
 operation on dual tensors, and its constants were half of its time on the hidden cohorts of
-benchmarks/bench_diagnose.py. :func:`constant_like` gives a constant an explicit zero tangent
+experiments/bench_diagnose.py. :func:`constant_like` gives a constant an explicit zero tangent
 instead.
 """
 

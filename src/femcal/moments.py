@@ -7,8 +7,8 @@ models the surrogate's error sd at a moment ``M`` as ``error_deg * exp(growth[si
 growth rate per side of the range (``side`` is ``below`` or ``above``): above the range that is
 ``error_deg * (M / hi) ** growth``. Each side's growth rate and its limit ``max_log_ratio[side]``
 (the largest ``L`` the error was measured at on that side) are measured by the same code for
-both ends, ``benchmarks/bench_extrapolation.py`` on the Test split's held-out FE curves
-(``reports/extrapolation.md``), and set in params.yaml's ``moments`` section.
+both ends, ``experiments/bench_extrapolation.py`` on the Test split's held-out FE curves
+(docs: Benchmarks, surrogates and calibration), and set in params.yaml's ``moments`` section.
 
 ``femcal calibrate`` and ``femcal diagnose`` both screen a file with :meth:`MomentPolicy.screen`:
 points at moments within the limits are used (a warning beyond the trained range, with the
@@ -41,7 +41,7 @@ logger = logging.getLogger(__name__)
 #: Measured moments all at least this large look like N·mm rather than Nm.
 NMM_THRESHOLD = 100.0
 _MAX_LISTED = 6
-_BENCH = "benchmarks/bench_extrapolation.py (reports/extrapolation.md)"
+_BENCH = "experiments/bench_extrapolation.py (docs/benchmarks/index.md)"
 _TOL = 1e-9
 #: The sides of the trained moment range, in the order of the per-side pairs.
 SIDES = ("below", "above")

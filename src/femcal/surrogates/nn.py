@@ -114,7 +114,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         study's 1..5 Nm curves to 0.0007 deg). A wider moment range needs more: on the FE
         campaign's 0.5..10 Nm curves a least-squares cubic in log-moment misses by 0.025 deg
         on average (0.11 deg at the 95th percentile), degree 6 by 0.0062 (0.042)
-        (``benchmarks/bench_fe_curve_form.py``). Capped by the number of distinct training
+        (``experiments/bench_fe_curve_form.py``). Capped by the number of distinct training
         moments minus one.
 
     Attributes

@@ -17,7 +17,7 @@ FE runs go to ``--store`` (resumable).
 
 Usage (from the project root)::
 
-    .venv/bin/python benchmarks/bench_fe_refine.py [--n-heldout 16] [--max-fe-runs 5]
+    .venv/bin/python -m experiments.bench_fe_refine [--n-heldout 16] [--max-fe-runs 5]
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from experiments.common import REPO, RESULTS
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.fe.adaptive import band_mae, curves_to_rows
 from femcal.fe.refine import campaign_curves, refine_with_fe
@@ -37,8 +38,6 @@ from femcal.fe.store import CampaignStore
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.space import ParameterSpace
 from femcal.surrogates.nn import NeuralSurrogate
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def campaign_curves_table(store: Path, moments: list[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -85,10 +84,10 @@ def main() -> None:
     ap.add_argument("--max-fe-runs", type=int, default=5)
     ap.add_argument("--tol-deg", type=float, default=0.05)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="reports/bench_fe_refine")
+    ap.add_argument("--out", default=str(RESULTS / "bench_fe_refine" / "bench_fe_refine"))
     args = ap.parse_args()
 
-    params = yaml.safe_load((ROOT / "fe" / "params.yaml").read_text())
+    params = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())
     fe = params["fe"]
     moments = [float(m) for m in fe["moments"]]
     bounds = fe["bounds"]
@@ -97,7 +96,7 @@ def main() -> None:
         [bounds[n][0] for n in PARAMETER_NAMES],
         [bounds[n][1] for n in PARAMETER_NAMES],
     )
-    x_all, curves_all = campaign_curves_table(ROOT / args.campaign, moments)
+    x_all, curves_all = campaign_curves_table(REPO / args.campaign, moments)
     rng = np.random.default_rng(args.seed)
     order = rng.permutation(len(x_all))
     ho, tr = order[: args.n_heldout], order[args.n_heldout :]
@@ -120,7 +119,7 @@ def main() -> None:
         options=params["calibrate"]["options"]["pgd"] | {"ranges": False},
     )
     x0 = cal.parameters_frame()[list(PARAMETER_NAMES)].to_numpy()
-    fe_fn = campaign_curves(fe["solver"], fe["settings"], store=ROOT / args.store, moments=moments)
+    fe_fn = campaign_curves(fe["solver"], fe["settings"], store=REPO / args.store, moments=moments)
     t0 = time.perf_counter()
     res = refine_with_fe(
         model,
@@ -145,14 +144,14 @@ def main() -> None:
         **s,
         "refine_wall_seconds": round(refine_s, 1),
     }
-    out = ROOT / args.out
+    out = REPO / args.out
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps(figures, indent=2) + "\n")
     table = res.table()[["specimen", "fe_mae_deg_start", "fe_mae_deg", "fe_runs", "confirmed"]]
     lines = [
         "# FE-in-the-loop refinement, confirmed by CalculiX",
         "",
-        f"`benchmarks/bench_fe_refine.py` on {len(x_all)} finished configurations of "
+        f"`experiments/bench_fe_refine.py` on {len(x_all)} finished configurations of "
         f"`{args.campaign}` ({moments[0]:g}..{moments[-1]:g} Nm, {len(moments)} levels): "
         f"{len(tr)} train a {args.members}-member surrogate ({train_s:.0f} s), {len(ho)} are "
         "the specimens (their FE curves, no noise).",

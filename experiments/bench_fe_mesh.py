@@ -10,7 +10,7 @@ thread each, and writes ``reports/fe_mesh.md``: CPU and wall seconds per load ca
 
 Usage (from the project root; needs ``ccx``, ``make install`` installs it)::
 
-    .venv/bin/python benchmarks/bench_fe_mesh.py [--presets coarse default fine] [--sample 8]
+    .venv/bin/python -m experiments.bench_fe_mesh [--presets coarse default fine] [--sample 8]
 
 Other processes on the machine slow the wall clock; CPU seconds are the solver's own.
 """
@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from experiments.common import REPO, RESULTS
 from femcal.fe import COMPRESSION, FEJob, simulate
 from femcal.fe.calculix import CalculixDisc
 from femcal.fe.geometry import MESH_PRESETS, DiscGeometry
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 
-REPO = Path(__file__).resolve().parents[1]
 LARGE = REPO / "data" / "raw" / "Large"
 FALLBACK_LARGE = Path("/work/shared/data/ivd-calibnn/Large")
 MOMENTS = (1.0, 2.0, 3.0, 4.0, 5.0)
@@ -165,7 +165,7 @@ def write_report(
     lines = [
         "# CalculiX disc model: mesh presets",
         "",
-        "Written by `benchmarks/bench_fe_mesh.py` (rerun it to refresh). Model: "
+        "Written by `experiments/bench_fe_mesh.py` (rerun it to refresh). Model: "
         "`src/femcal/fe/calculix.py`; geometry and presets: `src/femcal/fe/geometry.py`.",
         "",
         f"Machine: {platform.machine()}, {platform.system()}, Python {platform.python_version()}; "
@@ -237,6 +237,7 @@ def write_report(
         ]
     if sample:
         lines += sample_section(sample)
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -245,7 +246,7 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=list(MESH_PRESETS))
     parser.add_argument("--sample", type=int, default=8, help="study configurations (0: none)")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per sample run")
-    parser.add_argument("--out", type=Path, default=REPO / "reports" / "fe_mesh.md")
+    parser.add_argument("--out", type=Path, default=RESULTS / "bench_fe_mesh" / "fe_mesh.md")
     args = parser.parse_args()
     for preset in args.presets:
         DiscGeometry.preset(preset)  # fail early on a typo

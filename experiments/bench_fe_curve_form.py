@@ -15,20 +15,18 @@ Writes ``reports/bench_fe_curve_form.md`` and ``reports/bench_fe_curve_form.json
 
 Usage (from the project root)::
 
-    .venv/bin/python benchmarks/bench_fe_curve_form.py [--campaign fe/data/campaign/runs.jsonl.gz]
+    .venv/bin/python -m experiments.bench_fe_curve_form [--campaign fe/data/campaign/runs.jsonl.gz]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 
+from experiments.common import REPO, RESULTS
 from femcal.fe.store import CampaignStore
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def curve_errors(
@@ -92,9 +90,9 @@ def summarise(records: list[dict], key: str, degrees: range, *, log_values: bool
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--campaign", default="fe/data/campaign/runs.jsonl.gz")
-    ap.add_argument("--out", default="reports/bench_fe_curve_form")
+    ap.add_argument("--out", default=str(RESULTS / "bench_fe_curve_form" / "bench_fe_curve_form"))
     args = ap.parse_args()
-    records = list(CampaignStore(ROOT / args.campaign).finished().values())
+    records = list(CampaignStore(REPO / args.campaign).finished().values())
     degrees = range(2, 8)
     result = {
         "campaign": args.campaign,
@@ -104,13 +102,14 @@ def main() -> None:
         "rom_deg_1_5_nm": summarise(records, "rom_deg", degrees, log_values=True, band=(1, 5)),
         "idp_mpa": summarise(records, "idp_mpa", degrees, log_values=False),
     }
-    out = ROOT / args.out
+    out = REPO / args.out
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
     md = [
         "# One polynomial in log-moment per FE curve: the floor under RomNet's form",
         "",
-        f"Reproduce: `.venv/bin/python benchmarks/bench_fe_curve_form.py` "
-        f"(`benchmarks/bench_fe_curve_form.py` wrote this file). Campaign store "
+        f"Reproduce: `.venv/bin/python -m experiments.bench_fe_curve_form` "
+        f"(`experiments/bench_fe_curve_form.py` wrote this file). Campaign store "
         f"`{args.campaign}`: {len(records)} jobs (each a configuration x load case curve; "
         "only the levels a job reached). Least-squares fit per curve in the standardised "
         "log-moment; MAE per curve, then its mean, 95th percentile and worst over the curves.",

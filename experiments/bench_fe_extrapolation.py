@@ -2,7 +2,7 @@
 
 The moment policy (:class:`femcal.moments.MomentPolicy`, ``moments`` in params.yaml) counts
 the surrogate's larger error beyond its trained range as an sd that grows with the log-moment
-distance ``L = log(M / hi)``; ``benchmarks/bench_extrapolation.py`` measured that growth on the
+distance ``L = log(M / hi)``; ``experiments/bench_extrapolation.py`` measured that growth on the
 study's data (1..5 Nm). This benchmark measures it on the open FE model's campaign, which
 reaches 10 Nm: held-out configurations of the campaign store (``--n-heldout``), a surrogate
 (the FE pipeline's recipe) trained on the others at 0.5..5 Nm only, and one trained on every
@@ -15,7 +15,7 @@ Writes ``reports/bench_fe_extrapolation.md`` and ``reports/bench_fe_extrapolatio
 
 Usage (from the project root)::
 
-    .venv/bin/python benchmarks/bench_fe_extrapolation.py [--n-heldout 16] [--members 2]
+    .venv/bin/python -m experiments.bench_fe_extrapolation [--n-heldout 16] [--members 2]
 """
 
 from __future__ import annotations
@@ -28,14 +28,14 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from bench_fe_refine import campaign_curves_table, recipe_surrogate
 
+from experiments.bench_fe_refine import campaign_curves_table, recipe_surrogate
+from experiments.common import REPO, RESULTS
 from femcal.fe.adaptive import curves_to_rows
 from femcal.schema import PARAMETER_NAMES
 from femcal.space import ParameterSpace
 from femcal.surrogates.nn import NeuralSurrogate
 
-ROOT = Path(__file__).resolve().parents[1]
 SD = math.sqrt(math.pi / 2)  # Gaussian errors: sd = MAE * sqrt(pi / 2)
 
 
@@ -47,11 +47,13 @@ def main() -> None:
     ap.add_argument("--max-epochs", type=int, default=600)
     ap.add_argument("--trained-max", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="reports/bench_fe_extrapolation")
+    ap.add_argument(
+        "--out", default=str(RESULTS / "bench_fe_extrapolation" / "bench_fe_extrapolation")
+    )
     args = ap.parse_args()
 
-    fe_params = yaml.safe_load((ROOT / "fe" / "params.yaml").read_text())
-    root_params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    fe_params = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())
+    root_params = yaml.safe_load((REPO / "params.yaml").read_text())
     growth = float(root_params["moments"]["error_growth"])
     fe = fe_params["fe"]
     moments = np.array([float(m) for m in fe["moments"]])
@@ -61,7 +63,7 @@ def main() -> None:
         [bounds[n][0] for n in PARAMETER_NAMES],
         [bounds[n][1] for n in PARAMETER_NAMES],
     )
-    x_all, curves_all = campaign_curves_table(ROOT / args.campaign, moments.tolist())
+    x_all, curves_all = campaign_curves_table(REPO / args.campaign, moments.tolist())
     order = np.random.default_rng(args.seed).permutation(len(x_all))
     ho, tr = order[: args.n_heldout], order[args.n_heldout :]
     recipe = fe_params["train"]["large"]["fixed"]
@@ -110,12 +112,13 @@ def main() -> None:
         "error_growth_policy": growth,
         "per_moment": rows,
     }
-    out = ROOT / args.out
+    out = REPO / args.out
+    out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps(figures, indent=2) + "\n")
     lines = [
         "# The surrogate's error beyond its trained moments, on the open CalculiX model",
         "",
-        f"`benchmarks/bench_fe_extrapolation.py` on {len(x_all)} finished configurations of "
+        f"`experiments/bench_fe_extrapolation.py` on {len(x_all)} finished configurations of "
         f"`{args.campaign}`: {len(tr)} train, {len(ho)} held out (4 load cases each). Two "
         f"{args.members}-member surrogates (the FE pipeline's recipe): one trained at 0.5..5 Nm, "
         "one at 0.5..10 Nm. sd = MAE x sqrt(pi/2); ratio = the 0.5..5 Nm model's sd at M over its "

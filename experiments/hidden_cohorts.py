@@ -59,32 +59,24 @@ from femcal.schema import LOAD_CASES
 
 NONE = "none"
 UNEXPLAINED = "unexplained"
-#: The held-out cohorts: nobody looks at their results while tuning. 2025 was the held-out seed
-#: of sessions 4 and 5, 4711 that of sessions 6 and 7; each was looked at after its sessions and
-#: became a tuning seed. 67740 (drawn with ``secrets.randbelow`` in session 9) ran once at the
-#: end of session 9 and was not tuned on in session 10; 879302 was drawn the same way in session
-#: 10 and ran for the first time in its final benchmark; 293350 was drawn the same way in session
-#: 12 (no change to the search that session: only what to measure next) and ran once.
+#: The held-out cohorts: nobody looks at their results while tuning the search; each runs once
+#: per change of the search that is kept (drawn with ``secrets.randbelow``). Earlier held-out
+#: seeds that were looked at became tuning seeds (2025, 4711).
 HOLDOUT_SEEDS = (67740, 879302, 293350)
 TUNING_SEEDS = (0, 1, 2025, 4711)
-#: Fresh cohorts of session 19: drawn to measure how far the four tuning cohorts flatter the
-#: search, and first run with the search of session 18 unchanged (reports/bench_diagnose.md
-#: reports that first run as its own group). Their misses were looked at afterwards, so a
-#: change made after session 19 counts them as tuning cohorts.
+#: Fresh cohorts that measure how far the four tuning cohorts flatter the search: reported as
+#: their own group on their first run; their misses have been looked at since, so a later
+#: change of the search counts them as tuning cohorts.
 FRESH_SEEDS = (3, 4, 5, 6)
-#: Drawn with ``secrets.randbelow`` in session 21 to measure a change of the model criterion
-#: (``criterion="aic"``) on cohorts nobody had seen: first run with the BIC (the full benchmark)
-#: and the AIC side by side, before either was looked at. The AIC did not carry its gain on
-#: the tuning cohorts to them, and the BIC stayed; their misses have been looked at since.
+#: Unseen cohorts of a change of the model criterion (``criterion="aic"``): run with the BIC
+#: and the AIC side by side before either was looked at (the BIC stayed; docs:
+#: diagnosis-benchmark.md).
 CRITERION_SEEDS = (395059, 637934, 823587)
-#: Drawn with ``secrets.randbelow`` at the start of session 22, before any change of that session
-#: was tried, as the unseen cohorts of its changes; none carried a gain on the tuning cohorts,
-#: so these ran once with the search unchanged.
+#: Unseen cohorts of a set of search changes drawn before any was tried; none carried its gain
+#: on the tuning cohorts to them, so they ran once with the search unchanged.
 POLISH_SEEDS = (725694, 260320, 86722)
-#: Drawn the same way in session 22 after the tries on the tuning cohorts, before the
-#: elimination threshold (``elimination_delta``) was measured anywhere else, as its unseen
-#: cohorts; it gained nothing on the thirteen other cohorts and was not kept, so these ran once
-#: with the search unchanged.
+#: Unseen cohorts of the elimination threshold (``elimination_delta``); it gained nothing on
+#: the other cohorts and was not kept, so they ran once with the search unchanged.
 ELIMINATION_SEEDS = (338623, 233208, 77693)
 
 #: Truth classes, in report order; a class is "+"-joined registered effects, none or unexplained.

@@ -18,7 +18,7 @@ get right. Out-of-library specimens keep the diagnosis' own verdict (the rule ca
 
 Run (about 15 min per cohort on one core)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_selection_ceiling.py --seeds 3,4 \
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_selection_ceiling --seeds 3,4 \
         --out DIR
 
 ``--from-json A --from-json B --out DIR`` joins earlier runs into one report.
@@ -35,22 +35,21 @@ from typing import Any
 
 import numpy as np
 import torch
-from bench_diagnose import (
-    REPO,
-    _cohort_name,
-    _group,
+
+from experiments.ceiling import model_criteria, own_criteria
+from experiments.common import RESULTS, reproduce_command
+from experiments.diagnose_report import wilson
+from experiments.diagnosis import (
+    cohort_group,
+    cohort_name,
     hidden_cohort,
     hidden_seeds,
     judge_cohort,
-    model_criteria,
-    own_criteria,
-    reproduce_command,
     restrict,
     run_diagnosis,
     setup,
-    wilson,
 )
-from hidden_cohorts import HOLDOUT_SEEDS
+from experiments.hidden_cohorts import HOLDOUT_SEEDS
 
 #: Gains a further effect needs in the rule (the diagnosis' is 2).
 TAUS = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0)
@@ -152,12 +151,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
     for r in rows:
         cells = " | ".join(str(rule_right(r, md, t)) for t in taus)
         lines.append(
-            f"| {_cohort_name(r)} | {r['n_eligible']} | {r['n_right_eligible']} | {cells} | "
+            f"| {cohort_name(r)} | {r['n_eligible']} | {r['n_right_eligible']} | {cells} | "
             f"{rule_right(r, md, 2.0, 'own')} |"
         )
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
-        groups.setdefault(_group(r), []).append(r)
+        groups.setdefault(cohort_group(r), []).append(r)
     if len(rows) > 1:
         lines += [
             "",
@@ -183,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--seeds", default="3,4", help="hidden cohorts' seeds")
     ap.add_argument("--holdout", action="store_true", help="allow held-out seeds")
     ap.add_argument("--max-specimens", type=int, default=None, help="per cohort (quick runs)")
-    ap.add_argument("--out", type=Path, default=REPO / "reports" / "selection_ceiling")
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_selection_ceiling")
     ap.add_argument("--from-json", type=Path, action="append", default=[], metavar="PATH")
     args = ap.parse_args(argv)
     if args.from_json:
@@ -205,7 +204,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(f"hidden seed {seed}: {len(cohort['specimens'])} specimens ...", flush=True)
         rows.append(one_cohort(cohort, ctx))
         meta = {
-            "commands": [reproduce_command("bench_selection_ceiling.py", argv)],
+            "commands": [reproduce_command("bench_selection_ceiling", argv)],
             "min_delta": ctx["min_delta"],
             "taus": list(TAUS),
         }

@@ -6,16 +6,16 @@ surrogate against FE at the *true* parameters (validation MAE * sqrt(pi / 2) ins
 moments, growing beyond them). But the residuals the diagnosis tests are those *after* the disc
 parameters are fitted, and the fit absorbs part of a smooth, systematic error. This benchmark
 measures what is left: the FE curves of the study's Test split with no effect and no noise (the
-hidden cohorts' ``none`` class, :mod:`hidden_cohorts`: log-log interpolation between the FE
-moments, a power law beyond 5 Nm), on the hidden cohorts' three protocols, fitted with the
-disc alone exactly as the diagnosis' first step does (``pgd``, the start bank, weights
-``1 / sigma(M)^2``); the residual RMS per protocol and per moment beside the policy's sd.
+hidden cohorts' ``none`` class, :mod:`experiments.hidden_cohorts`: log-log interpolation
+between the FE moments, a power law beyond 5 Nm), on the hidden cohorts' three protocols,
+fitted with the disc alone exactly as the diagnosis' first step does (``pgd``, the start bank,
+weights ``1 / sigma(M)^2``); the residual RMS per protocol and per moment beside the policy's sd.
 
 Writes ``reports/postfit_error.md`` and ``.json``.
 
 Usage (from the project root, after ``make repro``)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_postfit_error.py [--per-protocol 16]
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_postfit_error [--per-protocol 16]
 """
 
 from __future__ import annotations
@@ -30,15 +30,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_diagnose import setup
-from hidden_cohorts import PROTOCOLS, make_hidden_cohort
 
+from experiments.common import RESULTS
+from experiments.diagnosis import setup
+from experiments.hidden_cohorts import PROTOCOLS, make_hidden_cohort
 from femcal.calibration import SurrogateCurveModel
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.pgd import pgd
 from femcal.diagnose.fits import _weights
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def measure(per_protocol: int, seed: int) -> dict:
@@ -113,7 +112,7 @@ def write(result: dict, out: Path, command: str) -> None:
         "Noise-free FE curves of the Test split (no effect), fitted with the disc alone as the "
         "diagnosis' first step does; residual RMS (deg) against the surrogate's pre-fit sd that "
         "the moment policy counts in sigma (see the module docstring of "
-        "`benchmarks/bench_postfit_error.py`).",
+        "`experiments/bench_postfit_error.py`).",
         "",
         "| protocol | specimens | RMS | RMS at <= 5 Nm | per specimen: median, 90 %, max |",
         "|---|---|---|---|---|",
@@ -146,10 +145,10 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--per-protocol", type=int, default=16, help="specimens per protocol")
     ap.add_argument("--seed", type=int, default=12345, help="draw of configurations")
-    ap.add_argument("--out", type=Path, default=REPO / "reports")
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_postfit_error")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
-    command = ".venv/bin/python benchmarks/bench_postfit_error.py " + " ".join(
+    command = ".venv/bin/python -m experiments.bench_postfit_error " + " ".join(
         shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)
     )
     write(measure(args.per_protocol, args.seed), args.out, command.strip())

@@ -27,7 +27,8 @@ Writes ``reports/extrapolation.md`` and ``reports/extrapolation.json``.
 
 Usage (from the project root, after ``make repro``; run it alone: torch on 2 shared cores)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_extrapolation.py [--members 2] [--seeds 0 1]
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_extrapolation \
+        [--members 2] [--seeds 0 1]
 
 ``--select 3 --merge`` measures only the fourth experiment and keeps the others of
 ``reports/extrapolation.json``; ``--render`` re-analyses that file and rewrites the report without
@@ -49,13 +50,13 @@ import numpy as np
 import pandas as pd
 import torch
 
+from experiments.common import REPO, RESULTS
 from femcal.config import load_params, section
 from femcal.datasets import load_split
 from femcal.moments import MomentPolicy, log_distance
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.train import ok_rows, surrogate_kwargs, validation_split
 
-REPO = Path(__file__).resolve().parents[1]
 SD_PER_MAE = math.sqrt(math.pi / 2)
 #: (trained moments, tested moments outside them)
 EXPERIMENTS: tuple[tuple[tuple[float, ...], tuple[float, ...]], ...] = (
@@ -342,7 +343,7 @@ def markdown(report: dict) -> str:
     lines = [
         "# Extrapolation of the NN surrogate beyond its trained moment range",
         "",
-        "`benchmarks/bench_extrapolation.py`: the NN surrogate (`train.large.fixed` recipe: "
+        "`experiments/bench_extrapolation.py`: the NN surrogate (`train.large.fixed` recipe: "
         f"width 256 x 4, GELU, log target, L1; {report['members']} members instead of 5, <= "
         f"{report['max_epochs']} epochs, seeds {', '.join(map(str, seeds))}) trained on some "
         "moments of the Large split (1024 configurations, 15 % of them for validation), tested "
@@ -476,7 +477,7 @@ def main() -> None:
         action="store_true",
         help="keep OUT.json's experiments of the other trained ranges (and its champion)",
     )
-    ap.add_argument("--out", default=str(REPO / "reports" / "extrapolation"))
+    ap.add_argument("--out", default=str(RESULTS / "bench_extrapolation" / "extrapolation"))
     ap.add_argument(
         "--render", action="store_true", help="re-analyse and rewrite from OUT.json (no training)"
     )

@@ -16,8 +16,8 @@ options, the Large split's configurations as starts) twice, with the weights and
 
 A last case measures half the specimens (the odd ones) ``k`` times at every point and the
 others once, and also calibrates it with one error scale for the whole file (the average,
-:meth:`~femcal.moments.MomentPolicy.average_sd`, as ``femcal calibrate`` did before session
-26): the coverage of each half shows whether each specimen's ranges count its own noise.
+:meth:`~femcal.moments.MomentPolicy.average_sd`): the coverage of each half shows whether
+each specimen's ranges count its own noise.
 
 Reported per case: MAE against the measured points and against the noise-free FE curves, the
 coverage of the true parameters by the 2-sigma ranges (all 13, and the parameters RoM
@@ -30,7 +30,7 @@ flagged per true class. Writes ``reports/bench_calibrate_noise.md`` and ``.json`
 
 Usage (from the project root, after ``make repro``)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_calibrate_noise.py
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_calibrate_noise
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.common import REPO, RESULTS
 from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.base import chi2_p_value
 from femcal.calibration.report import BEYOND_NOISE_P, coverage
@@ -53,8 +54,6 @@ from femcal.stages.calibrate import calibration_options
 from femcal.stages.common import moment_settings
 from femcal.tracking import load_surrogate
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -62,7 +61,9 @@ def main() -> None:
     parser.add_argument("--noise-deg", type=float, default=0.05)
     parser.add_argument("--repeats", default="1,10", help="comma-separated k")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=str(REPO / "reports" / "bench_calibrate_noise"))
+    parser.add_argument(
+        "--out", default=str(RESULTS / "bench_calibrate_noise" / "bench_calibrate_noise")
+    )
     args = parser.parse_args()
     repeats = [int(k) for k in args.repeats.split(",")]
 
@@ -215,7 +216,7 @@ def _markdown(out: dict, args) -> str:
     lines = [
         "# Calibration of noisy and repeated measurements: ranges with and without the noise",
         "",
-        "Reproduce: `OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_calibrate_noise.py"
+        "Reproduce: `OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_calibrate_noise"
         f" --noise-deg {args.noise_deg:g} --repeats {args.repeats} --seed {args.seed}`",
         "",
         f"The study's {out['n_specimens']} Test specimens (FE RoM at 1..5 Nm, true parameters "

@@ -3,7 +3,7 @@ changing one training parameter. Writes reports/bench_pipeline.md.
 
 Usage (from the project root, after `make install`)::
 
-    FEMCAL_DATA_MIRROR=../shared/data/ivd-calibnn .venv/bin/python benchmarks/bench_pipeline.py
+    FEMCAL_DATA_MIRROR=../shared/data/ivd-calibnn .venv/bin/python -m experiments.bench_pipeline
 
 The clone is made in a temporary folder; its MLflow store and Optuna storage are its own.
 """
@@ -23,7 +23,8 @@ from pathlib import Path
 
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+from experiments.common import REPO, RESULTS
+
 BIN = Path(sys.executable).parent
 
 
@@ -42,7 +43,7 @@ def stages_run(stdout: str) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default=str(REPO / "reports" / "bench_pipeline.md"))
+    parser.add_argument("--out", default=str(RESULTS / "bench_pipeline" / "bench_pipeline.md"))
     parser.add_argument("--keep", action="store_true", help="keep the temporary clone")
     args = parser.parse_args()
     if not os.environ.get("FEMCAL_DATA_MIRROR"):

@@ -19,7 +19,7 @@ diagnosis could pay at all.
 
 Usage (from the project root, after ``make repro``)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_measurement_design.py --seeds 0,1
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_measurement_design --seeds 0,1
 """
 
 from __future__ import annotations
@@ -32,12 +32,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from bench_diagnose import hidden_cohort, hidden_seeds, reproduce_command, run_diagnosis, setup
 
 import femcal.diagnose.assemble as assemble
+from experiments.common import RESULTS, reproduce_command
+from experiments.diagnosis import hidden_cohort, hidden_seeds, run_diagnosis, setup
 from femcal.effects.composite import EffectModel
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _curves_jacobian(dense_base, effects, fit, pos):
@@ -144,7 +143,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="an ablation: the surrogate's error at the design points times this (0: a perfect "
         "surrogate), to see what limits the gain",
     )
-    ap.add_argument("--out", type=Path, default=REPO / "reports")
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_measurement_design")
     args = ap.parse_args(argv)
     seeds = hidden_seeds(ap, args.seeds, args.holdout)
     torch.manual_seed(0)
@@ -153,7 +152,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     for seed in seeds:
         print(f"hidden seed {seed} ...", flush=True)
         rows += analyse(seed, ctx, args.points, args.repeats, args.surrogate_error_scale)
-    command = reproduce_command("bench_measurement_design.py", argv)
+    command = reproduce_command("bench_measurement_design", argv)
     n = len(rows)
     by_points = [
         sum(r["settles_with"] is not None and r["settles_with"] <= k for r in rows)
@@ -165,7 +164,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         f"Reproduce: `{command}`. Hidden cohorts {seeds}; {args.repeats} measurements "
         f"at each design point; greedy designs of up to {args.points} points over the moments "
         "the policy accepts (see the module docstring of "
-        "`benchmarks/bench_measurement_design.py`). Nothing is measured: the gain is the "
+        "`experiments/bench_measurement_design.py`). Nothing is measured: the gain is the "
         "diagnosis' own arithmetic, ``delta^T (N / k + S + V)^-1 delta``.",
         "",
         f"Close calls: {n}. Settled (gain >= `min_delta` + gap) with "

@@ -3,12 +3,13 @@
 Issue 11, item 6: where two explanations are close, the diagnosis names the measurement that
 would settle it, and how many measurements there (``next_measurement``: load case, moment,
 ``repeats_to_settle``). This benchmark takes the diagnosis at its word on the hidden cohorts of
-:mod:`hidden_cohorts` (laws unlike femcal's): for every specimen whose suggestion needs at most
-``--max-repeats`` measurements, it draws that many from the hidden truth at that point (the
-generator's own laws at that moment, Gaussian noise of the cohort's sd, seeded per specimen),
-adds them to the specimen's measurements as ``femcal``'s reader does with repeated rows (their
-mean, of weight ``k``), and diagnoses the specimen again, alone, with and without them (alone
-both times: a batch of other specimens changes the fits' floating-point reductions).
+:mod:`experiments.hidden_cohorts` (laws unlike femcal's): for every specimen whose suggestion
+needs at most ``--max-repeats`` measurements, it draws that many from the hidden truth at that
+point (the generator's own laws at that moment, Gaussian noise of the cohort's sd, seeded per
+specimen), adds them to the specimen's measurements as ``femcal``'s reader does with repeated
+rows (their mean, of weight ``k``), and diagnoses the specimen again, alone, with and without
+them (alone both times: a batch of other specimens changes the fits' floating-point
+reductions).
 
 Per specimen it reports the criterion gap between the two models (the rival's minus the
 chosen's) before and after, whether the question is settled (the two ``min_delta`` apart, or
@@ -19,7 +20,7 @@ Writes ``bench_next_measurement.md`` and ``.json`` into ``--out`` (default ``rep
 
 Usage (from the project root, after ``make repro``)::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_next_measurement.py \\
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_next_measurement \\
         --seeds 0,1,2025,4711 [--holdout] [--max-repeats 10]
 """
 
@@ -35,22 +36,20 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import torch
-from bench_diagnose import (
+
+from experiments.common import RESULTS, reproduce_command
+from experiments.diagnosis import (
     hidden_cohort,
     hidden_seeds,
     judge,
     named_effects,
     named_effects_of,
-    reproduce_command,
     run_diagnosis,
     setup,
 )
-from hidden_cohorts import COMPONENTS, make_hidden_cohort, specimen_curves
-
+from experiments.hidden_cohorts import COMPONENTS, make_hidden_cohort, specimen_curves
 from femcal.diagnose.report import PRACTICAL_REPEATS
 from femcal.schema import LOAD_CASES
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def components_of(row: pd.Series) -> dict[str, dict[str, float | str]]:
@@ -295,7 +294,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         help="take this many measurements at every suggested point instead (also where the "
         "diagnosis says no number of them settles it): is that so?",
     )
-    ap.add_argument("--out", type=Path, default=REPO / "reports")
+    ap.add_argument("--out", type=Path, default=RESULTS / "bench_next_measurement")
     ap.add_argument(
         "--from-json",
         type=Path,
@@ -319,7 +318,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     for seed in seeds:
         print(f"hidden seed {seed} ...", flush=True)
         rows += follow(seed, ctx, args.max_repeats, args.repeats)
-    command = reproduce_command("bench_next_measurement.py", argv)
+    command = reproduce_command("bench_next_measurement", argv)
     meta = {
         "command": command,
         "machine": platform.processor() or platform.machine(),

@@ -14,7 +14,7 @@ Writes ``reports/bench_fe_campaign.md`` and ``reports/bench_fe_campaign.json``.
 
 Usage (from the project root; on a quiet machine, the timing is wall-clock)::
 
-    .venv/bin/python benchmarks/bench_fe_campaign.py [--n 64] [--preset default] [--subset 8]
+    .venv/bin/python -m experiments.bench_fe_campaign [--n 64] [--preset default] [--subset 8]
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.common import RESULTS
 from femcal.fe.campaign import CampaignResult, run_campaign
 from femcal.fe.design import design
 from femcal.stages.simulate import fe_space
@@ -74,7 +75,11 @@ def main() -> None:
     parser.add_argument("--preset", default="default", help="mesh preset: coarse, default, fine")
     parser.add_argument("--subset", type=int, default=8, help="configurations timed 1 vs 2")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="reports/bench_fe_campaign", help="report path stem")
+    parser.add_argument(
+        "--out",
+        default=str(RESULTS / "bench_fe_campaign" / "bench_fe_campaign"),
+        help="report path stem",
+    )
     parser.add_argument("--work", help="folder for the campaign stores (default: a temp folder)")
     args = parser.parse_args()
 
@@ -139,7 +144,7 @@ def main() -> None:
         f"CalculiX {', '.join(report['solver_versions'])}, mesh preset `{args.preset}`, four "
         f"pure-moment load cases at 1..5 Nm, LHS design (seed {args.seed}); "
         f"{report['machine']['cpus']} CPUs, {report['date']}. "
-        "`benchmarks/bench_fe_campaign.py`.",
+        "`experiments/bench_fe_campaign.py`.",
         "",
         f"## Speed-up ({subset} configurations = {one.n_jobs} jobs, same jobs both times)",
         "",
