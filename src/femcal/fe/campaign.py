@@ -172,6 +172,35 @@ def run_job(
 
 
 # --------------------------------------------------------------------- client side
+@dataclass(frozen=True)
+class PerConfigSettings:
+    """Adapter settings that differ between configurations (e.g. posterior elements).
+
+    Attributes
+    ----------
+    base : mapping
+        Keyword arguments of the adapter shared by every configuration.
+    by_config : mapping of int to mapping
+        ``config_id`` -> keyword arguments that override ``base`` for that configuration
+        (absent: ``base`` alone).
+    """
+
+    base: Mapping[str, Any]
+    by_config: Mapping[int, Mapping[str, Any]] = field(default_factory=dict)
+
+    def of(self, config_id: int) -> dict[str, Any]:
+        """The adapter settings of one configuration."""
+        return {**dict(self.base), **dict(self.by_config.get(int(config_id), {}))}
+
+
+def _settings_of(
+    adapter_settings: Mapping[str, Any] | PerConfigSettings, config_id: int
+) -> dict[str, Any]:
+    if isinstance(adapter_settings, PerConfigSettings):
+        return adapter_settings.of(config_id)
+    return dict(adapter_settings)
+
+
 @dataclass
 class CampaignResult:
     """What a campaign did.
@@ -299,7 +328,7 @@ def _abort_error(exc: BaseException) -> bool:
 
 def run_campaign(
     adapter_name: str,
-    adapter_settings: Mapping[str, Any],
+    adapter_settings: Mapping[str, Any] | PerConfigSettings,
     design_df: pd.DataFrame,
     *,
     store: str | Path,
@@ -320,9 +349,9 @@ def run_campaign(
     ----------
     adapter_name : str
         Registry name of the solver adapter (``"calculix"``).
-    adapter_settings : mapping
-        Keyword arguments of the adapter (e.g. ``{"geometry": "coarse"}``); part of the
-        job hash.
+    adapter_settings : mapping or PerConfigSettings
+        Keyword arguments of the adapter (e.g. ``{"geometry": "coarse"}``), the same for
+        every configuration or per configuration; part of the job hash.
     design_df : pandas.DataFrame, shape (n, >= 1 + d)
         ``config_id`` and the parameters (see :func:`design`).
     store : str or Path
@@ -362,9 +391,10 @@ def run_campaign(
 
     t0 = time.perf_counter()
     names = list(names or PARAMETER_NAMES)
-    digest = settings_hash(adapter_name, adapter_settings)
     jobs = make_jobs(design_df, names, load_cases=load_cases, moments=moments, forces=forces)
-    hashes = [job_hash(job, digest) for job in jobs]
+    job_settings = [_settings_of(adapter_settings, job.config_id) for job in jobs]
+    digests = [settings_hash(adapter_name, settings) for settings in job_settings]
+    hashes = [job_hash(job, digest) for job, digest in zip(jobs, digests)]
     if len(set(hashes)) != len(hashes):
         raise InputDataError("The design holds the same job twice (same config_id and inputs).")
     cstore = CampaignStore(store)
@@ -382,7 +412,11 @@ def run_campaign(
             }
         else:
             done = cstore.finished(include_failed=not retry_failed)
-        todo = [(job, h) for job, h in zip(jobs, hashes) if h not in done]
+        todo = [
+            (job, h, settings, digest)
+            for job, h, settings, digest in zip(jobs, hashes, job_settings, digests)
+            if h not in done
+        ]
         n_skipped = len(jobs) - len(todo)
         if n_skipped:
             logger.info(
@@ -403,7 +437,7 @@ def run_campaign(
                     client.submit(
                         run_job,
                         adapter_name,
-                        dict(adapter_settings),
+                        settings,
                         digest,
                         job,
                         h,
@@ -413,7 +447,7 @@ def run_campaign(
                         pure=False,
                         retries=0,
                     ): job
-                    for job, h in todo
+                    for job, h, settings, digest in todo
                 }
                 bar = tqdm(
                     total=len(jobs),
