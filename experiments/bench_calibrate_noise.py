@@ -26,7 +26,8 @@ the ranges' mean width; with the noise, the specimens flagged ``beyond noise`` (
 p < 0.01 on the points less the fit's effective parameters, and with one degree of freedom per
 point for comparison: false alarms, as the disc model describes FE curves). Last, the planted cohort
 (hidden effects) calibrated with the disc alone and with its found effects: the specimens
-flagged per true class. Writes ``reports/bench_calibrate_noise.md`` and ``.json``.
+flagged per true class. Writes
+``experiments/results/bench_calibrate_noise/bench_calibrate_noise.md`` and ``.json``.
 
 Usage (from the project root, after ``make repro``)::
 

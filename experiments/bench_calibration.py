@@ -1,8 +1,9 @@
 """Benchmark: calibration of the study's 64 synthetic Test specimens, every method side by side.
 
-Targets are the FE RoM of the 64 Test configurations at 1..5 Nm (``data/raw/Test``); the
-surrogates come from the MLflow registry (champion and held-out), the inverse network too.
-Writes ``reports/bench_calibration.md`` and ``reports/bench_calibration.json``.
+Targets are the FE RoM of the 64 Test configurations at 1..5 Nm (``data/raw/Test``); the surrogates
+come from the MLflow registry (champion and held-out), the inverse network too. Writes
+``bench_calibration.md`` and ``bench_calibration.json`` into
+``experiments/results/bench_calibration/``.
 
 Usage (from the project root, after ``make repro``)::
 

@@ -11,8 +11,9 @@ Where the time goes, once per label: ``python -X importtime`` (heavy packages) a
 calibration, tables and plots, MLflow logging) of the default command. Profiled times are
 longer than plain ones (the profiler's overhead), so read them as shares.
 
-Writes ``reports/bench_cli_calibrate.json`` (each label's figures, merged with the file's other
-labels) and ``reports/bench_cli_calibrate.md`` (every label in the file).
+Writes ``bench_cli_calibrate.json`` into ``experiments/results/bench_cli_calibrate/`` (each label's
+figures, merged with the file's other labels) and ``bench_cli_calibrate.md`` (every label in the
+file).
 
 ``--src <worktree>/src`` runs an earlier commit's code (``git worktree add /tmp/before <rev>``)
 with this project's data and models; ``--baseline-src <worktree>/src`` adds that code as one

@@ -38,15 +38,15 @@ report counts them). The bars, per cohort:
     also the MAE of the diagnosis' discrepancy fit;
 (e) the diagnosis of 50 specimens <= 60 s on 2 cores (wall scaled to 50 specimens; CPU too).
 
-Writes ``reports/bench_diagnose.md`` and ``reports/bench_diagnose.json`` (``--out`` for
-another folder); the bars are also pooled per group of cohorts (tuning, fresh, held out) with
-Wilson 95 % intervals. ``--from-json A.json --from-json B.json`` writes one report from earlier
-runs (no diagnosis), e.g. to put a run of other seeds beside the main one. ``--timing-only``
-runs the diagnosis alone (a minute per cohort): bar (e), and bars (a) and (b) too (eligibility
-comes from the diagnosis' own disc-alone fit), but none of the visibility, ceiling and
-recalibration columns; with ``--diagnose-option KEY=VALUE`` its files are named after the
-options (``bench_diagnose_timing_criterion-aic.md``), so an ablation never overwrites the
-default's report. Run it alone: other processes on the 2 cores slow torch down badly.
+Writes ``bench_diagnose.md`` and ``bench_diagnose.json`` into
+``experiments/results/bench_diagnose/`` (``--out`` for another folder); the bars are also pooled per
+group of cohorts (tuning, fresh, held out) with Wilson 95 % intervals. ``--from-json A.json
+--from-json B.json`` writes one report from earlier runs (no diagnosis), e.g. to put a run of other
+seeds beside the main one. ``--timing-only`` runs the diagnosis alone (a minute per cohort): bar
+(e), and bars (a) and (b) too (eligibility comes from the diagnosis' own disc-alone fit), but none
+of the visibility, ceiling and recalibration columns; with ``--diagnose-option KEY=VALUE`` its files
+are named after the options (``bench_diagnose_timing_criterion-aic.md``), so an ablation never
+overwrites the default's report. Run it alone: other processes on the 2 cores slow torch down badly.
 
 Usage (from the project root, after ``make repro``)::
 

@@ -23,7 +23,8 @@ models are fitted to the ratios (least squares) on each side of the range, by th
 for both ends, and translated to the 1..5 Nm champion, next to a colleague's measurement of the
 champion on the study's held-out 0.5-10 Nm FE curves.
 
-Writes ``reports/extrapolation.md`` and ``reports/extrapolation.json``.
+Writes ``extrapolation.md`` and ``extrapolation.json`` into
+``experiments/results/bench_extrapolation/``.
 
 Usage (from the project root, after ``make repro``; run it alone: torch on 2 shared cores)::
 
@@ -31,10 +32,10 @@ Usage (from the project root, after ``make repro``; run it alone: torch on 2 sha
         [--members 2] [--seeds 0 1]
 
 ``--select 3 --merge`` measures only the fourth experiment and keeps the others of
-``reports/extrapolation.json``; ``--render`` re-analyses that file and rewrites the report without
-training (``--render --champion models/surrogate-large`` measures the champion's Test errors
-again first). The measured ``error_growth`` and ``max_log_ratio`` of each side go into params.yaml's
-``moments`` section by hand (the report names them).
+``experiments/results/bench_extrapolation/extrapolation.json``; ``--render`` re-analyses that file
+and rewrites the report without training (``--render --champion models/surrogate-large`` measures
+the champion's Test errors again first). The measured ``error_growth`` and ``max_log_ratio`` of each
+side go into params.yaml's ``moments`` section by hand (the report names them).
 """
 
 from __future__ import annotations
@@ -481,6 +482,12 @@ def main() -> None:
     ap.add_argument(
         "--render", action="store_true", help="re-analyse and rewrite from OUT.json (no training)"
     )
+    ap.add_argument(
+        "--metrics-file",
+        type=Path,
+        default=None,
+        help="also write the chosen growth and limits here (the experiments pipeline's metrics)",
+    )
     args = ap.parse_args()
     out = Path(args.out)
     if args.render:
@@ -502,6 +509,9 @@ def main() -> None:
     out.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
     out.with_suffix(".md").write_text(markdown(report))
     ch = report["analysis"]["chosen"]
+    if args.metrics_file is not None:
+        args.metrics_file.parent.mkdir(parents=True, exist_ok=True)
+        args.metrics_file.write_text(json.dumps({"chosen": ch}, indent=2) + "\n")
     print(
         f"error_growth {ch['error_growth']}, max_log_ratio {ch['max_log_ratio']}; wrote "
         f"{out.with_suffix('.md')} and {out.with_suffix('.json')}"

@@ -10,7 +10,8 @@ four pure-moment load cases at 1..5 Nm, CalculiX with the ``--preset`` mesh (def
 3. all ``--n`` configurations with two workers, resuming the store of run 2 (its jobs are
    not recomputed): CPU seconds per configuration, failure rate and every failure's reason.
 
-Writes ``reports/bench_fe_campaign.md`` and ``reports/bench_fe_campaign.json``.
+Writes ``bench_fe_campaign.md`` and ``bench_fe_campaign.json`` into
+``experiments/results/bench_fe_campaign/``.
 
 Usage (from the project root; on a quiet machine, the timing is wall-clock)::
 

@@ -11,7 +11,8 @@ the study's 1..5 Nm. It chose ``moment_degree: 5`` in fe/params.yaml.
 Only the levels a job reached count (a stopped job's curve is shorter); curves with fewer than
 ``degree + 3`` points are left out of that degree.
 
-Writes ``reports/bench_fe_curve_form.md`` and ``reports/bench_fe_curve_form.json``.
+Writes ``bench_fe_curve_form.md`` and ``bench_fe_curve_form.json`` into
+``experiments/results/bench_fe_curve_form/``.
 
 Usage (from the project root)::
 

@@ -11,7 +11,8 @@ moment (the in-range reference), both tested on the held-out curves at every mom
 Reports per moment: both models' MAE, the ratio of the 0.5..5 Nm model's sd at ``M`` to its
 in-range sd, and the ratio the policy predicts (``exp(error_growth * L)``).
 
-Writes ``reports/bench_fe_extrapolation.md`` and ``reports/bench_fe_extrapolation.json``.
+Writes ``bench_fe_extrapolation.md`` and ``bench_fe_extrapolation.json`` into
+``experiments/results/bench_fe_extrapolation/``.
 
 Usage (from the project root)::
 

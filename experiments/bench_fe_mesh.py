@@ -1,12 +1,11 @@
 """Benchmark: mesh presets of the CalculiX disc model (time per load case, mesh convergence).
 
-Runs the five load cases (four pure moments at 1..5 Nm, axial compression at 300/1000/2000 N)
-at the centre of the study's parameter box on each mesh preset, one job at a time, one solver
-thread each, and writes ``reports/fe_mesh.md``: CPU and wall seconds per load case, RoM at
-5 Nm, IDP under compression, and the difference of each preset to the finest one. With
-``--sample N`` it also runs the first N configurations of the study's Large design on the
-``default`` preset (four moment load cases each) and reports failures, retries and the RoM at
-5 Nm next to the study's.
+Runs the five load cases (four pure moments at 1..5 Nm, axial compression at 300/1000/2000 N) at the
+centre of the study's parameter box on each mesh preset, one job at a time, one solver thread each,
+and writes ``experiments/results/bench_fe_mesh/fe_mesh.md``: CPU and wall seconds per load case, RoM
+at 5 Nm, IDP under compression, and the difference of each preset to the finest one. With ``--sample
+N`` it also runs the first N configurations of the study's Large design on the ``default`` preset
+(four moment load cases each) and reports failures, retries and the RoM at 5 Nm next to the study's.
 
 Usage (from the project root; needs ``ccx``, ``make install`` installs it)::
 

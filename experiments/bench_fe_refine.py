@@ -12,8 +12,8 @@ specimens (their FE curves are the measurements, no noise), trains a surrogate o
 * the FE-evaluated error of the plain calibration (the first FE run);
 * the FE-confirmed error after refinement and the FE runs it took.
 
-Writes ``reports/bench_fe_refine.md`` and ``reports/bench_fe_refine.json``; the refinement's
-FE runs go to ``--store`` (resumable).
+Writes ``bench_fe_refine.md`` and ``bench_fe_refine.json`` into
+``experiments/results/bench_fe_refine/``; the refinement's FE runs go to ``--store`` (resumable).
 
 Usage (from the project root)::
 

@@ -16,7 +16,8 @@ chosen's) before and after, whether the question is settled (the two ``min_delta
 one of them no longer among the models fitted), whether the model the data then prefer is the
 truth, and the verdict before and after.
 
-Writes ``bench_next_measurement.md`` and ``.json`` into ``--out`` (default ``reports/``).
+Writes ``bench_next_measurement.md`` and ``.json`` into ``--out`` (default
+``experiments/results/bench_next_measurement/``).
 
 Usage (from the project root, after ``make repro``)::
 

@@ -1,5 +1,5 @@
 """Benchmark: `dvc repro` from a fresh clone with the default params, then again, then after
-changing one training parameter. Writes reports/bench_pipeline.md.
+changing one training parameter. Writes experiments/results/bench_pipeline/bench_pipeline.md.
 
 Usage (from the project root, after `make install`)::
 

@@ -11,7 +11,7 @@ between the FE moments, a power law beyond 5 Nm), on the hidden cohorts' three p
 fitted with the disc alone exactly as the diagnosis' first step does (``pgd``, the start bank,
 weights ``1 / sigma(M)^2``); the residual RMS per protocol and per moment beside the policy's sd.
 
-Writes ``reports/postfit_error.md`` and ``.json``.
+Writes ``experiments/results/bench_postfit_error/postfit_error.md`` and ``.json``.
 
 Usage (from the project root, after ``make repro``)::
 
