@@ -70,6 +70,10 @@ MAX_ROUNDS = 4
 FIRST_ROUND_FACTOR = 1.1
 #: Bounds of a ligament's slack strain (femcal.settings.fe.LigamentSettings).
 SLACK_RANGE = (-0.3, 0.5)
+#: Wall-clock limit of one attempt of a cohort job, s (replaces ``fe.settings.timeout_s``).
+#: The cohort runs niced on a shared machine: a tight limit would turn the machine's load
+#: into failures, and replacing those would favour specimens that solve fast.
+COHORT_TIMEOUT_S = 1200
 
 
 def _log_uniform(rng: np.random.Generator, low: float, high: float, n: int) -> np.ndarray:
@@ -174,7 +178,7 @@ def _run_rounds(
     fe: FeRuntime, space: ParameterSpace, cohort: CohortSettings, moments: Sequence[float]
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Any]]:
     """Draw, run and replace failed specimens; the drawn table, the records and the counts."""
-    from femcal.fe.campaign import PerConfigSettings, run_campaign
+    from femcal.fe.campaign import PerConfigSettings, run_campaign, timed_out
 
     rng = np.random.default_rng([cohort.seed, 0])
     wanted = {name: int(cohort.per_class) for name in CLASSES}
@@ -198,7 +202,7 @@ def _run_rounds(
         }
         result = run_campaign(
             fe.solver,
-            PerConfigSettings(fe.settings, by_config),
+            PerConfigSettings({**fe.settings, "timeout_s": COHORT_TIMEOUT_S}, by_config),
             drawn[["config_id", *space.names]],
             store=fe.store,
             names=space.names,
@@ -207,6 +211,7 @@ def _run_rounds(
             scheduler_address=fe.scheduler_address,
             n_workers=fe.n_workers,
             progress=fe.progress,
+            retry_failed=timed_out,
         )
         records = result.records
         counts["rounds"] = round_ + 1
