@@ -2,7 +2,7 @@
 VENV ?= .venv
 export PATH := $(abspath $(VENV))/bin:$(PATH)
 
-.PHONY: repro test lint install lock remote docs
+.PHONY: repro test test-slow lint install lock remote docs
 install: $(VENV)/.installed  ## also installs CalculiX (ccx, the open FE solver) when missing
 	command -v ccx >/dev/null || { sudo=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
 	  $$sudo apt-get update -qq && $$sudo apt-get install -y -qq calculix-ccx; }
@@ -16,8 +16,11 @@ $(VENV)/.installed: pyproject.toml constraints.txt  ## the versions pinned in co
 repro: install  ## fetch the data, train, evaluate: the whole pipeline
 	dvc repro
 
-test: install  ## the test suite (slow tests excluded; `make test PYTEST_ARGS="-m slow"` for them)
+test: install  ## the test suite without the slow tests (pyproject.toml's addopts: -m 'not slow')
 	pytest $(PYTEST_ARGS)
+
+test-slow: install  ## only the slow tests: the whole pipelines (dvc repro) and the FE runs
+	pytest -m slow $(PYTEST_ARGS)
 
 lint: install
 	ruff check src tests experiments benchmarks

@@ -1,6 +1,7 @@
 """`dvc repro` for real, in a temporary copy of the repository, on a few dozen configurations.
 
-Needs the study's data through FEMCAL_DATA_MIRROR (CI sets it); skipped otherwise.
+Slow (minutes): excluded from the default ``make test``; ``make test-slow`` (CI's second step)
+runs it. Needs the study's data through FEMCAL_DATA_MIRROR (CI sets it); skipped otherwise.
 """
 
 from __future__ import annotations
@@ -19,10 +20,13 @@ from checkout import copy_working_tree
 
 BIN = Path(sys.executable).parent
 
-pytestmark = pytest.mark.skipif(
-    not os.environ.get("FEMCAL_DATA_MIRROR"),
-    reason="set FEMCAL_DATA_MIRROR to the study's data to run the pipeline",
-)
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        not os.environ.get("FEMCAL_DATA_MIRROR"),
+        reason="set FEMCAL_DATA_MIRROR to the study's data to run the pipeline",
+    ),
+]
 
 
 def _run(args, cwd, env, check=True):
@@ -61,9 +65,10 @@ def tiny_params(path: Path) -> None:
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
     root = tmp_path_factory.mktemp("femcal") / "repo"
-    # The FE pipeline (fe/dvc.yaml) is tested in tests/fe; this copy is the root pipeline's,
-    # where a teammate's `dvc pull` would miss the never-run FE outputs.
-    copy_working_tree(root, skip=lambda rel: rel.startswith("fe/"))
+    # The FE pipeline (fe/dvc.yaml) is tested in tests/fe, and the experiments pipeline
+    # (experiments/dvc.yaml, experiments/archive.dvc) runs by hand; this copy is the root
+    # pipeline's, where a teammate's `dvc pull` would miss their never-run or unpushed outputs.
+    copy_working_tree(root, skip=lambda rel: rel.startswith(("fe/", "experiments/")))
     tiny_params(root / "params.yaml")
     # No MLflow settings from the test process: mlflow.set_registry_uri (called by other
     # tests in this process) exports MLFLOW_REGISTRY_URI, which would leak into the copy.
