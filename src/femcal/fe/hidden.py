@@ -1,0 +1,246 @@
+"""The loop on the FE-made cohort: diagnose what the FE added, then calibrate with it.
+
+``python -m femcal.fe.hidden`` runs, from the project root, the commands a user runs:
+
+1. ``femcal diagnose`` on the cohort's noisy curves (``measured/Test``) with the disc-only
+   surrogate: a verdict per specimen, without the answers;
+2. ``femcal calibrate --effects ''`` on every specimen (the disc alone), and ``femcal
+   calibrate --effects <found>`` on the specimens of each verdict;
+3. the verdicts and errors against ``answers.csv``: ``hidden.json``.
+
+The figures (:func:`score`):
+
+``right_fraction``
+    among the specimens the disc alone misses by more than 2 sigma (its fit's MAE above twice
+    the diagnosis's sigma: measurement noise and surrogate error), the fraction whose verdict
+    names exactly the class's elements (facets: ``facet_contact``; ligaments:
+    ``ligament_tension``; a per-load-case ``:split`` form counts as its effect);
+``none_given_effect_fraction``
+    among the specimens with an element, the fraction with the verdict ``none``;
+``error_ratio_max``
+    the largest, over the classes, of the mean MAE after calibrating with the found effects
+    over the disc-only floor: the mean MAE of ``femcal calibrate --effects ''`` on the
+    ``none`` class (noise and surrogate error; every MAE against the noisy curves).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from femcal.errors import SolverError
+from femcal.fe.cohort import CLASS_EFFECTS, CLASSES
+
+#: Misfit of the disc alone, in units of the diagnosis's sigma, beyond which it "misses".
+MISS_SIGMAS = 2.0
+
+
+def _femcal(args: Sequence[str], cwd: Path) -> None:
+    """Run ``femcal <args>`` in ``cwd``; raise with its output's tail when it fails."""
+    cmd = [sys.executable, "-m", "femcal", *args]
+    done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=os.environ.copy())
+    if done.returncode:
+        raise SolverError(
+            f"`femcal {' '.join(args)}` failed (exit {done.returncode}) in {cwd}:\n"
+            f"{(done.stderr or done.stdout)[-3000:]}"
+        )
+
+
+def found_effects(effects: Sequence[str]) -> tuple[str, ...]:
+    """The effects of a verdict without their ``:split`` suffix, sorted and unique."""
+    return tuple(sorted({str(e).split(":")[0] for e in effects}))
+
+
+def score(
+    diagnosis: Sequence[Mapping[str, Any]],
+    answers: pd.DataFrame,
+    sigma_deg: float,
+    mae_disc: Mapping[str, float],
+    mae_after: Mapping[str, float],
+) -> dict[str, Any]:
+    """The figures of ``hidden.json`` (module docstring).
+
+    Parameters
+    ----------
+    diagnosis : sequence of mapping
+        ``diagnosis.json`` of ``femcal diagnose``: per specimen ``specimen``, ``effects``,
+        ``baseline_mae_deg`` (the disc alone's fit).
+    answers : pandas.DataFrame
+        ``answers.csv``: ``specimen``, ``class``.
+    sigma_deg : float
+        The diagnosis's sigma (noise and surrogate error), deg.
+    mae_disc, mae_after : mapping of str to float
+        Specimen -> MAE of ``femcal calibrate`` with the disc alone, and with the found
+        effects (the disc alone where none is found), deg.
+
+    Returns
+    -------
+    dict
+    """
+    truth = dict(zip(answers["specimen"].astype(str), answers["class"]))
+    rows = []
+    for rec in diagnosis:
+        name = str(rec["specimen"])
+        cls = truth[name]
+        found = found_effects(rec.get("effects") or [])
+        rows.append(
+            {
+                "specimen": name,
+                "class": cls,
+                "found": " ".join(found) or "none",
+                "right": found == tuple(sorted(CLASS_EFFECTS[cls])),
+                "misses": float(rec["baseline_mae_deg"]) > MISS_SIGMAS * sigma_deg,
+                "diagnosis_disc_mae_deg": float(rec["baseline_mae_deg"]),
+                "disc_mae_deg": float(mae_disc.get(name, np.nan)),
+                "after_mae_deg": float(mae_after.get(name, np.nan)),
+            }
+        )
+    df = pd.DataFrame(rows)
+    floor = float(df.loc[df["class"] == "none", "disc_mae_deg"].mean())
+    element = df["class"] != "none"
+    missed = df[df["misses"]]
+    classes = {}
+    for cls in CLASSES:
+        part = df[df["class"] == cls]
+        classes[cls] = {
+            "n": int(len(part)),
+            "right": int(part["right"].sum()),
+            "n_missed_by_disc": int(part["misses"].sum()),
+            "right_where_missed": int(part.loc[part["misses"], "right"].sum()),
+            "verdicts": {str(k): int(v) for k, v in part["found"].value_counts().items()},
+            "disc_mae_deg": float(part["disc_mae_deg"].mean()),
+            "after_mae_deg": float(part["after_mae_deg"].mean()),
+            "error_ratio": float(part["after_mae_deg"].mean() / floor),
+            "error_ratio_disc_alone": float(part["disc_mae_deg"].mean() / floor),
+        }
+    return {
+        "n_specimens": int(len(df)),
+        "sigma_deg": float(sigma_deg),
+        "miss_threshold_deg": MISS_SIGMAS * float(sigma_deg),
+        "n_missed_by_disc": int(len(missed)),
+        "right_fraction": float(missed["right"].mean()) if len(missed) else float("nan"),
+        "right_fraction_all": float(df["right"].mean()),
+        "none_given_effect_fraction": float((df.loc[element, "found"] == "none").mean()),
+        "disc_only_floor_mae_deg": floor,
+        "error_ratio_max": max(c["error_ratio"] for c in classes.values()),
+        "classes": classes,
+        "specimens": rows,
+    }
+
+
+def _calibrate(
+    long: pd.DataFrame, names: Sequence[str], effects: str, folder: Path, options: Mapping
+) -> dict[str, float]:
+    """``femcal calibrate --effects <effects>`` on the specimens ``names``; specimen -> MAE."""
+    folder.mkdir(parents=True, exist_ok=True)
+    subset = folder / "measurements.csv"
+    long[long["specimen"].astype(str).isin(names)].to_csv(subset, index=False)
+    result = folder / "calibration"
+    args = ["calibrate", "--measurements", str(subset), "--effects", effects, "--out", str(result)]
+    args += ["--model-uri", options["model_uri"], "--noise-deg", str(options["noise_deg"])]
+    _femcal([*args, "--no-holdout", "--plots", "none"], options["root"])
+    metrics = pd.read_csv(result / "metrics.csv", dtype={"specimen": str})
+    return dict(zip(metrics["specimen"], metrics["mae_deg"].astype(float)))
+
+
+def _calibrate_groups(
+    measured: Path, diagnosis: Sequence[Mapping[str, Any]], out_dir: Path, options: Mapping
+) -> tuple[dict[str, float], dict[str, float]]:
+    """MAE per specimen of the disc alone and of the disc with its verdict's effects, deg."""
+    from femcal.measurements import read_measurements
+
+    long = read_measurements(measured).to_long()
+    names = [str(rec["specimen"]) for rec in diagnosis]
+    disc = _calibrate(long, names, "", out_dir / "disc-alone", options)
+    groups: dict[str, list[str]] = {}
+    for rec in diagnosis:
+        groups.setdefault(",".join(rec.get("effects") or []), []).append(str(rec["specimen"]))
+    after: dict[str, float] = {}
+    for i, (effects, members) in enumerate(sorted(groups.items())):
+        if not effects:
+            after.update({name: disc[name] for name in members})
+            continue
+        after.update(_calibrate(long, members, effects, out_dir / f"found-{i}", options))
+    return disc, after
+
+
+def run_hidden(
+    cohort_dir: Path, model_uri: str, out_dir: Path, noise_deg: float, root: Path
+) -> dict[str, Any]:
+    """Diagnose and calibrate the cohort; write and return the figures (module docstring).
+
+    Parameters
+    ----------
+    cohort_dir : Path
+        The cohort folder (:mod:`femcal.fe.cohort`): ``measured/Test`` and ``answers.csv``.
+    model_uri : str
+        The disc-only surrogate (a model folder or ``models:/`` URI).
+    out_dir : Path
+        Folder of the diagnosis, the calibrations and ``hidden.json``.
+    noise_deg : float
+        Measurement noise sd given to both commands, deg.
+    root : Path
+        The project root (the commands run there, with its ``params.yaml``).
+
+    Returns
+    -------
+    dict
+        ``hidden.json``.
+    """
+    cohort_dir, out_dir = Path(cohort_dir).resolve(), Path(out_dir).resolve()
+    measured = cohort_dir / "measured" / "Test"
+    diagnosis_dir = out_dir / "diagnosis"
+    _femcal(
+        [
+            "diagnose",
+            "--measurements",
+            str(measured),
+            "--model-uri",
+            model_uri,
+            "--noise-deg",
+            str(noise_deg),
+            "--out",
+            str(diagnosis_dir),
+        ],
+        root,
+    )
+    diagnosis = json.loads((diagnosis_dir / "diagnosis.json").read_text())
+    sigma = float(json.loads((diagnosis_dir / "summary.json").read_text())["sigma_deg"])
+    answers = pd.read_csv(cohort_dir / "answers.csv", dtype={"specimen": str})
+    options = {"model_uri": model_uri, "noise_deg": noise_deg, "root": root}
+    disc, after = _calibrate_groups(measured, diagnosis, out_dir, options)
+    figures = score(diagnosis, answers, sigma, disc, after)
+    figures.update(model_uri=model_uri, noise_deg=float(noise_deg), cohort=str(cohort_dir))
+    (out_dir / "hidden.json").write_text(json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Command line of :func:`run_hidden` (see the module docstring)."""
+    parser = argparse.ArgumentParser(prog="python -m femcal.fe.hidden")
+    parser.add_argument("--cohort", type=Path, default=Path("fe/data/cohort"))
+    parser.add_argument("--model-uri", default=str(Path("fe/models/surrogate-large").resolve()))
+    parser.add_argument("--out", type=Path, default=Path("fe/reports/hidden"))
+    parser.add_argument("--noise-deg", type=float, default=0.05)
+    parser.add_argument("--root", type=Path, default=Path("."))
+    parser.add_argument("--metrics-file", type=Path, default=None)
+    args = parser.parse_args(argv)
+    figures = run_hidden(args.cohort, args.model_uri, args.out, args.noise_deg, args.root)
+    if args.metrics_file:
+        headline = {k: v for k, v in figures.items() if k != "specimens"}
+        args.metrics_file.write_text(json.dumps(headline, indent=2) + "\n")
+    print(json.dumps({k: figures[k] for k in ("right_fraction", "error_ratio_max")}))
+    return figures
+
+
+if __name__ == "__main__":
+    main()

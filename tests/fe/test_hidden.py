@@ -1,0 +1,59 @@
+"""The loop on the FE-made cohort: scoring the verdicts and errors against the answers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from femcal.errors import FemcalError, SolverError
+from femcal.fe.hidden import _femcal, found_effects, score
+
+ANSWERS = pd.DataFrame(
+    {
+        "specimen": ["0", "1", "2", "3", "4"],
+        "class": ["none", "facets", "ligaments", "both", "both"],
+    }
+)
+
+
+def diagnosis(effects: list[list[str]], baseline: list[float]) -> list[dict]:
+    return [
+        {"specimen": str(i), "effects": e, "baseline_mae_deg": b}
+        for i, (e, b) in enumerate(zip(effects, baseline))
+    ]
+
+
+def test_split_forms_count_as_their_effect():
+    assert found_effects(["facet_contact:split", "ligament_tension"]) == (
+        "facet_contact",
+        "ligament_tension",
+    )
+    assert found_effects([]) == ()
+
+
+def test_score_counts_right_verdicts_where_the_disc_misses():
+    diag = diagnosis(
+        [[], ["facet_contact:split"], [], ["facet_contact", "ligament_tension"], ["neutral_zone"]],
+        [0.05, 0.5, 0.15, 0.9, 0.6],
+    )
+    disc = {"0": 0.1, "1": 0.4, "2": 0.2, "3": 0.8, "4": 0.5}
+    after = {"0": 0.1, "1": 0.12, "2": 0.2, "3": 0.15, "4": 0.3}
+    out = score(diag, ANSWERS, 0.1, disc, after)
+    # the disc alone misses (> 0.2 deg) specimens 1, 3, 4; 1 and 3 are right
+    assert out["n_missed_by_disc"] == 3
+    assert out["right_fraction"] == pytest.approx(2 / 3)
+    # specimen 2 (ligaments) got "none": 1 of the 4 with an element
+    assert out["none_given_effect_fraction"] == pytest.approx(0.25)
+    assert out["disc_only_floor_mae_deg"] == pytest.approx(0.1)
+    assert out["classes"]["both"]["error_ratio"] == pytest.approx((0.15 + 0.3) / 2 / 0.1)
+    assert out["error_ratio_max"] == pytest.approx(2.25)
+    assert out["classes"]["facets"]["verdicts"] == {"facet_contact": 1}
+    assert out["classes"]["both"]["n"] == 2 and out["classes"]["both"]["right"] == 1
+
+
+def test_a_failing_command_is_an_error_with_its_output(tmp_path: Path):
+    with pytest.raises(SolverError, match=r"femcal no-such-command.*failed \(exit 2\)") as info:
+        _femcal(["no-such-command"], tmp_path)
+    assert isinstance(info.value, FemcalError)
