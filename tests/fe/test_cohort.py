@@ -135,11 +135,19 @@ def test_a_class_short_of_complete_specimens_is_an_error(tmp_path, monkeypatch):
             "status": "failed",
         }
     )
-    monkeypatch.setattr(cohort_module, "_run_rounds", lambda *a: (drawn, records, {}))
+    monkeypatch.setattr(cohort_module, "_run_rounds", lambda *a, **k: (drawn, records, {}))
     fe = FeRuntime("calculix", {"geometry": "coarse"}, cohort.store)
     with pytest.raises(SolverError, match=r"lacks complete specimens.*per_class") as info:
         build_cohort(fe, SPACE, cohort, [5.0, 10.0])
     assert isinstance(info.value, FemcalError)
+
+
+def test_a_partial_cohort_needs_every_class_in_the_store(tmp_path):
+    cohort = settings(tmp_path)
+    fe = FeRuntime("calculix", {"geometry": "coarse"}, cohort.store)
+    with pytest.raises(SolverError, match=r"lacks complete specimens"):
+        build_cohort(fe, SPACE, cohort, [5.0, 10.0], partial=True)
+    assert not (tmp_path / "cohort").exists()
 
 
 @pytest.mark.slow
@@ -161,5 +169,13 @@ def test_small_real_cohort_is_written_and_rebuilt_from_its_store(tmp_path):
     # A rerun is read from the store: nothing runs again, the same cohort is written.
     rerun = settings(tmp_path / "again", per_class=1, store=cohort.store)
     again = build_cohort(fe, SPACE, rerun, [5.0, 10.0])
-    assert again["jobs_run_now"] == 0
+    assert again["jobs_run_now"] == 0 and again["complete"]
+    preview = build_cohort(
+        fe,
+        SPACE,
+        settings(tmp_path / "p", per_class=1, store=cohort.store),
+        [5.0, 10.0],
+        partial=True,
+    )
+    assert preview["n_specimens"] == 4
     assert json.loads((out / "cohort.json").read_text())["n_specimens"] == 4

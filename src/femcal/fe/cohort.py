@@ -174,10 +174,29 @@ def complete_ids(records: pd.DataFrame, n_levels: int) -> set[int]:
     return {int(c) for c, n in cases.items() if n == len(LOAD_CASES)}
 
 
+def _stored(
+    fe: FeRuntime, settings: Any, design: pd.DataFrame, space: ParameterSpace, moments: Sequence
+) -> pd.DataFrame:
+    """The records of the design's jobs already in the store (nothing runs)."""
+    from femcal.fe.store import job_hash, load_records, make_jobs, records_frame, settings_hash
+
+    jobs = make_jobs(design, space.names, load_cases=LOAD_CASES, moments=moments)
+    digests = {cid: settings_hash(fe.solver, settings.of(cid)) for cid in design["config_id"]}
+    hashes = [job_hash(job, digests[job.config_id]) for job in jobs]
+    return records_frame(load_records(fe.store, hashes) if Path(fe.store).parent.is_dir() else [])
+
+
 def _run_rounds(
-    fe: FeRuntime, space: ParameterSpace, cohort: CohortSettings, moments: Sequence[float]
+    fe: FeRuntime,
+    space: ParameterSpace,
+    cohort: CohortSettings,
+    moments: Sequence[float],
+    run: bool = True,
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Any]]:
-    """Draw, run and replace failed specimens; the drawn table, the records and the counts."""
+    """Draw, run and replace failed specimens; the drawn table, the records and the counts.
+
+    With ``run`` False nothing runs: the first round's draws and their stored records.
+    """
     from femcal.fe.campaign import PerConfigSettings, run_campaign, timed_out
 
     rng = np.random.default_rng([cohort.seed, 0])
@@ -193,6 +212,8 @@ def _run_rounds(
         factor = FIRST_ROUND_FACTOR if round_ == 0 else 1.0
         todo = {c: math.ceil(v * factor) for c, v in missing.items() if v > 0}
         new = draw_specimens(space, todo, cohort, rng)
+        # classes interleaved, so that a campaign stopped early holds every class alike
+        new = new.iloc[rng.permutation(len(new))].reset_index(drop=True)
         new.insert(0, "config_id", FIRST_CONFIG_ID + len(drawn) + np.arange(len(new)))
         drawn = pd.concat([drawn, new], ignore_index=True)
         by_config = {
@@ -200,9 +221,14 @@ def _run_rounds(
             for r in drawn.to_dict(orient="records")
             if (p := posterior_of(r)) is not None
         }
+        settings = PerConfigSettings({**fe.settings, "timeout_s": COHORT_TIMEOUT_S}, by_config)
+        if not run:
+            records = _stored(fe, settings, drawn[["config_id", *space.names]], space, moments)
+            counts["jobs_from_store"] = int(len(records))
+            break
         result = run_campaign(
             fe.solver,
-            PerConfigSettings({**fe.settings, "timeout_s": COHORT_TIMEOUT_S}, by_config),
+            settings,
             drawn[["config_id", *space.names]],
             store=fe.store,
             names=space.names,
@@ -244,6 +270,8 @@ def build_cohort(
     space: ParameterSpace,
     cohort: CohortSettings,
     moments: Sequence[float],
+    *,
+    partial: bool = False,
 ) -> dict[str, Any]:
     """Draw, simulate (or read from the store) and write the cohort (module docstring).
 
@@ -258,6 +286,10 @@ def build_cohort(
         Classes' size, seed, noise, ranges and the output folder (``out_dir``).
     moments : sequence of float, shape (m,)
         Moment levels, Nm.
+    partial : bool, optional
+        Run nothing: write the complete specimens of the first round's draws already in the
+        store, the same number of each class (a preview of a campaign still running;
+        ``cohort.json`` says ``"complete": false``).
 
     Returns
     -------
@@ -267,22 +299,23 @@ def build_cohort(
     Raises
     ------
     SolverError
-        When a class still lacks complete specimens after :data:`MAX_ROUNDS` rounds.
+        When a class still lacks complete specimens after :data:`MAX_ROUNDS` rounds (or,
+        with ``partial``, when a class has none yet).
     """
     from femcal.fe.dataset import write_dataset
     from femcal.outputs import check_destination, staged_output
 
     out_dir = Path(cohort.out_dir)
     check_destination(out_dir)
-    drawn, records, counts = _run_rounds(fe, space, cohort, moments)
-    done = complete_ids(records, len(moments))
-    kept = (
-        drawn[drawn["config_id"].isin(done)]
-        .groupby("class", sort=False)
-        .head(int(cohort.per_class))
-    )
+    drawn, records, counts = _run_rounds(fe, space, cohort, moments, run=not partial)
+    done = drawn[drawn["config_id"].isin(complete_ids(records, len(moments)))]
+    size = int(cohort.per_class)
+    if partial:
+        size = min(size, *(int((done["class"] == c).sum()) for c in CLASSES))
+    kept = done.groupby("class", sort=False).head(size)
     short = {c: int(cohort.per_class) - int((kept["class"] == c).sum()) for c in CLASSES}
-    if any(v > 0 for v in short.values()):
+    counts = {**counts, "complete": not any(v > 0 for v in short.values())}
+    if not size or (not partial and not counts["complete"]):
         raise SolverError(
             f"The cohort lacks complete specimens after {MAX_ROUNDS} rounds of draws: "
             f"{ {c: v for c, v in short.items() if v > 0} } missing (the runs' failures are in "
@@ -345,6 +378,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--params", type=Path, default=Path("params.yaml"))
     parser.add_argument("--metrics-file", type=Path, default=None)
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument(
+        "--partial",
+        action="store_true",
+        help="run nothing; write the complete specimens already in the store (balanced)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     params = load_params(args.params)
@@ -357,7 +395,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             f"{args.params} has no cohort section; add one (fe/params.yaml shows its fields)."
         )
     fe = fe_runtime(params, {"store": cohort.store, "progress": args.progress}, "fe")
-    info = build_cohort(fe, fe_space(params["fe"]["bounds"]), cohort, params["fe"]["moments"])
+    space, moments = fe_space(params["fe"]["bounds"]), params["fe"]["moments"]
+    info = build_cohort(fe, space, cohort, moments, partial=args.partial)
     if args.metrics_file:
         args.metrics_file.parent.mkdir(parents=True, exist_ok=True)
         args.metrics_file.write_text(json.dumps(info, indent=2) + "\n")
