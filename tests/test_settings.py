@@ -14,17 +14,19 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import get_args
 
 import pytest
 import yaml
+from pydantic import BaseModel
 
 from femcal.config import load_params, section
 from femcal.errors import ConfigError
 from femcal.settings import (
     CALIBRATOR_OPTIONS,
-    INVERSE_HYPERPARAMETERS,
-    SURROGATE_HYPERPARAMETERS,
+    InverseKeywords,
     Settings,
+    SurrogateKeywords,
     check_environment,
     describe_setting,
     detect_schema,
@@ -60,10 +62,9 @@ def test_the_project_params_validate_completely(name):
     assert settings.schema == ("fe" if name.startswith("fe/") else "root")
     assert settings.calibrate.method == "pgd"
     assert settings.calibrate.options["pgd"]["n_starts"] == 8
-    lmax = settings.moments.max_log_ratio  # one number for both sides, or {below, above}
-    assert (lmax["above"] if isinstance(lmax, dict) else lmax) == pytest.approx(0.51)
+    assert settings.moments.max_log_ratio.above == pytest.approx(0.51)
     assert settings.train.splits["large"].fixed["activation"] == "gelu"
-    assert dataclasses.is_dataclass(settings.train) and settings.data.raw_dir
+    assert isinstance(settings.train, BaseModel) and settings.data.raw_dir
 
 
 def test_typed_sections_of_each_file():
@@ -76,7 +77,7 @@ def test_typed_sections_of_each_file():
         "ligament_tension",
     )
     assert root.calibrate.datasets["test"].measurements == "data/raw/Test"
-    assert root.train.splits["large"].search_space["learning_rate"].log is True
+    assert root.train.splits["large"].search_space["learning_rate"]["log"] is True
     fe = load_settings(ROOT / "fe" / "params.yaml")
     assert fe.fe.settings["geometry"] == "coarse" and fe.fe.bounds["Kappa"] == (0.0, 0.33)
     assert fe.validate.idp_literature == {}  # no placeholder band
@@ -88,6 +89,7 @@ def test_typed_sections_of_each_file():
 def test_load_params_returns_the_yaml_unchanged():
     params = load_params(ROOT / "params.yaml")
     raw = yaml.safe_load(ROOT_TEXT)
+    assert params.settings.calibrate.max_plots == 500  # the typed settings, beside the dict
     assert params.pop("_path") == str(ROOT / "params.yaml")
     assert params == raw
     assert section(params, "calibrate", "max_plots") == 500
@@ -342,7 +344,7 @@ def test_search_entries_of_each_type():
 def test_yaml_ints_are_accepted_for_numbers(tmp_path):
     path = edited(tmp_path, ("    above: 2.99", "    above: 3"))
     assert load_params(path)["moments"]["error_growth"]["above"] == 3  # the dict is unchanged
-    value = load_settings(path).moments.error_growth["above"]
+    value = load_settings(path).moments.error_growth.above
     assert value == 3.0 and isinstance(value, float)
 
 
@@ -906,20 +908,22 @@ def _yaml_default(value):
     return list(value) if isinstance(value, tuple) else value
 
 
+def _choices(model, name):
+    return get_args(model.model_fields[name].annotation)
+
+
 def test_hyperparameter_tables_match_the_estimators():
     from femcal.inverse import InverseModel
-    from femcal.settings import INVERSE_FIXED, SURROGATE_FIXED
     from femcal.surrogates.nn import ACTIVATIONS, LOSSES, LR_SCHEDULES, NeuralSurrogate
     from femcal.train import surrogate_kwargs
 
     init = set(_keywords(NeuralSurrogate.__init__)) | {"space"}
-    table = set(SURROGATE_HYPERPARAMETERS) - {"width", "depth"}
-    assert table | set(SURROGATE_FIXED.refused) == init
-    assert not table & set(SURROGATE_FIXED.refused)
-    checks = SURROGATE_HYPERPARAMETERS
-    assert checks["activation"][0].choices == tuple(ACTIVATIONS)
-    assert checks["loss"][0].choices == LOSSES
-    assert checks["lr_schedule"][0].choices == LR_SCHEDULES
+    table = set(SurrogateKeywords.model_fields) - {"width", "depth"}
+    refused = set(SurrogateKeywords._reasons)
+    assert table | refused == init and not table & refused
+    assert _choices(SurrogateKeywords, "activation") == tuple(ACTIVATIONS)
+    assert _choices(SurrogateKeywords, "loss") == LOSSES
+    assert _choices(SurrogateKeywords, "lr_schedule") == LR_SCHEDULES
     # The estimator's own defaults are valid settings, and width/depth are understood.
     defaults = {
         k: _yaml_default(p.default)
@@ -930,8 +934,8 @@ def test_hyperparameter_tables_match_the_estimators():
     assert surrogate_kwargs({"width": 8, "depth": 2}) == {"hidden": (8, 8)}
 
     inv = set(InverseModel._SETTINGS)
-    inv_table = set(INVERSE_HYPERPARAMETERS) - {"width", "depth"}
-    assert inv_table | {"seed"} == inv and set(INVERSE_FIXED.refused) == {"seed", "space"}
+    inv_table = set(InverseKeywords.model_fields) - {"width", "depth"}
+    assert inv_table | {"seed"} == inv and set(InverseKeywords._reasons) == {"seed", "space"}
     assert set(_keywords(InverseModel.__init__)) == inv | {"space"}
     defaults = {
         k: _yaml_default(p.default)
@@ -945,28 +949,29 @@ def test_calibrator_tables_match_the_calibrators():
     from femcal.calibration import available_calibrators, get_calibrator
     from femcal.calibration import pgd as pgd_module
     from femcal.calibration import pgd_study as study_module
-    from femcal.settings import _GA_DEFAULTS, CALIBRATORS
+    from femcal.settings import CALIBRATORS
+    from femcal.settings.keywords import GA_DEFAULTS
 
     assert sorted(CALIBRATORS) == available_calibrators() == sorted(CALIBRATOR_OPTIONS)
     for method, keywords in CALIBRATOR_OPTIONS.items():
         params = _keywords(get_calibrator(method))
-        assert set(keywords.table) | set(keywords.refused) == set(params), method
+        assert set(keywords.model_fields) | set(keywords._reasons) == set(params), method
         # Every default that YAML can hold is a valid option value.
         defaults = {
             k: _yaml_default(p.default)
             for k, p in params.items()
-            if k in keywords.table and p.default is not None
+            if k in keywords.model_fields and p.default is not None
         }
         validate_params({"calibrate": {"options": {method: defaults}}})
-    table = CALIBRATOR_OPTIONS["pgd"].table
-    assert table["optimizer"][0].choices == pgd_module.OPTIMIZERS
-    assert set(table["loss"][0].choices) == set(pgd_module.LOSSES)
-    assert table["select"][0].choices == pgd_module.SELECT
-    study = CALIBRATOR_OPTIONS["pgd-study"].table
-    assert study["projection"][0].choices == study_module.PROJECTIONS
-    assert study["optimizer"][0].choices == study_module.OPTIMIZERS
+    pgd = CALIBRATOR_OPTIONS["pgd"]
+    assert _choices(pgd, "optimizer") == pgd_module.OPTIMIZERS
+    assert set(_choices(pgd, "loss")) == set(pgd_module.LOSSES)
+    assert _choices(pgd, "select") == pgd_module.SELECT
+    study = CALIBRATOR_OPTIONS["pgd-study"]
+    assert _choices(study, "projection") == study_module.PROJECTIONS
+    assert _choices(study, "optimizer") == study_module.OPTIMIZERS
     ga = _keywords(get_calibrator("ga"))
-    assert {k: ga[k].default for k in _GA_DEFAULTS} == _GA_DEFAULTS
+    assert {k: ga[k].default for k in GA_DEFAULTS} == GA_DEFAULTS
 
 
 def test_registry_tables_match_the_registries():
@@ -975,20 +980,16 @@ def test_registry_tables_match_the_registries():
     from femcal.fe.design import SPLIT_SAMPLING
     from femcal.fe.geometry import MESH_PRESETS, DiscGeometry
     from femcal.prepare import SPLITS as PREPARED
-    from femcal.settings import (
-        BASELINE_MODELS,
-        GEOMETRY_FIELDS,
-        SOLVER_SETTINGS,
-        SOLVERS,
-        SPLITS,
-    )
+    from femcal.settings import BASELINE_MODELS, SOLVER_SETTINGS, SOLVERS, SPLITS, GeometryKeywords
     from femcal.settings import MESH_PRESETS as PRESETS
     from femcal.surrogates import available_surrogates
 
     assert sorted(BASELINE_MODELS) == sorted(set(available_surrogates()) - {"nn"})
     assert sorted(SOLVERS) == available_solvers() == sorted(SOLVER_SETTINGS)
-    assert set(SOLVER_SETTINGS["calculix"].table) == set(_keywords(CalculixDisc.__init__))
-    assert set(GEOMETRY_FIELDS) == {f.name for f in dataclasses.fields(DiscGeometry)} | {"preset"}
+    calculix = set(SOLVER_SETTINGS["calculix"].model_fields)
+    assert calculix == set(_keywords(CalculixDisc.__init__))
+    fields = {f.name for f in dataclasses.fields(DiscGeometry)} | {"preset"}
+    assert set(GeometryKeywords.model_fields) == fields
     assert PRESETS == tuple(MESH_PRESETS)
     assert set(SPLITS) == set(PREPARED) == set(SPLIT_SAMPLING)
 

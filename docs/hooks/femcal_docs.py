@@ -20,7 +20,6 @@ It also adds to the nav the optional pages listed in ``OPTIONAL_PAGES`` that exi
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import os
@@ -82,107 +81,62 @@ def _cell(text: object) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
 
 
-def _default(value: object) -> str:
-    if value is dataclasses.MISSING:
+def _default(info: object, model: type) -> str:
+    from femcal.settings.values import Keywords
+
+    if info.is_required():
         return "required"
+    value = info.get_default(call_default_factory=True)
+    if value is None and issubclass(model, Keywords):
+        return "the function's"
     return f"`{json.dumps(value, default=str)}`"
 
 
 def _models(annotation: object) -> list[type]:
-    """Classes with settings inside a type annotation (``X | None``, ``dict[str, X]``)."""
-    if isinstance(annotation, type) and (
-        dataclasses.is_dataclass(annotation) or hasattr(annotation, "model_fields")
-    ):
-        return [annotation]
-    return [m for arg in typing.get_args(annotation) for m in _models(arg)]
+    """Models with settings inside a type annotation (``X | None``, ``dict[str, X]``, a
+    mapping validated against a model and kept as given)."""
+    from femcal.settings._format import PlainOf, is_model, unwrap
+
+    tp, meta = unwrap(annotation)
+    plain = [m.model for m in meta if isinstance(m, PlainOf)]
+    if plain:
+        return plain
+    if is_model(tp):
+        return [tp]
+    return [m for arg in typing.get_args(tp) for m in _models(arg)]
 
 
-def _check_rows(check: object, key: str) -> list[tuple[str, str, str, str]]:
-    """Rows below a key whose check holds further settings (sections, maps, keyword tables)."""
-    inner = getattr(check, "inner", None)
-    if inner is not None:  # Nullable
-        return _check_rows(inner, key)
-    if hasattr(check, "cls"):  # Section
-        return _class_rows(check.cls, key)
-    if hasattr(check, "value") and hasattr(check, "what"):  # MapOf
-        return _check_rows(check.value, f"{key}.<name>")
-    table = getattr(check, "table", None)
-    if isinstance(table, dict):  # Keywords: keyword -> (check, doc)
-        return [
-            (f"{key}.{k}", c.describe(), "the function's", doc)
-            for k, (c, doc) in table.items()
-            if hasattr(c, "describe")
-        ]
-    return []
+def _class_rows(model: type, prefix: str) -> list[tuple[str, str, str, str]]:
+    """(key, allowed values, default, doc) of every setting of ``model``, nested ones too."""
+    from femcal.settings._format import describe, fields_of
 
-
-def _hidden_rows(key: str) -> list[tuple[str, str, str, str]]:
-    """Settings behind a check function the walk cannot see into: a dataset entry of
-    ``calibrate.datasets`` and each calibrator's options (``calibrate.options.<method>``)."""
-    import femcal.settings as settings
-
-    if key == "calibrate.datasets" and hasattr(settings, "DatasetSettings"):
-        return _class_rows(settings.DatasetSettings, f"{key}.<name>")
-    if key == "calibrate.options":
-        options = getattr(settings, "CALIBRATOR_OPTIONS", {})
-        return [row for m, check in options.items() for row in _check_rows(check, f"{key}.{m}")]
-    return []
-
-
-def _class_rows(cls: type, prefix: str) -> list[tuple[str, str, str, str]]:
-    """(key, allowed values, default, doc) of every setting of ``cls``, nested ones too."""
     rows: list[tuple[str, str, str, str]] = []
-    if hasattr(cls, "model_fields"):  # a pydantic model
-        for name, info in cls.model_fields.items():
-            key = f"{prefix}.{info.alias or name}"
-            default = "required" if info.is_required() else _default(info.get_default())
-            allowed = getattr(info.annotation, "__name__", None) or str(info.annotation)
-            rows.append((key, allowed.replace("typing.", ""), default, info.description or ""))
-            for model in _models(info.annotation):
-                rows += _class_rows(model, key)
-        return rows
-    for f in dataclasses.fields(cls):
-        check = f.metadata.get("check")
-        if check is None:
-            continue
-        key = f"{prefix}.{f.metadata.get('key') or f.name}"
-        if f.default is not dataclasses.MISSING:
-            default = _default(f.default)
-        elif f.default_factory is not dataclasses.MISSING:
-            default = _default(f.default_factory())
-        else:
-            default = "required"
-        rows.append((key, check.describe(), default, f.metadata.get("doc", "")))
-        rows += _check_rows(check, key) or _hidden_rows(key)
-    opened = getattr(cls, "_open", None)  # e.g. train's splits: (attribute, check, what)
-    if isinstance(opened, tuple) and len(opened) >= 2:
-        rows += _check_rows(opened[1], f"{prefix}.<name>")
+    opened = getattr(model, "_open", None)  # e.g. train's splits: their keys are names
+    for name, info in fields_of(model).items():
+        key = f"{prefix}.<name>" if name == opened else f"{prefix}.{info.alias or name}"
+        if name != opened:
+            allowed = describe(info.annotation, info.metadata)
+            rows.append((key, allowed, _default(info, model), info.description or ""))
+        origin = typing.get_origin(info.annotation)
+        for inner in _models(info.annotation):
+            below = f"{key}.<name>" if origin is dict and name != opened else key
+            rows += _class_rows(inner, below)
     return rows
 
 
 def settings_markdown(schema: str) -> str:
-    from femcal.settings import params
+    from femcal.settings import SECTIONS
 
-    sections = getattr(params, "_SECTIONS", None)
-    hints = typing.get_type_hints(params.Settings)
+    kind = schema.removesuffix("-only")
     out = []
-    for name, hint in hints.items():
-        models = _models(hint)
-        if not models:
+    for name, (model, files) in SECTIONS.items():
+        if kind not in files or (schema.endswith("-only") and set(files) != {kind}):
             continue
-        if sections is not None and name in sections:
-            wanted = sections[name][1]  # the schemas that have this section
-            if schema.removesuffix("-only") not in wanted:
-                continue
-            others = {"root", "fe"} - {schema.removesuffix("-only")}
-            if schema.endswith("-only") and others & set(wanted):
-                continue
-        cls = models[0]
-        doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+        doc = (model.__doc__ or "").strip().splitlines()[0] if model.__doc__ else ""
         doc = re.sub(r"^``[^`]+``: ", "", doc).replace("``", "`")
         out += [f"### `{name}`", "", doc[:1].upper() + doc[1:], ""]
         out += ["| key | allowed | default | what |", "| --- | --- | --- | --- |"]
-        for key, allowed, default, what in _class_rows(cls, name):
+        for key, allowed, default, what in _class_rows(model, name):
             out.append(f"| `{key}` | {_cell(allowed)} | {_cell(default)} | {_cell(what)} |")
         out.append("")
     return "\n".join(out)

@@ -1,20 +1,30 @@
 """Reading params.yaml at the edge: every unknown, missing or wrong key is a clear ConfigError.
 
-:func:`load_params` validates the file against the typed schema of :mod:`femcal.settings`
-(root ``params.yaml`` or ``fe/params.yaml``) and returns the plain dict the commands read
-through :func:`section`. Nothing heavy is imported here (no torch, Lightning, scikit-learn
-or MLflow), so a bad setting is reported before any model or library is loaded.
+:func:`load_params` validates the file against the typed settings of :mod:`femcal.settings`
+(root ``params.yaml`` or ``fe/params.yaml``) and returns the file as loaded, with the typed
+:class:`~femcal.settings.Settings` as its ``settings`` attribute: the commands read their
+sections from it. Nothing heavy is imported here (no torch, Lightning, scikit-learn or
+MLflow), so a bad setting is reported before any model or library is loaded.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from femcal.errors import ConfigError
+
+if TYPE_CHECKING:
+    from femcal.settings import Settings
+
+
+class Params(dict):
+    """A params file as loaded (a dict, with ``_path``) and its typed :attr:`settings`."""
+
+    settings: Settings
 
 
 def read_yaml_mapping(path: str | Path) -> tuple[dict[str, Any], str]:
@@ -50,8 +60,8 @@ def read_yaml_mapping(path: str | Path) -> tuple[dict[str, Any], str]:
 
 def load_params(
     path: str | Path = "params.yaml", *, schema: str | None = None, validate: bool = True
-) -> dict[str, Any]:
-    """Load and validate a params file; return it as a dict (with ``_path`` added).
+) -> Params:
+    """Load and validate a params file; return it as loaded, with its typed settings.
 
     Parameters
     ----------
@@ -62,13 +72,16 @@ def load_params(
         section (:func:`femcal.settings.detect_schema`).
     validate : bool
         Check every key the file holds (unknown, retired, mistyped or out-of-range settings
-        stop with their path, line and fix). A missing key is reported by :func:`section`
-        when a command reads it; :func:`femcal.settings.load_settings` requires them all.
+        stop with their path, line and fix). A missing key is reported when a command needs
+        its section (:meth:`femcal.settings.Settings.require`);
+        :func:`femcal.settings.load_settings` requires them all. Without it, ``settings``
+        is None.
 
     Returns
     -------
-    dict
-        The YAML mapping as loaded (values unchanged), plus ``_path``.
+    Params
+        The YAML mapping as loaded (values unchanged), plus ``_path``; its ``settings`` are
+        the typed :class:`~femcal.settings.Settings`.
 
     Raises
     ------
@@ -76,12 +89,24 @@ def load_params(
         The file is missing, not YAML, not a mapping, or holds invalid settings.
     """
     data, text = read_yaml_mapping(path)
+    params = Params(data, _path=str(path))
+    params.settings = None
     if validate:
         from femcal.settings import validate_params
 
-        validate_params(data, path=path, schema=schema, text=text)
-    data["_path"] = str(path)
-    return data
+        params.settings = validate_params(data, path=path, schema=schema, text=text)
+    return params
+
+
+def settings_of(params: Mapping[str, Any]) -> Settings:
+    """The typed settings of a loaded params file (validated now when they are not yet)."""
+    settings = getattr(params, "settings", None)
+    if settings is None:
+        from femcal.settings import validate_params
+
+        data = {k: v for k, v in params.items() if k != "_path"}
+        settings = validate_params(data, path=params.get("_path", "params.yaml"))
+    return settings
 
 
 def section(params: Mapping[str, Any], *keys: str) -> Any:

@@ -1,11 +1,13 @@
-"""The environment variables femcal reads, and :func:`check_environment`."""
-
-from __future__ import annotations
+"""The environment variables femcal reads (:class:`Environment`), and :func:`check_environment`."""
 
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import AfterValidator, Field, ValidationError
+from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from femcal.errors import ConfigError
 from femcal.settings.values import (
@@ -13,16 +15,6 @@ from femcal.settings.values import (
     mlflow_tracking_uri_problem,
     sqlalchemy_url_problem,
 )
-
-
-@dataclass(frozen=True)
-class EnvVar:
-    """An environment variable femcal reads: its doc, its check and the commands reading it."""
-
-    name: str
-    doc: str
-    problem: Callable[[str], str | None]
-    commands: tuple[str, ...]
 
 
 def _mirror_problem(value: str) -> str | None:
@@ -36,51 +28,53 @@ def _mirror_problem(value: str) -> str | None:
     return None
 
 
+def _checked(problem: Any) -> Any:
+    def check(value: str | None) -> str | None:
+        why = problem(value) if value is not None and value.strip() else None
+        if why is not None:
+            raise ValueError(why)
+        return value if value is None or value.strip() else None
+
+    return Annotated[str | None, AfterValidator(check)]
+
+
+def _var(doc: str, *commands: str) -> Any:
+    return Field(None, description=doc, json_schema_extra={"commands": commands})
+
+
 _TRACKING = (
-    "train",
-    "baselines",
-    "interpolate",
-    "evaluate",
-    "train-inverse",
-    "calibrate",
-    "diagnose",
-    "validate",
+    *("train", "baselines", "interpolate", "evaluate", "train-inverse", "calibrate"),
+    *("diagnose", "validate"),
 )
 
-#: The environment variables femcal reads, by name.
-ENVIRONMENT: dict[str, EnvVar] = {
-    v.name: v
-    for v in (
-        EnvVar(
-            "FEMCAL_DATA_MIRROR",
-            "a local folder holding the study's Large/, Small/ and Test/ (instead of the "
-            "download); set it to that folder (the study's datasets/), or unset it to download",
-            _mirror_problem,
-            ("fetch",),
-        ),
-        EnvVar(
-            "FEMCAL_OPTUNA_STORAGE",
-            "the Optuna storage, a SQLAlchemy URL (overrides train.storage); e.g. "
-            "postgresql://user:password@host/optuna, or unset it to use train.storage",
-            sqlalchemy_url_problem,
-            ("train", "train-inverse"),
-        ),
-        EnvVar(
-            "FEMCAL_DASK_ADDRESS",
-            "the Dask scheduler of the FE campaign, tcp://host:port (when fe.scheduler_address "
-            "is null); e.g. tcp://login-node:8786, or unset it for a local cluster",
-            dask_address_problem,
-            ("simulate", "validate"),
-        ),
-        EnvVar(
-            "MLFLOW_TRACKING_URI",
-            "the MLflow tracking server or database (overrides mlflow.store_dir); e.g. "
-            "http://mlflow-server:5000, or unset it to use the project's store",
-            mlflow_tracking_uri_problem,
-            _TRACKING,
-        ),
+
+class Environment(BaseSettings):
+    """The environment variables femcal reads (each None when unset or blank)."""
+
+    model_config = SettingsConfigDict(case_sensitive=True, extra="ignore", frozen=True)
+
+    FEMCAL_DATA_MIRROR: _checked(_mirror_problem) = _var(
+        "a local folder holding the study's Large/, Small/ and Test/ (instead of the download); "
+        "set it to that folder (the study's datasets/), or unset it to download",
+        "fetch",
     )
-}
+    FEMCAL_OPTUNA_STORAGE: _checked(sqlalchemy_url_problem) = _var(
+        "the Optuna storage, a SQLAlchemy URL (overrides train.storage); e.g. "
+        "postgresql://user:password@host/optuna, or unset it to use train.storage",
+        "train",
+        "train-inverse",
+    )
+    FEMCAL_DASK_ADDRESS: _checked(dask_address_problem) = _var(
+        "the Dask scheduler of the FE campaign, tcp://host:port (when fe.scheduler_address is "
+        "null); e.g. tcp://login-node:8786, or unset it for a local cluster",
+        "simulate",
+        "validate",
+    )
+    MLFLOW_TRACKING_URI: _checked(mlflow_tracking_uri_problem) = _var(
+        "the MLflow tracking server or database (overrides mlflow.store_dir); e.g. "
+        "http://mlflow-server:5000, or unset it to use the project's store",
+        *_TRACKING,
+    )
 
 
 def check_environment(
@@ -95,7 +89,7 @@ def check_environment(
     command : str, optional
         A ``femcal`` sub-command, e.g. ``"fetch"``.
     environ : mapping, optional
-        The environment (default: :data:`os.environ`).
+        The environment (default: the process's, read by :class:`Environment`).
 
     Returns
     -------
@@ -108,22 +102,34 @@ def check_environment(
         Naming every bad variable, its value, what is wrong and the fix.
     """
     environ = os.environ if environ is None else environ
-    found, problems = {}, []
-    for var in ENVIRONMENT.values():
-        if command is not None and command not in var.commands:
-            continue
-        value = environ.get(var.name, "")
-        if not value.strip():
-            continue
-        why = var.problem(value)
-        if why is None:
-            found[var.name] = value
-        else:
-            problems.append(f"{var.name}={value!r}: {why}. {var.name} is {var.doc}.")
-    if len(problems) == 1:
-        raise ConfigError(f"Environment variable {problems[0]}")
-    if problems:
-        raise ConfigError(
-            "Invalid environment variables:\n" + "\n".join(f"  {p}" for p in problems)
-        )
-    return found
+    fields = Environment.model_fields
+    names = [n for n, v in ENVIRONMENT.items() if command is None or command in v.commands]
+    try:
+        env = Environment.model_validate({n: environ[n] for n in names if n in environ})
+    except ValidationError as exc:
+        problems = [
+            f"{name}={err['input']!r}: {err['ctx']['error']}. {name} is {fields[name].description}."
+            for err in exc.errors(include_url=False)
+            for name in [str(err["loc"][0])]
+        ]
+        if len(problems) == 1:
+            raise ConfigError(f"Environment variable {problems[0]}") from None
+        listing = "\n".join(f"  {p}" for p in problems)
+        raise ConfigError(f"Invalid environment variables:\n{listing}") from None
+    return {n: getattr(env, n) for n in names if getattr(env, n) is not None}
+
+
+@dataclass(frozen=True)
+class EnvVar:
+    """An environment variable femcal reads: its doc and the commands reading it."""
+
+    name: str
+    doc: str
+    commands: tuple[str, ...]
+
+
+#: The environment variables femcal reads, by name.
+ENVIRONMENT: dict[str, EnvVar] = {
+    name: EnvVar(name, f.description, f.json_schema_extra["commands"])
+    for name, f in Environment.model_fields.items()
+}

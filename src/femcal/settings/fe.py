@@ -1,279 +1,94 @@
-"""The sections only ``fe/params.yaml`` has: the FE campaign (``fe``) and ``validate``.
-
-The adapter's keyword arguments (``fe.settings``) depend on ``fe.solver``; they are checked
-against :data:`~femcal.settings.keywords.SOLVER_SETTINGS` once both are known (see
-:mod:`femcal.settings.params`).
+"""The sections only ``fe/params.yaml`` has: the FE campaign (``fe``), ``validate`` and
+``adapt``, and the posterior elements of the CalculiX model (``fe.settings.posterior``).
 """
 
-from __future__ import annotations
+from typing import Annotated, Any, ClassVar, Literal
 
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from pydantic import (
+    ConfigDict,
+    PlainValidator,
+    TypeAdapter,
+    ValidationError,
+    WrapValidator,
+    create_model,
+    model_validator,
+)
+from pydantic.dataclasses import dataclass
+from pydantic_core import ArgsKwargs
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
-from femcal.settings._checks import Choice, Float, FnCheck, Int, KeyChoice, ListOf
-from femcal.settings._messages import BAD, Context, Invalid, got, unknown_message, yaml_repr
-from femcal.settings._validate import MapOf, Section, optional, setting
+from femcal.settings._format import Doc, fail, got, problems, yaml_repr
 from femcal.settings.keywords import (
-    CALIBRATOR_OPTIONS,
     SOLVER_SETTINGS,
     SOLVERS,
-    SPLITS,
-    SURROGATE_FIXED,
+    CalculixKeywords,
+    PgdKeywords,
+    SurrogateKeywords,
 )
-from femcal.settings.values import DASK_ADDRESS, MODEL_URI, MOMENTS, NAME, PATH
+from femcal.settings.values import (
+    DASK_ADDRESS,
+    MODEL_URI,
+    MOMENTS,
+    NAME,
+    PATH,
+    Float,
+    Int,
+    Keywords,
+    ListOf,
+    Section,
+    plain,
+    setting,
+)
 
 
-def _bounds(value: Any, path: tuple, ctx: Context) -> Any:
+def _element(cls: type) -> type:
+    """A posterior element's settings: a frozen pydantic dataclass, every key known."""
+    return dataclass(frozen=True, config=ConfigDict(extra="forbid"))(cls)
+
+
+class _Bounds(Keywords):
+    @model_validator(mode="after")
+    def _ordered(self) -> Any:
+        for name in self.model_fields_set:
+            pair = getattr(self, name)
+            if len(pair) != 2 or not pair[0] < pair[1]:
+                message = f"expected [lower, upper] with lower < upper, got {yaml_repr(pair)}"
+                raise fail(message, name)
+        return self
+
+
+#: ``fe.bounds`` as a mapping: parameter -> [lower, upper] in physical units.
+Bounds = create_model(
+    "Bounds",
+    __base__=_Bounds,
+    __doc__="The sampling box: parameter -> [lower, upper] in physical units.",
+    **{n: (ListOf(Float(), min_len=2), setting("[lower, upper]", None)) for n in PARAMETER_NAMES},
+)
+Bounds._unknown = "unknown parameter"
+Bounds._describe = "a mapping parameter -> [lower, upper]"
+
+
+def _path_or_bounds(value: Any, handler: Any) -> Any:
     if isinstance(value, str) and value.strip():
         return value
-    if not isinstance(value, Mapping) or not value:
-        raise Invalid(
+    if not isinstance(value, dict) or not value:
+        raise fail(
             "expected a ParameterBounds.csv path or a mapping name -> [lower, upper], got "
             f"{got(value)}"
         )
-    out, bad = {}, False
-    pair = ListOf(Float(), min_len=2)
-    for name, bounds in value.items():
-        where = (*path, name)
-        if name not in PARAMETER_NAMES:
-            ctx.report(
-                where, unknown_message(name, path, PARAMETER_NAMES, {}, (), "unknown parameter")
-            )
-            bad = True
-            continue
-        lo_hi = ctx.check(pair, bounds, where, "[lower, upper] in physical units")
-        if lo_hi is BAD:
-            bad = True
-        elif len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1]:
-            ctx.report_at(
-                where,
-                f"expected [lower, upper] with lower < upper, got {yaml_repr(list(bounds))}",
-            )
-            bad = True
-        else:
-            out[name] = lo_hi
-    return BAD if bad else out
+    return handler(value)
 
 
-def _solver_settings(value: Any, path: tuple, ctx: Context) -> Any:
-    # A mapping here; its keys are checked against fe.solver's adapter (SOLVER_SETTINGS).
-    if value is None:
-        return {}
-    if not isinstance(value, Mapping):
-        raise Invalid(f"expected a mapping of the adapter's keyword arguments, got {got(value)}")
-    return dict(value)
+class Splits(Keywords):
+    """``fe.splits``: configurations per split."""
 
+    _unknown: ClassVar[str] = "unknown split"
+    _describe: ClassVar[str] = "a mapping split -> configurations (large, small, test)"
 
-@dataclass(frozen=True)
-class FeSettings:
-    """``fe``: the FE campaign (fe/params.yaml)."""
-
-    solver: str = setting(Choice(SOLVERS), "FE solver adapter (femcal.fe registry)")
-    bounds: Any = setting(
-        FnCheck("a ParameterBounds.csv path or a mapping name -> [lower, upper]", _bounds),
-        "the sampling box: name -> [lower, upper], or a ParameterBounds.csv path",
-    )
-    splits: dict = setting(
-        MapOf(Int(0), KeyChoice(SPLITS, "split"), what="split -> configurations"),
-        "configurations per split (large, small, test)",
-    )
-    seed: int = setting(Int(0), "seed of the designs")
-    load_cases: tuple[str, ...] = setting(
-        ListOf(Choice(LOAD_CASES), unique=True), "load cases simulated (all four)"
-    )
-    moments: tuple[float, ...] = setting(MOMENTS, "moments simulated, Nm")
-    out_dir: str = setting(PATH, "dataset folder in the study's layout")
-    store: str = setting(
-        PATH, "durable store of finished jobs (JSON lines; .jsonl.gz to commit it)"
-    )
-    settings: dict = setting(
-        FnCheck("a mapping of the adapter's keyword arguments", _solver_settings),
-        "the adapter's keyword arguments (part of every job's hash)",
-        {},
-    )
-    scratch_dir: str | None = optional(PATH, "per-job scratch (null: temp)")
-    metrics_file: str | None = optional(PATH, "campaign figures (DVC metrics)")
-    scheduler_address: str | None = optional(
-        DASK_ADDRESS,
-        "Dask scheduler, tcp://host:port (null: a local cluster, or FEMCAL_DASK_ADDRESS)",
-    )
-    n_workers: int = setting(Int(1), "workers of the local cluster", 2)
-
-    @staticmethod
-    def _cross(v: dict) -> Iterable[tuple[str, str]]:
-        if v["load_cases"] is not None and sorted(v["load_cases"]) != sorted(LOAD_CASES):
-            yield (
-                "load_cases",
-                (
-                    "a dataset in the study's layout needs all four load cases "
-                    f"{list(LOAD_CASES)}; got {list(v['load_cases'])}"
-                ),
-            )
-
-
-@dataclass(frozen=True)
-class IdpRange:
-    """A literature range of the intradiscal pressure at one force, MPa."""
-
-    _complete: ClassVar[bool] = True
-
-    low: float = setting(Float(0), "lowest value, MPa")
-    mean: float = setting(Float(0), "mean value, MPa")
-    high: float = setting(Float(0), "highest value, MPa")
-
-    @staticmethod
-    def _cross(v: dict) -> Iterable[tuple[str, str]]:
-        if not v["low"] <= v["mean"] <= v["high"]:
-            yield (
-                "mean",
-                (f"need low <= mean <= high; got {v['low']:g}, {v['mean']:g}, {v['high']:g}"),
-            )
-
-
-@dataclass(frozen=True)
-class PublishedIdp:
-    """An intradiscal pressure published for one posture or activity (no force known), MPa."""
-
-    _complete: ClassVar[bool] = True
-
-    source: str = setting(NAME, "citation: authors, year, journal, volume:pages")
-    condition: str = setting(NAME, "posture or activity, as the source names it")
-    idp_mpa: float = setting(Float(0, lo_open=True), "the published value, MPa")
-    kind: str = setting(Choice(("in vivo", "in vitro")), "in vivo or in vitro")
-    subjects: int = setting(Int(1), "subjects or specimens measured")
-    level: str = setting(NAME, "disc level, e.g. L4-L5")
-
-
-@dataclass(frozen=True)
-class AdaptSettings:
-    """``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion."""
-
-    _complete: ClassVar[bool] = True
-
-    model_uri: str = setting(MODEL_URI, "the surrogate to adapt (a model folder or models:/ URI)")
-    targets: str = setting(PATH, "measurements whose calibrations steer the runs")
-    train: str = setting(PATH, "the surrogate's prepared training table")
-    heldout: str = setting(PATH, "prepared table of held-out FE configurations (the judge)")
-    out_model: str = setting(PATH, "folder of the champion's files (the winner)")
-    out_dir: str = setting(PATH, "folder of the rounds' tables")
-    store: str = setting(PATH, "campaign store of the new FE runs")
-    rounds: int = setting(Int(1), "rounds of FE runs and fine-tuning", 3)
-    n_explore: int = setting(Int(0), "configurations explored per round (ensemble spread)", 16)
-    n_candidates: int = setting(Int(1), "Latin-hypercube candidates ranked by spread", 2048)
-    finetune: dict = setting(
-        SURROGATE_FIXED, "NeuralSurrogate settings of the fine-tuning (warm start)", {}
-    )
-    calibrate_options: dict = setting(
-        CALIBRATOR_OPTIONS["pgd"], "pgd options of the rounds' calibrations", {}
-    )
-    seed: int = setting(Int(0), "seed of the candidates and calibrations", 0)
-
-
-@dataclass(frozen=True)
-class RefineSettings:
-    """``validate.refine``: FE-in-the-loop refinement of the calibration before validating it."""
-
-    _complete: ClassVar[bool] = True
-
-    model_uri: str = setting(
-        MODEL_URI, "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
-    )
-    max_fe_runs: int = setting(
-        Int(1), "FE runs per specimen at most, the first included (1: validate only)", 1
-    )
-    tol_deg: float = setting(
-        Float(0, lo_open=True), "FE-evaluated MAE at which a specimen is confirmed, deg", 0.05
-    )
-
-
-@dataclass(frozen=True)
-class ValidateSettings:
-    """``validate``: FE re-simulation of the calibrated parameters and the IDP check."""
-
-    calibration_dir: str = setting(PATH, "calibration folder validated")
-    measurements: str = setting(PATH, "the measurements that were calibrated to")
-    out_dir: str = setting(PATH, "output folder")
-    store: str = setting(PATH, "campaign store of the FE runs")
-    metrics_file: str | None = optional(PATH, "figures (DVC metrics)")
-    forces: tuple[float, ...] = setting(
-        ListOf(Float(0, lo_open=True), unique=True), "axial compression forces, N", []
-    )
-    idp_literature: dict = setting(
-        MapOf(Section(IdpRange), Float(0, lo_open=True), what="force in N -> {low, mean, high}"),
-        "published in vitro IDP range per force: force in N -> {low, mean, high} in MPa",
-        {},
-    )
-    idp_published: tuple = setting(
-        ListOf(Section(PublishedIdp)),
-        "published IDP values without a known force (in vivo postures): the axial force at "
-        "which each calibrated disc reaches them is reported",
-        [],
-    )
-    idp_model_uri: str | None = optional(
-        MODEL_URI,
-        "the IDP head (train@idp), compared with FE's pressures under the moments (null: not "
-        "compared)",
-    )
-    refine: RefineSettings | None = optional(
-        Section(RefineSettings), "FE-in-the-loop refinement (null: validate the calibration as is)"
-    )
-
-
-def _range_of(lo: float, hi: float, unit: str) -> FnCheck:
-    """A ``[low, high]`` pair of numbers within ``[lo, hi]``, ``low <= high``."""
-    what = f"a pair [low, high] of numbers in [{lo:g}, {hi:g}] {unit}".rstrip()
-
-    def check(value: Any, path: tuple, ctx: Context) -> Any:
-        ok = isinstance(value, list | tuple) and len(value) == 2
-        ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-        if not ok or not lo <= value[0] <= value[1] <= hi:
-            raise Invalid(f"expected {what} with low <= high, got {got(value)}")
-        return (float(value[0]), float(value[1]))
-
-    return FnCheck(what, check)
-
-
-@dataclass(frozen=True)
-class CohortSettings:
-    """``cohort``: an FE-made cohort with hidden posterior elements (femcal.fe.cohort).
-
-    Four balanced classes (the disc alone, facets, ligaments, both); each specimen's disc
-    parameters are drawn uniformly from ``fe.bounds`` (trimmed by ``disc_margin`` at each
-    side) and its elements' properties uniformly (log-uniformly for the stiffnesses) from the
-    ranges below, around the defaults of ``fe.settings.posterior`` (docs/fe-cohort.md).
-    """
-
-    _complete: ClassVar[bool] = True
-
-    out_dir: str = setting(PATH, "cohort folder: the study's layout (Test/) and answers.csv")
-    store: str = setting(PATH, "durable store of the cohort's FE jobs (.jsonl.gz to commit it)")
-    per_class: int = setting(Int(1), "specimens per class (4 classes)", 26)
-    seed: int = setting(Int(0), "seed of the draws and of the measurement noise", 0)
-    noise_deg: float = setting(Float(0), "sd of the Gaussian noise added to the RoM, deg", 0.05)
-    disc_margin: float = setting(
-        Float(0, 0.45), "fraction of each parameter's range left out at both ends", 0.05
-    )
-    facet_gap_mm: tuple = setting(
-        _range_of(0, 3, "mm"), "facet clearance drawn from [low, high], mm", [0.25, 1.0]
-    )
-    facet_stiffness_n_per_mm: tuple = setting(
-        _range_of(1, 1e5, "N/mm"),
-        "facet contact stiffness drawn log-uniformly from [low, high], N/mm",
-        [25.0, 100.0],
-    )
-    ligament_stiffness_scale: tuple = setting(
-        _range_of(0.1, 10, ""),
-        "factor on every ligament's default stiffness, drawn log-uniformly from [low, high]",
-        [0.5, 2.0],
-    )
-    ligament_slack_shift: tuple = setting(
-        _range_of(-0.3, 0.5, ""),
-        "added to every ligament's default slack strain (then clipped to its range)",
-        [-0.15, 0.05],
-    )
+    large: Int(0) = setting("configurations of the large split", None)
+    small: Int(0) = setting("configurations of the small split", None)
+    test: Int(0) = setting("configurations of the test split", None)
 
 
 # ------------------------------------------------------------------ posterior elements
@@ -349,7 +164,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
 }
 
 
-@dataclass(frozen=True)
+@_element
 class FacetSettings:
     """``fe.settings.posterior.facets``: two facet joints, each one unilateral gap element.
 
@@ -362,28 +177,28 @@ class FacetSettings:
 
     _complete: ClassVar[bool] = True
 
-    gap_mm: float = setting(Float(0, 3), "facet joint clearance, mm, in [0, 3]", 0.5)
-    stiffness_n_per_mm: float = setting(
-        Float(1, 1e5), "contact stiffness of each closed facet, N/mm, in [1, 1e5]", 50.0
+    gap_mm: Float(0, 3) = setting("facet joint clearance, mm, in [0, 3]", 0.5)
+    stiffness_n_per_mm: Float(1, 1e5) = setting(
+        "contact stiffness of each closed facet, N/mm, in [1, 1e5]", 50.0
     )
-    lateral_mm: float = setting(
-        Float(5, 40), "distance of each facet from the mid-sagittal plane, mm, in [5, 40]", 16.0
+    lateral_mm: Float(5, 40) = setting(
+        "distance of each facet from the mid-sagittal plane, mm, in [5, 40]", 16.0
     )
-    posterior_mm: float = setting(
-        Float(18, 60), "distance of the facets behind the disc centre, mm, in [18, 60]", 30.0
+    posterior_mm: Float(18, 60) = setting(
+        "distance of the facets behind the disc centre, mm, in [18, 60]", 30.0
     )
-    height_mm: float = setting(
-        Float(-20, 30), "height of the facet centres above the lower endplate, mm", 5.5
+    height_mm: Float(-20, 30) = setting(
+        "height of the facet centres above the lower endplate, mm", 5.5
     )
-    axial_angle_deg: float = setting(
-        Float(0, 90), "joint plane to the sagittal plane (transverse view), deg, in [0, 90]", 45.0
+    axial_angle_deg: Float(0, 90) = setting(
+        "joint plane to the sagittal plane (transverse view), deg, in [0, 90]", 45.0
     )
-    inclination_deg: float = setting(
-        Float(0, 80), "downward tilt of the contact normal, deg, in [0, 80]", 30.0
+    inclination_deg: Float(0, 80) = setting(
+        "downward tilt of the contact normal, deg, in [0, 80]", 30.0
     )
 
 
-@dataclass(frozen=True)
+@_element
 class LigamentSettings:
     """One ligament: a tension-only nonlinear spring (``SPRINGA``), one per side if lateral.
 
@@ -396,48 +211,50 @@ class LigamentSettings:
 
     _complete: ClassVar[bool] = True
 
-    stiffness_n_per_mm: float = setting(
-        Float(0.1, 1000), "stiffness of the linear region (each side), N/mm, in [0.1, 1000]"
+    stiffness_n_per_mm: Float(0.1, 1000) = setting(
+        "stiffness of the linear region (each side), N/mm, in [0.1, 1000]"
     )
-    toe_strain: float = setting(Float(0, 1), "strain span of the toe region, in [0, 1]")
-    slack_strain: float = setting(
-        Float(-0.3, 0.5), "strain at which force starts (< 0: pre-strained), in [-0.3, 0.5]"
+    toe_strain: Float(0, 1) = setting("strain span of the toe region, in [0, 1]")
+    slack_strain: Float(-0.3, 0.5) = setting(
+        "strain at which force starts (< 0: pre-strained), in [-0.3, 0.5]"
     )
-    lateral_mm: float = setting(
-        Float(0, 60), "distance from the mid-sagittal plane (0: one midline spring), mm"
+    lateral_mm: Float(0, 60) = setting(
+        "distance from the mid-sagittal plane (0: one midline spring), mm"
     )
-    posterior_mm: float = setting(Float(0, 100), "distance behind the disc centre, mm")
-    height_mm: float = setting(Float(-30, 40), "centre above the lower endplate, mm")
-    length_mm: float = setting(Float(0.5, 60), "rest length (upper to lower attachment), mm")
+    posterior_mm: Float(0, 100) = setting("distance behind the disc centre, mm")
+    height_mm: Float(-30, 40) = setting("centre above the lower endplate, mm")
+    length_mm: Float(0.5, 60) = setting("rest length (upper to lower attachment), mm")
 
 
-def _ligaments(value: Any, path: tuple, ctx: Context) -> Any:
-    if value is None:
-        return {}
-    if isinstance(value, list | tuple):
-        value = {name: {} for name in value}
-    if not isinstance(value, Mapping):
-        raise Invalid(
-            f"expected a list of ligament names or a mapping name -> settings, got {got(value)}"
-        )
-    out, bad = {}, False
-    for name, overrides in value.items():
-        where = (*path, name)
-        if name not in LIGAMENTS:
-            ctx.report(where, unknown_message(name, path, LIGAMENTS, {}, (), "unknown ligament"))
-            bad = True
-            continue
-        if overrides is not None and not isinstance(overrides, Mapping):
-            ctx.report_at(where, f"expected a mapping of ligament settings, got {got(overrides)}")
-            bad = True
-            continue
-        merged = {**LIGAMENT_DEFAULTS[name], **(overrides or {})}
-        out[name] = ctx.check(Section(LigamentSettings), merged, where)
-        bad |= out[name] is BAD
-    return BAD if bad else out
+class _Ligaments(Keywords):
+    @model_validator(mode="before")
+    @classmethod
+    def _with_defaults(cls, value: Any) -> Any:
+        if isinstance(value, list | tuple):
+            value = {name: {} for name in value}
+        if not isinstance(value, dict):
+            raise fail(
+                f"expected a list of ligament names or a mapping name -> settings, got {got(value)}"
+            )
+        for name, overrides in value.items():
+            if overrides is not None and not isinstance(overrides, dict):
+                raise fail(f"expected a mapping of ligament settings, got {got(overrides)}", name)
+        return {
+            k: {**LIGAMENT_DEFAULTS[k], **(v or {})} if k in LIGAMENT_DEFAULTS else v
+            for k, v in value.items()
+        }
 
 
-@dataclass(frozen=True)
+#: ``fe.settings.posterior.ligaments``: ligament -> its settings (the defaults overridden).
+Ligaments = create_model(
+    "Ligaments",
+    __base__=_Ligaments,
+    **{n: (LigamentSettings, setting(f"the {n} ligament", None)) for n in LIGAMENTS},
+)
+Ligaments._unknown = "unknown ligament"
+
+
+@_element
 class PosteriorSettings:
     """``fe.settings.posterior``: the posterior elements joined to the disc (all optional).
 
@@ -445,15 +262,21 @@ class PosteriorSettings:
     """
 
     _complete: ClassVar[bool] = True
+    _describe: ClassVar[str] = "a mapping (facets, ligaments) or null"
 
-    facets: FacetSettings | None = optional(
-        Section(FacetSettings), "facet joints (GAPUNI contact; null: none)"
+    facets: FacetSettings | None = setting("facet joints (GAPUNI contact; null: none)", None)
+    ligaments: plain(Ligaments, typed=True) = setting(
+        f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides", {}
     )
-    ligaments: dict = setting(
-        FnCheck("a list of ligament names or a mapping name -> settings", _ligaments),
-        f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides",
-        {},
-    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _a_mapping(cls, value: Any) -> Any:
+        if isinstance(value, ArgsKwargs):  # PosteriorSettings(facets=...)
+            return value
+        if value is not None and not isinstance(value, dict):
+            raise fail(f"expected a mapping (facets, ligaments) or null, got {got(value)}")
+        return value or {}
 
     @property
     def active(self) -> bool:
@@ -461,34 +284,20 @@ class PosteriorSettings:
         return self.facets is not None or bool(self.ligaments)
 
 
-def _plain(value: Any) -> Any:
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    return value
+class CalculixSettings(CalculixKeywords):
+    """The CalculiX adapter's keyword arguments (``fe.settings``; part of every job's hash)."""
+
+    posterior: plain(PosteriorSettings) | None = setting(
+        "posterior elements joined to the disc: facets, ligaments (leave out for the disc alone)",
+        None,
+    )
 
 
-def _posterior(value: Any, path: tuple, ctx: Context) -> Any:
-    # Validated against PosteriorSettings; kept as plain data (it is hashed into job keys).
-    if value is None:
-        return None
-    if not isinstance(value, Mapping):
-        raise Invalid(f"expected a mapping (facets, ligaments) or null, got {got(value)}")
-    checked = Section(PosteriorSettings)(value, path, ctx)
-    return BAD if checked is BAD else _plain(value)
-
-
-#: The check of ``fe.settings.posterior`` (a CalculixDisc keyword).
-POSTERIOR_KEYWORD = (
-    FnCheck("null or a mapping of posterior elements (facets, ligaments)", _posterior),
-    "posterior elements joined to the disc: facets, ligaments (leave out for the disc alone)",
-)
-SOLVER_SETTINGS["calculix"].table.setdefault("posterior", POSTERIOR_KEYWORD)
+SOLVER_SETTINGS["calculix"] = CalculixSettings
 
 
 def posterior_settings(
-    value: PosteriorSettings | Mapping | None, where: str = "fe/params.yaml"
+    value: PosteriorSettings | dict | None, where: str = "fe/params.yaml"
 ) -> PosteriorSettings:
     """Validated posterior elements from their settings (a mapping, an instance or None).
 
@@ -511,19 +320,193 @@ def posterior_settings(
     """
     if isinstance(value, PosteriorSettings):
         return value
-    if value is None:
-        return PosteriorSettings()
-    ctx = Context(complete=True)
-    path = ("fe", "settings", "posterior")
-    if not isinstance(value, Mapping):
-        ctx.report_at(path, f"expected a mapping (facets, ligaments) or null, got {got(value)}")
-        checked = BAD
-    else:
-        checked = Section(PosteriorSettings)(value, path, ctx)
-    if ctx.problems or checked is BAD:
-        problems = "\n".join(f"  - {message}" for _, message in ctx.problems)
+    try:
+        return TypeAdapter(PosteriorSettings).validate_python(value)
+    except ValidationError as exc:
+        found = problems(exc, PosteriorSettings, prefix=("fe", "settings", "posterior"))
+        listing = "\n".join(f"  - {message}" for _, message in found)
         raise ConfigError(
-            f"{where}: invalid posterior elements:\n{problems}\nFix the values in {where} "
+            f"{where}: invalid posterior elements:\n{listing}\nFix the values in {where} "
             "(docs/fe-posterior-elements.md lists every field, its unit and range)."
-        )
-    return checked
+        ) from None
+
+
+# ----------------------------------------------------------------------------- the sections
+class FeSettings(Section):
+    """``fe``: the FE campaign (fe/params.yaml)."""
+
+    solver: Literal[SOLVERS] = setting("FE solver adapter (femcal.fe registry)")
+    bounds: Annotated[
+        plain(Bounds, typed=True),
+        WrapValidator(_path_or_bounds),
+        Doc("a ParameterBounds.csv path or a mapping name -> [lower, upper]"),
+    ] = setting("the sampling box: name -> [lower, upper], or a ParameterBounds.csv path")
+    splits: plain(Splits, typed=True) = setting("configurations per split (large, small, test)")
+    seed: Int(0) = setting("seed of the designs")
+    load_cases: ListOf(Literal[LOAD_CASES], unique=True) = setting(
+        "load cases simulated (all four)"
+    )
+    moments: MOMENTS = setting("moments simulated, Nm")
+    out_dir: PATH = setting("dataset folder in the study's layout")
+    store: PATH = setting("durable store of finished jobs (JSON lines; .jsonl.gz to commit it)")
+    settings: plain(CalculixSettings) = setting(
+        "the adapter's keyword arguments (part of every job's hash)", {}
+    )
+    scratch_dir: PATH | None = setting("per-job scratch (null: temp)", None)
+    metrics_file: PATH | None = setting("campaign figures (DVC metrics)", None)
+    scheduler_address: DASK_ADDRESS | None = setting(
+        "Dask scheduler, tcp://host:port (null: a local cluster, or FEMCAL_DASK_ADDRESS)", None
+    )
+    n_workers: Int(1) = setting("workers of the local cluster", 2)
+
+    @model_validator(mode="after")
+    def _all_load_cases(self) -> Any:
+        if sorted(self.load_cases) != sorted(LOAD_CASES):
+            raise fail(
+                "a dataset in the study's layout needs all four load cases "
+                f"{list(LOAD_CASES)}; got {list(self.load_cases)}",
+                "load_cases",
+            )
+        return self
+
+
+class IdpRange(Section):
+    """A literature range of the intradiscal pressure at one force, MPa."""
+
+    _complete: ClassVar[bool] = True
+
+    low: Float(0) = setting("lowest value, MPa")
+    mean: Float(0) = setting("mean value, MPa")
+    high: Float(0) = setting("highest value, MPa")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Any:
+        if not self.low <= self.mean <= self.high:
+            message = f"need low <= mean <= high; got {self.low:g}, {self.mean:g}, {self.high:g}"
+            raise fail(message, "mean")
+        return self
+
+
+class PublishedIdp(Section):
+    """An intradiscal pressure published for one posture or activity (no force known), MPa."""
+
+    _complete: ClassVar[bool] = True
+
+    source: NAME = setting("citation: authors, year, journal, volume:pages")
+    condition: NAME = setting("posture or activity, as the source names it")
+    idp_mpa: Float(gt=0) = setting("the published value, MPa")
+    kind: Literal["in vivo", "in vitro"] = setting("in vivo or in vitro")
+    subjects: Int(1) = setting("subjects or specimens measured")
+    level: NAME = setting("disc level, e.g. L4-L5")
+
+
+class AdaptSettings(Section):
+    """``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion."""
+
+    _complete: ClassVar[bool] = True
+
+    model_uri: MODEL_URI = setting("the surrogate to adapt (a model folder or models:/ URI)")
+    targets: PATH = setting("measurements whose calibrations steer the runs")
+    train: PATH = setting("the surrogate's prepared training table")
+    heldout: PATH = setting("prepared table of held-out FE configurations (the judge)")
+    out_model: PATH = setting("folder of the champion's files (the winner)")
+    out_dir: PATH = setting("folder of the rounds' tables")
+    store: PATH = setting("campaign store of the new FE runs")
+    rounds: Int(1) = setting("rounds of FE runs and fine-tuning", 3)
+    n_explore: Int(0) = setting("configurations explored per round (ensemble spread)", 16)
+    n_candidates: Int(1) = setting("Latin-hypercube candidates ranked by spread", 2048)
+    finetune: plain(SurrogateKeywords) = setting(
+        "NeuralSurrogate settings of the fine-tuning (warm start)", {}
+    )
+    calibrate_options: plain(PgdKeywords) = setting("pgd options of the rounds' calibrations", {})
+    seed: Int(0) = setting("seed of the candidates and calibrations", 0)
+
+
+class RefineSettings(Section):
+    """``validate.refine``: FE-in-the-loop refinement of the calibration before validating it."""
+
+    _complete: ClassVar[bool] = True
+
+    model_uri: MODEL_URI = setting(
+        "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
+    )
+    max_fe_runs: Int(1) = setting(
+        "FE runs per specimen at most, the first included (1: validate only)", 1
+    )
+    tol_deg: Float(gt=0) = setting("FE-evaluated MAE at which a specimen is confirmed, deg", 0.05)
+
+
+class ValidateSettings(Section):
+    """``validate``: FE re-simulation of the calibrated parameters and the IDP check."""
+
+    calibration_dir: PATH = setting("calibration folder validated")
+    measurements: PATH = setting("the measurements that were calibrated to")
+    out_dir: PATH = setting("output folder")
+    store: PATH = setting("campaign store of the FE runs")
+    metrics_file: PATH | None = setting("figures (DVC metrics)", None)
+    forces: ListOf(Float(gt=0), unique=True) = setting("axial compression forces, N", ())
+    idp_literature: dict[Float(gt=0), IdpRange] = setting(
+        "published in vitro IDP range per force: force in N -> {low, mean, high} in MPa", {}
+    )
+    idp_published: ListOf(PublishedIdp) = setting(
+        "published IDP values without a known force (in vivo postures): the axial force at "
+        "which each calibrated disc reaches them is reported",
+        (),
+    )
+    idp_model_uri: MODEL_URI | None = setting(
+        "the IDP head (train@idp), compared with FE's pressures under the moments (null: not "
+        "compared)",
+        None,
+    )
+    refine: RefineSettings | None = setting(
+        "FE-in-the-loop refinement (null: validate the calibration as is)", None
+    )
+
+
+def _range_of(lo: float, hi: float, unit: str) -> Any:
+    """A ``[low, high]`` pair of numbers within ``[lo, hi]``, ``low <= high``."""
+    what = f"a pair [low, high] of numbers in [{lo:g}, {hi:g}] {unit}".rstrip()
+
+    def check(value: Any) -> tuple[float, float]:
+        ok = isinstance(value, list | tuple) and len(value) == 2
+        ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        if not ok or not lo <= value[0] <= value[1] <= hi:
+            raise fail(f"expected {what} with low <= high, got {got(value)}")
+        return (float(value[0]), float(value[1]))
+
+    return Annotated[tuple[float, float], PlainValidator(check), Doc(what)]
+
+
+class CohortSettings(Section):
+    """``cohort``: an FE-made cohort with hidden posterior elements (femcal.fe.cohort).
+
+    Four balanced classes (the disc alone, facets, ligaments, both); each specimen's disc
+    parameters are drawn uniformly from ``fe.bounds`` (trimmed by ``disc_margin`` at each
+    side) and its elements' properties uniformly (log-uniformly for the stiffnesses) from the
+    ranges below, around the defaults of ``fe.settings.posterior`` (docs/fe-cohort.md).
+    """
+
+    _complete: ClassVar[bool] = True
+
+    out_dir: PATH = setting("cohort folder: the study's layout (Test/) and answers.csv")
+    store: PATH = setting("durable store of the cohort's FE jobs (.jsonl.gz to commit it)")
+    per_class: Int(1) = setting("specimens per class (4 classes)", 26)
+    seed: Int(0) = setting("seed of the draws and of the measurement noise", 0)
+    noise_deg: Float(0) = setting("sd of the Gaussian noise added to the RoM, deg", 0.05)
+    disc_margin: Float(0, 0.45) = setting(
+        "fraction of each parameter's range left out at both ends", 0.05
+    )
+    facet_gap_mm: _range_of(0, 3, "mm") = setting(
+        "facet clearance drawn from [low, high], mm", (0.25, 1.0)
+    )
+    facet_stiffness_n_per_mm: _range_of(1, 1e5, "N/mm") = setting(
+        "facet contact stiffness drawn log-uniformly from [low, high], N/mm", (25.0, 100.0)
+    )
+    ligament_stiffness_scale: _range_of(0.1, 10, "") = setting(
+        "factor on every ligament's default stiffness, drawn log-uniformly from [low, high]",
+        (0.5, 2.0),
+    )
+    ligament_slack_shift: _range_of(-0.3, 0.5, "") = setting(
+        "added to every ligament's default slack strain (then clipped to its range)",
+        (-0.15, 0.05),
+    )

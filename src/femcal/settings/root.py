@@ -1,220 +1,228 @@
-"""The sections of the root ``params.yaml``, one frozen dataclass each.
+"""The sections of the root ``params.yaml``, one model each.
 
-Every field is a setting (:func:`~femcal.settings._validate.setting`): its check, its
-one-line doc and its default; a field without a default is required.
+Every field is a setting: its type (with its bounds or choices), its one-line doc and its
+default; a field without a default is required. The diagnosis' defaults are those of
+:class:`femcal.diagnose.DiagnoseOptions`, read from it.
 """
 
-from __future__ import annotations
+import importlib.util
+import sys
+from pathlib import Path
+from typing import Any, ClassVar, Literal
 
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from pydantic import model_validator
 
 from femcal.schema import TARGETS
-from femcal.settings._checks import Bool, Choice, Float, FnCheck, Int, KeyChoice, ListOf
-from femcal.settings._messages import BAD, Context, Invalid, got
-from femcal.settings._validate import Keywords, MapOf, Section, optional, setting
+from femcal.settings._format import fail, got, keys_of
 from femcal.settings.keywords import (
     BASELINE_MODELS,
-    CALIBRATOR_OPTIONS,
     CALIBRATORS,
-    INVERSE_FIXED,
     SPLITS,
-    SURROGATE_FIXED,
+    CalibratorOptions,
+    InverseKeywords,
+    SurrogateKeywords,
 )
-from femcal.settings.search import SearchSpace
-from femcal.settings.values import DATASET_NAME, MODEL_URI, MOMENTS, N_JOBS, NAME, PATH, SQL_URL
+from femcal.settings.search import space_of
+from femcal.settings.values import (
+    DATASET_NAME,
+    MODEL_URI,
+    MOMENTS,
+    N_JOBS,
+    NAME,
+    PATH,
+    SQL_URL,
+    Bool,
+    Float,
+    Int,
+    ListOf,
+    Section,
+    plain,
+    setting,
+)
 
-# --------------------------------------------------------------- settings several sections share
-# The helpers build a new field each call: one dataclass field cannot serve two classes.
-_BASELINES = ListOf(Choice(BASELINE_MODELS), unique=True)
-
-
-def _n_trials() -> Any:
-    return setting(Int(0), "complete Optuna trials (0: train on fixed alone)", 0)
-
-
-def _fixed(keywords: Keywords) -> Any:
-    return setting(keywords, f"{keywords.owner} hyper-parameters", {})
-
-
-def _search_space(keywords: Keywords) -> Any:
-    return setting(SearchSpace(keywords), "Optuna search space over the hyper-parameters", {})
-
-
-def _plots() -> Any:
-    return setting(Bool(), "write plots", True)
+_BASELINES = ListOf(Literal[BASELINE_MODELS], unique=True)
+_MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
 
 
-def _max_plots() -> Any:
-    return optional(Int(0), "per-specimen PNGs for the first N specimens (null: all)")
+def _diagnose_options() -> type:
+    """:class:`femcal.diagnose.DiagnoseOptions`; its module alone when the package (which
+    imports torch) is not loaded yet, so that validating stays light."""
+    if "femcal.diagnose" in sys.modules:
+        return sys.modules["femcal.diagnose"].DiagnoseOptions
+    name = "femcal.settings._diagnose_options"
+    if name not in sys.modules:
+        path = Path(__file__).parents[1] / "diagnose" / "options.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        sys.modules[name] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules[name].DiagnoseOptions
 
 
-# ------------------------------------------------------------------------------- the sections
-@dataclass(frozen=True)
-class DataSettings:
+class DataSettings(Section):
     """``data``: where the study's files and the prepared tables live."""
 
-    raw_dir: str = setting(PATH, "folder of the study's files as fetched (fetch's output)")
-    prepared_dir: str = setting(PATH, "folder of the tidy tables and parameter_space.json")
-    source_dir: str | None = optional(
-        PATH, "what prepare reads, in the study's layout (null: raw_dir)"
+    raw_dir: PATH = setting("folder of the study's files as fetched (fetch's output)")
+    prepared_dir: PATH = setting("folder of the tidy tables and parameter_space.json")
+    source_dir: PATH | None = setting(
+        "what prepare reads, in the study's layout (null: raw_dir)", None
     )
-    limit_configs: int | None = optional(
-        Int(1), "keep only the first N configurations per split (null: all)"
+    limit_configs: Int(1) | None = setting(
+        "keep only the first N configurations per split (null: all)", None
     )
 
 
-@dataclass(frozen=True)
-class MlflowSettings:
+class MlflowSettings(Section):
     """``mlflow``: the tracking store, the experiment and the registered model name."""
 
-    store_dir: str = setting(
-        PATH,
+    store_dir: PATH = setting(
         "folder of the default store sqlite:///<store_dir>/mlflow.db (MLFLOW_TRACKING_URI "
-        "overrides it)",
+        "overrides it)"
     )
-    experiment: str = setting(NAME, "MLflow experiment of every run")
-    model_name: str = setting(NAME, "registered name of the surrogate")
+    experiment: NAME = setting("MLflow experiment of every run")
+    model_name: NAME = setting("registered name of the surrogate")
 
 
-@dataclass(frozen=True)
-class TrainSplitSettings:
+class TrainSplitSettings(Section):
     """``train.<split>``: one surrogate trained on a prepared split (search + ensemble)."""
 
-    n_trials: int = _n_trials()
-    final_members: int = setting(Int(1), "ensemble members of the final model", 1)
-    register: bool = setting(Bool(), "register the final model in MLflow", False)
-    fixed: dict = _fixed(SURROGATE_FIXED)
-    search_space: dict = _search_space(SURROGATE_FIXED)
-    seed: int | None = optional(Int(0), "seed of this split (default: train.seed)")
-    split: str | None = optional(
-        Choice(SPLITS), "prepared table trained on (default: the section's name)"
+    n_trials: Int(0) = setting("complete Optuna trials (0: train on fixed alone)", 0)
+    final_members: Int(1) = setting("ensemble members of the final model", 1)
+    register_model: Bool = setting("register the final model in MLflow", False, alias="register")
+    fixed: plain(SurrogateKeywords) = setting("NeuralSurrogate hyper-parameters", {})
+    search_space: space_of(SurrogateKeywords) = setting(
+        "Optuna search space over the hyper-parameters", {}
     )
-    model_name: str | None = optional(NAME, "registered name (default: mlflow.model_name)")
-    target: str = setting(
-        Choice(tuple(TARGETS)),
+    seed: Int(0) | None = setting("seed of this split (default: train.seed)", None)
+    split: Literal[SPLITS] | None = setting(
+        "prepared table trained on (default: the section's name)", None
+    )
+    model_name: NAME | None = setting("registered name (default: mlflow.model_name)", None)
+    target: Literal[tuple(TARGETS)] = setting(
         "output learnt: rom_deg, or idp_mpa (an FE campaign's IDP head; needs fixed "
         "log_target: false)",
         "rom_deg",
     )
 
 
-@dataclass(frozen=True)
-class TrainSettings:
+class TrainSettings(Section):
     """``train``: Optuna storage and study, and one section per split (``train.<split>``)."""
 
-    _open: ClassVar[tuple] = (
-        "splits",
-        Section(TrainSplitSettings),
-        "splits: mappings such as large: {n_trials: 3, fixed: {...}}",
-    )
+    _open: ClassVar[str] = "splits"
+    _open_what: ClassVar[str] = "splits: mappings such as large: {n_trials: 3, fixed: {...}}"
 
-    storage: str = setting(
-        SQL_URL, "Optuna RDB storage, a SQLAlchemy URL (FEMCAL_OPTUNA_STORAGE overrides it)"
+    storage: SQL_URL = setting(
+        "Optuna RDB storage, a SQLAlchemy URL (FEMCAL_OPTUNA_STORAGE overrides it)"
     )
-    study_name: str = setting(NAME, "base name of the Optuna studies")
-    val_fraction: float = setting(
-        Float(0, 1, lo_open=True, hi_open=True), "fraction of configurations for validation"
-    )
-    seed: int = setting(Int(0), "seed of the sampler, the split and the members")
-    splits: dict = field(default_factory=dict)
+    study_name: NAME = setting("base name of the Optuna studies")
+    val_fraction: Float(gt=0, lt=1) = setting("fraction of configurations for validation")
+    seed: Int(0) = setting("seed of the sampler, the split and the members")
+    splits: dict[str, TrainSplitSettings] = setting("the splits trained, by name", {})
 
-    @staticmethod
-    def _cross(v: dict) -> Iterable[tuple[str, str]]:
-        for name, split in v["splits"].items():
+    @model_validator(mode="before")
+    @classmethod
+    def _gather_splits(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        known = keys_of(cls)
+        splits = {k: v for k, v in data.items() if k not in known and isinstance(v, dict)}
+        return {**{k: v for k, v in data.items() if k not in splits}, "splits": splits}
+
+    @model_validator(mode="after")
+    def _named_splits(self) -> Any:
+        for name, split in self.splits.items():
             if split.split is None and name not in SPLITS:
-                yield (
+                raise fail(
+                    f"{name} is not a prepared split ({', '.join(SPLITS)}); add split: large "
+                    "(the table it trains on)",
                     (name,),
-                    (
-                        f"{name} is not a prepared split ({', '.join(SPLITS)}); add split: large "
-                        "(the table it trains on)"
-                    ),
                 )
+        return self
 
 
-@dataclass(frozen=True)
-class BaselinesSettings:
+class BaselinesSettings(Section):
     """``baselines``: the study's model zoo."""
 
-    seed: int = setting(Int(0), "seed of the stochastic baselines")
-    n_jobs: int = setting(
-        N_JOBS,
-        "parallel jobs of the baselines that support it",
-    )
-    models: tuple[str, ...] = setting(_BASELINES, "baseline models to fit")
+    seed: Int(0) = setting("seed of the stochastic baselines")
+    n_jobs: N_JOBS = setting("parallel jobs of the baselines that support it")
+    models: _BASELINES = setting("baseline models to fit")
 
 
-@dataclass(frozen=True)
-class InterpolationSettings:
+class InterpolationSettings(Section):
     """``interpolation``: train on some moments, test on the others."""
 
-    train_moments: tuple[float, ...] = setting(MOMENTS, "moments trained on, Nm")
-    test_moments: tuple[float, ...] = setting(MOMENTS, "moments tested on, Nm")
-    final_members: int = setting(Int(1), "ensemble members of the surrogate")
-    baselines: tuple[str, ...] = setting(_BASELINES, "baselines checked too")
+    train_moments: MOMENTS = setting("moments trained on, Nm")
+    test_moments: MOMENTS = setting("moments tested on, Nm")
+    final_members: Int(1) = setting("ensemble members of the surrogate")
+    baselines: _BASELINES = setting("baselines checked too")
 
-    @staticmethod
-    def _cross(v: dict) -> Iterable[tuple[str, str]]:
-        both = sorted(set(v["train_moments"] or ()) & set(v["test_moments"] or ()))
+    @model_validator(mode="after")
+    def _disjoint(self) -> Any:
+        both = sorted(set(self.train_moments) & set(self.test_moments))
         if both:
-            yield (
+            raise fail(
+                f"{', '.join(f'{m:g}' for m in both)} Nm also trained on; test on moments left "
+                "out of train_moments",
                 "test_moments",
-                (
-                    f"{', '.join(f'{m:g}' for m in both)} Nm also trained on; test on moments "
-                    "left out of train_moments"
-                ),
             )
+        return self
 
 
-@dataclass(frozen=True)
-class InverseSettings:
+class InverseSettings(Section):
     """``inverse``: the study's inverse network (RoM curves -> parameters)."""
 
-    surrogate_uri: str = setting(MODEL_URI, "surrogate the training samples come from")
-    moments: tuple[float, ...] = setting(MOMENTS, "moment grid of the curves, Nm")
-    n_samples: int = setting(Int(2), "surrogate samples to train on", 50_000)
-    n_trials: int = _n_trials()
-    seed: int = setting(Int(0), "seed of the samples, the split and the network", 0)
-    study_name: str = setting(NAME, "Optuna study name", "ivd-inverse")
-    register_as: str | None = optional(NAME, "registered name (null: not registered)")
-    fixed: dict = _fixed(INVERSE_FIXED)
-    search_space: dict = _search_space(INVERSE_FIXED)
+    surrogate_uri: MODEL_URI = setting("surrogate the training samples come from")
+    moments: MOMENTS = setting("moment grid of the curves, Nm")
+    n_samples: Int(2) = setting("surrogate samples to train on", 50_000)
+    n_trials: Int(0) = setting("complete Optuna trials (0: train on fixed alone)", 0)
+    seed: Int(0) = setting("seed of the samples, the split and the network", 0)
+    study_name: NAME = setting("Optuna study name", "ivd-inverse")
+    register_as: NAME | None = setting("registered name (null: not registered)", None)
+    fixed: plain(InverseKeywords) = setting("InverseModel hyper-parameters", {})
+    search_space: space_of(InverseKeywords) = setting(
+        "Optuna search space over the hyper-parameters", {}
+    )
 
 
-_PER_SIDE = Float(0)
+class Sides(Section):
+    """A value per side of the trained moment range; one number serves both sides."""
+
+    _complete: ClassVar[bool] = True
+
+    below: Float(0) = setting("below the trained range")
+    above: Float(0) = setting("above the trained range")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_number(cls, value: Any) -> Any:
+        if isinstance(value, int | float) and not isinstance(value, bool) and 0 <= value < 1e308:
+            return {"below": value, "above": value}
+        if not isinstance(value, dict):
+            raise fail(
+                f"expected {{below, above}} numbers >= 0, or one number >= 0, got {got(value)}"
+            )
+        return value
+
+    def pair(self) -> tuple[float, float]:
+        """``(below, above)``."""
+        return (self.below, self.above)
 
 
-def _per_side(value: Any, path: tuple, ctx: Context) -> Any:
-    """A number >= 0 for both sides of the trained range, or ``{below: ..., above: ...}``."""
-    if isinstance(value, Mapping):
-        if set(value) != {"below", "above"}:
-            raise Invalid(f"expected {{below: number >= 0, above: number >= 0}}, got {got(value)}")
-        out = {side: ctx.check(_PER_SIDE, value[side], (*path, side)) for side in value}
-        return BAD if any(v is BAD for v in out.values()) else out
-    return _PER_SIDE(value, path, ctx)
-
-
-@dataclass(frozen=True)
-class MomentSettings:
+class MomentSettings(Section):
     """``moments``: the moment policy every command shares (femcal.moments.MomentPolicy).
 
     Each setting is one value per side of the trained range, ``{below, above}`` (one number
     serves both sides).
     """
 
-    error_growth: Any = setting(
-        FnCheck("{below, above} numbers >= 0, or one number >= 0", _per_side),
-        "growth of the surrogate's error sd per unit log-moment distance beyond range, per side",
+    error_growth: Sides = setting(
+        "growth of the surrogate's error sd per unit log-moment distance beyond range, per side"
     )
-    max_log_ratio: Any = setting(
-        FnCheck("{below, above} numbers >= 0, or one number >= 0", _per_side),
-        "log-moment distance beyond the trained range up to which moments are used, per side",
+    max_log_ratio: Sides = setting(
+        "log-moment distance beyond the trained range up to which moments are used, per side"
     )
 
 
-@dataclass(frozen=True)
-class EffectsSettings:
+class EffectsSettings(Section):
     """``effects``: the user's effect modules, imported before the effect registry is used."""
 
     _hint: ClassVar[str] = (
@@ -223,42 +231,36 @@ class EffectsSettings:
         "(the effects a calibration uses are listed under calibrate.datasets.<name>.effects)"
     )
 
-    modules: tuple[str, ...] = setting(
-        ListOf(PATH), ".py files or folders of them, relative to the params file's folder", []
+    modules: ListOf(PATH) = setting(
+        ".py files or folders of them, relative to the params file's folder", ()
     )
 
 
-@dataclass(frozen=True)
-class DatasetSettings:
+class DatasetSettings(Section):
     """``calibrate.datasets.<name>``: one measurement file and the effects added to the disc."""
 
-    measurements: str = setting(PATH, "a long/wide CSV, or a folder of ROM_Results_* files")
-    effects: tuple[str, ...] = setting(
-        ListOf(NAME, unique=True), "effects added to the disc model ([] = the disc alone)", []
+    measurements: PATH = setting("a long/wide CSV, or a folder of ROM_Results_* files")
+    effects: ListOf(NAME, unique=True) = setting(
+        "effects added to the disc model ([] = the disc alone)", ()
     )
-    noise_deg: float | None = optional(
-        Float(0, lo_open=True),
-        "sd of one measurement, degrees (null: only the surrogate's error is counted)",
-    )
-
-
-def _dataset(value: Any, path: tuple, ctx: Context) -> Any:
-    if isinstance(value, str) and value.strip():
-        return DatasetSettings(measurements=value)
-    if isinstance(value, Mapping):
-        return Section(DatasetSettings)(value, path, ctx)
-    raise Invalid(
-        f"expected a path or {{measurements: path, effects: [names], noise_deg: sd}}, got "
-        f"{got(value)}"
+    noise_deg: Float(gt=0) | None = setting(
+        "sd of one measurement, degrees (null: only the surrogate's error is counted)", None
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _a_path(cls, value: Any) -> Any:
+        if isinstance(value, str) and value.strip():
+            return {"measurements": value}
+        if not isinstance(value, dict):
+            raise fail(
+                "expected a path or {measurements: path, effects: [names], noise_deg: sd}, got "
+                f"{got(value)}"
+            )
+        return value
 
-def _method_options(value: Any, path: tuple, ctx: Context) -> Any:
-    return CALIBRATOR_OPTIONS[path[-1]](value, path, ctx)
 
-
-@dataclass(frozen=True)
-class CalibrateSettings:
+class CalibrateSettings(Section):
     """``calibrate``: the calibration stages, one per dataset, and the calibrator."""
 
     _retired: ClassVar[dict[str, str]] = {
@@ -271,67 +273,61 @@ class CalibrateSettings:
         "it there",
     }
 
-    out_dir: str = setting(PATH, "outputs go to <out_dir>/<dataset>/")
-    method: str = setting(Choice(CALIBRATORS), "calibration method")
-    model_uri: str = setting(MODEL_URI, "the surrogate: a model folder or a models:/ URI")
-    datasets: dict = setting(
-        MapOf(
-            FnCheck("a path or {measurements, effects}", _dataset),
-            DATASET_NAME,
-            what="datasets",
-        ),
+    out_dir: PATH = setting("outputs go to <out_dir>/<dataset>/")
+    method: Literal[CALIBRATORS] = setting("calibration method")
+    model_uri: MODEL_URI = setting("the surrogate: a model folder or a models:/ URI")
+    datasets: dict[DATASET_NAME, DatasetSettings] = setting(
         "name -> {measurements: path, effects: [names], noise_deg: sd}, one calibrate@<name> "
         "stage each",
         {},
     )
-    holdout_uri: str | None = optional(
-        MODEL_URI, "held-out surrogate that re-evaluates every calibration"
+    holdout_uri: MODEL_URI | None = setting(
+        "held-out surrogate that re-evaluates every calibration", None
     )
-    start_bank: str | None = optional(PATH, "prepared table whose configurations are pgd's starts")
-    seed: int = setting(Int(0), "seed of the calibrator", 0)
-    chunk_size: int | None = optional(Int(1), "specimens per batch (null: all at once)")
-    plots: bool = _plots()
-    max_plots: int | None = _max_plots()
-    options: dict = setting(
-        MapOf(
-            FnCheck("calibrator options", _method_options),
-            KeyChoice(CALIBRATORS, "calibration method"),
-            what="calibrator options per method",
-        ),
-        "method -> the calibrator's keyword options",
-        {},
-    )
+    start_bank: PATH | None = setting("prepared table whose configurations are pgd's starts", None)
+    seed: Int(0) = setting("seed of the calibrator", 0)
+    chunk_size: Int(1) | None = setting("specimens per batch (null: all at once)", None)
+    plots: Bool = setting("write plots", True)
+    max_plots: Int(0) | None = setting(_MAX_PLOTS, None)
+    options: plain(CalibratorOptions) = setting("method -> the calibrator's keyword options", {})
+
+    def method_options(self, method: str | None = None) -> dict[str, Any]:
+        """The keyword options of ``method`` (default: :attr:`method`), as given."""
+        return dict(self.options.get(method or self.method) or {})
 
 
-@dataclass(frozen=True)
-class PlantSettings:
+class PlantSettings(Section):
     """``plant``: a cohort with hidden effects built from the Test set's FE curves."""
 
-    out_dir: str = setting(PATH, "folder of the planted cohort")
-    n_per_class: int = setting(Int(1), "specimens per class (4 classes)")
-    moments: tuple[float, ...] = setting(MOMENTS, "moments of the cohort, Nm")
-    noise_deg: float = setting(Float(0), "measurement noise sd, degrees")
-    seed: int = setting(Int(0), "seed of the cohort", 0)
+    out_dir: PATH = setting("folder of the planted cohort")
+    n_per_class: Int(1) = setting("specimens per class (4 classes)")
+    moments: MOMENTS = setting("moments of the cohort, Nm")
+    noise_deg: Float(0) = setting("measurement noise sd, degrees")
+    seed: Int(0) = setting("seed of the cohort", 0)
 
 
-@dataclass(frozen=True)
-class DiagnoseSettings:
+_OPTIONS = _diagnose_options()
+
+
+class DiagnoseSettings(Section):
     """``diagnose``: where the model fails and which effect is missing."""
 
-    measurements: str = setting(PATH, "measurement file diagnosed")
-    out_dir: str = setting(PATH, "output folder")
-    metrics_file: str | None = optional(PATH, "summary figures (DVC metrics)")
-    noise_deg: float | None = optional(
-        Float(0, lo_open=True), "measurement noise sd, degrees (null: estimated)"
+    measurements: PATH = setting("measurement file diagnosed")
+    out_dir: PATH = setting("output folder")
+    metrics_file: PATH | None = setting("summary figures (DVC metrics)", None)
+    noise_deg: Float(gt=0) | None = setting("measurement noise sd, degrees (null: estimated)", None)
+    candidates: ListOf(NAME, unique=True) | None = setting(
+        "effects tried (null: every registered one)", None
     )
-    candidates: tuple[str, ...] | None = optional(
-        ListOf(NAME, unique=True), "effects tried (null: every registered one)"
+    min_delta: Float(0) = setting("BIC gain an effect needs", _OPTIONS.min_delta)
+    alpha: Float(gt=0, lt=1) = setting("level of the adequacy tests", _OPTIONS.alpha)
+    max_effects: Int(1) = setting(
+        "effects forward selection may add per specimen", _OPTIONS.max_effects
     )
-    min_delta: float = setting(Float(0), "BIC gain an effect needs", 10.0)
-    alpha: float = setting(
-        Float(0, 1, lo_open=True, hi_open=True), "level of the adequacy tests", 0.01
-    )
-    max_effects: int = setting(Int(0), "effects forward selection may add per specimen", 3)
-    seed: int = setting(Int(0), "seed of the diagnosis", 0)
-    plots: bool = _plots()
-    max_plots: int | None = _max_plots()
+    seed: Int(0) = setting("seed of the diagnosis", _OPTIONS.seed)
+    plots: Bool = setting("write plots", True)
+    max_plots: Int(0) | None = setting(_MAX_PLOTS, None)
+
+    def options(self) -> dict[str, Any]:
+        """The keywords of :class:`femcal.diagnose.DiagnoseOptions` this section sets."""
+        return {k: getattr(self, k) for k in ("min_delta", "alpha", "max_effects", "seed")}

@@ -1,125 +1,151 @@
 """Optuna search spaces: ``search_space`` entries over the keywords of an estimator.
 
-Each entry is ``{type: float|int|categorical, low, high, log, choices}`` (the form
-:func:`femcal.training.study.suggest` reads), and its bounds or choices must be valid values of the
-hyper-parameter itself.
+An entry is one of three variants, told apart by its ``type`` (the form
+:func:`femcal.training.study.suggest` reads): ``{type: float, low, high, log}``,
+``{type: int, low, high, log}`` or ``{type: categorical, choices}``. Its bounds or choices
+must be valid values of the hyper-parameter itself.
 """
 
-from __future__ import annotations
+from types import UnionType
+from typing import Annotated, Any, ClassVar, Literal, Union, get_args, get_origin
 
-from collections.abc import Iterable
-from dataclasses import dataclass
-from typing import Any, ClassVar
+from pydantic import (
+    AfterValidator,
+    Field,
+    TypeAdapter,
+    ValidationError,
+    create_model,
+    model_validator,
+)
 
-from femcal.settings._checks import Bool, Check, Choice, Float, FnCheck, Int, ListOf
-from femcal.settings._messages import BAD, Context, Index, Invalid, got
-from femcal.settings._validate import Keywords, Section, optional, setting
+from femcal.settings._format import Index, describe, fail, got, unwrap
+from femcal.settings.values import Bool, Float, Keywords, ListOf, Section, plain, setting
 
 
-def _scalar(value: Any, path: tuple, ctx: Context) -> Any:
+class FloatEntry(Section):
+    """``{type: float, low, high, log}``: a number between low and high."""
+
+    _complete: ClassVar[bool] = True
+    _missing: ClassVar[str] = "missing: a float entry needs low and high"
+    _refused: ClassVar[dict[str, str]] = {
+        "choices": "choices are for type categorical; a float has low and high"
+    }
+
+    type: Literal["float"] = setting("the Optuna distribution")
+    low: Float() = setting("lower bound")
+    high: Float() = setting("upper bound")
+    log: Bool = setting("sample in log scale (needs low > 0)", False)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Any:
+        if not self.low < self.high:
+            raise fail(f"high must be > low; got low {self.low:g}, high {self.high:g}", "high")
+        if self.log and self.low <= 0:
+            raise fail(f"a log-scale entry needs low > 0; got {self.low:g}", "low")
+        return self
+
+
+class IntEntry(FloatEntry):
+    """``{type: int, low, high, log}``: an integer between low and high."""
+
+    _missing: ClassVar[str] = "missing: a int entry needs low and high"
+    _refused: ClassVar[dict[str, str]] = {
+        "choices": "choices are for type categorical; a int has low and high"
+    }
+
+    type: Literal["int"] = setting("the Optuna distribution")
+
+    @model_validator(mode="after")
+    def _integers(self) -> Any:
+        for key in ("low", "high"):
+            if float(getattr(self, key)) != int(getattr(self, key)):
+                raise fail(f"an int entry needs integer bounds; got {getattr(self, key):g}", key)
+        return self
+
+
+def _scalar(value: Any) -> Any:
     if value is None or isinstance(value, list | dict):
-        raise Invalid(f"expected a number, string or boolean, got {got(value)}")
+        raise fail(f"expected a number, string or boolean, got {got(value)}")
     return value
 
 
-@dataclass(frozen=True)
-class SearchEntry:
-    """One Optuna search-space entry: ``{type, low, high, log}`` or ``{type, choices}``."""
+class CategoricalEntry(Section):
+    """``{type: categorical, choices}``: one of the choices."""
 
     _complete: ClassVar[bool] = True
+    _missing: ClassVar[str] = "missing: a categorical entry needs choices: [a, b, ...]"
+    _refused: ClassVar[dict[str, str]] = {
+        "low": "low is for type float or int; a categorical has choices only",
+        "high": "high is for type float or int; a categorical has choices only",
+        "log": "log is for type float or int",
+    }
 
-    type: str = setting(Choice(("float", "int", "categorical")), "the Optuna distribution")
-    low: float | None = optional(Float(), "lower bound (float and int)")
-    high: float | None = optional(Float(), "upper bound (float and int)")
-    log: bool = setting(Bool(), "sample in log scale (float and int; needs low > 0)", False)
-    choices: tuple | None = optional(
-        ListOf(FnCheck("a number, string or boolean", _scalar), min_len=1, unique=True),
-        "the values to choose from (categorical)",
+    type: Literal["categorical"] = setting("the Optuna distribution")
+    choices: ListOf(Annotated[Any, AfterValidator(_scalar)], min_len=1, unique=True) = setting(
+        "the values to choose from"
     )
 
-    @staticmethod
-    def _cross(v: dict) -> Iterable[tuple[str, str]]:
-        if v["type"] == "categorical":
-            if v["choices"] is None:
-                yield "choices", "missing: a categorical entry needs choices: [a, b, ...]"
-            for key in ("low", "high"):
-                if v[key] is not None:
-                    yield key, f"{key} is for type float or int; a categorical has choices only"
-            if v["log"]:
-                yield "log", "log is for type float or int"
-            return
-        if v["choices"] is not None:
-            yield "choices", f"choices are for type categorical; a {v['type']} has low and high"
-        for key in ("low", "high"):
-            if v[key] is None:
-                yield key, f"missing: a {v['type']} entry needs low and high"
-        if v["low"] is None or v["high"] is None:
-            return
-        if v["type"] == "int":
-            for key in ("low", "high"):
-                if float(v[key]) != int(v[key]):
-                    yield key, f"an int entry needs integer bounds; got {v[key]:g}"
-        if not v["low"] < v["high"]:
-            yield "high", f"high must be > low; got low {v['low']:g}, high {v['high']:g}"
-        if v["log"] and v["low"] <= 0:
-            yield "low", f"a log-scale entry needs low > 0; got {v['low']:g}"
+
+#: One search-space entry, by its ``type``.
+SearchEntry = Annotated[FloatEntry | IntEntry | CategoricalEntry, Field(discriminator="type")]
 
 
-class SearchSpace(Check):
-    """An Optuna search space over the keywords of ``table`` (see
-    :func:`femcal.training.study.suggest`).
-
-    Each entry is ``{type: float|int|categorical, low, high, log, choices}``: float and int
-    need ``low < high`` (``low > 0`` with ``log``), categorical needs ``choices``; the bounds
-    and choices must be valid values of the hyper-parameter itself.
-    """
-
-    def __init__(self, keywords: Keywords) -> None:
-        self.keywords = keywords
-
-    def describe(self) -> str:
-        return "a mapping hyper-parameter -> {type: float|int|categorical, low, high, log, choices}"
-
-    def __call__(self, value: Any, path: tuple, ctx: Context) -> Any:
-        out, bad = {}, False
-        for name, spec in self.mapping(value).items():
-            if self.keywords.reject(name, path, ctx):
-                bad = True
-                continue
-            out[name] = self._entry(name, spec, (*path, name), ctx)
-            bad |= out[name] is BAD
-        return BAD if bad else out
-
-    def _entry(self, name: str, spec: Any, path: tuple, ctx: Context) -> Any:
-        entry = ctx.check(Section(SearchEntry), spec, path)
-        if entry is BAD:
-            return BAD
-        check, _ = self.keywords.table[name]
-        kinds = _search_kinds(check)
-        if entry.type not in kinds:
-            allowed = " or ".join(kinds) if kinds else "none (it cannot be searched)"
-            fix = "; search width and depth instead" if name == "hidden" else ""
-            ctx.report_at(
-                (*path, "type"),
-                f"{name} is {check.describe()}, so type {entry.type} does not fit; "
-                f"use {allowed}{fix}",
-            )
-            return BAD
-        bad = False
-        if entry.type == "categorical":
-            for i, choice in enumerate(entry.choices):
-                bad |= ctx.check(check, choice, (*path, "choices", Index(i))) is BAD
-        else:
-            for bound in ("low", "high"):  # as written: 16 for an int, 0.001 for a float
-                bad |= ctx.check(check, spec[bound], (*path, bound)) is BAD
-        return BAD if bad else entry
-
-
-def _search_kinds(check: Check) -> tuple[str, ...]:
-    if isinstance(check, Int):
+def _kinds(annotation: Any) -> tuple[str, ...]:
+    tp = unwrap(annotation)[0]
+    if get_origin(tp) in (Union, UnionType):
+        tp = next(unwrap(a)[0] for a in get_args(tp) if a is not type(None))
+    if tp is int:
         return ("int", "categorical")
-    if isinstance(check, Float):
+    if tp is float:
         return ("float", "int", "categorical")
-    if isinstance(check, Bool | Choice):
-        return ("categorical",)
-    return ()
+    return ("categorical",) if tp is bool or get_origin(tp) is Literal else ()
+
+
+class _Space(Keywords):
+    _keywords: ClassVar[type[Keywords]]
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _values_of_the_keyword(cls, data: Any, handler: Any) -> Any:
+        result = handler(data)
+        for name, spec in data.items():
+            field = cls._keywords.model_fields[name]
+            annotation = (
+                Annotated[(field.annotation, *field.metadata)]
+                if field.metadata
+                else field.annotation
+            )
+            kinds = _kinds(annotation)
+            if spec["type"] not in kinds:
+                allowed = " or ".join(kinds) or "none (it cannot be searched)"
+                fix = "; search width and depth instead" if name == "hidden" else ""
+                raise fail(
+                    f"{name} is {describe(annotation)}, so type {spec['type']} does not fit; "
+                    f"use {allowed}{fix}",
+                    (name, "type"),
+                )
+            values = {("choices", Index(i)): c for i, c in enumerate(spec.get("choices") or ())}
+            values.update({(k,): spec[k] for k in ("low", "high") if k in spec})
+            for where, value in values.items():  # as written: 16 for an int, 0.001 for a float
+                try:
+                    TypeAdapter(annotation).validate_python(value)
+                except ValidationError:
+                    message = f"expected {describe(annotation)}, got {got(value)}"
+                    raise fail(message, (name, *where)) from None
+        return result
+
+
+def space_of(keywords: type[Keywords]) -> Any:
+    """The search space over ``keywords``: keyword -> entry, kept as plain data."""
+    fields = {
+        name: (SearchEntry, Field(None, description=field.description))
+        for name, field in keywords.model_fields.items()
+    }
+    model = create_model(f"{keywords.__name__}Space", __base__=_Space, **fields)
+    model.__doc__ = f"An Optuna search space over the {keywords._owner} keywords."
+    for attr in ("_keywords", "_unknown", "_refused"):
+        setattr(model, attr, keywords if attr == "_keywords" else getattr(keywords, attr))
+    model._describe = (
+        "a mapping hyper-parameter -> {type: float|int|categorical, low, high, log, choices}"
+    )
+    return plain(model)

@@ -1,10 +1,10 @@
-"""Checks of single values with their own rules: URLs, addresses, names, paths, moments.
+"""The value types of the settings, and the bases of sections and keyword tables.
 
-Each ``*_problem`` function says why a string is not usable (None when it is), in words that
-name the fix; :data:`SQL_URL`, :data:`DASK_ADDRESS` and :data:`MODEL_URI` are the checks
-built on them, and the environment variables (:mod:`femcal.settings.env`) use them too.
-:data:`PATH`, :data:`NAME`, :data:`DATASET_NAME`, :data:`N_JOBS` and :data:`MOMENTS` are the
-other value checks of the sections.
+Numbers with bounds (:func:`Int`, :func:`Float`), lists (:func:`ListOf`), names, paths, URLs
+and moments; each ``*_problem`` function says why a string is not usable (None when it is),
+in words that name the fix, and the environment variables (:mod:`femcal.settings.env`) use
+them too. :class:`Section` is the base of a section of a params file, :class:`Keywords` of the
+keyword arguments of a function that a mapping sets (:func:`plain` keeps them as given).
 """
 
 from __future__ import annotations
@@ -12,10 +12,22 @@ from __future__ import annotations
 import re
 import urllib.parse
 from collections.abc import Callable
-from typing import Any
+from typing import Annotated, Any, ClassVar
 
-from femcal.settings._checks import Check, Float, FnCheck, ListOf, Str
-from femcal.settings._messages import Context, Invalid, closest, got, yaml_repr
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    PlainValidator,
+    Strict,
+    StrictBool,
+    TypeAdapter,
+    WrapValidator,
+)
+from pydantic_core import PydanticCustomError
+
+from femcal.settings._format import Doc, PlainOf, closest, fail, keys_of, yaml_repr
 
 #: SQLAlchemy dialects (their common spellings), for suggestions.
 _SQL_DIALECTS = ("sqlite", "postgresql", "mysql", "mariadb", "oracle", "mssql", "cockroachdb")
@@ -130,30 +142,62 @@ def model_uri_problem(value: str) -> str | None:
     return None  # a path or another artifact URI
 
 
-def _url_check(describe: str, problem: Callable[[str], str | None]) -> Check:
-    def check(value: Any, path: tuple, ctx: Context) -> str:
-        if not isinstance(value, str):
-            raise Invalid(f"expected {describe}, got {got(value)}")
-        why = problem(value)
+#: ``true`` or ``false``.
+Bool = StrictBool
+
+
+def Int(ge: int | None = None, le: int | None = None) -> Any:  # noqa: N802 (a type)
+    """An integer (not a bool) in ``[ge, le]``."""
+    return Annotated[int, Strict(), Field(ge=ge, le=le)]
+
+
+def Float(  # noqa: N802 (a type)
+    ge: float | None = None, le: float | None = None, *, gt: float | None = None, lt=None
+) -> Any:
+    """A finite number (a YAML int or float, not a bool) in the given interval."""
+    return Annotated[float, Strict(), Field(ge=ge, le=le, gt=gt, lt=lt, allow_inf_nan=False)]
+
+
+class _Unique:
+    unique = True
+
+
+def _unique(value: tuple) -> tuple:
+    for i, v in enumerate(value):
+        if v in value[:i]:
+            raise fail(f"{yaml_repr(v)} is listed twice in {yaml_repr(value)}; list each once")
+    return value
+
+
+def ListOf(item: Any, *, min_len: int = 0, unique: bool = False) -> Any:  # noqa: N802
+    """A YAML list whose items are ``item``s, as a tuple."""
+    more = (AfterValidator(_unique), _Unique()) if unique else ()
+    return Annotated[(tuple[item, ...], Field(min_length=min_len), *more)]
+
+
+def Text(what: str, problem: Callable[[str], str | None] | None = None) -> Any:  # noqa: N802
+    """A non-empty string; ``what`` names it in messages, ``problem`` says why it is unusable."""
+
+    def check(value: Any) -> str:
+        if not isinstance(value, str) or not value.strip():
+            raise PydanticCustomError("value_type", "expected {what}", {"what": what})
+        why = problem(value) if problem else None
         if why is not None:
-            raise Invalid(f"expected {describe}, got {yaml_repr(value)}: {why}")
+            raise PydanticCustomError("value_problem", "{why}", {"why": why})
         return value
 
-    return FnCheck(describe, check)
+    return Annotated[str, PlainValidator(check), Doc(what)]
 
 
-SQL_URL = _url_check("a SQLAlchemy database URL", sqlalchemy_url_problem)
-DASK_ADDRESS = _url_check("a Dask scheduler address tcp://host:port", dask_address_problem)
-MODEL_URI = _url_check("an MLflow model URI (models:/NAME@ALIAS)", model_uri_problem)
-PATH = Str("a path (a non-empty string)")
-NAME = Str("a non-empty name")
-#: A list of moments in Nm (positive, each once).
-MOMENTS = ListOf(Float(0, lo_open=True), min_len=1, unique=True)
+def _n_jobs(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not (value >= 1 or value == -1):
+        raise PydanticCustomError("value_type", "expected n_jobs")
+    return value
 
 
-def _dataset_name(value: Any, path: tuple, ctx: Context) -> str:
+def _dataset_name(value: Any) -> str:
     if not isinstance(value, str) or not _DATASET_NAME.match(value):
-        raise Invalid(
+        raise fail(
             f"dataset name {yaml_repr(value)} must start with a letter or digit and hold only "
             "letters, digits, '_', '.' and '-' (it names the stage calibrate@<name> and "
             "reports/calibrate-<name>.json)"
@@ -161,14 +205,70 @@ def _dataset_name(value: Any, path: tuple, ctx: Context) -> str:
     return value
 
 
-def _n_jobs(value: Any, path: tuple, ctx: Context) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or not (value >= 1 or value == -1):
-        raise Invalid(f"expected an integer >= 1, or -1 (all cores), got {got(value)}")
-    return value
-
-
 _DATASET_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+SQL_URL = Text("a SQLAlchemy database URL", sqlalchemy_url_problem)
+DASK_ADDRESS = Text("a Dask scheduler address tcp://host:port", dask_address_problem)
+MODEL_URI = Text("an MLflow model URI (models:/NAME@ALIAS)", model_uri_problem)
+PATH = Text("a path (a non-empty string)")
+NAME = Text("a non-empty name")
+#: A list of moments in Nm (positive, each once).
+MOMENTS = ListOf(Float(gt=0), min_len=1, unique=True)
 #: A dataset name: it names the stage calibrate@<name> and reports/calibrate-<name>.json.
-DATASET_NAME = FnCheck("a dataset name", _dataset_name)
+DATASET_NAME = Annotated[str, PlainValidator(_dataset_name), Doc("a dataset name")]
 #: Parallel jobs: an integer >= 1, or -1 for all cores.
-N_JOBS = FnCheck("an integer >= 1, or -1 (all cores)", _n_jobs)
+N_JOBS = Annotated[int, PlainValidator(_n_jobs), Doc("an integer >= 1, or -1 (all cores)")]
+
+
+# ----------------------------------------------------------------------- sections, keywords
+def setting(doc: str, default: Any = ..., **constraints: Any) -> Any:
+    """A setting: its one-line doc and its default (none: required)."""
+    return Field(default, description=doc, **constraints)
+
+
+class Section(BaseModel):
+    """A section of a params file (or a mapping inside one): every key known, typed, frozen."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class Keywords(Section):
+    """The keyword arguments of a function that a mapping of the params file sets.
+
+    ``_owner`` names the function in messages; ``_reasons`` maps keywords that must not be
+    set there to why and the fix. Every keyword is optional (the function's default).
+    """
+
+    _owner: ClassVar[str] = "function"
+    _reasons: ClassVar[dict[str, str]] = {}
+
+    @classmethod
+    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
+        if "_unknown" not in cls.__dict__:
+            cls._unknown = f"unknown {cls._owner} keyword"
+        cls._describe = f"a mapping of {cls._owner} keywords ({', '.join(keys_of(cls))})"
+        cls._refused = {k: f"not settable here; {v}" for k, v in cls._reasons.items()}
+
+
+def keyword(doc: str) -> Any:
+    """A keyword argument: its doc; unset, the function's own default applies."""
+    return Field(None, description=doc)
+
+
+def plain(model: type, *, typed: bool = False) -> Any:
+    """A mapping validated against ``model`` (null: empty), kept as given or, ``typed``, as
+    key -> validated value of the keys given (in their order)."""
+
+    adapter = TypeAdapter(model)
+
+    def keep(value: Any, handler: Any) -> Any:
+        value = {} if value is None else value
+        checked = adapter.validate_python(value)
+        if not typed:
+            return dict(value) if isinstance(value, dict) else value
+        names = keys_of(model)
+        order = list(value) if isinstance(value, dict | list | tuple) else list(names)
+        return {
+            k: getattr(checked, names[k]) for k in order if names[k] in checked.model_fields_set
+        }
+
+    return Annotated[dict[str, Any], WrapValidator(keep), PlainOf(model)]
