@@ -1,0 +1,213 @@
+"""Predictive FE validation: calibrate on 1-5 Nm, let FE predict 5.5-10 Nm, never seen.
+
+The FE validation of :mod:`femcal.fe.validate` scores the calibrated parameters against the
+very curves they were fitted to (an in-sample residual). Here the held-out specimens' curves
+are split by moment:
+
+1. the calibration sees only the points at 1-5 Nm (:data:`FIT_BAND`), noise-free or with
+   Gaussian noise of ``noise_deg`` added (seeded);
+2. CalculiX runs the four load cases at the calibrated parameters, one FE run per specimen
+   and load case (no refinement, no adaptive sampling aimed at the specimens);
+3. the FE curves are compared with the specimens' noise-free curves at 5.5-10 Nm
+   (:data:`PREDICT_BAND`), which the calibration never saw.
+
+``python -m femcal.fe.predictive`` (from ``fe/``) calibrates with ``femcal calibrate`` and
+the surrogate given, and writes ``predictive.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from femcal.errors import InputDataError
+from femcal.schema import LOAD_CASES, PARAMETER_NAMES
+
+#: Moments the calibration sees, Nm (inclusive).
+FIT_BAND = (1.0, 5.0)
+#: Moments the FE prediction is scored at, Nm (inclusive); never seen by the calibration.
+PREDICT_BAND = (5.5, 10.0)
+#: First config_id of each variant's FE runs (apart from the campaign's).
+ID_OFFSET = {"clean": 200_000, "noisy": 300_000}
+
+#: ``(x (n, 13), ids (n,)) -> RoM (n, 4, m)``: the FE model at the study's moments.
+Curves = Callable[[np.ndarray, np.ndarray], np.ndarray]
+#: ``(long table of the points to fit, variant) -> parameters (specimen + 13 columns)``.
+Calibrate = Callable[[pd.DataFrame, str], pd.DataFrame]
+
+
+def band(moments: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
+    """Mask of the moments within ``limits`` (inclusive), shape (m,)."""
+    moments = np.asarray(moments, dtype=float)
+    return (moments >= limits[0] - 1e-9) & (moments <= limits[1] + 1e-9)
+
+
+def fit_targets(
+    long: pd.DataFrame, noise_deg: float, rng: np.random.Generator | None
+) -> pd.DataFrame:
+    """The points the calibration sees: 1-5 Nm, with noise when ``rng`` is given.
+
+    Parameters
+    ----------
+    long : pandas.DataFrame
+        ``specimen, load_case, moment_nm, rom_deg, ...`` (:meth:`Measurements.to_long`).
+    noise_deg : float
+        Sd of the Gaussian noise added to ``rom_deg``, deg.
+    rng : numpy.random.Generator or None
+        None: noise-free.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows within :data:`FIT_BAND` (``idp_mpa`` dropped).
+    """
+    out = long[band(long["moment_nm"].to_numpy(), FIT_BAND)].drop(
+        columns=["idp_mpa"], errors="ignore"
+    )
+    out = out.reset_index(drop=True)
+    if rng is not None:
+        out["rom_deg"] = out["rom_deg"] + rng.normal(0.0, noise_deg, len(out))
+    return out
+
+
+def predictive_error(truth: np.ndarray, fe: np.ndarray, moments: np.ndarray) -> dict[str, Any]:
+    """FE-vs-truth MAE in the fitted and in the predicted band.
+
+    Parameters
+    ----------
+    truth, fe : ndarray, shape (n, 4, m)
+        Noise-free RoM of the specimens and FE RoM at their calibrated parameters, deg (NaN:
+        not reached).
+    moments : ndarray, shape (m,)
+        Nm.
+
+    Returns
+    -------
+    dict
+        ``predict_mae_deg`` (5.5-10 Nm), ``fit_band_mae_deg`` (1-5 Nm), per load case and per
+        specimen in the predicted band, and the number of points compared.
+    """
+    err = np.abs(np.asarray(fe, float) - np.asarray(truth, float))
+    pred, fit = band(moments, PREDICT_BAND), band(moments, FIT_BAND)
+    per_specimen = np.nanmean(err[:, :, pred], axis=(1, 2))
+    return {
+        "predict_mae_deg": float(np.nanmean(err[:, :, pred])),
+        "fit_band_mae_deg": float(np.nanmean(err[:, :, fit])),
+        "predict_mae_deg_per_load_case": {
+            lc: float(np.nanmean(err[:, k][:, pred])) for k, lc in enumerate(LOAD_CASES)
+        },
+        "predict_mae_deg_max_specimen": float(np.nanmax(per_specimen)),
+        "n_points_predicted": int(np.sum(np.isfinite(err[:, :, pred]))),
+    }
+
+
+def run_predictive(
+    truth: Any, curves: Curves, calibrate: Calibrate, noise_deg: float, seed: int
+) -> dict[str, Any]:
+    """Calibrate on 1-5 Nm (noise-free and noisy), FE-predict 5.5-10 Nm, score it.
+
+    Parameters
+    ----------
+    truth : Measurements
+        The held-out specimens' noise-free curves at 0.5-10 Nm.
+    curves : callable
+        The FE model (:meth:`femcal.fe.runtime.FeRuntime.curves` at ``truth.moments``).
+    calibrate : callable
+        ``(points, variant) -> parameters``.
+    noise_deg : float
+        Measurement noise of the noisy variant, deg.
+    seed : int
+        Seed of the noise.
+
+    Returns
+    -------
+    dict
+        ``fe_predictive_mae_deg``, ``fe_predictive_mae_deg_noisy``, each variant's details,
+        ``n_specimens`` and ``fe_runs_per_specimen_max`` (1).
+
+    Raises
+    ------
+    InputDataError
+        When the truth lacks moments in either band.
+    """
+    moments = np.asarray(truth.moments, dtype=float)
+    if not band(moments, FIT_BAND).any() or not band(moments, PREDICT_BAND).any():
+        raise InputDataError(
+            f"The held-out curves have moments {moments.tolist()} Nm; predictive validation "
+            f"needs points at {FIT_BAND[0]:g}-{FIT_BAND[1]:g} Nm and at "
+            f"{PREDICT_BAND[0]:g}-{PREDICT_BAND[1]:g} Nm. Validate on curves that span both."
+        )
+    long = truth.to_long()
+    out: dict[str, Any] = {"n_specimens": len(truth.specimens), "noise_deg": float(noise_deg)}
+    rngs = {"clean": None, "noisy": np.random.default_rng([seed, 43])}
+    for variant, rng in rngs.items():
+        params = calibrate(fit_targets(long, noise_deg, rng), variant)
+        params = params.set_index(params["specimen"].astype(str)).loc[list(truth.specimens)]
+        x = params[list(PARAMETER_NAMES)].to_numpy(dtype=float)
+        ids = ID_OFFSET[variant] + np.arange(len(x))
+        fe = curves(x, ids)
+        out[variant] = predictive_error(truth.rom_deg, fe, moments)
+    out["fe_predictive_mae_deg"] = out["clean"]["predict_mae_deg"]
+    out["fe_predictive_mae_deg_noisy"] = out["noisy"]["predict_mae_deg"]
+    out["fe_runs_per_specimen_max"] = 1
+    return out
+
+
+def _cli_calibrate(model_uri: str, out_dir: Path, noise_deg: float) -> Calibrate:
+    """A :data:`Calibrate` that runs ``femcal calibrate`` (disc alone) in the current folder."""
+    from femcal.fe.hidden import _femcal
+
+    def calibrate(points: pd.DataFrame, variant: str) -> pd.DataFrame:
+        folder = out_dir / variant
+        folder.mkdir(parents=True, exist_ok=True)
+        points.to_csv(folder / "points.csv", index=False)
+        args = ["calibrate", "--measurements", str(folder / "points.csv"), "--effects", ""]
+        args += ["--model-uri", model_uri, "--no-holdout", "--plots", "none"]
+        if variant == "noisy":
+            args += ["--noise-deg", str(noise_deg)]
+        _femcal([*args, "--out", str(folder / "calibration")], Path.cwd())
+        return pd.read_csv(folder / "calibration" / "parameters.csv", dtype={"specimen": str})
+
+    return calibrate
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Command line of :func:`run_predictive`, run from ``fe/`` (module docstring)."""
+    from femcal.config import load_params
+    from femcal.measurements import read_measurements
+    from femcal.stages.simulate import fe_runtime
+
+    parser = argparse.ArgumentParser(prog="python -m femcal.fe.predictive")
+    parser.add_argument("--measurements", type=Path, default=Path("data/dataset/Test"))
+    parser.add_argument("--model-uri", default="models/surrogate-large")
+    parser.add_argument("--out", type=Path, default=Path("reports/predictive"))
+    parser.add_argument("--store", default="data/predictive-campaign/runs.jsonl.gz")
+    parser.add_argument("--noise-deg", type=float, default=0.05)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--metrics-file", type=Path, default=Path("reports/predictive.json"))
+    args = parser.parse_args(argv)
+    params = load_params("params.yaml")
+    fe = fe_runtime(params, {"store": args.store}, "fe")
+    truth = read_measurements(args.measurements)
+    curves = fe.curves(truth.moments)
+    calibrate = _cli_calibrate(args.model_uri, args.out, args.noise_deg)
+    figures = run_predictive(truth, curves, calibrate, args.noise_deg, args.seed)
+    figures.update(model_uri=args.model_uri, measurements=str(args.measurements))
+    args.metrics_file.parent.mkdir(parents=True, exist_ok=True)
+    args.metrics_file.write_text(json.dumps(figures, indent=2) + "\n")
+    print(
+        json.dumps(
+            {k: figures[k] for k in ("fe_predictive_mae_deg", "fe_predictive_mae_deg_noisy")}
+        )
+    )
+    return figures
+
+
+if __name__ == "__main__":
+    main()
