@@ -190,11 +190,16 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--store", default="data/predictive-campaign/runs.jsonl.gz")
     parser.add_argument("--noise-deg", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--n-specimens", type=int, default=16, help="the first n held-out specimens (0: all)"
+    )
     parser.add_argument("--metrics-file", type=Path, default=Path("reports/predictive.json"))
     args = parser.parse_args(argv)
     params = load_params("params.yaml")
     fe = fe_runtime(params, {"store": args.store}, "fe")
     truth = read_measurements(args.measurements)
+    if args.n_specimens:
+        truth = truth.subset(truth.specimens[: args.n_specimens])
     curves = fe.curves(truth.moments)
     calibrate = _cli_calibrate(args.model_uri, args.out, args.noise_deg)
     figures = run_predictive(truth, curves, calibrate, args.noise_deg, args.seed)
