@@ -70,10 +70,6 @@ MAX_ROUNDS = 4
 FIRST_ROUND_FACTOR = 1.1
 #: Bounds of a ligament's slack strain (femcal.settings.fe.LigamentSettings).
 SLACK_RANGE = (-0.3, 0.5)
-#: Wall-clock limit of one attempt of a cohort job, s (replaces ``fe.settings.timeout_s``).
-#: The cohort runs niced on a shared machine: a tight limit would turn the machine's load
-#: into failures, and replacing those would favour specimens that solve fast.
-COHORT_TIMEOUT_S = 1200
 
 
 def _log_uniform(rng: np.random.Generator, low: float, high: float, n: int) -> np.ndarray:
@@ -198,6 +194,7 @@ def _run_rounds(
     With ``run`` False nothing runs: the first round's draws and their stored records.
     """
     from femcal.fe.campaign import PerConfigSettings, run_campaign, timed_out
+    from femcal.fe.runtime import SHARED_MACHINE_TIMEOUT_S
 
     rng = np.random.default_rng([cohort.seed, 0])
     wanted = {name: int(cohort.per_class) for name in CLASSES}
@@ -221,7 +218,8 @@ def _run_rounds(
             for r in drawn.to_dict(orient="records")
             if (p := posterior_of(r)) is not None
         }
-        settings = PerConfigSettings({**fe.settings, "timeout_s": COHORT_TIMEOUT_S}, by_config)
+        base = {**fe.settings, "timeout_s": SHARED_MACHINE_TIMEOUT_S}
+        settings = PerConfigSettings(base, by_config)
         if not run:
             records = _stored(fe, settings, drawn[["config_id", *space.names]], space, moments)
             counts["jobs_from_store"] = int(len(records))

@@ -7,7 +7,9 @@ are split by moment:
 1. the calibration sees only the points at 1-5 Nm (:data:`FIT_BAND`), noise-free or with
    Gaussian noise of ``noise_deg`` added (seeded);
 2. CalculiX runs the four load cases at the calibrated parameters, one FE run per specimen
-   and load case (no refinement, no adaptive sampling aimed at the specimens);
+   and load case (no refinement, no adaptive sampling aimed at the specimens), with
+   ``fe.settings`` but the wall-clock limit of
+   :data:`~femcal.fe.runtime.SHARED_MACHINE_TIMEOUT_S`;
 3. the FE curves are compared with the specimens' noise-free curves at 5.5-10 Nm
    (:data:`PREDICT_BAND`), which the calibration never saw.
 
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -180,6 +183,7 @@ def _cli_calibrate(model_uri: str, out_dir: Path, noise_deg: float) -> Calibrate
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command line of :func:`run_predictive`, run from ``fe/`` (module docstring)."""
     from femcal.config import load_params
+    from femcal.fe.runtime import SHARED_MACHINE_TIMEOUT_S
     from femcal.measurements import read_measurements
     from femcal.stages.simulate import fe_runtime
 
@@ -197,6 +201,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     params = load_params("params.yaml")
     fe = fe_runtime(params, {"store": args.store}, "fe")
+    fe = replace(fe, settings={**fe.settings, "timeout_s": SHARED_MACHINE_TIMEOUT_S})
     truth = read_measurements(args.measurements)
     if args.n_specimens:
         truth = truth.subset(truth.specimens[: args.n_specimens])

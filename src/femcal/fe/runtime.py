@@ -20,6 +20,13 @@ if TYPE_CHECKING:
     from femcal.fe.refine import FECurves
 
 
+#: Wall-clock limit of one attempt of a job, s, for the campaigns that run niced on a shared
+#: machine (:mod:`femcal.fe.cohort`, :mod:`femcal.fe.predictive`); it replaces
+#: ``fe.settings.timeout_s`` there. A tight limit would turn the machine's load into
+#: failures, and leaving those out would favour specimens that solve fast.
+SHARED_MACHINE_TIMEOUT_S = 1200
+
+
 class FeKeywords(TypedDict, total=False):
     """An :class:`FeRuntime` as keywords (:meth:`FeRuntime.keywords`), for the functions that
     take them one by one (:func:`femcal.fe.validate.validate_calibration`)."""
