@@ -64,7 +64,8 @@ def test_run_predictive_with_a_stand_in_model():
     seen: dict[str, pd.DataFrame] = {}
 
     def curves(x, ids):
-        return x[:, :1, None] * np.ones((1, 4, 1)) * MOMENTS[None, None, :] ** 0.7
+        rom = x[:, :1, None] * np.ones((1, 4, 1)) * MOMENTS[None, None, :] ** 0.7
+        return rom, 0.01 * rom
 
     def calibrate(points, variant):
         seen[variant] = points

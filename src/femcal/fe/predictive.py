@@ -39,8 +39,9 @@ PREDICT_BAND = (5.5, 10.0)
 #: First config_id of each variant's FE runs (apart from the campaign's).
 ID_OFFSET = {"clean": 200_000, "noisy": 300_000}
 
-#: ``(x (n, 13), ids (n,)) -> RoM (n, 4, m)``: the FE model at the study's moments.
-Curves = Callable[[np.ndarray, np.ndarray], np.ndarray]
+#: ``(x (n, 13), ids (n,)) -> (RoM deg, IDP MPa)``, each (n, 4, m): the FE model at the
+#: truth's moments.
+Curves = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 #: ``(long table of the points to fit, variant) -> parameters (specimen + 13 columns)``.
 Calibrate = Callable[[pd.DataFrame, str], pd.DataFrame]
 
@@ -120,7 +121,7 @@ def run_predictive(
     truth : Measurements
         The held-out specimens' noise-free curves at 0.5-10 Nm.
     curves : callable
-        The FE model (:meth:`femcal.fe.runtime.FeRuntime.curves` at ``truth.moments``).
+        The FE model: RoM and IDP at ``truth.moments`` (:func:`fe_outputs`).
     calibrate : callable
         ``(points, variant) -> parameters``.
     noise_deg : float
@@ -131,8 +132,10 @@ def run_predictive(
     Returns
     -------
     dict
-        ``fe_predictive_mae_deg``, ``fe_predictive_mae_deg_noisy``, each variant's details,
-        ``n_specimens`` and ``fe_runs_per_specimen_max`` (1).
+        ``fe_predictive_mae_deg``, ``fe_predictive_mae_deg_noisy``, each variant's details
+        (with ``idp_mae_mpa``: FE's IDP at the calibrated parameters against the specimens'
+        under the moments, 0.5-10 Nm, when the truth has IDP), ``n_specimens`` and
+        ``fe_runs_per_specimen_max`` (1).
 
     Raises
     ------
@@ -154,12 +157,36 @@ def run_predictive(
         params = params.set_index(params["specimen"].astype(str)).loc[list(truth.specimens)]
         x = params[list(PARAMETER_NAMES)].to_numpy(dtype=float)
         ids = ID_OFFSET[variant] + np.arange(len(x))
-        fe = curves(x, ids)
+        fe, idp = curves(x, ids)
         out[variant] = predictive_error(truth.rom_deg, fe, moments)
+        if truth.idp_mpa is not None:
+            out[variant]["idp_mae_mpa"] = float(np.nanmean(np.abs(idp - truth.idp_mpa)))
+            out[variant]["idp_mean_abs_mpa"] = float(np.nanmean(np.abs(truth.idp_mpa)))
     out["fe_predictive_mae_deg"] = out["clean"]["predict_mae_deg"]
     out["fe_predictive_mae_deg_noisy"] = out["noisy"]["predict_mae_deg"]
     out["fe_runs_per_specimen_max"] = 1
     return out
+
+
+def fe_outputs(fe: Any, moments: Sequence[float]) -> Curves:
+    """A :data:`Curves` that runs ``fe`` (a :class:`~femcal.fe.runtime.FeRuntime`) as a
+    campaign of the four load cases at ``moments``; NaN where a run did not reach a level."""
+    levels = [float(m) for m in moments]
+
+    def outputs(x: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        design = pd.DataFrame(np.asarray(x, dtype=float), columns=list(PARAMETER_NAMES))
+        design.insert(0, "config_id", np.asarray(ids, dtype=np.int64))
+        result = fe.campaign(design, load_cases=LOAD_CASES, moments=levels)
+        where = {int(c): j for j, c in enumerate(design["config_id"])}
+        rom = np.full((len(design), len(LOAD_CASES), len(levels)), np.nan)
+        idp = rom.copy()
+        for rec in result.records.itertuples(index=False):
+            i, k = where[int(rec.config_id)], LOAD_CASES.index(rec.load_case)
+            rom[i, k] = [np.nan if v is None else float(v) for v in rec.rom_deg]
+            idp[i, k] = [np.nan if v is None else float(v) for v in rec.idp_mpa]
+        return rom, idp
+
+    return outputs
 
 
 def _cli_calibrate(model_uri: str, out_dir: Path, noise_deg: float) -> Calibrate:
@@ -205,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     truth = read_measurements(args.measurements)
     if args.n_specimens:
         truth = truth.subset(truth.specimens[: args.n_specimens])
-    curves = fe.curves(truth.moments)
+    curves = fe_outputs(fe, truth.moments)
     calibrate = _cli_calibrate(args.model_uri, args.out, args.noise_deg)
     figures = run_predictive(truth, curves, calibrate, args.noise_deg, args.seed)
     figures.update(model_uri=args.model_uri, measurements=str(args.measurements))
