@@ -487,14 +487,13 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         ),
         # the inverse model's hyper-parameters (InverseModel keywords)
         (
-            "  fixed: {}\n  search_space:\n    learning_rate: {type: float, low: 0.0003",
-            "  fixed: {seed: 3}\n  search_space:\n    learning_rate: {type: float, low: 0.0003",
+            "    learning_rate: 0.0010615360772719654\n  search_space:",
+            "    learning_rate: 0.0010615360772719654\n    seed: 3\n  search_space:",
             r"inverse\.fixed\.seed: not settable here; set inverse\.seed",
         ),
         (
-            "  fixed: {}\n  search_space:\n    learning_rate: {type: float, low: 0.0003",
-            "  fixed: {scheduler_factor: 1.5}\n  search_space:\n    learning_rate: {type: float, "
-            "low: 0.0003",
+            "    learning_rate: 0.0010615360772719654\n  search_space:",
+            "    learning_rate: 0.0010615360772719654\n    scheduler_factor: 1.5\n  search_space:",
             r"inverse\.fixed\.scheduler_factor: expected a number in \(0, 1\), got 1\.5",
         ),
         # calibrator options (the calibrators' keyword arguments)
