@@ -331,6 +331,44 @@ def parameter_table(diag, cohort, named, right) -> list[dict[str, Any]]:
 # ------------------------------------------------------------------------------ main
 
 
+def timing_row(cohort: dict[str, Any], ctx: dict[str, Any]) -> dict[str, Any]:
+    """Diagnose a cohort alone (``--timing-only``): wall and CPU seconds, bars (a) and (b), and
+    per specimen the verdict, the rival and the measurements that would settle it."""
+    kind, seed = cohort["kind"], cohort["seed"]
+    diag, wall, cpu, _, _ = run_diagnosis(cohort, ctx)
+    n = len(cohort["specimens"])
+    j = judge_cohort(cohort, diag)
+    return {
+        "kind": kind,
+        "seed": seed,
+        "holdout": kind == "hidden" and seed in HOLDOUT_SEEDS,
+        "n_specimens": n,
+        "seconds": wall,
+        "cpu_seconds": cpu,
+        "wall_per_50": wall * 50 / n,
+        "cpu_per_50": cpu * 50 / n,
+        "n_eligible": int(j["eligible"].sum()),
+        "n_right_eligible": int(j["right"][j["eligible"]].sum()),
+        **rival_counts(j),
+        "n_none": int(j["is_none"].sum()),
+        "n_none_given_effect": int((j["verdicts"][j["is_none"]] != NONE).sum()),
+        "verdicts": j["verdicts"].tolist(),
+        "classes": [str(c) for c in cohort["labels"]],
+        "eligible": j["eligible"].tolist(),
+        "right": j["right"].tolist(),
+        "rivals": j["rivals"],
+        # where the rival differs most (sigma) and the measurements to settle it
+        "rival_sigma": [
+            None if not s.next_measurement else s.next_measurement["difference_sigma"]
+            for s in diag.specimens
+        ],
+        "rival_repeats": [
+            None if not s.next_measurement else s.next_measurement.get("repeats_to_settle")
+            for s in diag.specimens
+        ],
+    }
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cohorts", default="three,hidden", help="comma-separated: three, hidden")
@@ -416,42 +454,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         cohort = restrict(cohort, args.max_specimens)
         print(f"{kind} seed {seed}: {len(cohort['specimens'])} specimens ...", flush=True)
         if args.timing_only:
-            diag, wall, cpu, _, _ = run_diagnosis(cohort, ctx)
-            n = len(cohort["specimens"])
-            j = judge_cohort(cohort, diag)
-            rows.append(
-                {
-                    "kind": kind,
-                    "seed": seed,
-                    "holdout": kind == "hidden" and seed in HOLDOUT_SEEDS,
-                    "n_specimens": n,
-                    "seconds": wall,
-                    "cpu_seconds": cpu,
-                    "wall_per_50": wall * 50 / n,
-                    "cpu_per_50": cpu * 50 / n,
-                    "n_eligible": int(j["eligible"].sum()),
-                    "n_right_eligible": int(j["right"][j["eligible"]].sum()),
-                    **rival_counts(j),
-                    "n_none": int(j["is_none"].sum()),
-                    "n_none_given_effect": int((j["verdicts"][j["is_none"]] != NONE).sum()),
-                    "verdicts": j["verdicts"].tolist(),
-                    "classes": [str(c) for c in cohort["labels"]],
-                    "eligible": j["eligible"].tolist(),
-                    "right": j["right"].tolist(),
-                    "rivals": j["rivals"],
-                    # where the rival differs most (sigma) and the measurements to settle it
-                    "rival_sigma": [
-                        None if not s.next_measurement else s.next_measurement["difference_sigma"]
-                        for s in diag.specimens
-                    ],
-                    "rival_repeats": [
-                        None
-                        if not s.next_measurement
-                        else s.next_measurement.get("repeats_to_settle")
-                        for s in diag.specimens
-                    ],
-                }
-            )
+            rows.append(timing_row(cohort, ctx))
         else:
             rows.append(one_cohort(cohort, ctx))
     command = reproduce_command("bench_diagnose", argv)

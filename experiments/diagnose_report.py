@@ -188,12 +188,11 @@ def write_timing(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) ->
     print(f"wrote {out / name}.md")
 
 
-def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
-    """Write ``bench_diagnose.md`` and ``bench_diagnose.json`` into ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
+def _header(meta: dict[str, Any]) -> list[str]:
+    """The title, the commands, the settings and the bars table's head."""
     sur = meta["surrogate_error_deg"]
     pol = meta["moment_policy"]
-    lines = [
+    return [
         "# Missing-effect search: closed-world and open-world cohorts",
         "",
         "Reproduce: "
@@ -241,6 +240,11 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         "ceiling of (a): share of (a) where it is |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+
+def _bar_rows(rows: list[dict[str, Any]]) -> list[str]:
+    """One row of the bars table per cohort."""
+    lines: list[str] = []
     for r in rows:
         b, ok = r["bars"], r["bars"]["pass"]
         name = cohort_name(r)
@@ -266,6 +270,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
                 else "- | - |"
             )
         )
+    return lines
+
+
+def _pooled(rows: list[dict[str, Any]]) -> list[str]:
+    """The bars pooled per group of cohorts."""
+    lines: list[str] = []
     lines += [
         "",
         "Pooled per group of cohorts, with Wilson 95 % intervals (one cohort's 34-41 eligible "
@@ -286,6 +296,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
             f"{g['b_none_given_effect']}/{g['b_none']} = "
             f"{_pct(g['b_none_given_effect'] / max(g['b_none'], 1))} | {_pct(blo)}-{_pct(bhi)} |"
         )
+    return lines
+
+
+def _readings() -> list[str]:
+    """What the columns (a'), (a'') and (a*) mean."""
+    lines: list[str] = []
     lines += [
         "",
         "(a') is not the issue's bar; it separates what the data cannot show from what the "
@@ -308,6 +324,14 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         "(every single effect and out-of-library specimen counts): bar (a) cannot pass where it "
         "is below 90 %, whatever the search.",
         "",
+    ]
+    return lines
+
+
+def _per_class(rows: list[dict[str, Any]]) -> list[str]:
+    """Per cohort and class: verdicts and errors; the found effects."""
+    lines: list[str] = []
+    lines += [
         "## Per class: verdicts, disc-alone MAE, MAE recalibrated with the found effects",
         "",
         "Recalibrated = `calibrate(EffectModel(base, found))` over the whole cohort, found = every "
@@ -341,6 +365,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         ),
         "",
     ]
+    return lines
+
+
+def _confusion(rows: list[dict[str, Any]]) -> list[str]:
+    """Per cohort: truth against verdict."""
+    lines: list[str] = []
     lines += ["## Confusion (rows truth, columns verdict)", ""]
     for r in rows:
         verdicts = sorted({v for row in r["confusion"].values() for v in row})
@@ -353,6 +383,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
         for t, row in r["confusion"].items():
             lines.append(f"| {t} | " + " | ".join(str(row.get(v, 0)) for v in verdicts) + " |")
         lines.append("")
+    return lines
+
+
+def _per_protocol(rows: list[dict[str, Any]]) -> list[str]:
+    """Per hidden cohort and protocol: bars (a) and (b)."""
+    lines: list[str] = []
     if any(r["kind"] == "hidden" for r in rows):
         lines += [
             "## Per protocol (hidden cohorts)",
@@ -371,6 +407,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
                         f"{v['none_given_effect']}/{v['n_none']} |"
                     )
         lines.append("")
+    return lines
+
+
+def _per_load_case(rows: list[dict[str, Any]]) -> list[str]:
+    """Per cohort and model: the error per load case."""
+    lines: list[str] = []
     lines += ["## Error per load case (whole cohort)", ""]
     lines += ["| cohort | model | " + " | ".join(LOAD_CASES) + " |", "|---|---" + "|---" * 4 + "|"]
     for r in rows:
@@ -380,6 +422,12 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
                 + " | ".join(f"{vals[lc]:.4f}" for lc in LOAD_CASES)
                 + " |"
             )
+    return lines
+
+
+def _parameters(rows: list[dict[str, Any]]) -> list[str]:
+    """Effect parameters against the planted truth (three-class cohorts)."""
+    lines: list[str] = []
     lines += ["", "## Effect parameters +- sd (three-class cohorts, right verdicts)", ""]
     lines += [
         "| cohort | parameter | n | within 2 sd | median sd | median abs. error |",
@@ -395,6 +443,15 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
                 f"{g['within_2sd'].mean():.0%} | {g['sd'].median():.3g} | "
                 f"{(g['value'] - g['truth']).abs().median():.3g} |"
             )
+    return lines
+
+
+def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
+    """Write ``bench_diagnose.md`` and ``bench_diagnose.json`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    lines = _header(meta) + _bar_rows(rows) + _pooled(rows) + _readings()
+    lines += _per_class(rows) + _confusion(rows) + _per_protocol(rows)
+    lines += _per_load_case(rows) + _parameters(rows)
     (out / "bench_diagnose.md").write_text("\n".join(lines) + "\n")
     (out / "bench_diagnose.json").write_text(
         json.dumps({**meta, "cohorts": rows}, indent=2, default=float)
