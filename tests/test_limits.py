@@ -69,18 +69,6 @@ ALLOWED_MANY_PARAMETERS: dict[str, str] = {
     "src/femcal/fe/adaptive.py:adapt_surrogate": "no options object yet (issue 44)",
     "src/femcal/fe/campaign.py:run_campaign": "no options object yet (issue 44)",
     "src/femcal/fe/validate.py:validate_calibration": "no options object yet (issue 44)",
-    "src/femcal/stages/adapt.py:run_adapt": (
-        "stage entry taking its params.yaml section as keywords; no typed section yet (issue 44)"
-    ),
-    "src/femcal/stages/calibrate.py:run_calibrate": (
-        "stage entry taking its params.yaml section as keywords; no typed section yet (issue 44)"
-    ),
-    "src/femcal/stages/diagnose.py:run_diagnose": (
-        "stage entry taking its params.yaml section as keywords; no typed section yet (issue 44)"
-    ),
-    "src/femcal/stages/evaluate.py:run_evaluate": (
-        "stage entry taking its params.yaml section as keywords; no typed section yet (issue 44)"
-    ),
 }
 
 

@@ -351,20 +351,22 @@ def _write_long(path: Path, meas: Measurements, rom: np.ndarray) -> Path:
 
 
 def _run(registry, measurements, out):
-    from femcal.stages.calibrate import run_calibrate
+    from femcal.stages.calibrate import CalibrateSettings, run_calibrate
 
     return run_calibrate(
-        measurements=measurements,
-        out_dir=registry / out,
-        method="pgd",
-        model_uri="models:/ivd-rom-surrogate@champion",
-        holdout_uri=None,
-        start_bank=PREPARED / "large.csv",
-        options={"n_starts": 2, "max_iter": 4},
-        seed=0,
-        error_growth=GROWTH,
-        max_log_ratio=MAX_LOG_RATIO,
-        plots=False,
+        CalibrateSettings(
+            measurements=measurements,
+            out_dir=registry / out,
+            method="pgd",
+            model_uri="models:/ivd-rom-surrogate@champion",
+            holdout_uri=None,
+            start_bank=PREPARED / "large.csv",
+            options={"n_starts": 2, "max_iter": 4},
+            seed=0,
+            error_growth=GROWTH,
+            max_log_ratio=MAX_LOG_RATIO,
+            plots=False,
+        )
     )
 
 

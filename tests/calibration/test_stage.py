@@ -13,7 +13,7 @@ import yaml
 
 from femcal.cli import main
 from femcal.errors import InputDataError, ModelRegistryError
-from femcal.stages.calibrate import run_calibrate
+from femcal.stages.calibrate import CalibrateSettings, run_calibrate
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
@@ -39,7 +39,9 @@ def _calibrate(measurements, out_dir, **overrides):
         seed=0,
         **MOMENTS,
     )
-    return run_calibrate(measurements=measurements, out_dir=out_dir, **(kwargs | overrides))
+    tracker = overrides.pop("tracker", None)
+    settings = CalibrateSettings(measurements=measurements, out_dir=out_dir, **(kwargs | overrides))
+    return run_calibrate(settings, tracker=tracker)
 
 
 @pytest.fixture
@@ -321,7 +323,7 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     registry, small_surrogate, truth, monkeypatch
 ):
     from femcal.moments import MomentPolicy
-    from femcal.stages.diagnose import run_diagnose
+    from femcal.stages.diagnose import DiagnoseSettings, run_diagnose
 
     common = dict(
         out_dir=registry / "diag",
@@ -329,8 +331,7 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
         noise_deg=0.05,
         candidates=["neutral_zone"],
         start_bank=None,
-        min_delta=10.0,
-        seed=0,
+        options={"min_delta": 10.0, "seed": 0},
         plots=False,
         **MOMENTS,
     )
@@ -338,7 +339,7 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     curves = np.concatenate([truth[1][:1], truth[1][:1, :, -1:]], axis=2)
     with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"):
         diag, summary = run_diagnose(
-            measurements=long_csv(registry / "d.csv", curves, moments), **common
+            DiagnoseSettings(measurements=long_csv(registry / "d.csv", curves, moments), **common)
         )
     policy = MomentPolicy.for_surrogate(
         small_surrogate, growth=MOMENTS["error_growth"], max_log_ratio=MOMENTS["max_log_ratio"]
@@ -350,10 +351,10 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     assert summary["n_specimens"] == 1 and (registry / "diag" / "diagnosis.json").exists()
     far = long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
     with pytest.warns(UserWarning, match=r"far\.csv: dropped 4 measured point\(s\) at moments 12"):
-        diag, summary = run_diagnose(measurements=far, **common)
+        diag, summary = run_diagnose(DiagnoseSettings(measurements=far, **common))
     assert diag.sigma_by_moment.shape == (4,) and summary["n_dropped_points"] == 4
     listed = pd.read_csv(registry / "diag" / "dropped_points.csv")
     assert set(listed["moment_nm"]) == {12.0} and len(listed) == 4
     only_far = long_csv(registry / "only.csv", truth[1][:1, :, :1], moments=(12,))
     with pytest.raises(InputDataError, match=r"only\.csv: no measured point is usable"):
-        run_diagnose(measurements=only_far, **common)
+        run_diagnose(DiagnoseSettings(measurements=only_far, **common))

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from femcal.schema import LOAD_CASES
-from femcal.stages.calibrate import run_calibrate
+from femcal.stages.calibrate import CalibrateSettings, run_calibrate
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
@@ -65,16 +65,18 @@ def test_calibrate_on_the_folders_in_a_fresh_store_records_which_model_ran(
     (tmp_path / "fresh").mkdir()
     ensure_experiment("teammate")
     _, figures = run_calibrate(
-        measurements=meas,
-        out_dir=tmp_path / "out",
-        method="pgd",
-        model_uri=str(folders["large"]),
-        holdout_uri=str(folders["holdout"]),
-        start_bank=None,
-        options={"n_bank_uniform": 64},
-        seed=0,
-        plots=False,
-        **MOMENTS,
+        CalibrateSettings(
+            measurements=meas,
+            out_dir=tmp_path / "out",
+            method="pgd",
+            model_uri=str(folders["large"]),
+            holdout_uri=str(folders["holdout"]),
+            start_bank=None,
+            options={"n_bank_uniform": 64},
+            seed=0,
+            plots=False,
+            **MOMENTS,
+        )
     )
     assert figures["mae_deg"] < 0.05 and np.isfinite(figures["holdout_mae_deg"])
     run = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'calibrate'").iloc[0]

@@ -16,7 +16,7 @@ import mlflow
 import pytest
 import yaml
 
-from femcal.stages.calibrate import run_calibrate
+from femcal.stages.calibrate import CalibrateSettings, run_calibrate
 from femcal.stages.tracking_process import (
     TrackingProcess,
     log_calibration,
@@ -127,17 +127,19 @@ def test_a_failure_while_writing_the_outputs_ends_the_run_failed(project, monkey
         TrackingProcess(params) as tracker,
     ):
         run_calibrate(
-            measurements=tmp / "meas.csv",
-            out_dir=tmp / "out",
-            method="pgd",
-            model_uri=str(tmp / "models" / "surrogate-large"),
-            holdout_uri=None,
-            start_bank=None,
-            options={"n_bank_uniform": 64},
-            seed=0,
-            plots="none",
+            CalibrateSettings(
+                measurements=tmp / "meas.csv",
+                out_dir=tmp / "out",
+                method="pgd",
+                model_uri=str(tmp / "models" / "surrogate-large"),
+                holdout_uri=None,
+                start_bank=None,
+                options={"n_bank_uniform": 64},
+                seed=0,
+                plots="none",
+                **MOMENTS,
+            ),
             tracker=tracker,
-            **MOMENTS,
         )
     runs = _runs(tmp / "mlruns")
     assert list(runs["status"]) == ["FAILED"]

@@ -20,8 +20,8 @@ from femcal.cli import main
 from femcal.errors import InputDataError
 from femcal.moments import DROPPED_COLUMNS
 from femcal.schema import LOAD_CASES
-from femcal.stages.calibrate import run_calibrate
-from femcal.stages.diagnose import run_diagnose
+from femcal.stages.calibrate import CalibrateSettings, run_calibrate
+from femcal.stages.diagnose import DiagnoseSettings, run_diagnose
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.tracking import (
     configure_tracking,
@@ -182,15 +182,16 @@ def test_a_file_without_a_usable_point_is_refused_by_both(project, capsys):
         measurements="tiny.csv",
         model_uri="models:/ivd-rom-surrogate@champion",
         start_bank=None,
-        seed=0,
         **POLICY_ARGS,
     )
+    calibrate = CalibrateSettings(
+        out_dir=project / "c", method="pgd", holdout_uri=None, options={}, seed=0, **common
+    )
     with pytest.raises(InputDataError, match=match):
-        run_calibrate(out_dir=project / "c", method="pgd", holdout_uri=None, options={}, **common)
+        run_calibrate(calibrate)
+    diagnose = DiagnoseSettings(out_dir=project / "d", noise_deg=NOISE, candidates=None, **common)
     with pytest.raises(InputDataError, match=match):
-        run_diagnose(
-            out_dir=project / "d", noise_deg=NOISE, candidates=None, min_delta=10.0, **common
-        )
+        run_diagnose(diagnose)
     assert main(["calibrate", "--measurements", "tiny.csv", "--out", "c"]) == 2
     assert (
         "femcal calibrate: error: tiny.csv: no measured point is usable" in capsys.readouterr().err

@@ -10,12 +10,20 @@ import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from femcal.errors import ConfigError
-from femcal.settings._format import closest, is_model, problems, raise_problems, unknown_message
+from femcal.settings._format import (
+    closest,
+    fields_of,
+    is_model,
+    keys_of,
+    problems,
+    raise_problems,
+    unknown_message,
+)
 from femcal.settings.fe import AdaptSettings, CohortSettings, FeSettings, ValidateSettings
 from femcal.settings.root import (
     BaselinesSettings,
@@ -71,11 +79,17 @@ class Settings:
         ``fe/params.yaml`` (which also has ``fe`` and ``validate``).
     incomplete : dict
         Section -> the required keys it misses (a partial check).
+    given : dict
+        Section -> the keys the file gives it.
+    partial : dict
+        Section -> the keys a partial section gives, validated (:meth:`require`).
     """
 
     path: Path
     schema: str
     incomplete: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    given: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    partial: dict[str, Any] = field(default_factory=dict, repr=False)
     data: DataSettings | None = None
     mlflow: MlflowSettings | None = None
     train: TrainSettings | None = None
@@ -92,12 +106,19 @@ class Settings:
     adapt: AdaptSettings | None = None
     cohort: CohortSettings | None = None
 
-    def require(self, name: str) -> Any:
-        """Section ``name``; a ConfigError naming what it misses when it is absent or partial."""
+    def require(self, name: str, *keys: str) -> Any:
+        """Section ``name``; a ConfigError naming what it misses when it is absent or partial.
+
+        With ``keys`` (the keys a command reads, e.g. a split of ``train``), those must be
+        given, and a section missing other required keys serves them (the others unset).
+        """
         value = getattr(self, name)
-        if value is not None:
+        missing = tuple(k for k in keys if k not in self.given.get(name, ()))
+        if not missing and value is not None:
             return value
-        missing = self.incomplete.get(name, ())
+        if not missing and keys and name in self.partial:
+            return self.partial[name]
+        missing = missing or self.incomplete.get(name, ())
         key = f"{name}.{missing[0]}" if missing else name
         message = (
             f"{self.path}: missing setting '{key}'. Add it (see the project's params.yaml for "
@@ -105,6 +126,19 @@ class Settings:
         )
         doc = describe_setting(key.split("."))
         raise ConfigError(f"{message} {key}: {doc}." if doc else message)
+
+
+def _partial(model: type, value: Mapping[str, Any]) -> Any:
+    """A section that misses required keys, with the keys it gives (each valid)."""
+    fields, names = fields_of(model), keys_of(model)
+    given = {}
+    for key, item in value.items():
+        if key not in names:  # e.g. the splits of train
+            continue
+        info = fields[names[key]]
+        tp = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
+        given[names[key]] = TypeAdapter(tp).validate_python(item)
+    return model.model_construct(**given)
 
 
 def detect_schema(data: Mapping[str, Any]) -> str:
@@ -142,11 +176,13 @@ def _sections(data: Mapping[str, Any], schema: str, complete: bool) -> tuple[dic
         else:
             model = SECTIONS[key][0]
             try:
-                out[key] = model.model_validate(value)
+                out[key] = model.model_validate(value, context={"complete": complete})
             except ValidationError as exc:
                 found += problems(exc, model, prefix=(key,), complete=complete)
                 missing = [e["loc"] for e in exc.errors() if e["type"] == "missing"]
                 incomplete[key] = tuple(str(loc[0]) for loc in missing)
+                if len(missing) == len(exc.errors()) and all(len(loc) == 1 for loc in missing):
+                    out[f"partial:{key}"] = _partial(model, value)
     unknown = {closest(str(k), allowed) for k in data if k not in allowed}
     for name in required if complete else ():
         if name not in data and name not in unknown:
@@ -194,7 +230,16 @@ def validate_params(
         raise ConfigError(f"schema must be one of {', '.join(SCHEMAS)}; got {schema!r}.")
     sections, incomplete, found = _sections(data, schema, complete)
     raise_problems(found, str(path), text)
-    return Settings(path=Path(path), schema=schema, incomplete=incomplete, **sections)
+    partial = {k.split(":")[1]: sections.pop(k) for k in list(sections) if ":" in k}
+    given = {k: tuple(v) for k, v in data.items() if isinstance(v, Mapping)}
+    return Settings(
+        path=Path(path),
+        schema=schema,
+        incomplete=incomplete,
+        given=given,
+        partial=partial,
+        **sections,
+    )
 
 
 def load_settings(path: str | Path = "params.yaml", *, schema: str | None = None) -> Settings:

@@ -8,9 +8,9 @@ default; a field without a default is required. The diagnosis' defaults are thos
 import importlib.util
 import sys
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import model_validator
+from pydantic import ValidationError, ValidationInfo, WrapValidator, model_validator
 
 from femcal.schema import TARGETS
 from femcal.settings._format import fail, got, keys_of
@@ -260,6 +260,24 @@ class DatasetSettings(Section):
         return value
 
 
+def _datasets(value: Any, handler: Any, info: ValidationInfo) -> Any:
+    """The datasets; in a partial check, an entry that only misses keys is kept as given
+    (unvalidated) for the command that reads it to name what it misses."""
+    try:
+        return handler(value)
+    except ValidationError as exc:
+        errors = exc.errors()
+        if (info.context or {}).get("complete", True) or any(
+            e["type"] != "missing" or len(e["loc"]) != 2 for e in errors
+        ):
+            raise
+        broken = {e["loc"][0] for e in errors}
+        good = handler({k: v for k, v in value.items() if k not in broken})
+        return {
+            k: good[k] if k in good else DatasetSettings.model_construct(**value[k]) for k in value
+        }
+
+
 class CalibrateSettings(Section):
     """``calibrate``: the calibration stages, one per dataset, and the calibrator."""
 
@@ -276,7 +294,7 @@ class CalibrateSettings(Section):
     out_dir: PATH = setting("outputs go to <out_dir>/<dataset>/")
     method: Literal[CALIBRATORS] = setting("calibration method")
     model_uri: MODEL_URI = setting("the surrogate: a model folder or a models:/ URI")
-    datasets: dict[DATASET_NAME, DatasetSettings] = setting(
+    datasets: Annotated[dict[DATASET_NAME, DatasetSettings], WrapValidator(_datasets)] = setting(
         "name -> {measurements: path, effects: [names], noise_deg: sd}, one calibrate@<name> "
         "stage each",
         {},

@@ -19,9 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from femcal.config import section
 from femcal.fe.runtime import FeRuntime
-from femcal.stages.common import StageSettings, path_setting, write_metrics
+from femcal.stages.common import StageSettings, path_setting, typed, write_metrics
 from femcal.stages.simulate import fe_runtime
 from femcal.stages.store import tracking
 
@@ -50,22 +49,22 @@ class AdaptSettings(StageSettings):
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> AdaptSettings:
-        cfg = section(params, "adapt")
+        cfg = typed(params, "adapt")
         return cls(
-            model_uri=str(cfg["model_uri"]),
+            model_uri=cfg.model_uri,
             targets=path_setting(params, "adapt", "targets"),
             train=path_setting(params, "adapt", "train"),
             heldout=path_setting(params, "adapt", "heldout"),
             out_model=path_setting(params, "adapt", "out_model"),
             out_dir=path_setting(params, "adapt", "out_dir"),
             fe=fe_runtime(params, args, "adapt"),
-            rounds=int(cfg.get("rounds", 3)),
-            n_explore=int(cfg.get("n_explore", 16)),
-            n_candidates=int(cfg.get("n_candidates", 2048)),
-            finetune=dict(cfg.get("finetune") or {}),
-            calibrate_options=dict(cfg.get("calibrate_options") or {}),
-            seed=int(cfg.get("seed", 0)),
-            model_name=str(section(params, "mlflow", "model_name")),
+            rounds=cfg.rounds,
+            n_explore=cfg.n_explore,
+            n_candidates=cfg.n_candidates,
+            finetune=dict(cfg.finetune),
+            calibrate_options=dict(cfg.calibrate_options),
+            seed=cfg.seed,
+            model_name=typed(params, "mlflow").model_name,
             metrics_file=args.get("metrics_file"),
             params=params,
         )
@@ -74,7 +73,7 @@ class AdaptSettings(StageSettings):
 def run(settings: AdaptSettings) -> dict[str, Any]:
     """Adapt, register the challenger, promote it if it wins; returns the figures."""
     tracking(settings.params)
-    figures = run_adapt(**settings.call_args())
+    figures = run_adapt(settings)
     write_metrics(settings.metrics_file, figures)
     return figures
 
@@ -101,24 +100,10 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     ]
 
 
-def run_adapt(
-    *,
-    model_uri: str,
-    targets: Path,
-    train: Path,
-    heldout: Path,
-    out_model: Path,
-    out_dir: Path,
-    fe: FeRuntime,
-    rounds: int,
-    n_explore: int,
-    n_candidates: int,
-    finetune: Mapping[str, Any],
-    calibrate_options: Mapping[str, Any],
-    seed: int,
-    model_name: str,
-) -> dict[str, Any]:
+def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
     """Adaptive sampling from the surrogate at ``model_uri``; MLflow; the champion's folder.
+
+    ``settings`` (:class:`AdaptSettings`) holds the fields named below.
 
     ``targets`` are measurements (any layout ``femcal calibrate`` reads), ``train`` and
     ``heldout`` prepared tidy tables (``data/prepared/large.csv``, ``small.csv``). Writes
@@ -137,6 +122,10 @@ def run_adapt(
     from femcal.tidy import load_tidy
     from femcal.tracking import export_model, load_surrogate, log_surrogate, open_model
 
+    s = settings
+    model_uri, targets, train, heldout = s.model_uri, s.targets, s.train, s.heldout
+    out_model, out_dir, rounds, n_explore = s.out_model, s.out_dir, s.rounds, s.n_explore
+    model_name = s.model_name
     check_destination(out_dir)
     meas = read_measurements(targets)
     source = open_model(model_uri)
@@ -155,15 +144,15 @@ def run_adapt(
         surrogate,
         targets=meas.rom_deg,
         moments=meas.moments.tolist(),
-        fe_curves=fe.curves(meas.moments.tolist()),
+        fe_curves=s.fe.curves(meas.moments.tolist()),
         train=train_rows,
         heldout=heldout_rows,
         rounds=rounds,
         n_explore=n_explore,
-        n_candidates=n_candidates,
-        finetune=finetune,
-        calibrate_options=calibrate_options,
-        seed=seed,
+        n_candidates=s.n_candidates,
+        finetune=s.finetune,
+        calibrate_options=s.calibrate_options,
+        seed=s.seed,
         first_id=first_id,
     )
     champion_mae = result.heldout_mae_start

@@ -10,10 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import StageSettings, path_setting
+from femcal.stages.common import StageSettings, path_setting, typed
 from femcal.stages.store import tracking
 
 logger = logging.getLogger(__name__)
@@ -33,13 +32,14 @@ class BaselinesSettings(StageSettings):
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> BaselinesSettings:
         split = args["split"]
+        cfg = typed(params, "baselines")
         return cls(
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             split=split,
             out_dir=setting_path(params, f"models/baselines-{split}"),
-            models=section(params, "baselines", "models"),
-            seed=int(section(params, "baselines", "seed")),
-            n_jobs=int(section(params, "baselines", "n_jobs")),
+            models=list(cfg.models),
+            seed=cfg.seed,
+            n_jobs=cfg.n_jobs,
             params=params,
         )
 

@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from femcal.config import section
 from femcal.datasets import training_configurations
 from femcal.errors import ConfigError
 from femcal.paths import setting_path, setting_uri
@@ -26,8 +25,9 @@ from femcal.stages.common import (
     StageSettings,
     check_measurements,
     dropped_note,
-    moment_settings,
+    moment_policy,
     output_folder,
+    typed,
     write_metrics,
 )
 from femcal.stages.tracking_process import (
@@ -72,13 +72,11 @@ class CalibrateSettings(StageSettings):
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> CalibrateSettings:
         where = args.get("params") or params.get("_path", "params.yaml")
-        cfg = section(params, "calibrate")
-        method = args.get("method") or section(params, "calibrate", "method")
-        model_uri = args.get("model_uri") or setting_uri(
-            params, section(params, "calibrate", "model_uri")
-        )
+        cfg = typed(params, "calibrate")
+        method = args.get("method") or cfg.method
+        model_uri = args.get("model_uri") or setting_uri(params, cfg.model_uri)
         if args.get("model_version") or args.get("model_alias"):
-            name = section(params, "mlflow", "model_name")
+            name = typed(params, "mlflow").model_name
             ref = (
                 f"/{args['model_version']}"
                 if args.get("model_version")
@@ -88,48 +86,38 @@ class CalibrateSettings(StageSettings):
         holdout_uri = None
         if not args.get("no_holdout"):
             holdout_uri = args.get("holdout_uri") or (
-                setting_uri(params, cfg["holdout_uri"]) if cfg.get("holdout_uri") else None
+                setting_uri(params, cfg.holdout_uri) if cfg.holdout_uri else None
             )
-        options = dict((cfg.get("options") or {}).get(method) or {})
+        options = cfg.method_options(method)
         if isinstance(options.get("model_uri"), str):  # the inverse network's folder or URI
             options["model_uri"] = setting_uri(params, options["model_uri"])
-        bank = setting_path(params, cfg["start_bank"]) if cfg.get("start_bank") else None
-        max_plots = cfg.get("max_plots")
-        datasets = cfg.get("datasets") or {}
+        bank = setting_path(params, cfg.start_bank) if cfg.start_bank else None
         dataset, given = args.get("dataset"), args.get("measurements")
-        if dataset and dataset not in datasets:
+        if dataset and dataset not in cfg.datasets:
             raise ConfigError(
                 f"Unknown dataset '{dataset}'; calibrate.datasets in {where} has "
-                f"{sorted(datasets)}."
+                f"{sorted(cfg.datasets)}."
             )
-        name = dataset or (None if given else next(iter(datasets), None))
+        name = dataset or (None if given else next(iter(cfg.datasets), None))
         if not given and name is None:
             raise ConfigError(
                 "Give --measurements FILE, or list calibrate.datasets in params.yaml."
             )
-        entry = datasets.get(name) if name else None
-        if isinstance(entry, dict):
-            if "measurements" not in entry:
-                raise ConfigError(
-                    f"calibrate.datasets.{name} in {where} has no 'measurements'; give the "
-                    "file or folder, e.g. {measurements: data/planted/measurements.csv, "
-                    "effects: []}."
-                )
-            entry_path, entry_effects = entry["measurements"], list(entry.get("effects") or [])
-            entry_noise = entry.get("noise_deg")
-        else:
-            entry_path, entry_effects, entry_noise = entry, [], None
+        entry = cfg.datasets.get(name) if name else None
+        if entry is not None and "measurements" not in entry.model_fields_set:
+            raise ConfigError(
+                f"calibrate.datasets.{name} in {where} has no 'measurements'; give the file or "
+                "folder, e.g. {measurements: data/planted/measurements.csv, effects: []}."
+            )
         if args.get("effects") is not None:
             effects = [e.strip() for e in args["effects"].split(",") if e.strip()]
-        elif given:
-            effects = []
-        else:
-            effects = entry_effects
-        measurements = Path(given) if given else setting_path(params, entry_path)
+        else:  # another file than the dataset's: not the dataset's effects nor noise
+            effects = [] if given or entry is None else list(entry.effects)
+        measurements = Path(given) if given else setting_path(params, entry.measurements)
         if args.get("noise_deg") is not None:
             noise = _cli_noise(args["noise_deg"])
-        else:  # params.yaml's value, checked by its schema; another file: not the dataset's
-            noise = None if given else entry_noise
+        else:
+            noise = None if given or entry is None else entry.noise_deg
         # before anything heavy is imported
         out = output_folder(params, args, "calibrate", subfolder=name or "custom")
         check_measurements(measurements)
@@ -141,11 +129,11 @@ class CalibrateSettings(StageSettings):
             holdout_uri=holdout_uri,
             start_bank=bank,
             options=options,
-            seed=int(args["seed"] if args.get("seed") is not None else cfg.get("seed", 0)),
-            **moment_settings(params),
-            chunk_size=cfg.get("chunk_size"),
-            plots=args.get("plots") or ("all" if cfg.get("plots", True) else "none"),
-            max_plots=None if max_plots is None else int(max_plots),
+            seed=int(args["seed"] if args.get("seed") is not None else cfg.seed),
+            **moment_policy(params),
+            chunk_size=cfg.chunk_size,
+            plots=args.get("plots") or ("all" if cfg.plots else "none"),
+            max_plots=cfg.max_plots,
             progress=bool(args.get("progress")),
             effects=tuple(effects),
             effect_modules=effect_modules(params, args.get("effects_module")),
@@ -178,7 +166,7 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
 
     names = load_user_effects(settings.effect_modules)
     with TrackingProcess(settings.params) as tracker:
-        _, figures = run_calibrate(**settings.call_args(), tracker=tracker)
+        _, figures = run_calibrate(settings, tracker=tracker)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, calibration_headline(figures))
     return dict(
@@ -247,26 +235,13 @@ def fit_warnings(figures: dict, out: str) -> str:
 
 
 def run_calibrate(
-    *,
-    measurements: Path,
-    out_dir: Path,
-    method: str,
-    model_uri: str,
-    holdout_uri: str | None,
-    start_bank: Path | None,
-    options: Mapping[str, Any],
-    seed: int,
-    error_growth: tuple[float, float],
-    max_log_ratio: tuple[float, float],
-    chunk_size: int | None = None,
-    plots: bool | str = True,
-    max_plots: int | None = None,
-    progress: bool = False,
-    effects: Sequence[str] = (),
-    noise_deg: float | None = None,
-    tracker: LocalTracking | TrackingProcess | None = None,
+    settings: CalibrateSettings, *, tracker: LocalTracking | TrackingProcess | None = None
 ):
     """Calibrate every specimen of a measurement file against the registered surrogate.
+
+    ``settings`` (:class:`CalibrateSettings`) names the file, the output folder, the method
+    and its options, the surrogates, the start bank, the seed, the moment policy, the
+    effects and the noise; the paragraphs below describe them.
 
     ``plots``: "all" (True) writes the per-specimen PNGs and the summary page, "summary" the
     summary page only, "none" (False) no figure
@@ -315,10 +290,14 @@ def run_calibrate(
     """
     from femcal.outputs import check_destination
 
+    s = settings
+    measurements, out_dir, method, model_uri = s.measurements, s.out_dir, s.method, s.model_uri
+    holdout_uri, start_bank, seed, effects = s.holdout_uri, s.start_bank, s.seed, s.effects
+    chunk_size, progress, noise_deg = s.chunk_size, s.progress, s.noise_deg
     check_destination(out_dir)  # a bad output folder is the first error, not the last
     from femcal.calibration.report import plot_mode
 
-    plots = plot_mode(plots)  # a wrong value before the calibration
+    plots = plot_mode(s.plots)  # a wrong value before the calibration
     tracker = LocalTracking() if tracker is None else tracker
     clock = time.perf_counter()
     timings: dict[str, float] = {}
@@ -342,7 +321,9 @@ def run_calibrate(
         tracker.use_store_here()  # models:/ URIs are resolved in the tracking store
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
-    policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
+    policy = MomentPolicy.for_surrogate(
+        surrogate, growth=s.error_growth, max_log_ratio=s.max_log_ratio
+    )
     screened = policy.screen(meas)  # points beyond the measured limits dropped, with a warning
     meas = screened.measurements
     # (n, 4, m): relative inverse variances (noise^2 / w + sd(M)^2, or w / sd(M)^2 without noise)
@@ -360,7 +341,7 @@ def run_calibrate(
     if noise_deg is not None:  # the error scale of a point of average weight (pgd's ranges)
         point_sd = policy.average_sd(meas.moments, meas.weight, noise_deg, meas.mask())
     opts = calibration_options(
-        method, options, surrogate=surrogate, start_bank=start_bank, point_sd_deg=point_sd
+        method, s.options, surrogate=surrogate, start_bank=start_bank, point_sd_deg=point_sd
     )
     holdout = None
     holdout_source = open_model(holdout_uri) if holdout_uri else None
@@ -422,7 +403,7 @@ def run_calibrate(
                 stage.path,
                 holdout=holdout,
                 plots=plots,
-                max_plots=max_plots,
+                max_plots=s.max_plots,
                 reachability=reach.notes(),
                 progress=progress,
             )

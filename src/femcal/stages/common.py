@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
+from femcal.config import section, settings_of
 from femcal.errors import ConfigError, InputDataError
 from femcal.paths import setting_path, store_url
 
@@ -52,9 +52,16 @@ class StageSettings:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name not in STAGE_ONLY}
 
 
-def path_setting(params: Mapping[str, Any], *keys: str) -> Path:
+def typed(params: Mapping[str, Any], name: str, *keys: str) -> Any:
+    """Section ``name`` of the typed settings of params.yaml (:class:`femcal.settings.Settings`);
+    a ConfigError names what it misses (:meth:`~femcal.settings.Settings.require`: only
+    ``keys`` when given)."""
+    return settings_of(params).require(name, *keys)
+
+
+def path_setting(params: Mapping[str, Any], name: str, key: str) -> Path:
     """A path setting of params.yaml, relative to the project root (:mod:`femcal.paths`)."""
-    return setting_path(params, section(params, *keys))
+    return setting_path(params, getattr(typed(params, name, key), key))
 
 
 def check_outputs(out: str | Path, *, label: str, metrics_file: str | None = None) -> Path:
@@ -139,12 +146,19 @@ def optuna_storage(params: Mapping[str, Any]) -> str:
     """FEMCAL_OPTUNA_STORAGE as given, else train.storage (a relative SQLite file under the
     repository's root, :func:`femcal.paths.store_url`); a SQLite file's folder is created."""
     storage = os.environ.get("FEMCAL_OPTUNA_STORAGE") or store_url(
-        params, section(params, "train", "storage")
+        params, typed(params, "train", "storage").storage
     )
     file = storage[len("sqlite:///") :] if storage.startswith("sqlite:///") else ""
     if file and file != ":memory:":
         Path(file).parent.mkdir(parents=True, exist_ok=True)
     return storage
+
+
+def moment_policy(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
+    """The typed ``moments`` section as keywords: ``error_growth`` and ``max_log_ratio``,
+    ``(below, above)`` each."""
+    moments = typed(params, "moments")
+    return {k: getattr(moments, k).pair() for k in ("error_growth", "max_log_ratio")}
 
 
 def moment_settings(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]:

@@ -3,20 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.datasets import training_configurations
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
     StageSettings,
     check_measurements,
     dropped_note,
-    moment_settings,
+    moment_policy,
     output_folder,
     path_setting,
+    typed,
     write_metrics,
 )
 from femcal.stages.store import tracking
@@ -28,7 +28,9 @@ class DiagnoseSettings(StageSettings):
     """The ``diagnose`` and ``moments`` sections, and the command line's overrides.
 
     Built by :meth:`from_params`, which also checks the output folder, the metrics file and
-    the measurement file before anything heavy is imported.
+    the measurement file before anything heavy is imported. ``options`` holds the keywords
+    of :class:`femcal.diagnose.DiagnoseOptions` that params.yaml sets (its defaults apply to
+    the others).
     """
 
     measurements: Path
@@ -37,21 +39,17 @@ class DiagnoseSettings(StageSettings):
     noise_deg: float | None
     candidates: Sequence[str] | None
     start_bank: Path | None
-    min_delta: float
-    alpha: float
-    max_effects: int
-    seed: int
     error_growth: tuple[float, float]
     max_log_ratio: tuple[float, float]
+    options: Mapping[str, Any] = field(default_factory=dict)
     plots: bool = True
     max_plots: int | None = None
     effect_modules: Sequence[Path] = ()
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> DiagnoseSettings:
-        cfg = section(params, "diagnose")
-        noise = args["noise_deg"] if args.get("noise_deg") is not None else cfg.get("noise_deg")
-        bank = section(params, "calibrate").get("start_bank")
+        cfg = typed(params, "diagnose")
+        noise = args["noise_deg"] if args.get("noise_deg") is not None else cfg.noise_deg
         out = output_folder(params, args, "diagnose")  # before anything heavy is imported
         measurements = (
             Path(args["measurements"])
@@ -59,21 +57,19 @@ class DiagnoseSettings(StageSettings):
             else path_setting(params, "diagnose", "measurements")
         )
         check_measurements(measurements)
+        calibrate = typed(params, "calibrate")
+        bank = calibrate.start_bank
         return cls(
             measurements=measurements,
             out_dir=out,
-            model_uri=args.get("model_uri")
-            or setting_uri(params, section(params, "calibrate", "model_uri")),
+            model_uri=args.get("model_uri") or setting_uri(params, calibrate.model_uri),
             noise_deg=None if noise is None else float(noise),
-            candidates=cfg.get("candidates"),
+            candidates=cfg.candidates,
             start_bank=setting_path(params, bank) if bank else None,
-            min_delta=float(cfg.get("min_delta", 10.0)),
-            alpha=float(cfg.get("alpha", 0.01)),
-            max_effects=int(cfg.get("max_effects", 3)),
-            seed=int(cfg.get("seed", 0)),
-            **moment_settings(params),
-            plots=bool(cfg.get("plots", True)),
-            max_plots=cfg.get("max_plots"),
+            **moment_policy(params),
+            options=cfg.options(),
+            plots=cfg.plots,
+            max_plots=cfg.max_plots,
             effect_modules=effect_modules(params, args.get("effects_module")),
             metrics_file=args.get("metrics_file"),
             params=params,
@@ -89,7 +85,7 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
 
     names = load_user_effects(settings.effect_modules)
     tracking(settings.params)
-    diag, summary = run_diagnose(**settings.call_args())
+    diag, summary = run_diagnose(settings)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, diagnosis_headline(summary))
     return dict(
@@ -149,24 +145,12 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def run_diagnose(
-    *,
-    measurements: Path,
-    out_dir: Path,
-    model_uri: str,
-    noise_deg: float | None,
-    candidates: Sequence[str] | None,
-    start_bank: Path | None,
-    min_delta: float,
-    seed: int,
-    error_growth: tuple[float, float],
-    max_log_ratio: tuple[float, float],
-    alpha: float = 0.01,
-    max_effects: int = 3,
-    plots: bool = True,
-    max_plots: int | None = None,
-):
+def run_diagnose(settings: DiagnoseSettings):
     """Diagnose every specimen of a measurement file; write DIR; log one MLflow run.
+
+    ``settings`` (:class:`DiagnoseSettings`) names the measurements, the output folder, the
+    surrogate, the noise, the candidate effects, the start bank, the moment policy and the
+    :class:`~femcal.diagnose.DiagnoseOptions` keywords.
 
     The moments are screened with the moment policy (:class:`femcal.moments.MomentPolicy` of
     ``error_growth`` and ``max_log_ratio``, ``(below, above)`` each, params.yaml ``moments``):
@@ -181,6 +165,14 @@ def run_diagnose(
     """
     from femcal.outputs import check_destination
 
+    s = settings
+    measurements, out_dir, model_uri, noise_deg = (
+        s.measurements,
+        s.out_dir,
+        s.model_uri,
+        s.noise_deg,
+    )
+    candidates, start_bank = s.candidates, s.start_bank
     check_destination(out_dir)  # a bad output folder is the first error, not the last
     import mlflow
 
@@ -195,10 +187,13 @@ def run_diagnose(
     from femcal.reachability import assess_reachability
     from femcal.tracking import load_surrogate, open_model
 
+    options = DiagnoseOptions(**s.options)
     meas = read_measurements(measurements)
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
-    policy = MomentPolicy.for_surrogate(surrogate, growth=error_growth, max_log_ratio=max_log_ratio)
+    policy = MomentPolicy.for_surrogate(
+        surrogate, growth=s.error_growth, max_log_ratio=s.max_log_ratio
+    )
     screened = policy.screen(meas)  # points beyond the measured limits dropped, with a warning
     meas = screened.measurements
     # Before the fit: can the disc, with every candidate effect, produce these curves at all?
@@ -221,9 +216,7 @@ def run_diagnose(
         candidates=candidates,
         start_bank=training_configurations(start_bank) if start_bank else None,
         moment_policy=policy,
-        options=DiagnoseOptions(
-            min_delta=min_delta, alpha=alpha, max_effects=max_effects, seed=seed
-        ),
+        options=options,
     )
     with (
         staged_output(out_dir, command="diagnose") as stage,
@@ -232,7 +225,9 @@ def run_diagnose(
         stage.note(mlflow_run_id=run.info.run_id)
         mlflow.set_tag("femcal.stage", "diagnose")
         mlflow.set_tags(source.tags("model"))
-        summary = write_diagnosis(diag, meas.rom_deg, stage.path, plots=plots, max_plots=max_plots)
+        summary = write_diagnosis(
+            diag, meas.rom_deg, stage.path, plots=s.plots, max_plots=s.max_plots
+        )
         screened.write(stage.path)
         summary = dict(summary, n_dropped_points=len(screened.dropped))
         mlflow.log_params(
@@ -241,9 +236,9 @@ def run_diagnose(
                 "model_uri": model_uri,
                 "noise_deg": "estimated" if noise_deg is None else noise_deg,
                 "candidates": ",".join(candidates or []) or "all",
-                "min_delta": min_delta,
-                "alpha": alpha,
-                "max_effects": max_effects,
+                "min_delta": options.min_delta,
+                "alpha": options.alpha,
+                "max_effects": options.max_effects,
                 "cohort_verdict": diag.cohort_verdict(),
                 **policy.as_params(),
             }

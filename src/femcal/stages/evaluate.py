@@ -10,11 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from femcal.config import section
 from femcal.datasets import load_split
 from femcal.evaluate import Score, score_model, write_reports
 from femcal.paths import setting_path
-from femcal.stages.common import StageSettings, path_setting
+from femcal.stages.common import StageSettings, path_setting, typed
 from femcal.stages.store import tracking
 
 #: The training sets whose networks and baselines are compared.
@@ -45,7 +44,7 @@ class EvaluateSettings(StageSettings):
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             surrogate_dirs={s: at(f"models/surrogate-{s}") for s in SPLITS},
             baseline_dirs={s: at(f"models/baselines-{s}") for s in SPLITS},
-            baseline_models=section(params, "baselines", "models"),
+            baseline_models=typed(params, "baselines").models,
             interpolation_path=at("reports/interpolation.json"),
             markdown=at("reports/surrogates.md"),
             json_path=at("reports/surrogates.json"),
@@ -59,7 +58,7 @@ class EvaluateSettings(StageSettings):
 def run(settings: EvaluateSettings) -> dict[str, Any]:
     """Score and write the reports; returns ``{"sections": {title: [Score, ...]}}``."""
     tracking(settings.params)
-    sections = run_evaluate(**settings.call_args())
+    sections = run_evaluate(settings)
     return {"sections": sections}
 
 
@@ -86,23 +85,11 @@ def load_nn(path: Path):
     return load_surrogate(str(path))
 
 
-def run_evaluate(
-    *,
-    prepared_dir: Path,
-    surrogate_dirs: Mapping[str, Path],
-    baseline_dirs: Mapping[str, Path],
-    baseline_models: Sequence[str],
-    interpolation_path: Path | None,
-    markdown: Path,
-    json_path: Path,
-    table_path: Path,
-    predictions_path: Path | None = None,
-    curves_path: Path | None = None,
-    plot_split: str = "large",
-) -> dict[str, list[Score]]:
+def run_evaluate(settings: EvaluateSettings, plot_split: str = "large") -> dict[str, list[Score]]:
     """Score every model on the Test split; write the reports and plot data; log to MLflow.
 
-    ``json_path`` gets the headline figures (the stage's DVC metrics), ``table_path`` every
+    ``settings`` (:class:`EvaluateSettings`) names the models and the reports: ``json_path``
+    gets the headline figures (the stage's DVC metrics), ``table_path`` every
     model x training set x load case, ``markdown`` the tables for people. For the network
     trained on ``plot_split`` (the one calibrate uses), ``predictions_path`` gets its
     predicted vs FE RoM of every Test row and ``curves_path`` its training and validation
@@ -113,7 +100,11 @@ def run_evaluate(
     from femcal.evaluate import prediction_table, training_curves
     from femcal.surrogates.baselines import load_baseline
 
-    test, _ = load_split(prepared_dir, "test")
+    s = settings
+    surrogate_dirs, baseline_dirs = s.surrogate_dirs, s.baseline_dirs
+    predictions_path, curves_path = s.predictions_path, s.curves_path
+    markdown, json_path, table_path = s.markdown, s.json_path, s.table_path
+    test, _ = load_split(s.prepared_dir, "test")
     sections: dict[str, list[Score]] = {}
     for split in surrogate_dirs:
         rows: list[Score] = []
@@ -139,15 +130,15 @@ def run_evaluate(
                 extra={"registered_version": info.get("version")},
             )
         )
-        for name in baseline_models:
+        for name in s.baseline_models:
             model = load_baseline(baseline_dirs[split] / name)
             rows.append(score_model(model, test, name=name, train_split=split))
         rows.sort(key=lambda s: s.scores["mae"])
         sections[f"Trained on {split.capitalize()}"] = rows
-    if interpolation_path is not None and interpolation_path.exists():
+    if s.interpolation_path is not None and s.interpolation_path.exists():
         sections["Interpolation: trained on 1, 3, 5 Nm, tested at 2 and 4 Nm"] = [
             Score(r["model"], r["train_split"], r["scores"], r["n_rows"], {})
-            for r in json.loads(interpolation_path.read_text())
+            for r in json.loads(s.interpolation_path.read_text())
         ]
     preamble = (
         "MAE in degrees over all rows; mean R² = R² per load case pooled over configurations "
@@ -164,12 +155,13 @@ def run_evaluate(
     with mlflow.start_run(run_name="evaluate"):
         mlflow.set_tag("femcal.stage", "evaluate")
         for title, rows in sections.items():
-            for s in rows:
-                with mlflow.start_run(run_name=f"eval-{s.model}-{s.train_split}", nested=True):
+            for row in rows:
+                with mlflow.start_run(run_name=f"eval-{row.model}-{row.train_split}", nested=True):
                     mlflow.log_params(
-                        {"model": s.model, "train_split": s.train_split, "section": title[:200]}
+                        {"model": row.model, "train_split": row.train_split, "section": title[:200]}
                     )
-                    mlflow.log_metrics({k: float(v) for k, v in s.scores.items() if np.isfinite(v)})
+                    scores = row.scores.items()
+                    mlflow.log_metrics({k: float(v) for k, v in scores if np.isfinite(v)})
         mlflow.log_artifact(str(markdown))
         for path in (json_path, table_path, predictions_path, curves_path):
             if path is not None:

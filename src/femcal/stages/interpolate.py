@@ -10,11 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from femcal.config import section
 from femcal.datasets import load_split
 from femcal.evaluate import Score, score_model
 from femcal.paths import setting_path
-from femcal.stages.common import StageSettings, path_setting
+from femcal.stages.common import StageSettings, path_setting, typed
 from femcal.stages.store import tracking
 
 
@@ -35,17 +34,19 @@ class InterpolateSettings(StageSettings):
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> InterpolateSettings:
+        cfg = typed(params, "interpolation")
+        train = typed(params, "train", "large", "seed", "val_fraction")
         return cls(
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             out_path=setting_path(params, "reports/interpolation.json"),
-            train_moments=section(params, "interpolation", "train_moments"),
-            test_moments=section(params, "interpolation", "test_moments"),
-            fixed=section(params, "train", "large", "fixed"),
-            final_members=int(section(params, "interpolation", "final_members")),
-            baselines=section(params, "interpolation", "baselines"),
-            seed=int(section(params, "train", "seed")),
-            val_fraction=float(section(params, "train", "val_fraction")),
-            n_jobs=int(section(params, "baselines", "n_jobs")),
+            train_moments=list(cfg.train_moments),
+            test_moments=list(cfg.test_moments),
+            fixed=dict(train.splits["large"].fixed),
+            final_members=cfg.final_members,
+            baselines=list(cfg.baselines),
+            seed=train.seed,
+            val_fraction=train.val_fraction,
+            n_jobs=typed(params, "baselines", "n_jobs").n_jobs,
             params=params,
         )
 

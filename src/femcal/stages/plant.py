@@ -9,9 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from femcal.config import section
 from femcal.datasets import load_split
-from femcal.stages.common import StageSettings, check_outputs, out_label, path_setting
+from femcal.stages.common import StageSettings, check_outputs, out_label, path_setting, typed
 
 
 @dataclass(frozen=True)
@@ -27,7 +26,7 @@ class PlantSettings(StageSettings):
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> PlantSettings:
-        cfg = section(params, "plant")
+        cfg = typed(params, "plant")
         out = check_outputs(
             path_setting(params, "plant", "out_dir"),
             label=out_label(args.get("out"), "plant.out_dir"),
@@ -36,10 +35,10 @@ class PlantSettings(StageSettings):
         return cls(
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             out_dir=out,
-            n_per_class=int(section(params, "plant", "n_per_class")),
-            moments=[float(m) for m in section(params, "plant", "moments")],
-            noise_deg=float(section(params, "plant", "noise_deg")),
-            seed=int(cfg.get("seed", 0)),
+            n_per_class=cfg.n_per_class,
+            moments=list(cfg.moments),
+            noise_deg=cfg.noise_deg,
+            seed=cfg.seed,
         )
 
 

@@ -7,9 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.paths import setting_path
-from femcal.stages.common import path_setting
+from femcal.stages.common import path_setting, typed
 
 
 @dataclass(frozen=True)
@@ -23,12 +22,11 @@ class PrepareSettings:
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> PrepareSettings:
-        data = section(params, "data")
-        raw = setting_path(params, data.get("source_dir") or section(params, "data", "raw_dir"))
+        data = typed(params, "data")
         return cls(
-            raw=raw,
+            raw=setting_path(params, data.source_dir or data.raw_dir),
             out=path_setting(params, "data", "prepared_dir"),
-            limit_configs=data.get("limit_configs"),
+            limit_configs=data.limit_configs,
         )
 
 

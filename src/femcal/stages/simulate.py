@@ -7,13 +7,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.fe.runtime import FeRuntime
 from femcal.paths import setting_path, store_path
 from femcal.space import ParameterSpace
 from femcal.stages.common import (
     StageSettings,
     output_folder,
+    typed,
     write_metrics,
 )
 
@@ -53,16 +53,16 @@ class SimulateSettings(StageSettings):
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> SimulateSettings:
-        cfg = section(params, "fe")
+        cfg = typed(params, "fe")
         out = output_folder(params, args, "fe")  # before the campaign
-        scratch = cfg.get("scratch_dir")
+        scratch = cfg.scratch_dir
         return cls(
             fe=fe_runtime(params, args, "fe"),
-            bounds=section(params, "fe", "bounds"),
-            splits=section(params, "fe", "splits"),
-            seed=int(section(params, "fe", "seed")),
-            load_cases=list(section(params, "fe", "load_cases")),
-            moments=[float(m) for m in section(params, "fe", "moments")],
+            bounds=cfg.bounds,
+            splits=cfg.splits,
+            seed=cfg.seed,
+            load_cases=list(cfg.load_cases),
+            moments=list(cfg.moments),
             out_dir=out,
             scratch_dir=setting_path(params, scratch) if scratch else None,
             retry_timeouts=bool(args.get("retry_timeouts")),
@@ -228,13 +228,13 @@ def fe_runtime(params: Mapping[str, Any], args: Mapping[str, Any], store_section
     """
     from femcal.fe.campaign import scheduler_address_from_env
 
-    cfg = section(params, "fe")
+    cfg = typed(params, "fe")
     given = args.get("store")
     return FeRuntime(
-        solver=section(params, "fe", "solver"),
-        settings=dict(cfg.get("settings") or {}),
-        store=Path(given) if given else store_path(params, section(params, store_section, "store")),
-        scheduler_address=cfg.get("scheduler_address") or scheduler_address_from_env(),
-        n_workers=int(cfg.get("n_workers", 2)),
+        solver=cfg.solver,
+        settings=dict(cfg.settings),
+        store=Path(given) if given else store_path(params, typed(params, store_section).store),
+        scheduler_address=cfg.scheduler_address or scheduler_address_from_env(),
+        n_workers=cfg.n_workers,
         progress=bool(args.get("progress")),
     )

@@ -13,9 +13,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.paths import store_path
-from femcal.stages.common import optuna_storage
+from femcal.stages.common import optuna_storage, typed
 from femcal.training.search import StudySearch
 
 
@@ -27,9 +26,10 @@ def tracking(params: Mapping[str, Any]) -> None:
     from femcal.tracking import configure_tracking, ensure_experiment
     from femcal.tracking_runs import close_killed_runs, tag_runs_with_process
 
-    store = store_path(params, section(params, "mlflow", "store_dir"))
+    mlflow = typed(params, "mlflow", "store_dir", "experiment")
+    store = store_path(params, mlflow.store_dir)
     configure_tracking(store_dir=store)
-    experiment = ensure_experiment(section(params, "mlflow", "experiment"), store_dir=store)
+    experiment = ensure_experiment(mlflow.experiment, store_dir=store)
     tag_runs_with_process()  # pid + host on every run this command starts
     close_killed_runs([experiment])  # logs each run it closes as KILLED
 
@@ -88,7 +88,7 @@ def export_folder(result, out_dir: Path, registered_model: str | None) -> None:
 def study_search(
     params: Mapping[str, Any],
     args: Mapping[str, Any],
-    cfg: Mapping[str, Any],
+    cfg: Any,
     *,
     study_name: str,
     seed: int,
@@ -101,8 +101,8 @@ def study_search(
         The parsed params.yaml; the storage is ``train.storage`` (:func:`optuna_storage`).
     args : mapping
         The command line's settings: ``progress``.
-    cfg : mapping
-        The stage's section: ``search_space``, ``fixed``, ``n_trials`` (default 0).
+    cfg : TrainSplitSettings or InverseSettings
+        The stage's typed section: ``search_space``, ``fixed``, ``n_trials``.
     study_name, seed
         The study's base name and seed.
 
@@ -112,9 +112,9 @@ def study_search(
     """
     return StudySearch(
         study_name=study_name,
-        search_space=cfg.get("search_space") or {},
-        fixed=cfg.get("fixed") or {},
-        n_trials=int(cfg.get("n_trials", 0)),
+        search_space=dict(cfg.search_space),
+        fixed=dict(cfg.fixed),
+        n_trials=cfg.n_trials,
         storage=optuna_storage(params),
         seed=seed,
         progress=bool(args.get("progress")),

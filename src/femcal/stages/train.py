@@ -11,10 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.datasets import load_split
 from femcal.paths import setting_path
-from femcal.stages.common import StageSettings, path_setting
+from femcal.stages.common import StageSettings, path_setting, typed
 from femcal.stages.store import export_folder, registry_figures, study_search, tracking
 from femcal.training.search import StudySearch
 
@@ -37,8 +36,9 @@ class TrainSettings(StageSettings):
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> TrainSettings:
         split = args["split"]
-        settings = section(params, "train", split)
-        model_name = settings.get("model_name") or section(params, "mlflow", "model_name")
+        train = typed(params, "train", split, "study_name", "seed", "val_fraction")
+        settings = train.splits[split]
+        model_name = settings.model_name or typed(params, "mlflow", "model_name").model_name
         return cls(
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             split=split,
@@ -48,14 +48,14 @@ class TrainSettings(StageSettings):
                 params,
                 args,
                 settings,
-                study_name=f"{section(params, 'train', 'study_name')}-{split}",
-                seed=int(settings.get("seed", section(params, "train", "seed"))),
+                study_name=f"{train.study_name}-{split}",
+                seed=train.seed if settings.seed is None else settings.seed,
             ),
-            final_members=int(settings.get("final_members", 1)),
-            val_fraction=float(section(params, "train", "val_fraction")),
-            register_as=model_name if settings.get("register") else None,
-            data_split=settings.get("split", split),
-            target=str(settings.get("target", "rom_deg")),
+            final_members=settings.final_members,
+            val_fraction=train.val_fraction,
+            register_as=model_name if settings.register_model else None,
+            data_split=settings.split or split,
+            target=settings.target,
             params=params,
         )
 

@@ -11,9 +11,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from femcal.config import section
 from femcal.paths import setting_path, setting_uri
-from femcal.stages.common import StageSettings
+from femcal.stages.common import StageSettings, typed
 from femcal.stages.store import export_folder, registry_figures, study_search, tracking
 from femcal.training.search import StudySearch
 
@@ -34,21 +33,21 @@ class TrainInverseSettings(StageSettings):
     def from_params(
         cls, params: Mapping[str, Any], args: Mapping[str, Any]
     ) -> TrainInverseSettings:
-        cfg = section(params, "inverse")
+        cfg = typed(params, "inverse")
         return cls(
-            surrogate_uri=setting_uri(params, section(params, "inverse", "surrogate_uri")),
-            moments=[float(m) for m in section(params, "inverse", "moments")],
+            surrogate_uri=setting_uri(params, cfg.surrogate_uri),
+            moments=list(cfg.moments),
             out_dir=setting_path(params, "models/inverse"),
             metrics_path=setting_path(params, "reports/train-inverse.json"),
             study=study_search(
                 params,
                 args,
                 cfg,
-                study_name=str(cfg.get("study_name", "ivd-inverse")),
-                seed=int(cfg.get("seed", 0)),
+                study_name=cfg.study_name,
+                seed=cfg.seed,
             ),
-            n_samples=int(cfg.get("n_samples", 50_000)),
-            register_as=cfg.get("register_as"),
+            n_samples=cfg.n_samples,
+            register_as=cfg.register_as,
             params=params,
         )
 

@@ -6,29 +6,17 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from femcal.errors import ConfigError
+from femcal.config import settings_of
 
 
 def effect_modules(params: Mapping[str, Any], given: Sequence[str] | None) -> tuple[Path, ...]:
     """The user's effect files: ``effects.modules`` in params.yaml (relative to its folder, the
     project root), then every ``--effects-module`` (relative to the working directory)."""
     where = params.get("_path", "params.yaml")
-    cfg = params.get("effects") or {}
-    modules = cfg.get("modules") if isinstance(cfg, dict) else None
-    if (
-        not isinstance(cfg, dict)
-        or set(cfg) - {"modules"}
-        or not isinstance(modules or [], list)
-        or not all(isinstance(m, str) for m in modules or [])
-    ):
-        raise ConfigError(
-            f"{where}: the effects section must be {{modules: [paths]}}, each path a .py file or "
-            f"a folder of them relative to the project root; got effects: {cfg!r}. Write e.g. "
-            "`effects: {modules: [my_effects.py]}` (the effects a calibration uses are listed "
-            "under calibrate.datasets.<name>.effects)."
-        )
+    effects = settings_of(params).effects
+    modules = effects.modules if effects is not None else ()
     root = Path(where).parent
-    return tuple([root / m for m in modules or []] + [Path(m) for m in given or []])
+    return tuple([root / m for m in modules] + [Path(m) for m in given or []])
 
 
 def load_user_effects(paths: Sequence[Path]) -> list[str]:

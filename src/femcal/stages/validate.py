@@ -10,13 +10,13 @@ from typing import Any, Unpack
 
 import numpy as np
 
-from femcal.config import section
 from femcal.errors import ConfigError
 from femcal.fe.runtime import FeKeywords, FeRuntime
 from femcal.stages.common import (
     StageSettings,
     output_folder,
     path_setting,
+    typed,
     write_metrics,
 )
 from femcal.stages.simulate import fe_runtime
@@ -62,9 +62,9 @@ class ValidateSettings(StageSettings):
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> ValidateSettings:
-        cfg = section(params, "validate")
+        cfg = typed(params, "validate")
         out = output_folder(params, args, "validate")  # before the FE campaign
-        refine = cfg.get("refine") or {}
+        refine = cfg.refine
         return cls(
             calibration_dir=(
                 Path(args["calibration"])
@@ -77,15 +77,15 @@ class ValidateSettings(StageSettings):
                 else path_setting(params, "validate", "measurements")
             ),
             fe=fe_runtime(params, args, "validate"),
-            forces=[float(f) for f in cfg.get("forces") or []],
-            literature=cfg.get("idp_literature") or {},
+            forces=list(cfg.forces),
+            literature={force: r.model_dump() for force, r in cfg.idp_literature.items()},
             out_dir=out,
             metrics_file=args.get("metrics_file"),
-            model_uri=refine.get("model_uri"),
-            max_fe_runs=int(refine.get("max_fe_runs", 1)),
-            tol_deg=float(refine.get("tol_deg", 0.05)),
-            published=list(cfg.get("idp_published") or []),
-            idp_model_uri=cfg.get("idp_model_uri"),
+            model_uri=refine.model_uri if refine else None,
+            max_fe_runs=refine.max_fe_runs if refine else 1,
+            tol_deg=refine.tol_deg if refine else 0.05,
+            published=[p.model_dump() for p in cfg.idp_published],
+            idp_model_uri=cfg.idp_model_uri,
             params=params,
         )
 
