@@ -151,6 +151,24 @@ def test_same_seed_same_diagnosis(world):
     )
 
 
+def test_the_verdicts_do_not_depend_on_the_number_of_workers(world):
+    base, rom, _, _ = world
+    rom16 = np.concatenate([rom, rom[:1]])  # 16 specimens: two groups of 8 (workers.MIN_ROWS)
+    names = [f"S{i:02d}" for i in range(len(rom16))]
+    runs = [
+        diagnose(base, rom16, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=k))
+        for k in (1, 2)
+    ]
+    assert [s.specimen for s in runs[1].specimens] == names
+    assert [s.verdict for s in runs[1].specimens] == [s.verdict for s in runs[0].specimens]
+    # Batches of other sizes round differently in the last float32 digits (see above).
+    np.testing.assert_allclose(
+        [s.final_mae_deg for s in runs[1].specimens],
+        [s.final_mae_deg for s in runs[0].specimens],
+        atol=1e-4,
+    )
+
+
 def test_next_measurement_names_where_close_explanations_differ(world):
     _, _, _, diag = world
     for s in diag.specimens:
@@ -277,6 +295,8 @@ def test_bad_settings_are_refused(world):
         DiagnoseOptions(elimination_cap=0.5)
     with pytest.raises(ConfigError, match="shape_starts must be >= 0"):
         DiagnoseOptions(shape_starts=-1)
+    with pytest.raises(ConfigError, match=r"workers must be >= 1 or None \(one per CPU\)"):
+        DiagnoseOptions(workers=0)
     with pytest.raises(ConfigError, match="max_effects and max_iter must be >= 1"):
         DiagnoseOptions(max_effects=0)
     with pytest.raises(ConfigError, match=r"backward_delta must be in \[0, min_delta=10.0\]"):

@@ -16,6 +16,9 @@ from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
 from femcal.effects.composite import EffectModel
 
+#: A fit has converged when a step lowers its chi-square by less than this fraction.
+_GN_TOL = 1e-6
+
 
 # ------------------------------------------------------------------------ fitting helpers
 def _weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -98,6 +101,34 @@ def _split_start(v: torch.Tensor, effects: Sequence[str], split: Sequence[str]) 
     return torch.cat(parts, dim=1)
 
 
+def _split_starts(
+    v: torch.Tensor, effects: Sequence[str], split: Sequence[str], levels: Sequence[float]
+) -> tuple[torch.Tensor, int]:
+    """Starts (r * g, dim') of ``split`` from a fit of ``effects`` (r, dim): the tied values
+    copied into every load case (:func:`_split_start`), then, one at a time, each per-load-case
+    copy of a newly split effect at each unit level of ``levels`` (a load case whose contact
+    or slack lies far from the tied compromise is not reached from it); and ``g``."""
+    first = _split_start(v, effects, split)
+    n_disc = v.shape[1] - sum(len(get_effect(e).parameters) for e in effects)
+    offsets = _slices_of(split)
+    columns = []
+    for name in split:
+        cls = get_effect(name)
+        if name in effects or getattr(cls, "tied", None) is None:
+            continue
+        tied = {q.name for q in cls.tied.parameters if q.per_load_case}
+        a = offsets[name][0]
+        columns += [n_disc + a + j for j, q in enumerate(cls.parameters) if q.name not in tied]
+    starts = [first]
+    for col in columns:
+        for level in levels:
+            start = first.clone()
+            start[:, col] = float(level)
+            starts.append(start)
+    g = len(starts)
+    return torch.stack(starts, dim=1).reshape(len(v) * g, -1), g
+
+
 def _solutions(per_spec: list[dict], rows, effects: tuple[str, ...]) -> torch.Tensor:
     """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
     return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
@@ -122,6 +153,28 @@ class _Fit:
     cov: np.ndarray | None = None  # (r, dim, dim) parameter covariance, unit coordinates
     finite: np.ndarray | None = None  # (r,) the Jacobian is finite
     occam: np.ndarray | None = None  # (r,) ln det(I + J^T J / 2 pi), unit coordinates
+
+    def take(self, positions: Sequence[int], rows: Sequence[int]) -> _Fit:
+        """The fit of the batch members at ``positions``, renumbered as specimens ``rows``."""
+        pos = list(positions)
+        sel = torch.as_tensor(pos, dtype=torch.long)
+
+        def part(x):
+            return None if x is None else x[pos]
+
+        return _Fit(
+            self.effects,
+            self.model,
+            self.v[sel],
+            np.asarray(rows, dtype=int),
+            None if self.pred is None else self.pred[sel],
+            self.chi2[pos],
+            self.k,
+            part(self.trace),
+            part(self.cov),
+            part(self.finite),
+            part(self.occam),
+        )
 
     def ensure_trace(self, mask: np.ndarray, sigma: np.ndarray) -> None:
         """Effective parameters, covariance and finiteness from one Jacobian of the batch
@@ -149,7 +202,7 @@ def _fit_from(
     r = len(rows)
     idx = torch.arange(r).repeat_interleave(g)
     keep = {"keep_after": 3, "keep": 2} if g > 2 else {}
-    v, _, _ = gauss_newton(problem, v0, idx, max_iter=max_iter, loss="l2", tol=1e-6, **keep)
+    v, _, _ = gauss_newton(problem, v0, idx, max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
     with torch.no_grad():
         pred = model.curves(v)
     chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), np.repeat(sigma[rows], g, 0))

@@ -10,7 +10,8 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.starts import _combination_starts, effect_bank, nearest_starts
-from femcal.diagnose.fits import _Fit, _fit_from, _grid, _split_start, _starts
+from femcal.diagnose.fits import _Fit, _fit_from, _grid, _split_starts, _starts
+from femcal.diagnose.forms import split_one
 from femcal.diagnose.state import DiagnosisState, Model
 from femcal.effects.split import SPLIT_SUFFIX, base_name, has_split_form, is_split
 
@@ -38,6 +39,7 @@ def forward_selection(state: DiagnosisState) -> None:
             return
         children = _extend(state, active, frontier, banks)
         improved: list[int] = []
+        added: dict[int, str] = {}
         for i in active:
             current = state.chosen[i]
             crits = {e: state.criterion(e, i) for e in children[int(i)]}
@@ -59,9 +61,11 @@ def forward_selection(state: DiagnosisState) -> None:
                 elif options.min_delta_adequate is not None:
                     need = options.min_delta_adequate
             if cur_crit - best_crit >= need:
+                added[int(i)] = next(e for e in best_eff if e not in current)
                 state.chosen[i] = best_eff
                 frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
                 improved.append(int(i))
+        _split_added(state, added, frontier)
         if _level == 0:
             split = _split_first(state, [int(i) for i in active if int(i) not in improved])
             for i in split:
@@ -79,6 +83,32 @@ def forward_selection(state: DiagnosisState) -> None:
         )
 
 
+def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[list[Model]]) -> None:
+    """The effect each specimen just took (``added``: specimen -> effect), tried split per
+    load case from its tied fit before any further effect is tried: a further effect must not
+    stand in for a load case the tied law could not fit. The split replaces the tied model
+    (in ``state.chosen`` and the specimen's frontier) where it gains ``min_delta_inadequate``,
+    a split's prior cost."""
+    jobs: dict[tuple[Model, Model], list[int]] = {}
+    for i, new in added.items():
+        if has_split_form(new):
+            jobs.setdefault((state.chosen[i], split_one(state.chosen[i], new)), []).append(i)
+    for (current, split), rows in jobs.items():
+        v0, g = _split_starts(
+            state.solutions(rows, current), current, split, state.options.effect_levels
+        )
+        state.fit(split, np.asarray(rows), v0, g)
+    for (current, split), rows in jobs.items():
+        for i in rows:
+            gain = state.criterion(current, i) - state.criterion(split, i)
+            if gain >= state.options.min_delta_inadequate:
+                logger.info(
+                    "%s: %s split per load case gains %.1f", state.specimens[i], split, gain
+                )
+                state.chosen[i] = split
+                frontier[i] = [split if e == current else e for e in frontier[i]]
+
+
 def _split_first(state: DiagnosisState, rows: list[int]) -> list[int]:
     """Where no effect pays in its tied form, each effect split per load case, from its tied
     fit: a law tied across load cases may not fit a specimen whose anatomy differs between
@@ -92,7 +122,8 @@ def _split_first(state: DiagnosisState, rows: list[int]) -> list[int]:
         if has_split_form(name):
             split = (name + SPLIT_SUFFIX,)
             v = state.solutions(rows, (name,))
-            state.fit(split, np.asarray(rows), _split_start(v, (name,), split))
+            v0, g = _split_starts(v, (name,), split, options.effect_levels)
+            state.fit(split, np.asarray(rows), v0, g)
     took = []
     for i in rows:
         splits = [e for e in state.per_spec[i] if len(e) == 1 and is_split(e[0])]
@@ -139,7 +170,7 @@ def _extend(
         if state.start_bank is not None and options.bank_starts > 0:
             if effects not in banks:
                 banks[effects] = effect_bank(
-                    model, state.start_bank, state.rng, options.bank_samples
+                    model, state.start_bank, state.model_rng(effects), options.bank_samples
                 )
             problem = CalibrationProblem.from_arrays(
                 model, state.measured[rows], state.weight[rows]

@@ -61,6 +61,9 @@ class DiagnoseOptions:
         Points of the continuous curves (log-spaced over the measured moments).
     seed : int
         Seeds the start banks.
+    workers : int or None
+        Processes the specimens are shared out over (None: one per CPU this process may use;
+        :mod:`femcal.diagnose.workers`). The verdicts do not depend on it.
     """
 
     min_delta: float = 10.0
@@ -82,6 +85,7 @@ class DiagnoseOptions:
     discrepancy: bool = True
     curve_points: int = 48
     seed: int = 0
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha < 1:
@@ -96,6 +100,10 @@ class DiagnoseOptions:
         for name in ("shape_starts", "bank_starts", "combination_rounds"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"diagnose: {name} must be >= 0; got {getattr(self, name)}.")
+        if self.workers is not None and self.workers < 1:
+            raise ConfigError(
+                f"diagnose: workers must be >= 1 or None (one per CPU); got {self.workers}."
+            )
         if self.max_effects < 1 or self.max_iter < 1:
             raise ConfigError(
                 "diagnose: max_effects and max_iter must be >= 1; got "

@@ -49,6 +49,7 @@ from femcal.diagnose.forward import forward_selection
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.diagnose.result import Diagnosis
 from femcal.diagnose.state import DiagnosisState
+from femcal.diagnose.workers import in_workers
 from femcal.effects.base import available_effects, get_effect
 from femcal.errors import ConfigError
 from femcal.moments import MomentPolicy
@@ -162,28 +163,23 @@ def diagnose(
     state.per_spec = [{} for _ in range(state.n)]
     state.record(disc)
     state.chosen = [() for _ in range(state.n)]
+    keywords = dict(sur=sur, noise_used=noise_used, noise_sd=noise_sd, moment_policy=moment_policy)
+    diag = in_workers(state, disc, _diagnose_group, options.workers, t0=t0, **keywords)
+    if diag is None:
+        diag = _diagnose_group(state, disc=disc, t0=t0, **keywords)
+    diag.seconds = time.perf_counter() - t0
+    return diag
 
+
+def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnosis:
+    """Steps 2-6 for the specimens of ``state`` (``disc``: their disc-alone fit; ``keywords``
+    those of :func:`femcal.diagnose.assemble._assemble`)."""
     forward_selection(state)
-    choose_forms(
-        state.chosen,
-        state.per_spec,
-        state.fit,
-        state.criterion,
-        options.min_delta_inadequate,
-        state.specimens,
-    )
-    if options.backward:
+    choose_forms(state)
+    if state.options.backward:
         _backward(state)
     open_world_elimination(state)
-    return _assemble(
-        state,
-        disc=disc,
-        sur=sur,
-        noise_used=noise_used,
-        noise_sd=noise_sd,
-        moment_policy=moment_policy,
-        t0=t0,
-    )
+    return _assemble(state, disc=disc, **keywords)
 
 
 def _disc_fit(state: DiagnosisState, weight: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:

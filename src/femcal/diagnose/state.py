@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -86,6 +87,36 @@ class DiagnosisState:
         if effects not in self._models:
             self._models[effects] = EffectModel(self.base, list(effects))
         return self._models[effects]
+
+    def model_rng(self, effects: Model) -> np.random.Generator:
+        """A generator of its own for model ``effects``, from the options' seed and the
+        model's name: its draws do not depend on which specimens are diagnosed together."""
+        key = zlib.crc32("+".join(effects).encode())
+        return np.random.default_rng([self.options.seed, key])
+
+    def rows(self, rows: Sequence[int]) -> DiagnosisState:
+        """The state of specimens ``rows`` alone, with their fits so far (each fit's rows
+        renumbered)."""
+        rows = [int(i) for i in rows]
+        sub = DiagnosisState(
+            base=self.base,
+            specimens=[self.specimens[i] for i in rows],
+            measured=self.measured[rows],
+            weight=self.weight[rows],
+            sigma=self.sigma[rows],
+            sigma_m=self.sigma_m,
+            options=self.options,
+            candidates=self.candidates,
+            start_bank=self.start_bank,
+            rng=self.rng,
+        )
+        sub.chosen = [self.chosen[i] for i in rows] if self.chosen else [() for _ in rows]
+        sub.per_spec = [{} for _ in rows]
+        fits = {id(f): f for i in rows for f, _ in self.per_spec[i].values()}
+        for fit in fits.values():
+            keep = [pos for pos, i in enumerate(fit.rows) if int(i) in rows]
+            sub.record(fit.take(keep, [rows.index(int(fit.rows[pos])) for pos in keep]))
+        return sub
 
     def record(self, fit: _Fit) -> None:
         """Keep a batch fit as each of its specimens' fit of its model."""

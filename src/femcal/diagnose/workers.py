@@ -1,0 +1,86 @@
+"""The specimens of a diagnosis shared out over worker processes.
+
+Every step after the disc-alone fit works specimen by specimen (its fits are batched only to be
+fast), and each model's random draws come from a generator of its own
+(:meth:`femcal.diagnose.state.DiagnosisState.model_rng`). So the specimens can be diagnosed in
+groups, one worker process per core, and the verdicts do not depend on how many workers there
+are. The groups interleave the specimens (``i % workers``), so that a cohort sorted by class
+shares its hard specimens out evenly.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from femcal.diagnose.result import Diagnosis
+from femcal.diagnose.state import DiagnosisState
+
+#: Fewest specimens per worker: below, the fits' batches are too small to pay for a process.
+MIN_ROWS = 8
+
+#: What the workers read: (state, disc fit, the function diagnosing one group, its keywords),
+#: set before they fork.
+_SHARED: tuple[DiagnosisState, Any, Callable[..., Diagnosis], dict[str, Any]] | None = None
+
+
+def available_cpus() -> int:
+    """The CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def groups(n: int, workers: int | None) -> list[np.ndarray]:
+    """Specimen indices per worker: ``i % k`` for ``k`` workers, at most ``workers`` (None:
+    :func:`available_cpus`) and at least :data:`MIN_ROWS` specimens each."""
+    k = available_cpus() if workers is None else int(workers)
+    k = max(1, min(k, n // MIN_ROWS))
+    return [np.arange(j, n, k) for j in range(k)]
+
+
+def _one(j: int) -> Diagnosis:
+    import torch
+
+    torch.set_num_threads(1)  # one process per core
+    state, disc, run, keywords = _SHARED
+    keywords = dict(keywords)
+    rows = groups(state.n, keywords.pop("_workers"))[j]
+    disc_rows = disc.take([int(i) for i in rows], range(len(rows)))
+    return run(state.rows(rows), disc=disc_rows, **keywords)
+
+
+def in_workers(
+    state: DiagnosisState,
+    disc,
+    run: Callable[..., Diagnosis],
+    workers: int | None,
+    **keywords: Any,
+) -> Diagnosis | None:
+    """``run(sub_state, disc=sub_disc, **keywords)`` for each group of specimens in a worker
+    process that forks from this one, merged into one :class:`Diagnosis` in the specimens'
+    order; None where one group would hold them all (or the platform does not fork)."""
+    parts = groups(state.n, workers)
+    if len(parts) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        return None
+    global _SHARED
+    _SHARED = (state, disc, run, dict(keywords, _workers=workers))
+    try:
+        ctx = multiprocessing.get_context("fork")
+        with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
+            results = list(pool.map(_one, range(len(parts))))
+    finally:
+        _SHARED = None
+    specimens: list[Any] = [None] * state.n
+    for rows, diag in zip(parts, results):
+        for i, sd in zip(rows, diag.specimens):
+            specimens[int(i)] = sd
+    merged = results[0]
+    merged.specimens = specimens
+    return merged
