@@ -145,7 +145,7 @@ def test_a_class_short_of_complete_specimens_is_an_error(tmp_path, monkeypatch):
 def test_a_partial_cohort_needs_every_class_in_the_store(tmp_path):
     cohort = settings(tmp_path)
     fe = FeRuntime("calculix", {"geometry": "coarse"}, cohort.store)
-    with pytest.raises(SolverError, match=r"lacks complete specimens"):
+    with pytest.raises(SolverError, match=r"no complete specimen of the classes \['none'"):
         build_cohort(fe, SPACE, cohort, [5.0, 10.0], partial=True)
     assert not (tmp_path / "cohort").exists()
 

@@ -313,7 +313,13 @@ def build_cohort(
     kept = done.groupby("class", sort=False).head(size)
     short = {c: int(cohort.per_class) - int((kept["class"] == c).sum()) for c in CLASSES}
     counts = {**counts, "complete": not any(v > 0 for v in short.values())}
-    if not size or (not partial and not counts["complete"]):
+    if partial and not size:
+        none_yet = [c for c in CLASSES if not (done["class"] == c).any()]
+        raise SolverError(
+            f"The store {fe.store} holds no complete specimen of the classes {none_yet} yet, so "
+            "a balanced partial cohort is empty. Run the campaign (without --partial) longer."
+        )
+    if not partial and not counts["complete"]:
         raise SolverError(
             f"The cohort lacks complete specimens after {MAX_ROUNDS} rounds of draws: "
             f"{ {c: v for c, v in short.items() if v > 0} } missing (the runs' failures are in "
