@@ -286,8 +286,8 @@ def build_cohort(
         Moment levels, Nm.
     partial : bool, optional
         Run nothing: write the complete specimens of the first round's draws already in the
-        store, the same number of each class (a preview of a campaign still running;
-        ``cohort.json`` says ``"complete": false``).
+        store, at most ``per_class`` of each class and at least one (a preview of a campaign
+        still running; ``cohort.json`` says ``"complete": false``).
 
     Returns
     -------
@@ -307,17 +307,14 @@ def build_cohort(
     check_destination(out_dir)
     drawn, records, counts = _run_rounds(fe, space, cohort, moments, run=not partial)
     done = drawn[drawn["config_id"].isin(complete_ids(records, len(moments)))]
-    size = int(cohort.per_class)
-    if partial:
-        size = min(size, *(int((done["class"] == c).sum()) for c in CLASSES))
-    kept = done.groupby("class", sort=False).head(size)
+    kept = done.groupby("class", sort=False).head(int(cohort.per_class))
     short = {c: int(cohort.per_class) - int((kept["class"] == c).sum()) for c in CLASSES}
     counts = {**counts, "complete": not any(v > 0 for v in short.values())}
-    if partial and not size:
-        none_yet = [c for c in CLASSES if not (done["class"] == c).any()]
+    none_yet = [c for c in CLASSES if not (kept["class"] == c).any()]
+    if partial and none_yet:
         raise SolverError(
-            f"The store {fe.store} holds no complete specimen of the classes {none_yet} yet, so "
-            "a balanced partial cohort is empty. Run the campaign (without --partial) longer."
+            f"The store {fe.store} holds no complete specimen of the classes {none_yet} yet; "
+            "a partial cohort needs one of each. Run the campaign (without --partial) longer."
         )
     if not partial and not counts["complete"]:
         raise SolverError(
@@ -385,7 +382,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--partial",
         action="store_true",
-        help="run nothing; write the complete specimens already in the store (balanced)",
+        help="run nothing; write the complete specimens already in the store",
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
