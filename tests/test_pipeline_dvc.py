@@ -42,7 +42,7 @@ def tiny_params(path: Path) -> None:
     params = yaml.safe_load(path.read_text())
     params["data"]["limit_configs"] = 24
     tiny = {"width": 16, "depth": 2, "max_epochs": 3, "patience": 3, "batch_size": 256}
-    for split in ("large", "small"):
+    for split in ("large", "small", "holdout"):
         params["train"][split]["fixed"].update(tiny)
         params["train"][split]["final_members"] = 1
     params["train"]["large"]["n_trials"] = 1
