@@ -43,6 +43,6 @@ def test_a_partial_section_serves_the_keys_a_command_reads(tmp_path):
     params = load_params(path)
     assert typed(params, "mlflow", "store_dir", "experiment").experiment == "e"
     with pytest.raises(ConfigError, match=r"p\.yaml: missing setting 'mlflow\.model_name'\."):
-        typed(params, "mlflow")
+        _ = typed(params, "mlflow").model_name  # read where it is missing
     with pytest.raises(ConfigError, match=r"missing setting 'calibrate'\. Add it"):
         typed(params, "calibrate")

@@ -2,20 +2,21 @@
 
 from femcal.calibration.base import (
     CalibrationProblem,
-    CalibrationResult,
     Solution,
     available_calibrators,
-    calibrate,
     calibrator_registry,
     get_calibrator,
     register_calibrator,
 )
 from femcal.calibration.model import CurveModel, SurrogateCurveModel
+from femcal.calibration.pgd_options import PgdOptions
+from femcal.calibration.result import CalibrationResult, calibrate
 
 __all__ = [
     "CalibrationProblem",
     "CalibrationResult",
     "CurveModel",
+    "PgdOptions",
     "Solution",
     "SurrogateCurveModel",
     "available_calibrators",

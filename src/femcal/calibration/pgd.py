@@ -32,7 +32,9 @@ SciPy's L-BFGS-B instead, for the measured comparison in ``reports/bench_calibra
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import logging
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,10 +42,13 @@ import torch
 from femcal.calibration.base import (
     CalibrationProblem,
     Solution,
-    check_choices,
     chi2_p_value,
     register_calibrator,
 )
+from femcal.calibration.pgd_options import LOSSES as LOSSES
+from femcal.calibration.pgd_options import OPTIMIZERS as OPTIMIZERS
+from femcal.calibration.pgd_options import SELECT as SELECT
+from femcal.calibration.pgd_options import PgdOptions
 from femcal.calibration.starts import (
     _bank,
     _combination_starts,
@@ -51,13 +56,8 @@ from femcal.calibration.starts import (
     effect_starts,
     nearest_starts,
 )
-from femcal.errors import ConfigError
 
 logger = logging.getLogger(__name__)
-
-OPTIMIZERS = ("gauss-newton", "adam", "lbfgsb")
-LOSSES = ("l2", "l1")
-SELECT = ("mae", "r2")
 
 
 def _has_effects(model) -> bool:
@@ -281,38 +281,13 @@ def _tolerance_text(fit_tolerance: float, scale: torch.Tensor) -> str:
     return f"({float(tol.min()):.4f}-{float(tol.max()):.4f} deg RMS, each specimen's own)"
 
 
-@register_calibrator("pgd")
 def pgd(
     problem: CalibrationProblem,
+    options: PgdOptions | None = None,
     *,
     rng: np.random.Generator,
-    optimizer: str = "gauss-newton",
-    n_starts: int = 8,
-    n_random_starts: int = 0,
     start_bank: np.ndarray | None = None,
-    n_bank_uniform: int = 1024,
-    max_iter: int = 12,
-    keep_after: int = 2,
-    keep: int = 1,
-    jacobian_members: int = 1,
-    exact_final: int = 2,
-    tol: float = 1e-4,
-    loss: str = "l2",
-    select: str = "mae",
-    steps: int = 300,
-    lr: float = 0.02,
-    noise_deg: float = 0.03,
-    fit_tolerance: float = 0.25,
-    range_z: float = 2.0,
-    ranges: bool = True,
-    effect_levels: tuple[float, ...] = (0.15, 0.5, 0.85),
-    effect_bank_starts: int = 4,
-    effect_bank_samples: int = 1024,
-    effect_shape_starts: int = 8,
-    effect_keep: int = 24,
-    effect_rounds: int = 3,
-    effect_max_iter: int | None = 24,
-    retry_alpha: float = 0.01,
+    **overrides: Any,
 ) -> Solution:
     """Projected gradient-based calibration of a batch (see the module docstring).
 
@@ -320,168 +295,59 @@ def pgd(
     ----------
     problem : CalibrationProblem
         Targets of n specimens and the surrogate.
+    options : PgdOptions, optional
+        How it starts, iterates, selects and bounds (default: :class:`PgdOptions`'s).
     rng : numpy.random.Generator
         Source of the uniform draws.
-    optimizer : {"gauss-newton", "adam", "lbfgsb"}
-        Projected Levenberg-Marquardt (default, chosen by measurement), projected Adam, or
-        SciPy's L-BFGS-B.
-    n_starts : int
-        Starts per specimen from the nearest bank entries.
-    n_random_starts : int
-        Additional uniform random starts per specimen.
     start_bank : ndarray, shape (N, d), optional
         Candidate starts in physical units (the surrogate's training configurations).
-    n_bank_uniform : int
-        Uniform draws added to the bank.
-    max_iter : int
-        Gauss-Newton iterations (also L-BFGS-B's iteration cap).
-    keep_after, keep : int
-        Successive halving: after ``keep_after`` iterations only the ``keep`` best starts of
-        each specimen continue (0 = all starts run to the end).
-    jacobian_members, exact_final : int
-        Approximate the Jacobian by that many ensemble members (0 = exact throughout) except
-        in the last ``exact_final`` iterations.
-    tol : float
-        Relative decrease of the loss below which a Gauss-Newton row has converged.
-    loss : {"l2", "l1"}
-        Weighted squared or absolute error (L1 by iteratively reweighted Gauss-Newton).
-    select : {"mae", "r2"}
-        How the best start of a specimen is chosen: lowest MAE, or the study's highest mean R²
-        over load cases.
-    steps, lr : int, float
-        Adam's steps and learning rate (unit coordinates).
-    noise_deg : float
-        Error scale of one RoM value in degrees (surrogate error and measurement noise): the
-        tolerance for near-optimal starts and the noise of the identifiability ranges. Where
-        the problem carries each specimen's own scale
-        (:attr:`~femcal.calibration.base.CalibrationProblem.point_sd`, weights given as inverse
-        variances), that is used instead.
-    fit_tolerance : float
-        A start stops (and counts as converged) once its RMS residual is below
-        ``fit_tolerance * noise_deg``: fitting further would fit the surrogate's own error.
-        0 leaves the floor of 1e-4 deg (then practically only the relative-decrease, step and
-        damping tests stop a start).
-    range_z : float
-        Half-width of the ranges in standard deviations.
-    ranges : bool
-        Compute the identifiability ranges.
-    effect_levels : tuple of float
-        Unit-box levels of the start grid over each effect's parameters (effect models only).
-    effect_bank_starts : int
-        Effect models: also start from the ``effect_bank_starts`` disc-and-effect combinations
-        (of ``effect_bank_samples`` drawn from ``start_bank``, :func:`effect_bank`) nearest each
-        specimen's curves.
-    effect_bank_samples : int
-    effect_shape_starts : int
-        Effect models: per effect with shape parameters, also this many starts of a Sobol
-        design over all of its parameters (:func:`effect_starts`).
-    effect_keep : int
-        Effect models: after ``keep_after`` iterations only the ``effect_keep`` best starts of
-        each specimen go on (0: every start runs to the end). The disc-alone start with every
-        effect at its weak end is the best at first wherever no effect is needed, so it stays.
-        Measured on hidden cohort 2025's laxity and no-effect specimens recalibrated with three
-        effects (reports/bench_diagnose.md): 8 culled the start that leads to the laxity-only
-        optimum (laxity class 0.043 deg, 1.58 x the no-effect floor; laxity alone 0.038 deg);
-        24 reached 0.030 deg (1.14 x) at 1.3 x the time, 0 (all) 0.031 deg at 2.6 x.
-    effect_rounds : int
-        Effect models with several effects: rounds of starts. The first starts one effect at a
-        time; each further round starts every effect again from the best solution so far, the
-        other effects as found (a combination of effects, found one at a time). Measured on
-        the hidden cohorts (reports/bench_diagnose.md, recalibration with three effects):
-        rounds 2 -> 3 with ``effect_max_iter`` 12 -> 24 took the worst combination class from
-        1.99 to 1.31 times the no-effect floor, at twice the time.
-    effect_max_iter : int, optional
-        Effect models: Gauss-Newton iterations of the effect rounds (the disc-alone fit that
-        comes first keeps ``max_iter``); None: ``max_iter``. The disc's 13 parameters and up to
-        11 effect parameters, several of them shapes, need more steps than the disc alone.
-    retry_alpha : float
-        Where the problem carries each specimen's error scale
-        (:attr:`~femcal.calibration.base.CalibrationProblem.point_sd`): a specimen whose fit
-        leaves residuals the noise does not explain (chi-square on the points less the fit's
-        effective parameters, p < ``retry_alpha``: the test of
-        :attr:`~femcal.calibration.base.CalibrationResult.p_value`) is calibrated again from
-        four times the starts, four kept after at least four iterations and at least 40
-        iterations in all; the better fit (lower chi-square) is kept. The light default
-        settings, fast where the fit explains the data, sometimes leave a specimen in a poorer
-        basin (a Test specimen with noise 0.05 deg: MAE 0.075 deg, p < 1e-4; refitted 0.037
-        deg, p 0.51; reports/bench_calibrate_noise.md), and a fit that misses for lack of
-        starts would read as missing physics. 0: no retry.
+    **overrides
+        Fields of :class:`PgdOptions` replacing those of ``options``.
 
     Returns
     -------
     Solution
     """
-    # this call's options, as given (the refit of unexplained specimens reuses them)
-    settings = {k: v for k, v in locals().items() if k not in ("problem", "rng")}
-    check_choices(
-        "pgd", optimizer=(optimizer, OPTIMIZERS), loss=(loss, LOSSES), select=(select, SELECT)
-    )
-    if n_starts + n_random_starts < 1:
-        raise ConfigError("pgd needs n_starts + n_random_starts >= 1.")
-    if noise_deg <= 0:
-        raise ConfigError(f"pgd: noise_deg must be > 0; got {noise_deg}.")
-    if effect_max_iter is not None and effect_max_iter < 1:
-        raise ConfigError(
-            f"pgd: effect_max_iter must be >= 1 (or None: max_iter); got {effect_max_iter}."
-        )
-    if not 0 <= retry_alpha < 1:
-        raise ConfigError(
-            f"pgd: retry_alpha must be in [0, 1) (a chi-square p-value; 0: no retry); got "
-            f"{retry_alpha}."
-        )
+    o = dataclasses.replace(options or PgdOptions(), **overrides)
+    max_iter, keep_after, keep = o.max_iter, o.keep_after, o.keep
+    loss, optimizer, n_random_starts = o.loss, o.optimizer, o.n_random_starts
     n, d = problem.n_specimens, problem.dim
     model = problem.model
     # The error scale of each specimen (n,): its own where the problem carries one.
     scale = (
         problem.point_sd.double()
         if problem.point_sd is not None
-        else torch.full((n,), float(noise_deg), dtype=torch.float64)
+        else torch.full((n,), float(o.noise_deg), dtype=torch.float64)
     )
     if _has_effects(model):
         disc = pgd(
             dataclasses.replace(problem, model=model.base),
+            dataclasses.replace(o, ranges=False, retry_alpha=0.0),  # the effects explain the rest
             rng=rng,
-            optimizer=optimizer,
-            n_starts=n_starts,
-            n_random_starts=n_random_starts,
             start_bank=None if start_bank is None else np.asarray(start_bank)[:, : model.n_disc],
-            n_bank_uniform=n_bank_uniform,
-            max_iter=max_iter,
-            keep_after=keep_after,
-            keep=keep,
-            jacobian_members=jacobian_members,
-            exact_final=exact_final,
-            tol=tol,
-            loss=loss,
-            select=select,
-            steps=steps,
-            lr=lr,
-            noise_deg=noise_deg,
-            fit_tolerance=fit_tolerance,
-            ranges=False,
-            retry_alpha=0.0,  # only a start: the effects are there to explain the rest
         )
-        if effect_max_iter is not None:
-            max_iter = effect_max_iter
-        grid = effect_starts(model, effect_levels, effect_shape_starts)  # (g, d - n_disc)
+        if o.effect_max_iter is not None:
+            max_iter = o.effect_max_iter
+        grid = effect_starts(model, o.effect_levels, o.effect_shape_starts)  # (g, d - n_disc)
         v_disc = model.base.from_physical(disc.x)  # (n, n_disc)
         starts = [
             torch.cat([v_disc[:, None, :].expand(-1, len(grid), -1), grid.expand(n, -1, -1)], dim=2)
         ]
-        if start_bank is not None and len(start_bank) and effect_bank_starts > 0:
+        if start_bank is not None and len(start_bank) and o.effect_bank_starts > 0:
             # The disc fitted alone bends towards the missing physics; these starts do not.
-            bank_v, bank_pred = effect_bank(model, start_bank, rng, effect_bank_samples)
-            starts.append(bank_v[nearest_starts(problem, bank_v, bank_pred, effect_bank_starts)])
+            bank_v, bank_pred = effect_bank(model, start_bank, rng, o.effect_bank_samples)
+            nearest = nearest_starts(problem, bank_v, bank_pred, o.effect_bank_starts)
+            starts.append(bank_v[nearest])
         k_bank = 0
         # The first start (the disc-alone solution, every effect weak) always goes on
         # (keep_first): an effect the data do not need then never leaves a specimen worse off.
         halving_after = keep_after
         keep_after, keep = _effect_halving(
-            halving_after, effect_keep, sum(s.shape[1] for s in starts), max_iter
+            halving_after, o.effect_keep, sum(s.shape[1] for s in starts), max_iter
         )
     else:
-        bank_v, bank_pred = _bank(problem, start_bank, n_bank_uniform, rng)
-        idx = nearest_starts(problem, bank_v, bank_pred, n_starts)
+        bank_v, bank_pred = _bank(problem, start_bank, o.n_bank_uniform, rng)
+        idx = nearest_starts(problem, bank_v, bank_pred, o.n_starts)
         k_bank = idx.shape[1]
         starts = [bank_v[idx]] if k_bank else []
     if n_random_starts:
@@ -499,19 +365,19 @@ def pgd(
             rows,
             max_iter=max_iter,
             loss=loss,
-            tol=tol,
+            tol=o.tol,
             keep_after=keep_after,
             keep=keep,
-            jacobian_members=jacobian_members,
-            exact_final=exact_final,
-            atol_deg=(fit_tolerance * scale).clamp_min(1e-4).float(),
+            jacobian_members=o.jacobian_members,
+            exact_final=o.exact_final,
+            atol_deg=(o.fit_tolerance * scale).clamp_min(1e-4).float(),
             keep_first=_has_effects(model),
         )
 
     if optimizer == "gauss-newton":
         v, nit, converged = newton(v0, rows, keep_after, keep)
     elif optimizer == "adam":
-        v, nit = adam(problem, v0, rows, steps=steps, lr=lr, loss=loss), steps
+        v, nit = adam(problem, v0, rows, steps=o.steps, lr=o.lr, loss=loss), o.steps
     else:
         v, nit = lbfgsb(problem, v0, rows, max_iter=max_iter, loss=loss), max_iter
     if _has_effects(model):
@@ -528,35 +394,35 @@ def pgd(
             # Second round: from each specimen's best solution, each effect again from its
             # grid and design with the others as found, so that a second effect joins the
             # first (the first round's starts have one effect on at a time).
-            for _ in range(effect_rounds - 1):
+            for _ in range(o.effect_rounds - 1):
                 with torch.no_grad():
                     mae = problem.scores(model.curves(v), rows)["mae"].reshape(n, k)
                 mae = torch.nan_to_num(mae, nan=float("inf"))
                 best = v.reshape(n, k, d)[torch.arange(n), mae.argmin(1)]
-                v0 = _combination_starts(model, best, effect_levels, effect_shape_starts)
+                v0 = _combination_starts(model, best, o.effect_levels, o.effect_shape_starts)
                 k = v0.shape[1]
                 rows = torch.arange(n).repeat_interleave(k)
                 v0 = v0.reshape(n * k, d)
                 # The first round's best is the first start: it always goes on.
                 v, nit2, converged = newton(
-                    v0, rows, *_effect_halving(halving_after, effect_keep, k, max_iter)
+                    v0, rows, *_effect_halving(halving_after, o.effect_keep, k, max_iter)
                 )
                 nit += nit2
     with torch.no_grad():
         scores = problem.scores(problem.model.curves(v), rows)
     mae = scores["mae"].reshape(n, k)
-    key = mae if select == "mae" else -scores["r2"].reshape(n, k)
+    key = mae if o.select == "mae" else -scores["r2"].reshape(n, k)
     # A start whose curves are NaN (an effect's moment balance left unsolved) is never chosen.
     key = torch.nan_to_num(key, nan=float("inf"))
     best = key.argmin(1)
     flat_best = torch.arange(n) * k + best
     x = problem.model.to_physical(v[flat_best].double().numpy())
     x_low = x_high = None
-    if ranges:
+    if o.ranges:
         near = mae <= mae.gather(1, best[:, None]) + scale.float()[:, None]  # (n, k)
         near_flat = torch.nonzero(near.reshape(-1)).reshape(-1)
         lo, hi = local_ranges(
-            problem, v[near_flat], rows[near_flat], noise_deg=scale[rows[near_flat]], z=range_z
+            problem, v[near_flat], rows[near_flat], noise_deg=scale[rows[near_flat]], z=o.range_z
         )
         v_low = torch.ones((n, d))
         v_high = torch.zeros((n, d))
@@ -577,48 +443,52 @@ def pgd(
                 else f"({k_bank} nearest, "
             )
             + f"{n_random_starts} random), {nit} iterations, "
-            f"{int(conv.sum())}/{n} converged or fitted within {fit_tolerance:g} x noise "
-            + _tolerance_text(fit_tolerance, scale)
+            f"{int(conv.sum())}/{n} converged or fitted within {o.fit_tolerance:g} x noise "
+            + _tolerance_text(o.fit_tolerance, scale)
         ),
         x_low=x_low,
         x_high=x_high,
         info={
             "optimizer": optimizer,
             "loss": loss,
-            "select": select,
+            "select": o.select,
             "starts_per_specimen": k,
             "nit": int(nit),
-            "error_scale_deg": float(scale.median()) if n else float(noise_deg),
+            "error_scale_deg": float(scale.median()) if n else float(o.noise_deg),
         },
     )
-    if retry_alpha > 0 and problem.point_sd is not None and n:
-        sol = _retry_unexplained(problem, sol, rng, settings)
+    if o.retry_alpha > 0 and problem.point_sd is not None and n:
+        sol = _retry_unexplained(problem, sol, rng, o, start_bank)
     return sol
 
 
 def _retry_unexplained(
-    problem: CalibrationProblem, sol: Solution, rng: np.random.Generator, settings: dict
+    problem: CalibrationProblem,
+    sol: Solution,
+    rng: np.random.Generator,
+    options: PgdOptions,
+    start_bank: np.ndarray | None,
 ) -> Solution:
     """Calibrate again, from more starts, the specimens whose fit the noise does not explain
-    (``settings["retry_alpha"]``; see :func:`pgd`); keep the better fit of each."""
+    (``options.retry_alpha``; see :func:`pgd`); keep the better fit of each."""
     model = problem.model
     chi2, n_points = problem.chi2(model.predict(sol.x))
     dof = n_points - problem.effective_parameters(sol.x)
-    bad = np.flatnonzero(chi2_p_value(chi2, dof) < settings["retry_alpha"])
+    bad = np.flatnonzero(chi2_p_value(chi2, dof) < options.retry_alpha)
     sol.info["n_refitted"] = int(bad.size)
     sol.info["n_refit_improved"] = 0
     if bad.size == 0:
         return sol
-    thorough = {
-        **settings,
-        "n_starts": 4 * settings["n_starts"],
-        "keep_after": max(settings["keep_after"], 4),
-        "keep": max(settings["keep"], 4),
-        "max_iter": max(settings["max_iter"], 40),
-        "retry_alpha": 0.0,
-    }
+    thorough = dataclasses.replace(
+        options,
+        n_starts=4 * options.n_starts,
+        keep_after=max(options.keep_after, 4),
+        keep=max(options.keep, 4),
+        max_iter=max(options.max_iter, 40),
+        retry_alpha=0.0,
+    )
     sub = problem.subset(bad)
-    again = pgd(sub, rng=rng, **thorough)
+    again = pgd(sub, thorough, rng=rng, start_bank=start_bank)
     chi2_again, _ = sub.chi2(model.predict(again.x))
     better = chi2_again < chi2[bad]
     rows = bad[better]
@@ -636,8 +506,8 @@ def _retry_unexplained(
         "%d starts each, %d fit better",
         bad.size,
         problem.n_specimens,
-        settings["retry_alpha"],
-        thorough["n_starts"],
+        options.retry_alpha,
+        thorough.n_starts,
         int(better.sum()),
     )
     return dataclasses.replace(
@@ -648,6 +518,31 @@ def _retry_unexplained(
         x_high=x_high,
         nit=max(sol.nit, again.nit),
         message=f"{sol.message}; {bad.size} not explained within the noise refitted from "
-        f"{thorough['n_starts']} starts, {int(better.sum())} better",
+        f"{thorough.n_starts} starts, {int(better.sum())} better",
         info={**sol.info, "n_refitted": int(bad.size), "n_refit_improved": int(better.sum())},
     )
+
+
+@register_calibrator("pgd")
+def calibrate_pgd(
+    problem: CalibrationProblem,
+    *,
+    rng: np.random.Generator,
+    start_bank: np.ndarray | None = None,
+    **options: Any,
+) -> Solution:
+    """The registered ``pgd`` calibrator: :func:`pgd` with the keywords of :class:`PgdOptions`."""
+    return pgd(problem, PgdOptions(**options), rng=rng, start_bank=start_bank)
+
+
+calibrate_pgd.__signature__ = inspect.Signature(
+    [
+        *list(inspect.signature(pgd).parameters.values())[:1],
+        *list(inspect.signature(pgd).parameters.values())[2:4],
+        *(
+            inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default)
+            for f in dataclasses.fields(PgdOptions)
+        ),
+    ],
+    return_annotation=Solution,
+)

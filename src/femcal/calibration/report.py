@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from femcal.calibration.base import CalibrationResult
 from femcal.calibration.model import CurveModel
+from femcal.calibration.result import CalibrationResult
 from femcal.metrics import curve_metrics
 from femcal.schema import LOAD_CASES
 from femcal.settings.keywords import PLOT_CHOICES  # all, summary, none
@@ -109,7 +109,7 @@ def fit_flags(metrics: pd.DataFrame) -> pd.Series:
     metrics : pandas.DataFrame, shape (n, k)
         Per-specimen metrics with ``r2_mean`` and, optionally, ``reachability`` (text, "" when
         the specimen lies within the model's envelope) and ``p_value``
-        (:attr:`~femcal.calibration.base.CalibrationResult.p_value`).
+        (:attr:`~femcal.calibration.result.CalibrationResult.p_value`).
 
     Returns
     -------

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, Field, ValidationError
+from pydantic import AfterValidator, Field, TypeAdapter, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from femcal.errors import ConfigError
@@ -102,21 +102,24 @@ def check_environment(
         Naming every bad variable, its value, what is wrong and the fix.
     """
     environ = os.environ if environ is None else environ
-    fields = Environment.model_fields
-    names = [n for n, v in ENVIRONMENT.items() if command is None or command in v.commands]
-    try:
-        env = Environment.model_validate({n: environ[n] for n in names if n in environ})
-    except ValidationError as exc:
-        problems = [
-            f"{name}={err['input']!r}: {err['ctx']['error']}. {name} is {fields[name].description}."
-            for err in exc.errors(include_url=False)
-            for name in [str(err["loc"][0])]
-        ]
-        if len(problems) == 1:
-            raise ConfigError(f"Environment variable {problems[0]}") from None
+    found, problems = {}, []
+    for name, info in Environment.model_fields.items():
+        value = environ.get(name, "")
+        if (command is not None and command not in ENVIRONMENT[name].commands) or not value.strip():
+            continue
+        try:  # this variable alone, as given (a BaseSettings would read the process's too)
+            TypeAdapter(Annotated[(info.annotation, *info.metadata)]).validate_python(value)
+        except ValidationError as exc:
+            why = exc.errors(include_url=False)[0]["ctx"]["error"]
+            problems.append(f"{name}={value!r}: {why}. {name} is {info.description}.")
+            continue
+        found[name] = value
+    if len(problems) == 1:
+        raise ConfigError(f"Environment variable {problems[0]}")
+    if problems:
         listing = "\n".join(f"  {p}" for p in problems)
-        raise ConfigError(f"Invalid environment variables:\n{listing}") from None
-    return {n: getattr(env, n) for n in names if getattr(env, n) is not None}
+        raise ConfigError(f"Invalid environment variables:\n{listing}")
+    return found
 
 
 @dataclass(frozen=True)

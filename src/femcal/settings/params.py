@@ -107,28 +107,29 @@ class Settings:
     cohort: CohortSettings | None = None
 
     def require(self, name: str, *keys: str) -> Any:
-        """Section ``name``; a ConfigError naming what it misses when it is absent or partial.
+        """Section ``name``, which must give ``keys`` (e.g. a split of ``train``).
 
-        With ``keys`` (the keys a command reads, e.g. a split of ``train``), those must be
-        given, and a section missing other required keys serves them (the others unset).
+        A section the file gives partially (a command-line option may stand for a missing
+        key) serves the keys it gives; reading a missing one raises the ConfigError that
+        names it. An absent section, or a missing key of ``keys``, raises it here.
         """
-        value = getattr(self, name)
-        missing = tuple(k for k in keys if k not in self.given.get(name, ()))
-        if not missing and value is not None:
+        value = getattr(self, name) or self.partial.get(name)
+        missing = [k for k in keys if k not in self.given.get(name, ())]
+        if value is not None and not missing:
             return value
-        if not missing and keys and name in self.partial:
-            return self.partial[name]
-        missing = missing or self.incomplete.get(name, ())
-        key = f"{name}.{missing[0]}" if missing else name
-        message = (
-            f"{self.path}: missing setting '{key}'. Add it (see the project's params.yaml for "
-            "the defaults)."
-        )
-        doc = describe_setting(key.split("."))
-        raise ConfigError(f"{message} {key}: {doc}." if doc else message)
+        raise missing_setting(self.path, f"{name}.{missing[0]}" if missing else name)
 
 
-def _partial(model: type, value: Mapping[str, Any]) -> Any:
+def missing_setting(path: str | Path, key: str) -> ConfigError:
+    """``params.yaml: missing setting 'calibrate.method'. Add it ...``, with the key's doc."""
+    message = (
+        f"{path}: missing setting '{key}'. Add it (see the project's params.yaml for the defaults)."
+    )
+    doc = describe_setting(key.split("."))
+    return ConfigError(f"{message} {key}: {doc}." if doc else message)
+
+
+def _partial(model: type, value: Mapping[str, Any], path: str | Path) -> Any:
     """A section that misses required keys, with the keys it gives (each valid)."""
     fields, names = fields_of(model), keys_of(model)
     given = {}
@@ -138,7 +139,9 @@ def _partial(model: type, value: Mapping[str, Any]) -> Any:
         info = fields[names[key]]
         tp = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
         given[names[key]] = TypeAdapter(tp).validate_python(item)
-    return model.model_construct(**given)
+    partial = model.model_construct(**given)
+    partial._missing_in = str(path)
+    return partial
 
 
 def detect_schema(data: Mapping[str, Any]) -> str:
@@ -146,7 +149,9 @@ def detect_schema(data: Mapping[str, Any]) -> str:
     return "fe" if "fe" in data or "validate" in data else "root"
 
 
-def _sections(data: Mapping[str, Any], schema: str, complete: bool) -> tuple[dict, dict, list]:
+def _sections(
+    data: Mapping[str, Any], schema: str, complete: bool, path: str | Path
+) -> tuple[dict, dict, list]:
     """The typed sections, the missing keys of partial ones, and every problem."""
     allowed = [name for name, (_, files) in SECTIONS.items() if schema in files]
     required = [name for name in allowed if SECTIONS[name][1][schema]]
@@ -182,7 +187,7 @@ def _sections(data: Mapping[str, Any], schema: str, complete: bool) -> tuple[dic
                 missing = [e["loc"] for e in exc.errors() if e["type"] == "missing"]
                 incomplete[key] = tuple(str(loc[0]) for loc in missing)
                 if len(missing) == len(exc.errors()) and all(len(loc) == 1 for loc in missing):
-                    out[f"partial:{key}"] = _partial(model, value)
+                    out[f"partial:{key}"] = _partial(model, value, f"{path}:{key}")
     unknown = {closest(str(k), allowed) for k in data if k not in allowed}
     for name in required if complete else ():
         if name not in data and name not in unknown:
@@ -228,7 +233,7 @@ def validate_params(
     schema = schema or detect_schema(data)
     if schema not in SCHEMAS:
         raise ConfigError(f"schema must be one of {', '.join(SCHEMAS)}; got {schema!r}.")
-    sections, incomplete, found = _sections(data, schema, complete)
+    sections, incomplete, found = _sections(data, schema, complete, path)
     raise_problems(found, str(path), text)
     partial = {k.split(":")[1]: sections.pop(k) for k in list(sections) if ":" in k}
     given = {k: tuple(v) for k, v in data.items() if isinstance(v, Mapping)}

@@ -20,6 +20,7 @@ from pydantic import (
     ConfigDict,
     Field,
     PlainValidator,
+    PrivateAttr,
     Strict,
     StrictBool,
     TypeAdapter,
@@ -229,6 +230,19 @@ class Section(BaseModel):
     """A section of a params file (or a mapping inside one): every key known, typed, frozen."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    #: ``file:section`` of a section the file gives partially (None: complete).
+    _missing_in: str | None = PrivateAttr(None)
+
+    def __getattr__(self, name: str) -> Any:
+        # A required key a partial section lacks: the error that names it, where it is read.
+        where = (self.__pydantic_private__ or {}).get("_missing_in")
+        if where and name in type(self).__pydantic_fields__:
+            from femcal.settings.params import missing_setting
+
+            path, section = where.rsplit(":", 1)
+            raise missing_setting(path, f"{section}.{name}")
+        return super().__getattr__(name)
 
 
 class Keywords(Section):

@@ -228,12 +228,14 @@ def fe_runtime(params: Mapping[str, Any], args: Mapping[str, Any], store_section
     """
     from femcal.fe.campaign import scheduler_address_from_env
 
-    cfg = typed(params, "fe")
+    cfg = typed(params, "fe", "solver")  # the runtime's keys: the campaign's need not be set
     given = args.get("store")
     return FeRuntime(
         solver=cfg.solver,
         settings=dict(cfg.settings),
-        store=Path(given) if given else store_path(params, typed(params, store_section).store),
+        store=Path(given)
+        if given
+        else store_path(params, typed(params, store_section, "store").store),
         scheduler_address=cfg.scheduler_address or scheduler_address_from_env(),
         n_workers=cfg.n_workers,
         progress=bool(args.get("progress")),
