@@ -164,7 +164,7 @@ def diagnose(
     state.record(disc)
     state.chosen = [() for _ in range(state.n)]
     keywords = dict(sur=sur, noise_used=noise_used, noise_sd=noise_sd, moment_policy=moment_policy)
-    diag = in_workers(state, disc, _diagnose_group, options.workers, t0=t0, **keywords)
+    diag = in_workers(state, _diagnose_group, options.workers, t0=t0, **keywords)
     if diag is None:
         diag = _diagnose_group(state, disc=disc, t0=t0, **keywords)
     diag.seconds = time.perf_counter() - t0

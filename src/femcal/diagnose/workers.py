@@ -24,9 +24,9 @@ from femcal.diagnose.state import DiagnosisState
 #: Fewest specimens per worker: below, the fits' batches are too small to pay for a process.
 MIN_ROWS = 8
 
-#: What the workers read: (state, disc fit, the function diagnosing one group, its keywords),
-#: set before they fork.
-_SHARED: tuple[DiagnosisState, Any, Callable[..., Diagnosis], dict[str, Any]] | None = None
+#: What the workers read: (state, the function diagnosing one group, its keywords), set before
+#: they fork.
+_SHARED: tuple[DiagnosisState, Callable[..., Diagnosis], dict[str, Any]] | None = None
 
 
 def available_cpus() -> int:
@@ -49,28 +49,27 @@ def _one(j: int) -> Diagnosis:
     import torch
 
     torch.set_num_threads(1)  # one process per core
-    state, disc, run, keywords = _SHARED
+    state, run, keywords = _SHARED
     keywords = dict(keywords)
-    rows = groups(state.n, keywords.pop("_workers"))[j]
-    disc_rows = disc.take([int(i) for i in rows], range(len(rows)))
-    return run(state.rows(rows), disc=disc_rows, **keywords)
+    sub = state.rows(groups(state.n, keywords.pop("_workers"))[j])
+    return run(sub, disc=sub.per_spec[0][()][0], **keywords)  # their disc-alone fit, renumbered
 
 
 def in_workers(
     state: DiagnosisState,
-    disc,
     run: Callable[..., Diagnosis],
     workers: int | None,
     **keywords: Any,
 ) -> Diagnosis | None:
-    """``run(sub_state, disc=sub_disc, **keywords)`` for each group of specimens in a worker
-    process that forks from this one, merged into one :class:`Diagnosis` in the specimens'
-    order; None where one group would hold them all (or the platform does not fork)."""
+    """``run(sub_state, disc=sub_disc, **keywords)`` for each group of specimens (``sub_disc``
+    their disc-alone fit, which ``state`` holds) in a worker process that forks from this one,
+    merged into one :class:`Diagnosis` in the specimens' order; None where one group would hold
+    them all (or the platform does not fork)."""
     parts = groups(state.n, workers)
     if len(parts) < 2 or "fork" not in multiprocessing.get_all_start_methods():
         return None
     global _SHARED
-    _SHARED = (state, disc, run, dict(keywords, _workers=workers))
+    _SHARED = (state, run, dict(keywords, _workers=workers))
     try:
         ctx = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(len(parts), mp_context=ctx) as pool:
