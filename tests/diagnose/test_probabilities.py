@@ -73,3 +73,24 @@ def test_an_effect_that_removes_most_of_the_misfit_is_needed(chi2_rest, needed):
     fits[current] = (_Fit(60.0), 0)
     assert _explains_most(fits, current, ("neutral_zone",), 36.0) is needed
     assert not _explains_most(fits, current, ("no_such",), 36.0)  # never fitted: no claim
+
+
+def test_a_model_whose_further_effect_does_nothing_is_its_sub_model():
+    from types import SimpleNamespace
+
+    from femcal.diagnose.assemble import _idle_effect
+
+    def fit(chi2, trace):
+        return (SimpleNamespace(chi2=np.array([chi2]), trace=np.array([trace])), 0)
+
+    facet, both = ("facet_contact",), ("facet_contact", "ligament_tension")
+    state = SimpleNamespace(per_spec=[{(): fit(300.0, 5.0), facet: fit(40.0, 7.8)}])
+    state.per_spec[0][both] = fit(39.9, 7.81)  # the ligament changes nothing
+    assert _idle_effect(state, both, 0)
+    assert not _idle_effect(state, facet, 0)  # the facet does: 260 in chi-square
+    state.per_spec[0][both] = fit(37.0, 7.9)  # 3 in chi-square: it does something
+    assert not _idle_effect(state, both, 0)
+    state.per_spec[0][both] = fit(39.9, 8.6)  # the data determine 0.8 more parameters
+    assert not _idle_effect(state, both, 0)
+    del state.per_spec[0][facet]  # no sub-model fitted: nothing to compare with
+    assert not _idle_effect(state, both, 0)

@@ -192,13 +192,44 @@ def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
     outside = _outside_criteria(state, finals, gp)
     return [
         specimen_probabilities(
-            {m: state.criterion(m, i) for m in state.per_spec[i]},
+            {
+                m: state.criterion(m, i)
+                for m in state.per_spec[i]
+                if m == state.chosen[i] or not _idle_effect(state, m, i)
+            },
             (state.chosen[i], outside[i]),
             state.options.min_delta,
             state.options.min_delta_inadequate,
         )
         for i in range(state.n)
     ]
+
+
+#: An effect is idle in a fit when removing it raises the chi-square by less than this and
+#: lowers the effective number of parameters by less than :data:`IDLE_PARAMETERS`.
+IDLE_CHI2 = 1.0
+IDLE_PARAMETERS = 0.5
+
+
+def _idle_effect(state: DiagnosisState, effects: Model, i: int) -> bool:
+    """Whether model ``effects`` holds an effect that does nothing for specimen ``i``: the
+    fitted model without it has (almost) the same chi-square and effective parameters. Such a
+    model is its sub-model under another name, and is left out of the probabilities (counted,
+    it would give the idle effect the prior odds of a further effect, about 0.27, however
+    little the data say for it)."""
+    fits = state.per_spec[i]
+    f, at = fits[effects]
+    for drop in effects:
+        rest = tuple(e for e in effects if e != drop)
+        if rest not in fits:
+            continue
+        g, bt = fits[rest]
+        if (
+            float(g.chi2[bt]) - float(f.chi2[at]) < IDLE_CHI2
+            and float(f.trace[at]) - float(g.trace[bt]) < IDLE_PARAMETERS
+        ):
+            return True
+    return False
 
 
 def _outside_criteria(
