@@ -219,7 +219,12 @@ def run_hidden(
     options = {"model_uri": model_uri, "noise_deg": noise_deg, "root": root}
     disc, after = _calibrate_groups(measured, diagnosis, out_dir, options)
     figures = score(diagnosis, answers, sigma, disc, after)
-    figures.update(model_uri=model_uri, noise_deg=float(noise_deg), cohort=str(cohort_dir))
+    commit = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True
+    ).stdout.strip()
+    figures.update(
+        model_uri=model_uri, noise_deg=float(noise_deg), cohort=str(cohort_dir), commit=commit
+    )
     (out_dir / "hidden.json").write_text(json.dumps(figures, indent=2) + "\n")
     return figures
 
