@@ -88,19 +88,20 @@ def _default(info: object, model: type) -> str:
         return "required"
     value = info.get_default(call_default_factory=True)
     if value is None and issubclass(model, Keywords):
-        return "the function's"
+        return "the function's" if model._owner != "function" else "not set"
     return f"`{json.dumps(value, default=str)}`"
 
 
-def _models(annotation: object) -> list[type]:
+def _models(annotation: object, metadata: list | tuple = ()) -> list[type]:
     """Models with settings inside a type annotation (``X | None``, ``dict[str, X]``, a
-    mapping validated against a model and kept as given)."""
+    mapping validated against a model and kept as given); a search space's entries are one
+    row (its own)."""
     from femcal.settings._format import PlainOf, is_model, unwrap
 
-    tp, meta = unwrap(annotation)
+    tp, meta = unwrap(annotation, metadata)
     plain = [m.model for m in meta if isinstance(m, PlainOf)]
     if plain:
-        return plain
+        return [m for m in plain if not hasattr(m, "_keywords")]
     if is_model(tp):
         return [tp]
     return [m for arg in typing.get_args(tp) for m in _models(arg)]
@@ -117,9 +118,11 @@ def _class_rows(model: type, prefix: str) -> list[tuple[str, str, str, str]]:
         if name != opened:
             allowed = describe(info.annotation, info.metadata)
             rows.append((key, allowed, _default(info, model), info.description or ""))
-        origin = typing.get_origin(info.annotation)
-        for inner in _models(info.annotation):
-            below = f"{key}.<name>" if origin is dict and name != opened else key
+        by_name = typing.get_origin(info.annotation) is dict and not any(
+            type(m).__name__ == "PlainOf" for m in info.metadata
+        )
+        for inner in _models(info.annotation, info.metadata):
+            below = f"{key}.<name>" if by_name and name != opened else key
             rows += _class_rows(inner, below)
     return rows
 

@@ -320,25 +320,9 @@ def pgd(
         else torch.full((n,), float(o.noise_deg), dtype=torch.float64)
     )
     if _has_effects(model):
-        disc = pgd(
-            dataclasses.replace(problem, model=model.base),
-            dataclasses.replace(o, ranges=False, retry_alpha=0.0),  # the effects explain the rest
-            rng=rng,
-            start_bank=None if start_bank is None else np.asarray(start_bank)[:, : model.n_disc],
-        )
         if o.effect_max_iter is not None:
             max_iter = o.effect_max_iter
-        grid = effect_starts(model, o.effect_levels, o.effect_shape_starts)  # (g, d - n_disc)
-        v_disc = model.base.from_physical(disc.x)  # (n, n_disc)
-        starts = [
-            torch.cat([v_disc[:, None, :].expand(-1, len(grid), -1), grid.expand(n, -1, -1)], dim=2)
-        ]
-        if start_bank is not None and len(start_bank) and o.effect_bank_starts > 0:
-            # The disc fitted alone bends towards the missing physics; these starts do not.
-            bank_v, bank_pred = effect_bank(model, start_bank, rng, o.effect_bank_samples)
-            nearest = nearest_starts(problem, bank_v, bank_pred, o.effect_bank_starts)
-            starts.append(bank_v[nearest])
-        k_bank = 0
+        starts, k_bank = _effect_model_starts(problem, o, rng, start_bank), 0
         # The first start (the disc-alone solution, every effect weak) always goes on
         # (keep_first): an effect the data do not need then never leaves a specimen worse off.
         halving_after = keep_after
@@ -391,23 +375,27 @@ def pgd(
         back = first[before < after]
         v[back] = v0[back]
         if optimizer == "gauss-newton" and len(model.effects) > 1:
-            # Second round: from each specimen's best solution, each effect again from its
-            # grid and design with the others as found, so that a second effect joins the
-            # first (the first round's starts have one effect on at a time).
             for _ in range(o.effect_rounds - 1):
-                with torch.no_grad():
-                    mae = problem.scores(model.curves(v), rows)["mae"].reshape(n, k)
-                mae = torch.nan_to_num(mae, nan=float("inf"))
-                best = v.reshape(n, k, d)[torch.arange(n), mae.argmin(1)]
-                v0 = _combination_starts(model, best, o.effect_levels, o.effect_shape_starts)
-                k = v0.shape[1]
-                rows = torch.arange(n).repeat_interleave(k)
-                v0 = v0.reshape(n * k, d)
-                # The first round's best is the first start: it always goes on.
-                v, nit2, converged = newton(
-                    v0, rows, *_effect_halving(halving_after, o.effect_keep, k, max_iter)
+                v, rows, k, nit2, converged = _combination_round(
+                    problem,
+                    v,
+                    rows,
+                    k,
+                    o,
+                    lambda v0, rows, k: newton(
+                        v0, rows, *_effect_halving(halving_after, o.effect_keep, k, max_iter)
+                    ),
                 )
                 nit += nit2
+    sol = _solution(problem, o, v, rows, k, converged, scale, nit, k_bank)
+    if o.retry_alpha > 0 and problem.point_sd is not None and n:
+        sol = _retry_unexplained(problem, sol, rng, o, start_bank)
+    return sol
+
+
+def _solution(problem, o, v, rows, k, converged, scale, nit, k_bank) -> Solution:
+    """Each specimen's best start (by ``o.select``), its ranges, and the message."""
+    n = problem.n_specimens
     with torch.no_grad():
         scores = problem.scores(problem.model.curves(v), rows)
     mae = scores["mae"].reshape(n, k)
@@ -419,47 +407,100 @@ def pgd(
     x = problem.model.to_physical(v[flat_best].double().numpy())
     x_low = x_high = None
     if o.ranges:
-        near = mae <= mae.gather(1, best[:, None]) + scale.float()[:, None]  # (n, k)
-        near_flat = torch.nonzero(near.reshape(-1)).reshape(-1)
-        lo, hi = local_ranges(
-            problem, v[near_flat], rows[near_flat], noise_deg=scale[rows[near_flat]], z=o.range_z
-        )
-        v_low = torch.ones((n, d))
-        v_high = torch.zeros((n, d))
-        v_low = v_low.scatter_reduce(0, rows[near_flat, None].expand(-1, d), lo, reduce="amin")
-        v_high = v_high.scatter_reduce(0, rows[near_flat, None].expand(-1, d), hi, reduce="amax")
-        x_low = problem.model.to_physical(v_low.double().numpy())
-        x_high = problem.model.to_physical(v_high.double().numpy())
+        x_low, x_high = _ranges(problem, v, rows, mae, best, scale, o.range_z)
     conv = converged.reshape(n, k).gather(1, best[:, None])[:, 0].numpy()
     sol = Solution(
         x=x,
         nit=int(nit),
         success=conv,
         message=(
-            f"pgd ({optimizer}, {loss} loss): {k} starts per specimen "
+            f"pgd ({o.optimizer}, {o.loss} loss): {k} starts per specimen "
             + (
-                f"(the disc-alone solution with {k - n_random_starts} effect starts, "
-                if _has_effects(model)
+                f"(the disc-alone solution with {k - o.n_random_starts} effect starts, "
+                if _has_effects(problem.model)
                 else f"({k_bank} nearest, "
             )
-            + f"{n_random_starts} random), {nit} iterations, "
+            + f"{o.n_random_starts} random), {nit} iterations, "
             f"{int(conv.sum())}/{n} converged or fitted within {o.fit_tolerance:g} x noise "
             + _tolerance_text(o.fit_tolerance, scale)
         ),
         x_low=x_low,
         x_high=x_high,
         info={
-            "optimizer": optimizer,
-            "loss": loss,
+            "optimizer": o.optimizer,
+            "loss": o.loss,
             "select": o.select,
             "starts_per_specimen": k,
             "nit": int(nit),
             "error_scale_deg": float(scale.median()) if n else float(o.noise_deg),
         },
     )
-    if o.retry_alpha > 0 and problem.point_sd is not None and n:
-        sol = _retry_unexplained(problem, sol, rng, o, start_bank)
     return sol
+
+
+def _effect_model_starts(
+    problem: CalibrationProblem,
+    o: PgdOptions,
+    rng: np.random.Generator,
+    start_bank: np.ndarray | None,
+) -> list[torch.Tensor]:
+    """The first round's starts of an effect model, (n, k_i, d) each: the disc calibrated
+    alone combined with each effect's grid and design, and the disc-and-effect combinations
+    of the bank nearest each specimen's curves."""
+    model, n = problem.model, problem.n_specimens
+    disc = pgd(
+        dataclasses.replace(problem, model=model.base),
+        dataclasses.replace(o, ranges=False, retry_alpha=0.0),  # the effects explain the rest
+        rng=rng,
+        start_bank=None if start_bank is None else np.asarray(start_bank)[:, : model.n_disc],
+    )
+    grid = effect_starts(model, o.effect_levels, o.effect_shape_starts)  # (g, d - n_disc)
+    v_disc = model.base.from_physical(disc.x)  # (n, n_disc)
+    starts = [
+        torch.cat([v_disc[:, None, :].expand(-1, len(grid), -1), grid.expand(n, -1, -1)], dim=2)
+    ]
+    if start_bank is not None and len(start_bank) and o.effect_bank_starts > 0:
+        # The disc fitted alone bends towards the missing physics; these starts do not.
+        bank_v, bank_pred = effect_bank(model, start_bank, rng, o.effect_bank_samples)
+        nearest = nearest_starts(problem, bank_v, bank_pred, o.effect_bank_starts)
+        starts.append(bank_v[nearest])
+    return starts
+
+
+def _combination_round(problem, v, rows, k, o, newton):
+    """A further round of an effect model with several effects: from each specimen's best
+    solution, each effect again from its grid and design with the others as found, so that
+    a second effect joins the first (the first round's starts have one effect on at a time).
+    The first round's best is the first start: it always goes on. Returns the iterates, their
+    rows, the starts per specimen, the iterations and the convergence flags."""
+    model, n, d = problem.model, problem.n_specimens, problem.dim
+    with torch.no_grad():
+        mae = problem.scores(model.curves(v), rows)["mae"].reshape(n, k)
+    mae = torch.nan_to_num(mae, nan=float("inf"))
+    best = v.reshape(n, k, d)[torch.arange(n), mae.argmin(1)]
+    v0 = _combination_starts(model, best, o.effect_levels, o.effect_shape_starts)
+    k = v0.shape[1]
+    rows = torch.arange(n).repeat_interleave(k)
+    v, nit, converged = newton(v0.reshape(n * k, d), rows, k)
+    return v, rows, k, nit, converged
+
+
+def _ranges(problem, v, rows, mae, best, scale, z):
+    """Physical ``(x_low, x_high)``, (n, d) each: the union of the linearised ranges of every
+    start within its specimen's error scale of the best (:func:`local_ranges`)."""
+    n, d = problem.n_specimens, problem.dim
+    near = mae <= mae.gather(1, best[:, None]) + scale.float()[:, None]  # (n, k)
+    near_flat = torch.nonzero(near.reshape(-1)).reshape(-1)
+    lo, hi = local_ranges(
+        problem, v[near_flat], rows[near_flat], noise_deg=scale[rows[near_flat]], z=z
+    )
+    index = rows[near_flat, None].expand(-1, d)
+    v_low = torch.ones((n, d)).scatter_reduce(0, index, lo, reduce="amin")
+    v_high = torch.zeros((n, d)).scatter_reduce(0, index, hi, reduce="amax")
+    return (
+        problem.model.to_physical(v_low.double().numpy()),
+        problem.model.to_physical(v_high.double().numpy()),
+    )
 
 
 def _retry_unexplained(

@@ -259,7 +259,8 @@ class Keywords(Section):
     def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
         if "_unknown" not in cls.__dict__:
             cls._unknown = f"unknown {cls._owner} keyword"
-        cls._describe = f"a mapping of {cls._owner} keywords ({', '.join(keys_of(cls))})"
+        if "_describe" not in cls.__dict__:
+            cls._describe = f"a mapping of {cls._owner} keywords ({', '.join(keys_of(cls))})"
         cls._refused = {k: f"not settable here; {v}" for k, v in cls._reasons.items()}
 
 
