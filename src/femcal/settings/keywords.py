@@ -22,6 +22,7 @@ from femcal.settings.values import (
     ListOf,
     Section,
     keyword,
+    light_class,
     plain,
 )
 
@@ -118,6 +119,9 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
+_PGD = light_class("calibration.pgd_options", "PgdOptions")  # pgd's defaults
+
+
 class PgdKeywords(Keywords):
     """The pgd calibrator's options (``calibrate.options.pgd``)."""
 
@@ -174,7 +178,8 @@ class PgdKeywords(Keywords):
 
     @model_validator(mode="after")
     def _some_starts(self) -> Any:
-        if (self.n_starts if self.n_starts is not None else 8) + (self.n_random_starts or 0) < 1:
+        n_starts = _PGD.n_starts if self.n_starts is None else self.n_starts
+        if n_starts + (self.n_random_starts or 0) < 1:
             raise fail("n_starts + n_random_starts must be >= 1 (starts per specimen)", "n_starts")
         return self
 

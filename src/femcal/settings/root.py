@@ -5,9 +5,6 @@ default; a field without a default is required. The diagnosis' defaults are thos
 :class:`femcal.diagnose.DiagnoseOptions`, read from it.
 """
 
-import importlib.util
-import sys
-from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import ValidationError, ValidationInfo, WrapValidator, model_validator
@@ -36,26 +33,13 @@ from femcal.settings.values import (
     Int,
     ListOf,
     Section,
+    light_class,
     plain,
     setting,
 )
 
 _BASELINES = ListOf(Literal[BASELINE_MODELS], unique=True)
 _MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
-
-
-def _diagnose_options() -> type:
-    """:class:`femcal.diagnose.DiagnoseOptions`; its module alone when the package (which
-    imports torch) is not loaded yet, so that validating stays light."""
-    if "femcal.diagnose" in sys.modules:
-        return sys.modules["femcal.diagnose"].DiagnoseOptions
-    name = "femcal.settings._diagnose_options"
-    if name not in sys.modules:
-        path = Path(__file__).parents[1] / "diagnose" / "options.py"
-        spec = importlib.util.spec_from_file_location(name, path)
-        sys.modules[name] = module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    return sys.modules[name].DiagnoseOptions
 
 
 class DataSettings(Section):
@@ -324,7 +308,7 @@ class PlantSettings(Section):
     seed: Int(0) = setting("seed of the cohort", 0)
 
 
-_OPTIONS = _diagnose_options()
+_OPTIONS = light_class("diagnose.options", "DiagnoseOptions")
 
 
 class DiagnoseSettings(Section):

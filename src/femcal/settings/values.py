@@ -9,9 +9,13 @@ keyword arguments of a function that a mapping sets (:func:`plain` keeps them as
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import re
+import sys
 import urllib.parse
 from collections.abc import Callable
+from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 from pydantic import (
@@ -218,6 +222,22 @@ MOMENTS = ListOf(Float(gt=0), min_len=1, unique=True)
 DATASET_NAME = Annotated[str, PlainValidator(_dataset_name), Doc("a dataset name")]
 #: Parallel jobs: an integer >= 1, or -1 for all cores.
 N_JOBS = Annotated[int, PlainValidator(_n_jobs), Doc("an integer >= 1, or -1 (all cores)")]
+
+
+def light_class(module: str, name: str) -> type:
+    """``femcal.<module>.<name>`` (e.g. the defaults of ``diagnose.options.DiagnoseOptions``);
+    from its file alone while its package, which imports torch, is not loaded, so that
+    validating stays light. The file must import nothing heavy itself."""
+    full = f"femcal.{module}"
+    if full.rsplit(".", 1)[0] in sys.modules:
+        return getattr(importlib.import_module(full), name)
+    private = f"femcal.settings._light.{module}"
+    if private not in sys.modules:
+        path = Path(__file__).parents[1].joinpath(*module.split(".")).with_suffix(".py")
+        spec = importlib.util.spec_from_file_location(private, path)
+        sys.modules[private] = loaded = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(loaded)
+    return getattr(sys.modules[private], name)
 
 
 # ----------------------------------------------------------------------- sections, keywords
