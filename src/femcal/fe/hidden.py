@@ -225,6 +225,9 @@ def run_hidden(
     figures.update(
         model_uri=model_uri, noise_deg=float(noise_deg), cohort=str(cohort_dir), commit=commit
     )
+    info = cohort_dir / "cohort.json"
+    if info.is_file():  # the cohort's own figures: complete or a partial preview, its jobs
+        figures["cohort_info"] = json.loads(info.read_text())
     (out_dir / "hidden.json").write_text(json.dumps(figures, indent=2) + "\n")
     return figures
 
