@@ -44,7 +44,7 @@ class EvaluateSettings(StageSettings):
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             surrogate_dirs={s: at(f"models/surrogate-{s}") for s in SPLITS},
             baseline_dirs={s: at(f"models/baselines-{s}") for s in SPLITS},
-            baseline_models=typed(params, "baselines").models,
+            baseline_models=list(typed(params, "baselines").models),
             interpolation_path=at("reports/interpolation.json"),
             markdown=at("reports/surrogates.md"),
             json_path=at("reports/surrogates.json"),
