@@ -100,6 +100,17 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     ]
 
 
+def _table_rows(path: Path, space: Any) -> tuple[Any, np.ndarray]:
+    """A prepared table's usable rows: the configurations (load case, moment, id, parameters)
+    and their RoM in degrees."""
+    from femcal.datasets import ok_rows
+    from femcal.tidy import load_tidy
+
+    table = ok_rows(load_tidy(path, space))
+    columns = ["load_case", "moment_nm", "config_id", *space.names]
+    return table[columns], table["rom_deg"].to_numpy(dtype=float)
+
+
 def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
     """Adaptive sampling from the surrogate at ``model_uri``; MLflow; the champion's folder.
 
@@ -114,12 +125,11 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
     import mlflow
     from mlflow import MlflowClient
 
-    from femcal.datasets import SPACE_FILE, ok_rows
+    from femcal.datasets import SPACE_FILE
     from femcal.fe.adaptive import adapt_surrogate, band_mae
     from femcal.measurements import read_measurements
     from femcal.outputs import check_destination
     from femcal.space import ParameterSpace
-    from femcal.tidy import load_tidy
     from femcal.tracking import export_model, load_surrogate, log_surrogate, open_model
 
     s = settings
@@ -132,13 +142,7 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
     surrogate = load_surrogate(source)
     space = ParameterSpace.from_json(Path(train).parent / SPACE_FILE)
 
-    def rows(path: Path):
-        table = ok_rows(load_tidy(path, space))
-        return table[["load_case", "moment_nm", "config_id", *space.names]], table[
-            "rom_deg"
-        ].to_numpy(dtype=float)
-
-    train_rows, heldout_rows = rows(train), rows(heldout)
+    train_rows, heldout_rows = _table_rows(train, space), _table_rows(heldout, space)
     first_id = int(train_rows[0]["config_id"].max()) + 1
     result = adapt_surrogate(
         surrogate,
