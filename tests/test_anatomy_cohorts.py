@@ -1,5 +1,5 @@
-"""The anatomy cohorts (benchmarks/anatomy_cohorts.py) and their runner's scoring
-(benchmarks/bench_anatomy.py), on synthetic FE curves: no trained model, no study data."""
+"""The anatomy cohorts (experiments/anatomy_cohorts.py) and their runner's scoring
+(experiments/bench_anatomy.py), on synthetic FE curves: no trained model, no study data."""
 
 from __future__ import annotations
 
@@ -14,13 +14,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCH))
+import experiments.anatomy_cohorts as ac
+import experiments.bench_anatomy as ba
+from femcal.schema import LOAD_CASES
 
-import anatomy_cohorts as ac  # noqa: E402
-import bench_anatomy as ba  # noqa: E402
-
-from femcal.schema import LOAD_CASES  # noqa: E402
+BENCH = Path(__file__).resolve().parents[1] / "experiments"
 
 
 def _fe(n: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +43,7 @@ def test_imports_nothing_from_femcal_effects():
     names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     assert not [n for n in names if n.startswith("femcal.effects")]
     code = (
-        f"import sys; sys.path.insert(0, {str(BENCH)!r}); import anatomy_cohorts; "
+        "import sys; import experiments.anatomy_cohorts; "
         "print(any(m.startswith('femcal.effects') for m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -57,7 +57,7 @@ References
   bending), 0.4 (axial rotation); RoM at 10 Nm 8.9 / 5.8 / 5.7 / 2.2 deg (F / E / LB / AR).
 * Wilke et al. 1998, Eur Spine J 7:148-154: the pure-moment in-vitro protocol (up to 7.5 Nm).
 
-``python benchmarks/anatomy_cohorts.py --seed S --out DIR`` writes a cohort folder.
+``python -m experiments.anatomy_cohorts --seed S --out DIR`` writes a cohort folder.
 """
 
 from __future__ import annotations
@@ -559,7 +559,7 @@ def write_cohort(cohort: AnatomyCohort, folder: Path, source: str = "") -> Path:
     cohort.measurements.to_csv(path, index=False)
     cohort.answers.to_csv(folder / "answers.csv", index=False)
     meta = {
-        "generator": "benchmarks/anatomy_cohorts.py",
+        "generator": "experiments/anatomy_cohorts.py",
         "seed": cohort.seed,
         "noise_deg": cohort.noise_deg,
         "n_specimens": len(cohort.answers),

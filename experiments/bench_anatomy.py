@@ -1,7 +1,7 @@
 """Benchmark: the real ``femcal diagnose`` command on anatomy cohorts (issue 42, item 4).
 
-For each seed, :mod:`anatomy_cohorts` writes a cohort (held-out FE curves plus physics with
-per-load-case parameters) to ``<out>/seed-<seed>/cohort``; the command
+For each seed, :mod:`experiments.anatomy_cohorts` writes a cohort (held-out FE curves plus
+physics with per-load-case parameters) to ``<out>/seed-<seed>/cohort``; the command
 
     femcal diagnose --measurements <cohort>/measurements.csv --noise-deg 0.05 --out <diagnosis>
 
@@ -29,7 +29,7 @@ against ``answers.csv``:
 Writes ``bench_anatomy.md``, ``bench_anatomy.json`` and ``specimens.csv`` to ``--out``
 (default ``/tmp/femcal-bench-anatomy``). Run one diagnosis at a time::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_anatomy.py --seeds 12345 \
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.bench_anatomy --seeds 12345 \
         [--protocols "1-5 Nm x 0.5,1.25-5 Nm x 1.25"] [--out DIR] [--reuse]
 """
 
@@ -49,11 +49,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import anatomy_cohorts as ac  # noqa: E402
-
-from femcal.errors import ConfigError  # noqa: E402
+from experiments import anatomy_cohorts as ac
+from femcal.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = Path("/tmp/femcal-bench-anatomy")
@@ -356,7 +353,7 @@ def write_report(runs: list[dict[str, Any]], pooled: dict[str, Any] | None, meta
     lines = [
         "# `femcal diagnose` on anatomy cohorts",
         "",
-        f"Command: `{meta['command']}`. Cohorts from `benchmarks/anatomy_cohorts.py` (seeds "
+        f"Command: `{meta['command']}`. Cohorts from `experiments/anatomy_cohorts.py` (seeds "
         f"{meta['seeds']}, {meta['n_per_class']} per class, protocols {meta['protocols']}, "
         f"noise sd {meta['noise_deg']} deg); fresh seeds, nothing tuned on them. Visible: the "
         "disc-alone MAE of the diagnosis exceeds 2 x noise.",
@@ -471,7 +468,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         args.out.mkdir(parents=True, exist_ok=True)
         pd.concat(tables, ignore_index=True).to_csv(args.out / "specimens.csv", index=False)
     meta = {
-        "command": shlex.join(["benchmarks/bench_anatomy.py", *(argv or sys.argv[1:])]),
+        "command": shlex.join(
+            ["python", "-m", "experiments.bench_anatomy", *(argv or sys.argv[1:])]
+        ),
         "seeds": seeds,
         "n_per_class": args.n_per_class,
         "protocols": args.protocols,
