@@ -23,8 +23,8 @@ test-slow: install  ## only the slow tests: the whole pipelines (dvc repro) and 
 	pytest -m slow $(PYTEST_ARGS)
 
 lint: install
-	ruff check src tests experiments benchmarks
-	ruff format --check src tests experiments benchmarks
+	ruff check src tests experiments
+	ruff format --check src tests experiments
 
 # The docs site (mkdocs.yml, docs/): the tutorial's figures from the pipeline's outputs (absent
 # on a fresh clone: the script says so and the pages build without them), then the strict build

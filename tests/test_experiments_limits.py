@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-FOLDERS = [ROOT / "experiments", ROOT / "benchmarks"]
+FOLDERS = [ROOT / "experiments"]
 
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 120
