@@ -44,13 +44,19 @@ def test_mae(model: NeuralSurrogate, test) -> float:
     return float(np.mean(np.abs(pred - rows["rom_deg"].to_numpy(dtype=float))))
 
 
-def run(epochs: Sequence[int], members: int, learning_rate: float | None) -> dict[str, Any]:
-    """Train the recipe for each number of epochs; Test and validation MAE, wall seconds."""
+def run(
+    epochs: Sequence[int], members: int, learning_rate: float | None, seed: int | None = None
+) -> dict[str, Any]:
+    """Train the recipe for each number of epochs; Test and validation MAE, wall seconds.
+
+    ``seed`` (default ``train.seed``) seeds the validation split and the members, as
+    ``train.holdout.seed`` does for train@holdout.
+    """
     params = load_params(REPO / "params.yaml")
     recipe = dict(section(params, "train", "large", "fixed"))
     if learning_rate is not None:
         recipe["learning_rate"] = learning_rate
-    seed = int(section(params, "train", "seed"))
+    seed = int(section(params, "train", "seed")) if seed is None else int(seed)
     prepared = REPO / section(params, "data", "prepared_dir")
     table, space = load_split(prepared, "large")
     test, _ = load_split(prepared, "test")
@@ -112,11 +118,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument(
         "--learning-rate", type=float, default=None, help="default: the recipe's (params.yaml)"
     )
+    ap.add_argument("--seed", type=int, default=None, help="default: params.yaml train.seed")
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_train_epochs")
     args = ap.parse_args(argv)
     epochs = [int(e) for e in args.epochs.split(",") if e.strip()]
     torch.manual_seed(0)
-    report = run(epochs, args.members, args.learning_rate)
+    report = run(epochs, args.members, args.learning_rate, args.seed)
     report.update(
         command=reproduce_command("bench_train_epochs", argv),
         machine=platform.processor() or platform.machine(),
