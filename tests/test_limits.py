@@ -45,7 +45,6 @@ ALLOWED_LONG_FUNCTIONS: dict[str, str] = {
     "src/femcal/inverse/model.py:InverseModel.fit": "not split yet (issue 44)",
     "src/femcal/inverse/train.py:train_inverse": "not split yet (issue 44)",
     "src/femcal/measurements/data.py:_validated": "not split yet (issue 44)",
-    "src/femcal/stages/calibrate.py:run_calibrate": "not split yet (issue 44)",
     "src/femcal/surrogates/nn.py:NeuralSurrogate.fit": "not split yet (issue 44)",
     "src/femcal/train.py:train_surrogate": "not split yet (issue 44)",
 }

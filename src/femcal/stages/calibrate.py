@@ -239,9 +239,8 @@ def run_calibrate(
 ):
     """Calibrate every specimen of a measurement file against the registered surrogate.
 
-    ``settings`` (:class:`CalibrateSettings`) names the file, the output folder, the method
-    and its options, the surrogates, the start bank, the seed, the moment policy, the
-    effects and the noise; the paragraphs below describe them.
+    ``settings`` (:class:`CalibrateSettings`): the file, the output folder, the method, its
+    options, the surrogates, the start bank, the seed, the moment policy, effects and noise.
 
     ``plots``: "all" (True) writes the per-specimen PNGs and the summary page, "summary" the
     summary page only, "none" (False) no figure
@@ -266,9 +265,9 @@ def run_calibrate(
     moments with the moment policy (:class:`femcal.moments.MomentPolicy` of ``error_growth``
     and ``max_log_ratio``, ``(below, above)`` each, params.yaml ``moments``): points beyond
     its limits are dropped with a warning and listed in ``out_dir/dropped_points.csv``
-    (``n_dropped_points`` in the figures). Calibrates the batch
-    with each point weighted by its inverse variance (the surrogate's error sd(M) at its moment,
-    the measurement noise when given, the measurement's own weight), writes ``out_dir`` (see
+    (``n_dropped_points`` in the figures). Calibrates the batch with each point weighted by its
+    inverse variance (the surrogate's error sd(M) at its moment, the measurement noise when
+    given, the measurement's own weight), writes ``out_dir`` (see
     :func:`femcal.calibration.report.write_outputs`) and logs one MLflow run with the
     per-specimen tables and every output file as artifacts. The run's tags
     ``femcal.model.*`` and ``femcal.holdout.*`` name each surrogate: its URI, the SHA-256 of its
@@ -295,27 +294,16 @@ def run_calibrate(
     holdout_uri, start_bank, seed, effects = s.holdout_uri, s.start_bank, s.seed, s.effects
     chunk_size, progress, noise_deg = s.chunk_size, s.progress, s.noise_deg
     check_destination(out_dir)  # a bad output folder is the first error, not the last
-    from femcal.calibration.report import plot_mode
-
-    plots = plot_mode(s.plots)  # a wrong value before the calibration
     tracker = LocalTracking() if tracker is None else tracker
-    clock = time.perf_counter()
-    timings: dict[str, float] = {}
-
-    def lap(name: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        timings[name] = round(now - clock, 3)
-        clock = now
-
-    from femcal.calibration import SurrogateCurveModel, calibrate
-    from femcal.calibration.report import write_outputs
+    lap = _Laps()
+    from femcal.calibration import calibrate
+    from femcal.calibration.report import plot_mode
     from femcal.measurements import read_measurements
     from femcal.moments import MomentPolicy
-    from femcal.outputs import staged_output
     from femcal.reachability import assess_reachability
     from femcal.tracking import is_local_model, load_surrogate, open_model
 
+    plots = plot_mode(s.plots)  # a wrong value before the calibration
     meas = read_measurements(measurements)
     if not all(is_local_model(uri) for uri in (model_uri, holdout_uri) if uri):
         tracker.use_store_here()  # models:/ URIs are resolved in the tracking store
@@ -328,27 +316,18 @@ def run_calibrate(
     meas = screened.measurements
     # (n, 4, m): relative inverse variances (noise^2 / w + sd(M)^2, or w / sd(M)^2 without noise)
     weight = policy.point_weights(meas.moments, meas.weight, noise_deg)
-    from femcal.effects.composite import EffectModel
-
-    model = SurrogateCurveModel(surrogate, meas.moments)
-    if effects:
-        model = EffectModel(model, list(effects))
+    model = _curve_model(surrogate, meas.moments, effects)
     # Before the fit: can the model produce these curves at all? (raises or warns)
     reach = assess_reachability(
         meas, model, sigma_model=policy.sigma_surrogate(meas.moments), reference=start_bank
     )
-    point_sd = None
-    if noise_deg is not None:  # the error scale of a point of average weight (pgd's ranges)
-        point_sd = policy.average_sd(meas.moments, meas.weight, noise_deg, meas.mask())
+    # the error scale of a point of average weight (pgd's ranges)
+    point_sd = noise_deg and policy.average_sd(meas.moments, meas.weight, noise_deg, meas.mask())
     opts = calibration_options(
         method, s.options, surrogate=surrogate, start_bank=start_bank, point_sd_deg=point_sd
     )
-    holdout = None
     holdout_source = open_model(holdout_uri) if holdout_uri else None
-    if holdout_source is not None:
-        holdout = SurrogateCurveModel(load_surrogate(holdout_source), meas.moments)
-        if effects:
-            holdout = EffectModel(holdout, list(effects))
+    holdout = holdout_source and _curve_model(load_surrogate(holdout_source), meas.moments, effects)
     tracker.check()  # a tracking store that failed: its error before the calibration
     lap("imports, reading, models, reachability")
     result = calibrate(
@@ -365,37 +344,92 @@ def run_calibrate(
         weight_sd=None if noise_deg is None else policy.unit_sd(noise_deg),
     )
     lap("calibration")
-    missing = meas.missing_load_cases()
     label = "+".join([method, *effects])
+    logged, tags = _run_record(s, meas, policy, opts, source, holdout_source)
+    # Outputs staged beside out_dir (a kill leaves nothing at out_dir); the MLflow run covers
+    # writing them, gets exactly the staged files, and the move into place happens inside it.
+    figures = _write_and_log(
+        s, result, tracker, (logged, tags), label, outputs=(holdout, plots, reach, screened, lap)
+    )
+    lap("MLflow logging")
+    logger.debug("calibrate timings: %s", lap)
+    return result, figures
+
+
+class _Laps:
+    """The seconds of each phase of a run: ``lap(name)`` ends one."""
+
+    def __init__(self) -> None:
+        self.clock, self.timings = time.perf_counter(), {}
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings[name] = round(now - self.clock, 3)
+        self.clock = now
+
+    def __str__(self) -> str:
+        return ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
+
+
+def _curve_model(surrogate: Any, moments: Any, effects: Sequence[str]) -> Any:
+    """The surrogate's curves on the measured moments, with ``effects`` added when any."""
+    from femcal.calibration import SurrogateCurveModel
+    from femcal.effects.composite import EffectModel
+
+    model = SurrogateCurveModel(surrogate, moments)
+    return EffectModel(model, list(effects)) if effects else model
+
+
+def _run_record(
+    s: CalibrateSettings, meas: Any, policy: Any, opts: Mapping[str, Any], *sources: Any
+) -> tuple[dict[str, Any], dict[str, str]]:
+    """The MLflow run's params and tags: the settings, the options and both surrogates."""
     logged = {
-        "method": method,
-        "effects": ",".join(effects) or "none",
-        "measurements": str(measurements),
+        "method": s.method,
+        "effects": ",".join(s.effects) or "none",
+        "measurements": str(s.measurements),
         "n_specimens": meas.n_specimens,
         "moments": ",".join(f"{m:g}" for m in meas.moments),
-        "model_uri": model_uri,
-        "holdout_uri": holdout_uri or "",
-        "seed": seed,
-        "chunk_size": chunk_size or 0,
+        "model_uri": s.model_uri,
+        "holdout_uri": s.holdout_uri or "",
+        "seed": s.seed,
+        "chunk_size": s.chunk_size or 0,
         **policy.as_params(),
-        "noise_deg": "none" if noise_deg is None else noise_deg,
+        "noise_deg": "none" if s.noise_deg is None else s.noise_deg,
     }
     for key, value in opts.items():
         if key != "start_bank" and not hasattr(value, "predict"):
             logged[f"option.{key}"] = value
     if "start_bank" in opts:
-        logged["option.start_bank"] = f"{start_bank} ({len(opts['start_bank'])} configs)"
+        logged["option.start_bank"] = f"{s.start_bank} ({len(opts['start_bank'])} configs)"
     tags: dict[str, str] = {}
-    for tag, src in (("model", source), ("holdout", holdout_source)):
+    for tag, src in zip(("model", "holdout"), sources):
         if src is not None:
             tags.update(src.tags(tag))
             if src.version:
                 logged[f"{tag}_version"] = src.version
+    missing = meas.missing_load_cases()
     if missing:
         tags["femcal.missing_load_cases"] = json.dumps(missing)[:5000]
-    # Outputs staged beside out_dir (a kill leaves nothing at out_dir); the MLflow run covers
-    # writing them, gets exactly the staged files, and the move into place happens inside it.
-    with staged_output(out_dir, command="calibrate") as stage:
+    return logged, tags
+
+
+def _write_and_log(
+    s: CalibrateSettings,
+    result: Any,
+    tracker: LocalTracking | TrackingProcess,
+    record: tuple[dict[str, Any], dict[str, str]],
+    label: str,
+    outputs: tuple,
+) -> dict[str, Any]:
+    """Write the outputs into a staging folder inside one MLflow run, log them, move them
+    into place; ``outputs``: the held-out model, the plot mode, the reachability, the
+    screened measurements and the timer. Returns the summary figures."""
+    from femcal.calibration.report import write_outputs
+    from femcal.outputs import staged_output
+
+    (logged, tags), (holdout, plots, reach, screened, lap) = record, outputs
+    with staged_output(s.out_dir, command="calibrate") as stage:
         tracker.submit(start_calibration_run, run_name=f"calibrate-{label}")
         try:
             figures = write_outputs(
@@ -405,7 +439,7 @@ def run_calibrate(
                 plots=plots,
                 max_plots=s.max_plots,
                 reachability=reach.notes(),
-                progress=progress,
+                progress=s.progress,
             )
             screened.write(stage.path)
             figures["n_dropped_points"] = len(screened.dropped)
@@ -417,22 +451,20 @@ def run_calibrate(
                 params=logged,
                 metrics={k: float(v) for k, v in figures.items() if isinstance(v, (int, float))},
                 parameters=result.parameters_frame(),
-                measurements=measurements,
+                measurements=s.measurements,
                 figures=figures,
                 out_dir=stage.path,
             )
             stage.finalize()
             tracker.call(
-                log_artifacts, folder=stage.path, artifact_path="calibration", progress=progress
+                log_artifacts, folder=stage.path, artifact_path="calibration", progress=s.progress
             )  # this run's files
             stage.commit()
         except BaseException:
             tracker.abort()  # the run ends FAILED (started or not)
             raise
         tracker.call(end_calibration_run, status="FINISHED")
-    lap("MLflow logging")
-    logger.debug("calibrate timings: %s", ", ".join(f"{k} {v:.2f} s" for k, v in timings.items()))
-    return result, figures
+    return figures
 
 
 def calibration_options(
