@@ -14,6 +14,7 @@ import pytest
 from femcal.calibration import SurrogateCurveModel
 from femcal.diagnose import NONE, UNEXPLAINED, DiagnoseOptions, diagnose, verdict_label
 from femcal.effects.planted import fe_rotation
+from femcal.effects.split import base_name
 from femcal.errors import ConfigError
 from femcal.moments import MomentPolicy
 from femcal.schema import LOAD_CASES
@@ -396,9 +397,11 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
     assert torch.equal(fit.v[torch.as_tensor(same)], v[torch.as_tensor(same)])
 
 
-def _tied_pair(entry) -> bool:
-    """A ranking's pair of tied effects (forward selection's; split forms come after it)."""
-    return len(entry["effects"]) == 2 and not any(":" in e for e in entry["effects"])
+def _pairs(ranking) -> set[tuple[str, str]]:
+    """The pairs of effects a ranking holds, tied or split (by their registered names)."""
+    return {
+        tuple(sorted(base_name(e) for e in r["effects"])) for r in ranking if len(r["effects"]) == 2
+    }
 
 
 def test_the_beam_extends_every_model_close_to_the_best(world):
@@ -426,8 +429,7 @@ def test_the_beam_extends_every_model_close_to_the_best(world):
     every.add(("ligament_tension", "neutral_zone"))
     reached = 0
     for w, g in zip(wide.specimens, greedy.specimens):
-        pairs_w = {tuple(sorted(r["effects"])) for r in w.ranking if _tied_pair(r)}
-        pairs_g = {tuple(sorted(r["effects"])) for r in g.ranking if _tied_pair(r)}
+        pairs_w, pairs_g = _pairs(w.ranking), _pairs(g.ranking)
         if pairs_g:  # the greedy search went on to a second effect: so did the wide one
             reached += 1
             assert pairs_w == every, (w.specimen, pairs_w)
@@ -451,8 +453,7 @@ def test_a_model_that_explains_the_data_is_still_offered_a_further_effect(world)
     )
     for a, b in zip(on.specimens, off.specimens):
         assert a.verdict == b.verdict == "facet_contact", (a.verdict, b.verdict)
-        pairs_on = {tuple(sorted(r["effects"])) for r in a.ranking if _tied_pair(r)}
-        pairs_off = {tuple(sorted(r["effects"])) for r in b.ranking if _tied_pair(r)}
+        pairs_on, pairs_off = _pairs(a.ranking), _pairs(b.ranking)
         assert pairs_on == {
             ("facet_contact", "ligament_tension"),
             ("facet_contact", "neutral_zone"),
