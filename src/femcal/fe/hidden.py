@@ -87,6 +87,9 @@ def score(
     dict
     """
     truth = dict(zip(answers["specimen"].astype(str), answers["class"]))
+    config = dict(
+        zip(answers["specimen"].astype(str), answers.get("config_id", answers["specimen"]))
+    )
     rows = []
     for rec in diagnosis:
         name = str(rec["specimen"])
@@ -95,6 +98,7 @@ def score(
         rows.append(
             {
                 "specimen": name,
+                "config_id": int(config[name]) if str(config[name]).isdigit() else None,
                 "class": cls,
                 "found": " ".join(found) or "none",
                 "right": found == tuple(sorted(CLASS_EFFECTS[cls])),
