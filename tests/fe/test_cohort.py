@@ -161,6 +161,11 @@ def test_small_real_cohort_is_written_and_rebuilt_from_its_store(tmp_path):
     out = tmp_path / "cohort"
     answers = pd.read_csv(out / "answers.csv")
     assert sorted(answers["class"]) == sorted(CLASSES)
+    # answers row i is row i of the study's files: the same disc
+    (configurations,) = (out / "measured" / "Test").glob("MaterialConfigurations*.csv")
+    np.testing.assert_allclose(
+        pd.read_csv(configurations).to_numpy(), answers[list(SPACE.names)].to_numpy()
+    )
     measured = read_measurements(out / "measured" / "Test")
     clean = read_measurements(out / "clean" / "Test")
     assert len(measured.specimens) == 4

@@ -3,7 +3,7 @@
 Every specimen is one CalculiX model (:mod:`femcal.fe.calculix`): a disc whose 13 parameters
 are drawn uniformly from the sampling box, joined to facet joints, ligaments, both or neither
 (:mod:`femcal.fe.posterior`) whose properties are drawn around their defaults. The four
-classes are balanced; the order of the specimens is shuffled, so a row's position says
+classes are balanced; the classes of the draws are shuffled, so a row's position says
 nothing about its class. The jobs run through the durable campaign store
 (:mod:`femcal.fe.campaign`), so a clone rebuilds the cohort from the committed store without
 CalculiX.
@@ -322,8 +322,9 @@ def build_cohort(
             f"{ {c: v for c, v in short.items() if v > 0} } missing (the runs' failures are in "
             f"{fe.store}). Lower cohort.per_class, or narrow the ranges in fe/params.yaml."
         )
-    order = np.random.default_rng([cohort.seed, 2]).permutation(len(kept))
-    kept = kept.iloc[order].reset_index(drop=True)
+    # Rows in config_id order, as write_dataset writes them: specimen i is row i of every
+    # file (the draws' order already interleaves the classes at random).
+    kept = kept.sort_values("config_id").reset_index(drop=True)
     kept.insert(0, "specimen", [str(i) for i in range(len(kept))])
     mine = records[records["config_id"].isin(set(kept["config_id"]))]
     design = kept[["config_id", *space.names]].assign(split="test")
