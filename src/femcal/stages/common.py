@@ -185,7 +185,7 @@ def moment_settings(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]
                 f"{params.get('_path', 'params.yaml')}: moments.{key} must be a number >= 0 "
                 f"per side of the trained moment range, {{below: ..., above: ...}} (or one "
                 f"number for both); got {value!r}. Use the values measured by "
-                "benchmarks/bench_extrapolation.py (reports/extrapolation.md)."
+                "experiments/bench_extrapolation.py (docs/benchmarks/index.md)."
             )
         out[key] = pair
     return out
