@@ -63,6 +63,7 @@ def adapted(surrogate):
     return result, calls
 
 
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 def test_the_error_at_the_calibrated_solutions_falls(adapted):
     result, _ = adapted
     err = result.rounds["error_at_solutions_deg"].to_numpy()
@@ -75,6 +76,7 @@ def test_the_error_at_the_calibrated_solutions_falls(adapted):
     assert s["n_rounds"] == 3 and s["n_new_configurations"] == 30
 
 
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 def test_runs_are_numbered_and_labelled(adapted, surrogate):
     result, calls = adapted
     assert calls == [list(range(1000 + 10 * r, 1010 + 10 * r)) for r in range(3)]
@@ -190,6 +192,7 @@ def test_adapt_errors(surrogate):
         adapt_surrogate(surrogate, targets=np.zeros((1, 4, 3)), **good)
 
 
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 @requires_ccx
 def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
     coarse_campaign, tmp_path, mlflow_store

@@ -214,6 +214,7 @@ def segment_runs(tmp_path_factory) -> dict[str, dict[str, float]]:
     return segment_rom(runs, tmp_path_factory.mktemp("posterior"), levels=LEVELS, jobs=2)
 
 
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 @requires_ccx
 def test_facets_stiffen_extension_and_axial_rotation_not_flexion(segment_runs):
     disc, facets = segment_runs["disc"], segment_runs["facets"]
@@ -223,6 +224,7 @@ def test_facets_stiffen_extension_and_axial_rotation_not_flexion(segment_runs):
     assert ratio["Flexion"] == pytest.approx(1.0, abs=0.01)
 
 
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 @requires_ccx
 def test_ligaments_stiffen_flexion_most_then_lateral_bending(segment_runs):
     """Published direction: removing the posterior ligaments frees flexion most."""

@@ -73,6 +73,7 @@ def test_literature_ranges_are_checked():
 
 
 @requires_ccx
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, mlflow_store):
     _, design_df, result = coarse_campaign
     write_dataset(
@@ -173,6 +174,7 @@ def test_validate_names_a_missing_calibration(tmp_path):
 
 
 @requires_ccx
+@pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step
 def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, mlflow_store):
     """The stage with ``validate.refine``: FE runs per specimen within the budget, never a
     worse FE error than the calibration's, the refinement's tables, and a rerun from the store.
