@@ -29,16 +29,10 @@ import numpy as np
 import pandas as pd
 import torch
 
+from experiments.diagnosis import THOROUGH
+
 REPO = Path(__file__).resolve().parents[1]
 FIRST, FURTHER = 10.0, 2.0
-THOROUGH = {
-    "n_starts": 32,
-    "keep": 4,
-    "max_iter": 40,
-    "effect_keep": 0,
-    "effect_rounds": 5,
-    "effect_shape_starts": 32,
-}
 #: Criterion differences within this are ties the data cannot break.
 TIE = 2.0
 
