@@ -169,11 +169,12 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world):
     ]
     assert [s.specimen for s in runs[1].specimens] == names
     assert [s.verdict for s in runs[1].specimens] == [s.verdict for s in runs[0].specimens]
-    # Batches of other sizes round differently in the last float32 digits (see above).
+    # Batches of other sizes round differently in the last float32 digits (see above), and a
+    # fit may stop a step earlier or later: within 0.001 deg (2 % of the noise).
     np.testing.assert_allclose(
         [s.final_mae_deg for s in runs[1].specimens],
         [s.final_mae_deg for s in runs[0].specimens],
-        atol=1e-4,
+        atol=1e-3,
     )
 
 
