@@ -22,7 +22,13 @@ from femcal.prepare import read_split
 
 BIN = Path(sys.executable).parent
 #: The committed campaign stores (hours of CalculiX): the test runs its own from scratch.
-STORES = ("fe/data/campaign/", "fe/data/adapt-campaign/", "fe/data/validation-campaign/")
+STORES = (
+    "fe/data/campaign/",
+    "fe/data/adapt-campaign/",
+    "fe/data/validation-campaign/",
+    "fe/data/cohort-campaign/",
+    "fe/data/predictive-campaign/",
+)
 
 
 def _run(args, cwd, env):
@@ -55,6 +61,7 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     params["train"]["large"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
     params["train"]["idp"].update({"final_members": 1})
     params["train"]["idp"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
+    params["cohort"]["per_class"] = 1  # one specimen of each of the four classes
     params["calibrate"]["max_plots"] = 1
     params["calibrate"]["options"]["pgd"] = {"n_starts": 2, "max_iter": 3}
     params_path.write_text(yaml.safe_dump(params, sort_keys=False))
@@ -68,7 +75,7 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
 
     first = _run([BIN / "dvc", "repro", "fe/dvc.yaml"], root, env)
     stages = ("simulate", "prepare", "train@large", "train@idp", "adapt", "calibrate@fe-test")
-    for stage in (*stages, "validate"):
+    for stage in (*stages, "validate", "cohort", "predict"):
         assert f"Running stage 'fe/dvc.yaml:{stage}'" in first.stdout
     assert "Running stage 'fetch'" not in first.stdout  # the root pipeline is not run
     fe = root / "fe"
@@ -96,11 +103,16 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     published = pd.read_csv(fe / "reports/validation/idp_published.csv")
     assert "relaxed standing" in set(published["condition"])
     assert {row["condition"] for row in metrics["idp_published"]} == set(published["condition"])
+    # 1-5 Nm curves: the calibration sees 1-3 Nm, FE predicts 4-5 Nm (both Test specimens).
+    predictive = json.loads((fe / "reports/predictive.json").read_text())
+    assert predictive["split_nm"] == 3.0 and predictive["n_specimens"] == 2
+    assert predictive["clean"]["n_points_predicted"] > 0
+    assert json.loads((fe / "reports/cohort.json").read_text())["n_specimens"] == 4
     adapt = json.loads((fe / "reports/adapt.json").read_text())
     assert adapt["n_rounds"] == 1 and adapt["n_new_configurations"] == 3  # 2 targets + 1
     assert (fe / "models/surrogate-champion/MLmodel").is_file()
     assert 1 <= metrics["fe_runs_per_specimen_max"] <= 2
-    assert metrics["fe_confirmed_mae_deg"] <= metrics["fe_mae_deg_calibrated"] + 1e-12
+    assert metrics["fe_fit_residual_deg"] <= metrics["fe_fit_residual_deg_before_refine"] + 1e-12
 
     # One more Test configuration: the campaign resumes (44 jobs from the store, 4 new).
     params["fe"]["splits"]["test"] = 3

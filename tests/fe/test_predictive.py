@@ -8,12 +8,11 @@ import pytest
 
 from femcal.errors import FemcalError, InputDataError
 from femcal.fe.predictive import (
-    FIT_BAND,
-    PREDICT_BAND,
-    band,
+    bands,
     fit_targets,
     predictive_error,
     run_predictive,
+    split_moment,
 )
 from femcal.measurements import from_arrays
 from femcal.schema import PARAMETER_NAMES
@@ -29,18 +28,28 @@ def truth(n: int = 3):
 
 
 def test_bands_are_disjoint_and_inclusive():
-    fit, pred = band(MOMENTS, FIT_BAND), band(MOMENTS, PREDICT_BAND)
+    assert split_moment(MOMENTS) == 5.0
+    fit, pred = bands(MOMENTS, 5.0)
     assert MOMENTS[fit].tolist() == [1.0 + 0.5 * i for i in range(9)]
     assert MOMENTS[pred].tolist() == [5.5 + 0.5 * i for i in range(10)]
     assert not np.any(fit & pred)
 
 
+def test_a_grid_that_stops_at_5_nm_is_split_at_its_middle_moment():
+    grid = [1.0, 2.0, 3.0, 4.0, 5.0]
+    assert split_moment(grid) == 3.0
+    fit, pred = bands(grid, 3.0)
+    assert fit.tolist() == [True, True, True, False, False]
+    assert pred.tolist() == [False, False, False, True, True]
+    assert split_moment([6.0, 8.0, 10.0]) == 8.0
+
+
 def test_fit_targets_keep_only_the_fit_band_and_add_seeded_noise():
     long = truth().to_long()
-    clean = fit_targets(long, 0.05, None)
-    assert clean["moment_nm"].between(*FIT_BAND).all()
-    a = fit_targets(long, 0.05, np.random.default_rng(1))
-    b = fit_targets(long, 0.05, np.random.default_rng(1))
+    clean = fit_targets(long, 0.05, None, 5.0)
+    assert clean["moment_nm"].between(1.0, 5.0).all()
+    a = fit_targets(long, 0.05, np.random.default_rng(1), 5.0)
+    b = fit_targets(long, 0.05, np.random.default_rng(1), 5.0)
     pd.testing.assert_frame_equal(a, b)
     noise = a["rom_deg"] - clean["rom_deg"]
     assert 0.03 < noise.std() < 0.07
@@ -49,8 +58,8 @@ def test_fit_targets_keep_only_the_fit_band_and_add_seeded_noise():
 def test_predictive_error_reads_each_band():
     t = truth().rom_deg
     fe = t.copy()
-    fe[:, :, band(MOMENTS, PREDICT_BAND)] += 0.2
-    out = predictive_error(t, fe, MOMENTS)
+    fe[:, :, bands(MOMENTS, 5.0)[1]] += 0.2
+    out = predictive_error(t, fe, MOMENTS, 5.0)
     assert out["predict_mae_deg"] == pytest.approx(0.2)
     assert out["fit_band_mae_deg"] == pytest.approx(0.0)
     assert out["n_points_predicted"] == 3 * 4 * 10
@@ -80,11 +89,11 @@ def test_run_predictive_with_a_stand_in_model():
     assert out["n_specimens"] == 3 and out["fe_runs_per_specimen_max"] == 1
     assert out["fe_predictive_mae_deg"] == pytest.approx(0.0, abs=1e-9)
     assert 0 < out["fe_predictive_mae_deg_noisy"] < 0.05
-    assert seen["clean"]["moment_nm"].max() <= FIT_BAND[1]
+    assert seen["clean"]["moment_nm"].max() == 5.0 and out["split_nm"] == 5.0
 
 
 def test_curves_without_a_predicted_band_are_refused():
-    short = from_arrays(["S0"], [1.0, 2.0], np.ones((1, 4, 2)))
-    with pytest.raises(InputDataError, match=r"needs points at 1-5 Nm and at 5.5-10 Nm") as info:
+    short = from_arrays(["S0"], [0.5, 1.0], np.ones((1, 4, 2)))
+    with pytest.raises(InputDataError, match=r"needs at least two moments from 1 Nm on") as info:
         run_predictive(short, None, None, 0.05, seed=0)
     assert isinstance(info.value, FemcalError)

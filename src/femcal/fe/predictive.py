@@ -2,16 +2,17 @@
 
 The FE validation of :mod:`femcal.fe.validate` scores the calibrated parameters against the
 very curves they were fitted to (an in-sample residual). Here the held-out specimens' curves
-are split by moment:
+are split by moment at ``split_nm`` (:func:`split_moment`: 5 Nm when the curves go beyond
+it, else the grid's middle moment, so that a 1-5 Nm campaign fits 1-3 Nm and predicts 4-5):
 
-1. the calibration sees only the points at 1-5 Nm (:data:`FIT_BAND`), noise-free or with
-   Gaussian noise of ``noise_deg`` added (seeded);
+1. the calibration sees only the points from :data:`FIT_FROM_NM` up to the split, noise-free
+   or with Gaussian noise of ``noise_deg`` added (seeded);
 2. CalculiX runs the four load cases at the calibrated parameters, one FE run per specimen
    and load case (no refinement, no adaptive sampling aimed at the specimens), with
    ``fe.settings`` but the wall-clock limit of
    :data:`~femcal.fe.runtime.SHARED_MACHINE_TIMEOUT_S`;
-3. the FE curves are compared with the specimens' noise-free curves at 5.5-10 Nm
-   (:data:`PREDICT_BAND`), which the calibration never saw.
+3. the FE curves are compared with the specimens' noise-free curves above the split, which
+   the calibration never saw.
 
 ``python -m femcal.fe.predictive`` (from ``fe/``) calibrates with ``femcal calibrate`` and
 the surrogate given, and writes ``predictive.json``.
@@ -32,10 +33,10 @@ import pandas as pd
 from femcal.errors import InputDataError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 
-#: Moments the calibration sees, Nm (inclusive).
-FIT_BAND = (1.0, 5.0)
-#: Moments the FE prediction is scored at, Nm (inclusive); never seen by the calibration.
-PREDICT_BAND = (5.5, 10.0)
+#: Lowest moment the calibration sees, Nm (the study's protocol starts at 1 Nm).
+FIT_FROM_NM = 1.0
+#: Highest moment the calibration sees when the curves go beyond it, Nm.
+SPLIT_NM = 5.0
 #: First config_id of each variant's FE runs (apart from the campaign's).
 ID_OFFSET = {"clean": 200_000, "noisy": 300_000}
 
@@ -46,16 +47,42 @@ Curves = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 Calibrate = Callable[[pd.DataFrame, str], pd.DataFrame]
 
 
-def band(moments: np.ndarray, limits: tuple[float, float]) -> np.ndarray:
-    """Mask of the moments within ``limits`` (inclusive), shape (m,)."""
+def split_moment(moments: Sequence[float]) -> float:
+    """The highest moment the calibration sees, Nm.
+
+    :data:`SPLIT_NM` when the grid has moments above it; otherwise the middle moment of the
+    grid's points from :data:`FIT_FROM_NM` on, so that points remain on both sides.
+
+    Raises
+    ------
+    InputDataError
+        When fewer than two moments are at or above :data:`FIT_FROM_NM`.
+    """
+    grid = np.sort(np.asarray(moments, dtype=float))
+    usable = grid[grid >= FIT_FROM_NM - 1e-9]
+    if len(usable) < 2:
+        raise InputDataError(
+            f"The held-out curves have moments {grid.tolist()} Nm; predictive validation "
+            f"needs at least two moments from {FIT_FROM_NM:g} Nm on (the lower ones to fit, "
+            f"the upper ones to predict). Validate on curves with more load levels."
+        )
+    if usable[-1] > SPLIT_NM + 1e-9 and usable[0] <= SPLIT_NM + 1e-9:
+        return SPLIT_NM
+    return float(usable[(len(usable) - 1) // 2])
+
+
+def bands(moments: Sequence[float], split_nm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Masks of the fitted (``FIT_FROM_NM..split_nm``) and the predicted (``> split_nm``)
+    moments, each shape (m,); disjoint."""
     moments = np.asarray(moments, dtype=float)
-    return (moments >= limits[0] - 1e-9) & (moments <= limits[1] + 1e-9)
+    fit = (moments >= FIT_FROM_NM - 1e-9) & (moments <= split_nm + 1e-9)
+    return fit, moments > split_nm + 1e-9
 
 
 def fit_targets(
-    long: pd.DataFrame, noise_deg: float, rng: np.random.Generator | None
+    long: pd.DataFrame, noise_deg: float, rng: np.random.Generator | None, split_nm: float
 ) -> pd.DataFrame:
-    """The points the calibration sees: 1-5 Nm, with noise when ``rng`` is given.
+    """The points the calibration sees, with noise when ``rng`` is given.
 
     Parameters
     ----------
@@ -65,13 +92,15 @@ def fit_targets(
         Sd of the Gaussian noise added to ``rom_deg``, deg.
     rng : numpy.random.Generator or None
         None: noise-free.
+    split_nm : float
+        Highest moment seen, Nm (:func:`split_moment`).
 
     Returns
     -------
     pandas.DataFrame
-        The rows within :data:`FIT_BAND` (``idp_mpa`` dropped).
+        The rows from :data:`FIT_FROM_NM` to ``split_nm`` (``idp_mpa`` dropped).
     """
-    out = long[band(long["moment_nm"].to_numpy(), FIT_BAND)].drop(
+    out = long[bands(long["moment_nm"].to_numpy(), split_nm)[0]].drop(
         columns=["idp_mpa"], errors="ignore"
     )
     out = out.reset_index(drop=True)
@@ -80,7 +109,9 @@ def fit_targets(
     return out
 
 
-def predictive_error(truth: np.ndarray, fe: np.ndarray, moments: np.ndarray) -> dict[str, Any]:
+def predictive_error(
+    truth: np.ndarray, fe: np.ndarray, moments: np.ndarray, split_nm: float
+) -> dict[str, Any]:
     """FE-vs-truth MAE in the fitted and in the predicted band.
 
     Parameters
@@ -90,15 +121,17 @@ def predictive_error(truth: np.ndarray, fe: np.ndarray, moments: np.ndarray) -> 
         not reached).
     moments : ndarray, shape (m,)
         Nm.
+    split_nm : float
+        Highest moment the calibration saw, Nm.
 
     Returns
     -------
     dict
-        ``predict_mae_deg`` (5.5-10 Nm), ``fit_band_mae_deg`` (1-5 Nm), per load case and per
-        specimen in the predicted band, and the number of points compared.
+        ``predict_mae_deg`` (above ``split_nm``), ``fit_band_mae_deg`` (up to it), per load
+        case and per specimen in the predicted band, and the number of points compared.
     """
     err = np.abs(np.asarray(fe, float) - np.asarray(truth, float))
-    pred, fit = band(moments, PREDICT_BAND), band(moments, FIT_BAND)
+    fit, pred = bands(moments, split_nm)
     per_specimen = np.nanmean(err[:, :, pred], axis=(1, 2))
     return {
         "predict_mae_deg": float(np.nanmean(err[:, :, pred])),
@@ -119,7 +152,7 @@ def run_predictive(
     seed: int,
     variants: Sequence[str] = ("clean", "noisy"),
 ) -> dict[str, Any]:
-    """Calibrate on 1-5 Nm (noise-free and noisy), FE-predict 5.5-10 Nm, score it.
+    """Calibrate on the lower moments (noise-free and noisy), FE-predict the upper ones.
 
     Parameters
     ----------
@@ -141,31 +174,30 @@ def run_predictive(
     dict
         ``fe_predictive_mae_deg``, ``fe_predictive_mae_deg_noisy``, each variant's details
         (with ``idp_mae_mpa``: FE's IDP at the calibrated parameters against the specimens'
-        under the moments, 0.5-10 Nm, when the truth has IDP), ``n_specimens`` and
+        under all the moments, when the truth has IDP), ``split_nm``, ``n_specimens`` and
         ``fe_runs_per_specimen_max`` (1).
 
     Raises
     ------
     InputDataError
-        When the truth lacks moments in either band.
+        When the truth has too few moments to split (:func:`split_moment`).
     """
     moments = np.asarray(truth.moments, dtype=float)
-    if not band(moments, FIT_BAND).any() or not band(moments, PREDICT_BAND).any():
-        raise InputDataError(
-            f"The held-out curves have moments {moments.tolist()} Nm; predictive validation "
-            f"needs points at {FIT_BAND[0]:g}-{FIT_BAND[1]:g} Nm and at "
-            f"{PREDICT_BAND[0]:g}-{PREDICT_BAND[1]:g} Nm. Validate on curves that span both."
-        )
+    split_nm = split_moment(moments)
     long = truth.to_long()
-    out: dict[str, Any] = {"n_specimens": len(truth.specimens), "noise_deg": float(noise_deg)}
+    out: dict[str, Any] = {
+        "n_specimens": len(truth.specimens),
+        "noise_deg": float(noise_deg),
+        "split_nm": split_nm,
+    }
     rngs = {"clean": None, "noisy": np.random.default_rng([seed, 43])}
     for variant, rng in ((v, rngs[v]) for v in variants):
-        params = calibrate(fit_targets(long, noise_deg, rng), variant)
+        params = calibrate(fit_targets(long, noise_deg, rng, split_nm), variant)
         params = params.set_index(params["specimen"].astype(str)).loc[list(truth.specimens)]
         x = params[list(PARAMETER_NAMES)].to_numpy(dtype=float)
         ids = ID_OFFSET[variant] + np.arange(len(x))
         fe, idp = curves(x, ids)
-        out[variant] = predictive_error(truth.rom_deg, fe, moments)
+        out[variant] = predictive_error(truth.rom_deg, fe, moments, split_nm)
         if truth.idp_mpa is not None:
             out[variant]["idp_mae_mpa"] = float(np.nanmean(np.abs(idp - truth.idp_mpa)))
             out[variant]["idp_mean_abs_mpa"] = float(np.nanmean(np.abs(truth.idp_mpa)))

@@ -461,6 +461,19 @@ class ValidateSettings(Section):
     refine: RefineSettings | None = setting(
         "FE-in-the-loop refinement (null: validate the calibration as is)", None
     )
+    target_noise_deg: Float(ge=0) | None = setting(
+        "sd of the noise in the measurements validated, deg (0: noise-free FE curves; null: "
+        "unknown)",
+        None,
+    )
+    predictive_report: PATH | None = setting(
+        "the predict stage's figures, copied into the metrics file (null: none)", None
+    )
+    adapt_report: PATH | None = setting(
+        "the adapt stage's figures: when adapt.targets are the measurements validated, its "
+        "rounds (one FE run per target each) count in fe_runs_per_specimen_max (null: none)",
+        None,
+    )
 
 
 def _range_of(lo: float, hi: float, unit: str) -> Any:
