@@ -131,7 +131,11 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     )
     curves = s.curves or {}
     dense = curves.get("moments")
-    fig, axes = plt.subplots(2, 4, figsize=(15, 6.6), sharex=True, constrained_layout=True)
+    # Fixed margins rather than a constrained layout: the layout engine and the saved
+    # figure's tight box would each lay the eight axes out again (the plots are most of a
+    # diagnosis' wall time); the tight box still takes the notes below the axes.
+    fig, axes = plt.subplots(2, 4, figsize=(15, 6.6), sharex=True)
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.08, top=0.91, wspace=0.22, hspace=0.1)
     final_label = s.final_label
     sig_dense = None if dense is None else np.interp(np.log(dense), np.log(diag.moments), sig)
     for j, lc in enumerate(LOAD_CASES):
@@ -190,7 +194,7 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     axes[0, 0].set_ylabel("RoM (deg)", fontsize=10)
     axes[1, 0].set_ylabel("measured − model (deg)", fontsize=10)
     axes[0, 0].legend(fontsize=8, loc="upper left")
-    axes[1, 0].legend(fontsize=8, loc="best")
+    axes[1, 0].legend(fontsize=8, loc="upper left", framealpha=0.8)
     title = (
         f"{s.specimen}: verdict {s.verdict}; MAE disc alone {s.baseline_mae_deg:.3f}°"
         + (f", with {final_label} {s.final_mae_deg:.3f}°" if final_label != NONE else "")
