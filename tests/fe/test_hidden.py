@@ -46,6 +46,8 @@ def test_score_counts_right_verdicts_where_the_disc_misses():
     assert out["right_fraction"] == pytest.approx(2 / 3)
     # specimen 2 (ligaments) got "none": 1 of the 4 with an element
     assert out["none_given_effect_fraction"] == pytest.approx(0.25)
+    # ... but the disc alone fits it within 2 sigma: none of the 3 missed ones got "none"
+    assert out["none_given_missed_element_fraction"] == 0.0
     assert out["disc_only_floor_mae_deg"] == pytest.approx(0.1)
     assert out["classes"]["both"]["error_ratio"] == pytest.approx((0.15 + 0.3) / 2 / 0.1)
     assert out["error_ratio_max"] == pytest.approx(2.25)

@@ -16,7 +16,11 @@ The figures (:func:`score`):
     names exactly the class's elements (facets: ``facet_contact``; ligaments:
     ``ligament_tension``; a per-load-case ``:split`` form counts as its effect);
 ``none_given_effect_fraction``
-    among the specimens with an element, the fraction with the verdict ``none``;
+    among the specimens with an element, the fraction with the verdict ``none`` (an element
+    whose effect on the curves is within the noise counts too);
+``none_given_missed_element_fraction``
+    the same among the specimens with an element that the disc alone misses by more than 2
+    sigma (the element is visible in the data);
 ``error_ratio_max``
     the largest, over the classes, of the mean MAE after calibrating with the found effects
     over the disc-only floor: the mean MAE of ``femcal calibrate --effects ''`` on the
@@ -134,6 +138,11 @@ def score(
         "right_fraction": float(missed["right"].mean()) if len(missed) else float("nan"),
         "right_fraction_all": float(df["right"].mean()),
         "none_given_effect_fraction": float((df.loc[element, "found"] == "none").mean()),
+        "none_given_missed_element_fraction": (
+            float((df.loc[element & df["misses"], "found"] == "none").mean())
+            if (element & df["misses"]).any()
+            else float("nan")
+        ),
         "disc_only_floor_mae_deg": floor,
         "error_ratio_max": max(c["error_ratio"] for c in classes.values()),
         "classes": classes,
