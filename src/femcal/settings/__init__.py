@@ -6,22 +6,11 @@ file reports every problem at once, each with the file, the line, the dotted key
 given and what is allowed; an unknown key names the closest valid one, a retired key what
 replaced it (:mod:`~femcal.settings._format` turns pydantic's errors into these messages).
 
-The package, by module:
-
-* :mod:`~femcal.settings.values`: numbers with bounds, lists, URLs, names, paths and moments,
-  and the bases :class:`~femcal.settings.values.Section` and
-  :class:`~femcal.settings.values.Keywords`;
-* :mod:`~femcal.settings.keywords`: the registries' names and the keyword arguments that
-  ``fixed``, ``options`` and ``fe.settings`` set; :mod:`~femcal.settings.search`: Optuna
-  search spaces over them;
-* :mod:`~femcal.settings.root` and :mod:`~femcal.settings.fe`: the sections of
-  ``params.yaml`` and those only ``fe/params.yaml`` has;
-* :mod:`~femcal.settings.params`: the files as a whole (:class:`Settings`,
-  :func:`validate_params`, :func:`load_settings`, :func:`describe_setting`);
-* :mod:`~femcal.settings.env`: the environment variables (:class:`Environment`,
-  :func:`check_environment`).
-
-Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
+Modules: :mod:`~femcal.settings.values` (value types, the bases of sections and keyword
+tables), :mod:`~femcal.settings.keywords` (registries' names, keyword arguments, search
+spaces), :mod:`~femcal.settings.root` and :mod:`~femcal.settings.fe` (the sections),
+:mod:`~femcal.settings.params` (the files as a whole) and :mod:`~femcal.settings.env` (the
+environment variables). Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
 """
 
 from femcal.settings.env import ENVIRONMENT, Environment, check_environment

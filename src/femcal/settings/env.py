@@ -108,7 +108,7 @@ def check_environment(
         if (command is not None and command not in ENVIRONMENT[name].commands) or not value.strip():
             continue
         try:  # this variable alone, as given (a BaseSettings would read the process's too)
-            TypeAdapter(Annotated[(info.annotation, *info.metadata)]).validate_python(value)
+            TypeAdapter(info.rebuild_annotation()).validate_python(value)
         except ValidationError as exc:
             why = exc.errors(include_url=False)[0]["ctx"]["error"]
             problems.append(f"{name}={value!r}: {why}. {name} is {info.description}.")

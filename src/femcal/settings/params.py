@@ -8,13 +8,15 @@ gives the one-line doc of a key.
 
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any, get_args
 
 from pydantic import TypeAdapter, ValidationError
 
 from femcal.errors import ConfigError
+from femcal.settings import fe as _fe
+from femcal.settings import root as _root
 from femcal.settings._format import (
     closest,
     fields_of,
@@ -24,43 +26,16 @@ from femcal.settings._format import (
     raise_problems,
     unknown_message,
 )
-from femcal.settings.fe import AdaptSettings, CohortSettings, FeSettings, ValidateSettings
-from femcal.settings.root import (
-    BaselinesSettings,
-    CalibrateSettings,
-    DataSettings,
-    DiagnoseSettings,
-    EffectsSettings,
-    InterpolationSettings,
-    InverseSettings,
-    MlflowSettings,
-    MomentSettings,
-    PlantSettings,
-    TrainSettings,
-)
 
 #: The file kinds: the root pipeline's params.yaml and the FE pipeline's fe/params.yaml.
 SCHEMAS: tuple[str, ...] = ("root", "fe")
 _BOTH, _ROOT = {"root": True, "fe": True}, {"root": True, "fe": False}
 
-#: The sections of each file kind: section -> (model, file kind -> required in a full file).
-SECTIONS: dict[str, tuple[type, dict[str, bool]]] = {
-    "data": (DataSettings, _BOTH),
-    "mlflow": (MlflowSettings, _BOTH),
-    "train": (TrainSettings, _BOTH),
-    "baselines": (BaselinesSettings, _ROOT),
-    "interpolation": (InterpolationSettings, _ROOT),
-    "inverse": (InverseSettings, _ROOT),
-    "moments": (MomentSettings, _BOTH),
-    "effects": (EffectsSettings, {"root": False, "fe": False}),
-    "calibrate": (CalibrateSettings, _BOTH),
-    "plant": (PlantSettings, _ROOT),
-    "diagnose": (DiagnoseSettings, _ROOT),
-    "fe": (FeSettings, {"fe": True}),
-    "validate": (ValidateSettings, {"fe": True}),
-    "adapt": (AdaptSettings, {"fe": False}),
-    "cohort": (CohortSettings, {"fe": False}),
-}
+
+def _section(files: dict[str, bool]) -> Any:
+    """A field of :class:`Settings`: a section of the file kinds ``files`` (kind -> required
+    in a full file)."""
+    return field(default=None, metadata={"files": files})
 
 
 @dataclass(frozen=True)
@@ -90,21 +65,21 @@ class Settings:
     incomplete: dict[str, tuple[str, ...]] = field(default_factory=dict)
     given: dict[str, tuple[str, ...]] = field(default_factory=dict)
     partial: dict[str, Any] = field(default_factory=dict, repr=False)
-    data: DataSettings | None = None
-    mlflow: MlflowSettings | None = None
-    train: TrainSettings | None = None
-    baselines: BaselinesSettings | None = None
-    interpolation: InterpolationSettings | None = None
-    inverse: InverseSettings | None = None
-    moments: MomentSettings | None = None
-    effects: EffectsSettings | None = None
-    calibrate: CalibrateSettings | None = None
-    plant: PlantSettings | None = None
-    diagnose: DiagnoseSettings | None = None
-    fe: FeSettings | None = None
-    validate: ValidateSettings | None = None
-    adapt: AdaptSettings | None = None
-    cohort: CohortSettings | None = None
+    data: _root.DataSettings | None = _section(_BOTH)
+    mlflow: _root.MlflowSettings | None = _section(_BOTH)
+    train: _root.TrainSettings | None = _section(_BOTH)
+    baselines: _root.BaselinesSettings | None = _section(_ROOT)
+    interpolation: _root.InterpolationSettings | None = _section(_ROOT)
+    inverse: _root.InverseSettings | None = _section(_ROOT)
+    moments: _root.MomentSettings | None = _section(_BOTH)
+    effects: _root.EffectsSettings | None = _section({"root": False, "fe": False})
+    calibrate: _root.CalibrateSettings | None = _section(_BOTH)
+    plant: _root.PlantSettings | None = _section(_ROOT)
+    diagnose: _root.DiagnoseSettings | None = _section(_ROOT)
+    fe: _fe.FeSettings | None = _section({"fe": True})
+    validate: _fe.ValidateSettings | None = _section({"fe": True})
+    adapt: _fe.AdaptSettings | None = _section({"fe": False})
+    cohort: _fe.CohortSettings | None = _section({"fe": False})
 
     def require(self, name: str, *keys: str) -> Any:
         """Section ``name``, which must give ``keys`` (e.g. a split of ``train``).
@@ -118,6 +93,12 @@ class Settings:
         if value is not None and not missing:
             return value
         raise missing_setting(self.path, f"{name}.{missing[0]}" if missing else name)
+
+
+#: The sections of each file kind: section -> (model, file kind -> required in a full file).
+SECTIONS: dict[str, tuple[type, dict[str, bool]]] = {
+    f.name: (get_args(f.type)[0], f.metadata["files"]) for f in fields(Settings) if f.metadata
+}
 
 
 def missing_setting(path: str | Path, key: str) -> ConfigError:
@@ -136,8 +117,7 @@ def _partial(model: type, value: Mapping[str, Any], path: str | Path) -> Any:
     for key, item in value.items():
         if key not in names:  # e.g. the splits of train
             continue
-        info = fields[names[key]]
-        tp = Annotated[(info.annotation, *info.metadata)] if info.metadata else info.annotation
+        tp = fields[names[key]].rebuild_annotation()
         given[names[key]] = TypeAdapter(tp).validate_python(item)
     partial = model.model_construct(**given)
     partial._missing_in = str(path)
@@ -161,23 +141,14 @@ def _sections(
         if key == "_path":
             continue
         if key in SECTIONS and key not in allowed:  # fe or validate in a root params file
-            found.append(
-                (
-                    (key,),
-                    f"{key}: not a section of the root params.yaml; {key} belongs to the "
-                    "FE pipeline's fe/params.yaml",
-                )
-            )
+            message = f"{key}: not a section of the root params.yaml; {key} belongs to the FE "
+            found.append(((key,), message + "pipeline's fe/params.yaml"))
         elif key not in allowed:
             missing = [n for n in required if n not in data]
-            found.append(
-                (
-                    (key,),
-                    unknown_message(
-                        key, (), sorted(allowed), missing=missing, what="unknown section"
-                    ),
-                )
+            message = unknown_message(
+                key, (), sorted(allowed), missing=missing, what="unknown section"
             )
+            found.append(((key,), message))
         else:
             model = SECTIONS[key][0]
             try:

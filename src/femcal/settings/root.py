@@ -18,8 +18,8 @@ from femcal.settings.keywords import (
     CalibratorOptions,
     InverseKeywords,
     SurrogateKeywords,
+    space_of,
 )
-from femcal.settings.search import space_of
 from femcal.settings.values import (
     DATASET_NAME,
     MODEL_URI,
@@ -40,6 +40,7 @@ from femcal.settings.values import (
 
 _BASELINES = ListOf(Literal[BASELINE_MODELS], unique=True)
 _MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
+_SPACE = "Optuna search space over the hyper-parameters"
 
 
 class DataSettings(Section):
@@ -73,9 +74,7 @@ class TrainSplitSettings(Section):
     final_members: Int(1) = setting("ensemble members of the final model", 1)
     register_model: Bool = setting("register the final model in MLflow", False, alias="register")
     fixed: plain(SurrogateKeywords) = setting("NeuralSurrogate hyper-parameters", {})
-    search_space: space_of(SurrogateKeywords) = setting(
-        "Optuna search space over the hyper-parameters", {}
-    )
+    search_space: space_of(SurrogateKeywords) = setting(_SPACE, {})
     seed: Int(0) | None = setting("seed of this split (default: train.seed)", None)
     split: Literal[SPLITS] | None = setting(
         "prepared table trained on (default: the section's name)", None
@@ -162,9 +161,7 @@ class InverseSettings(Section):
     study_name: NAME = setting("Optuna study name", "ivd-inverse")
     register_as: NAME | None = setting("registered name (null: not registered)", None)
     fixed: plain(InverseKeywords) = setting("InverseModel hyper-parameters", {})
-    search_space: space_of(InverseKeywords) = setting(
-        "Optuna search space over the hyper-parameters", {}
-    )
+    search_space: space_of(InverseKeywords) = setting(_SPACE, {})
 
 
 class Sides(Section):

@@ -157,7 +157,11 @@ def Int(ge: int | None = None, le: int | None = None) -> Any:  # noqa: N802 (a t
 
 
 def Float(  # noqa: N802 (a type)
-    ge: float | None = None, le: float | None = None, *, gt: float | None = None, lt=None
+    ge: float | None = None,
+    le: float | None = None,
+    *,
+    gt: float | None = None,
+    lt: float | None = None,
 ) -> Any:
     """A finite number (a YAML int or float, not a bool) in the given interval."""
     return Annotated[float, Strict(), Field(ge=ge, le=le, gt=gt, lt=lt, allow_inf_nan=False)]
