@@ -263,20 +263,6 @@ class InverseCalibratorKeywords(Keywords):
     model_uri: MODEL_URI = keyword("the registered inverse model (train-inverse)")
 
 
-class CalibratorOptions(Section):
-    """``calibrate.options``: each calibrator's keyword options, by method."""
-
-    _unknown: ClassVar[str] = "unknown calibration method"
-    _describe: ClassVar[str] = "calibrator options per method"
-
-    pgd: plain(PgdKeywords) = keyword(PgdKeywords.__doc__)
-    pgd_study: plain(PgdStudyKeywords) = Field(
-        None, alias="pgd-study", description=PgdStudyKeywords.__doc__
-    )
-    ga: plain(GaKeywords) = keyword(GaKeywords.__doc__)
-    inverse: plain(InverseCalibratorKeywords) = keyword(InverseCalibratorKeywords.__doc__)
-
-
 #: The options model of each calibrator, by method.
 CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = {
     "pgd": PgdKeywords,
@@ -284,6 +270,18 @@ CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = {
     "ga": GaKeywords,
     "inverse": InverseCalibratorKeywords,
 }
+#: ``calibrate.options``: the options model of each calibrator, by method.
+CalibratorOptions = create_model(
+    "CalibratorOptions",
+    __base__=Section,
+    __doc__="``calibrate.options``: each calibrator's keyword options, by method.",
+    **{
+        m.replace("-", "_"): (plain(model), Field(None, alias=m, description=model.__doc__))
+        for m, model in CALIBRATOR_OPTIONS.items()
+    },
+)
+CalibratorOptions._unknown = "unknown calibration method"
+CalibratorOptions._describe = "calibrator options per method"
 
 
 # ------------------------------------------------------------------ FE adapter settings
@@ -351,10 +349,6 @@ class FloatEntry(Section):
     """``{type: float, low, high, log}``: a number between low and high."""
 
     _complete: ClassVar[bool] = True
-    _missing: ClassVar[str] = "missing: a float entry needs low and high"
-    _refused: ClassVar[dict[str, str]] = {
-        "choices": "choices are for type categorical; a float has low and high"
-    }
 
     type: Literal["float"] = setting("the Optuna distribution")
     low: Float() = setting("lower bound")
@@ -373,11 +367,6 @@ class FloatEntry(Section):
 class IntEntry(FloatEntry):
     """``{type: int, low, high, log}``: an integer between low and high."""
 
-    _missing: ClassVar[str] = "missing: a int entry needs low and high"
-    _refused: ClassVar[dict[str, str]] = {
-        "choices": "choices are for type categorical; a int has low and high"
-    }
-
     type: Literal["int"] = setting("the Optuna distribution")
 
     @model_validator(mode="after")
@@ -386,6 +375,11 @@ class IntEntry(FloatEntry):
             if float(getattr(self, key)) != int(getattr(self, key)):
                 raise fail(f"an int entry needs integer bounds; got {getattr(self, key):g}", key)
         return self
+
+
+for _entry, _kind in ((FloatEntry, "float"), (IntEntry, "int")):
+    _entry._missing = f"missing: a {_kind} entry needs low and high"
+    _entry._refused = {"choices": f"choices are for type categorical; a {_kind} has low and high"}
 
 
 def _scalar(value: Any) -> Any:

@@ -37,7 +37,6 @@ from femcal.settings._format import Doc, PlainOf, closest, fail, keys_of, yaml_r
 #: SQLAlchemy dialects (their common spellings), for suggestions.
 _SQL_DIALECTS = ("sqlite", "postgresql", "mysql", "mariadb", "oracle", "mssql", "cockroachdb")
 _SQL_URL = re.compile(r"^(?P<dialect>[A-Za-z][A-Za-z0-9_]*)(?:\+(?P<driver>[A-Za-z0-9_]+))?://")
-_SQL_EXAMPLES = "e.g. sqlite:///mlruns/optuna.db or postgresql://user:password@host/optuna"
 
 
 def sqlalchemy_url_problem(value: str) -> str | None:
@@ -48,7 +47,10 @@ def sqlalchemy_url_problem(value: str) -> str | None:
     if m is None:
         if "://" not in value and (value.endswith((".db", ".sqlite", ".sqlite3")) or "/" in value):
             return f"not a SQLAlchemy URL; for a SQLite file write sqlite:///{value}"
-        return f"not a SQLAlchemy URL (dialect[+driver]://...); {_SQL_EXAMPLES}"
+        return (
+            "not a SQLAlchemy URL (dialect[+driver]://...); e.g. sqlite:///mlruns/optuna.db or "
+            "postgresql://user:password@host/optuna"
+        )
     dialect, rest = m["dialect"].lower(), value[m.end() :]
     if dialect == "postgres":
         return f"SQLAlchemy names this dialect postgresql; write postgresql://{rest}"
