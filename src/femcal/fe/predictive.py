@@ -267,11 +267,17 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--n-specimens", type=int, default=16, help="the first n held-out specimens (0: all)"
     )
+    parser.add_argument(
+        "--timeout-s",
+        type=int,
+        default=SHARED_MACHINE_TIMEOUT_S,
+        help="wall-clock limit of one attempt of an FE job, s (part of the job's hash)",
+    )
     parser.add_argument("--metrics-file", type=Path, default=Path("reports/predictive.json"))
     args = parser.parse_args(argv)
     params = load_params("params.yaml")
     fe = fe_runtime(params, {"store": args.store}, "fe")
-    fe = replace(fe, settings={**fe.settings, "timeout_s": SHARED_MACHINE_TIMEOUT_S})
+    fe = replace(fe, settings={**fe.settings, "timeout_s": args.timeout_s})
     truth = read_measurements(args.measurements)
     if args.n_specimens:
         truth = truth.subset(truth.specimens[: args.n_specimens])
