@@ -54,9 +54,6 @@ ALLOWED_MANY_PARAMETERS: dict[str, str] = {
     "src/femcal/calibration/ga.py:ga": (
         "no options object yet (issue 44); one keyword per GA setting"
     ),
-    "src/femcal/calibration/pgd.py:gauss_newton": (
-        "no options object yet (issue 44); pgd() passes its solver settings through"
-    ),
     "src/femcal/fe/adaptive.py:adapt_surrogate": "no options object yet (issue 44)",
     "src/femcal/fe/campaign.py:run_campaign": "no options object yet (issue 44)",
     "src/femcal/fe/validate.py:validate_calibration": "no options object yet (issue 44)",

@@ -48,7 +48,7 @@ from femcal.calibration.base import (
 from femcal.calibration.pgd_options import LOSSES as LOSSES
 from femcal.calibration.pgd_options import OPTIMIZERS as OPTIMIZERS
 from femcal.calibration.pgd_options import SELECT as SELECT
-from femcal.calibration.pgd_options import PgdOptions
+from femcal.calibration.pgd_options import GaussNewtonOptions, PgdOptions
 from femcal.calibration.starts import (
     _bank,
     _combination_starts,
@@ -84,35 +84,22 @@ def gauss_newton(
     problem: CalibrationProblem,
     v: torch.Tensor,
     rows: torch.Tensor,
-    *,
-    max_iter: int,
-    loss: str,
-    tol: float,
-    atol_deg: float | torch.Tensor = 1e-4,
-    l1_delta: float = 1e-3,
-    keep_after: int = 0,
-    keep: int = 0,
-    jacobian_members: int = 0,
-    exact_final: int = 2,
-    keep_first: bool = False,
+    options: GaussNewtonOptions,
 ) -> tuple[torch.Tensor, int, torch.Tensor]:
     """Projected Levenberg-Marquardt from starts ``v`` (B, d) for specimens ``rows`` (B,).
 
-    A row has converged when a kept step lowers the loss by less than ``tol`` (relative), when
-    its RMS residual falls below ``atol_deg``, when the step is below 1e-6 in unit coordinates,
-    or when the damping has grown past 1e6 (no step lowers the loss).
-
-    With ``jacobian_members > 0`` the Jacobian of the first iterations comes from that many
-    ensemble members only (cheaper; steps are still accepted on the exact loss); the last
-    ``exact_final`` iterations use the exact Jacobian. With ``keep_after > 0`` and
-    ``keep > 0``, after ``keep_after`` iterations only the ``keep``
-    best starts of each specimen go on (successive halving: the others stop where they are);
-    with ``keep_first`` each specimen's first start goes on too.
-
-    ``atol_deg`` is one tolerance or one per specimen (a tensor of shape (n_specimens,)).
+    A row has converged when a kept step lowers the loss by less than ``options.tol``
+    (relative), when its RMS residual falls below ``options.atol_deg``, when the step is below
+    1e-6 in unit coordinates, or when the damping has grown past 1e6 (no step lowers the loss).
+    Successive halving and the cheaper Jacobian of the first iterations follow ``options``
+    (:class:`~femcal.calibration.pgd_options.GaussNewtonOptions`).
 
     Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
     """
+    o = options
+    max_iter, loss, tol, atol_deg, l1_delta = o.max_iter, o.loss, o.tol, o.atol_deg, o.l1_delta
+    keep_after, keep, keep_first = o.keep_after, o.keep, o.keep_first
+    jacobian_members, exact_final = o.jacobian_members, o.exact_final
     model = problem.model
     v = v.clone()
     b, d = v.shape
@@ -347,15 +334,17 @@ def pgd(
             problem,
             v0,
             rows,
-            max_iter=max_iter,
-            loss=loss,
-            tol=o.tol,
-            keep_after=keep_after,
-            keep=keep,
-            jacobian_members=o.jacobian_members,
-            exact_final=o.exact_final,
-            atol_deg=(o.fit_tolerance * scale).clamp_min(1e-4).float(),
-            keep_first=_has_effects(model),
+            GaussNewtonOptions(
+                max_iter=max_iter,
+                loss=loss,
+                tol=o.tol,
+                keep_after=keep_after,
+                keep=keep,
+                jacobian_members=o.jacobian_members,
+                exact_final=o.exact_final,
+                atol_deg=(o.fit_tolerance * scale).clamp_min(1e-4).float(),
+                keep_first=_has_effects(model),
+            ),
         )
 
     if optimizer == "gauss-newton":

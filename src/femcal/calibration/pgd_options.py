@@ -1,10 +1,15 @@
-"""The options of :func:`femcal.calibration.pgd.pgd`, each default declared here once."""
+"""The options of :func:`femcal.calibration.pgd.pgd` and of its solver
+:func:`femcal.calibration.pgd.gauss_newton`, each default declared here once."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from femcal.errors import ConfigError
+
+if TYPE_CHECKING:
+    import torch
 
 OPTIMIZERS = ("gauss-newton", "adam", "lbfgsb")
 LOSSES = ("l2", "l1")
@@ -153,3 +158,46 @@ class PgdOptions:
                 f"pgd: retry_alpha must be in [0, 1) (a chi-square p-value; 0: no retry); got "
                 f"{self.retry_alpha}."
             )
+
+
+@dataclass(frozen=True)
+class GaussNewtonOptions:
+    """How :func:`~femcal.calibration.pgd.gauss_newton` iterates and when a row stops.
+
+    Attributes
+    ----------
+    max_iter : int
+        Iterations at most.
+    loss : {"l2", "l1"}
+        Weighted squared or absolute error (L1 by iteratively reweighted Gauss-Newton).
+    tol : float
+        Relative decrease of the loss by a kept step below which a row has converged.
+    atol_deg : float or torch.Tensor
+        RMS residual in degrees below which a row has converged: one tolerance, or one per
+        specimen (a tensor of shape (n_specimens,)).
+    l1_delta : float
+        Floor of the absolute residual (degrees) in the L1 reweighting.
+    keep_after, keep : int
+        Successive halving: after ``keep_after`` iterations only the ``keep`` best starts of
+        each specimen go on, the others stop where they are (0 in either: all starts run to
+        the end).
+    jacobian_members : int
+        The Jacobian of the first iterations comes from that many ensemble members only
+        (cheaper; steps are still accepted on the exact loss); 0: exact throughout.
+    exact_final : int
+        With ``jacobian_members > 0``: the last ``exact_final`` iterations use the exact
+        Jacobian.
+    keep_first : bool
+        With successive halving, each specimen's first start goes on too.
+    """
+
+    max_iter: int
+    loss: str
+    tol: float
+    atol_deg: float | torch.Tensor = 1e-4
+    l1_delta: float = 1e-3
+    keep_after: int = 0
+    keep: int = 0
+    jacobian_members: int = 0
+    exact_final: int = 2
+    keep_first: bool = False

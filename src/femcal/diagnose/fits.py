@@ -12,6 +12,7 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem, hat_trace_and_cov
 from femcal.calibration.pgd import gauss_newton
+from femcal.calibration.pgd_options import GaussNewtonOptions
 from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
 from femcal.effects.composite import EffectModel
@@ -202,7 +203,8 @@ def _fit_from(
     r = len(rows)
     idx = torch.arange(r).repeat_interleave(g)
     keep = {"keep_after": 3, "keep": 2} if g > 2 else {}
-    v, _, _ = gauss_newton(problem, v0, idx, max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
+    options = GaussNewtonOptions(max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
+    v, _, _ = gauss_newton(problem, v0, idx, options)
     with torch.no_grad():
         pred = model.curves(v)
     chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), np.repeat(sigma[rows], g, 0))
