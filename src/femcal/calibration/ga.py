@@ -26,8 +26,12 @@ the box, so the returned parameters are feasible (exceedance 0).
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import logging
+from dataclasses import dataclass
 from numbers import Integral, Real
+from typing import Any
 
 import numpy as np
 import torch
@@ -100,29 +104,12 @@ def _breed(
     return np.concatenate(parts, axis=1)
 
 
-@register_calibrator("ga")
-def ga(
-    problem: CalibrationProblem,
-    *,
-    rng: np.random.Generator,
-    population: int = 20,
-    n_selected: int = 6,
-    n_crossover: int = 4,
-    n_mutation: int = 4,
-    n_immigrants: int = 6,
-    restart_every: int = 10,
-    max_generations: int = 120,
-    target_r2: float = 1.0,
-    fitness: str = "r2",
-) -> Solution:
-    """The study's genetic algorithm for a batch of specimens (see the module docstring).
+@dataclass(frozen=True)
+class GaOptions:
+    """The settings of :func:`ga`, with the study's values as defaults.
 
-    Parameters
+    Attributes
     ----------
-    problem : CalibrationProblem
-        Targets of n specimens, shape (n, 4, m), and the surrogate.
-    rng : numpy.random.Generator
-        Source of every random draw (initial population, pairs, genes, immigrants, restarts).
     population : int
         Individuals per specimen and generation (study: 20).
     n_selected : int
@@ -149,6 +136,83 @@ def ga(
         Ranking of the individuals: the study's mean R² over load cases (higher is better) or
         the weighted MAE in degrees (lower is better). The stopping test is on R² either way.
 
+    Raises
+    ------
+    ConfigError
+        On a count that is not an integer of its minimum, counts that do not add up to
+        ``population``, crossover with fewer than 2 selected, a ``target_r2`` that is not a
+        finite number, or an unknown ``fitness``. The counts are stored as ``int`` and
+        ``target_r2`` as ``float``.
+    """
+
+    population: int = 20
+    n_selected: int = 6
+    n_crossover: int = 4
+    n_mutation: int = 4
+    n_immigrants: int = 6
+    restart_every: int = 10
+    max_generations: int = 120
+    target_r2: float = 1.0
+    fitness: str = "r2"
+
+    def __post_init__(self) -> None:
+        for name, minimum in (
+            ("population", 1),
+            ("n_selected", 1),
+            ("n_crossover", 0),
+            ("n_mutation", 0),
+            ("n_immigrants", 0),
+            ("restart_every", 1),
+            ("max_generations", 1),
+        ):
+            object.__setattr__(self, name, _check_int(name, getattr(self, name), minimum))
+        total = self.n_selected + self.n_crossover + self.n_mutation + self.n_immigrants
+        if total != self.population:
+            raise ConfigError(
+                f"ga: n_selected + n_crossover + n_mutation + n_immigrants = {self.n_selected} + "
+                f"{self.n_crossover} + {self.n_mutation} + {self.n_immigrants} = {total} must "
+                f"equal population = {self.population}."
+            )
+        if self.n_crossover and self.n_selected < 2:
+            raise ConfigError(
+                "ga: crossover needs n_selected >= 2 (pairs of distinct parents); got "
+                f"{self.n_selected}."
+            )
+        target_r2 = self.target_r2
+        if (
+            isinstance(target_r2, bool)
+            or not isinstance(target_r2, Real)
+            or not np.isfinite(float(target_r2))
+        ):
+            raise ConfigError(f"ga: target_r2 must be a finite number; got {target_r2!r}.")
+        object.__setattr__(self, "target_r2", float(target_r2))
+        if self.fitness not in FITNESS:
+            raise ConfigError(
+                f"ga: unknown fitness '{self.fitness}'; choose one of {', '.join(FITNESS)}."
+            )
+
+
+def ga(
+    problem: CalibrationProblem,
+    options: GaOptions | None = None,
+    *,
+    rng: np.random.Generator,
+    **overrides: Any,
+) -> Solution:
+    """The study's genetic algorithm for a batch of specimens (see the module docstring).
+
+    Parameters
+    ----------
+    problem : CalibrationProblem
+        Targets of n specimens, shape (n, 4, m), and the surrogate.
+    options : GaOptions, optional
+        Population, breeding, restarts, stopping and fitness (default: :class:`GaOptions`'s,
+        the study's).
+    rng : numpy.random.Generator
+        Source of every random draw (initial population, pairs, genes, immigrants, restarts).
+    **overrides
+        Fields of :class:`GaOptions` replacing those of ``options``.
+
     Returns
     -------
     Solution
@@ -157,34 +221,20 @@ def ga(
         ``target_r2``; ``info["generations"]``: generations run per specimen (list of n ints).
         No identifiability ranges.
     """
-    population = _check_int("population", population, 1)
-    n_selected = _check_int("n_selected", n_selected, 1)
-    n_crossover = _check_int("n_crossover", n_crossover, 0)
-    n_mutation = _check_int("n_mutation", n_mutation, 0)
-    n_immigrants = _check_int("n_immigrants", n_immigrants, 0)
-    restart_every = _check_int("restart_every", restart_every, 1)
-    max_generations = _check_int("max_generations", max_generations, 1)
-    total = n_selected + n_crossover + n_mutation + n_immigrants
-    if total != population:
-        raise ConfigError(
-            f"ga: n_selected + n_crossover + n_mutation + n_immigrants = {n_selected} + "
-            f"{n_crossover} + {n_mutation} + {n_immigrants} = {total} must equal "
-            f"population = {population}."
-        )
-    if n_crossover and n_selected < 2:
-        raise ConfigError(
-            f"ga: crossover needs n_selected >= 2 (pairs of distinct parents); got {n_selected}."
-        )
-    if (
-        isinstance(target_r2, bool)
-        or not isinstance(target_r2, Real)
-        or not np.isfinite(float(target_r2))
-    ):
-        raise ConfigError(f"ga: target_r2 must be a finite number; got {target_r2!r}.")
-    target_r2 = float(target_r2)
-    if fitness not in FITNESS:
-        raise ConfigError(f"ga: unknown fitness '{fitness}'; choose one of {', '.join(FITNESS)}.")
+    o = dataclasses.replace(options or GaOptions(), **overrides)
+    best_u, best_r2, generations = _evolve(problem, o, rng)
+    return _solution(problem, o, best_u, best_r2, generations)
 
+
+def _evolve(
+    problem: CalibrationProblem, o: GaOptions, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the generations of every specimen.
+
+    Returns the best individual of each specimen in the unit box (n, d), its mean R² (n,) and
+    the generations run per specimen (n,) ints.
+    """
+    population, target_r2, fitness = o.population, o.target_r2, o.fitness
     n, d = problem.n_specimens, problem.dim
     u = rng.random((n, population, d))
     best_u = np.zeros((n, d))
@@ -192,7 +242,7 @@ def ga(
     best_key = np.full(n, np.inf)  # lower is better
     generations = np.zeros(n, dtype=int)
     running = np.ones(n, dtype=bool)
-    for gen in range(1, max_generations + 1):
+    for gen in range(1, o.max_generations + 1):
         idx = np.flatnonzero(running)
         ua = u[idx]
         r2, mae = _evaluate(problem, ua, idx)
@@ -212,11 +262,11 @@ def ga(
             int(running.sum()),
             float(best_r2.mean()),
         )
-        if gen == max_generations or not running.any():
+        if gen == o.max_generations or not running.any():
             break
         # Breed every specimen evaluated this generation (a fixed number of draws per
         # generation and specimen), keep only those still running.
-        if gen % restart_every == 0:
+        if gen % o.restart_every == 0:
             fresh = rng.random((idx.size, population - 1, d))
             nxt = np.concatenate([best_u[idx, None, :], fresh], axis=1)
         else:
@@ -224,22 +274,35 @@ def ga(
                 ua,
                 key,
                 rng,
-                n_selected=n_selected,
-                n_crossover=n_crossover,
-                n_mutation=n_mutation,
-                n_immigrants=n_immigrants,
+                n_selected=o.n_selected,
+                n_crossover=o.n_crossover,
+                n_mutation=o.n_mutation,
+                n_immigrants=o.n_immigrants,
             )
         keep = running[idx]
         u[idx[keep]] = nxt[keep]
+    return best_u, best_r2, generations
 
+
+def _solution(
+    problem: CalibrationProblem,
+    o: GaOptions,
+    best_u: np.ndarray,
+    best_r2: np.ndarray,
+    generations: np.ndarray,
+) -> Solution:
+    """The :class:`Solution` of :func:`ga` from each specimen's best individual ``best_u``
+    (n, d, unit box), its mean R² ``best_r2`` (n,) and its generations run (n,)."""
+    n = problem.n_specimens
     model = problem.model
     x = model.space.clip(model.linear_unit_to_physical(np.clip(best_u, 0.0, 1.0)))
-    success = best_r2 >= target_r2
+    success = best_r2 >= o.target_r2
     nit = int(generations.max()) if n else 0
     message = (
-        f"ga: population {population} ({n_selected} selected, {n_crossover} crossover, "
-        f"{n_mutation} mutation, {n_immigrants} immigrants), restart every {restart_every}, "
-        f"{nit} generations at most, {int(success.sum())}/{n} reached mean R² >= {target_r2:g}"
+        f"ga: population {o.population} ({o.n_selected} selected, {o.n_crossover} crossover, "
+        f"{o.n_mutation} mutation, {o.n_immigrants} immigrants), restart every "
+        f"{o.restart_every}, {nit} generations at most, {int(success.sum())}/{n} reached mean "
+        f"R² >= {o.target_r2:g}"
     )
     logger.info(message)
     return Solution(
@@ -251,14 +314,35 @@ def ga(
             "generations": generations.tolist(),
             "generations_mean": float(generations.mean()) if n else 0.0,
             "best_r2": best_r2.tolist(),
-            "fitness": fitness,
-            "population": population,
-            "n_selected": n_selected,
-            "n_crossover": n_crossover,
-            "n_mutation": n_mutation,
-            "n_immigrants": n_immigrants,
-            "restart_every": restart_every,
-            "max_generations": max_generations,
-            "target_r2": target_r2,
+            "fitness": o.fitness,
+            "population": o.population,
+            "n_selected": o.n_selected,
+            "n_crossover": o.n_crossover,
+            "n_mutation": o.n_mutation,
+            "n_immigrants": o.n_immigrants,
+            "restart_every": o.restart_every,
+            "max_generations": o.max_generations,
+            "target_r2": o.target_r2,
         },
     )
+
+
+@register_calibrator("ga")
+def calibrate_ga(
+    problem: CalibrationProblem, *, rng: np.random.Generator, **options: Any
+) -> Solution:
+    """The registered ``ga`` calibrator: :func:`ga` with the keywords of :class:`GaOptions`."""
+    return ga(problem, GaOptions(**options), rng=rng)
+
+
+calibrate_ga.__signature__ = inspect.Signature(
+    [
+        *list(inspect.signature(ga).parameters.values())[:1],
+        list(inspect.signature(ga).parameters.values())[2],
+        *(
+            inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default)
+            for f in dataclasses.fields(GaOptions)
+        ),
+    ],
+    return_annotation=Solution,
+)
