@@ -32,8 +32,6 @@ ALLOWED_LONG_MODULES: dict[str, str] = {}
 
 #: Functions over MAX_FUNCTION_LINES: "src/femcal/<path>.py:<qualified name>" -> why.
 ALLOWED_LONG_FUNCTIONS: dict[str, str] = {
-    "src/femcal/calibration/pgd_study.py:pgd_study": "not split yet (issue 44)",
-    "src/femcal/diagnose/discrepancy.py:fit_discrepancy": "not split yet (issue 44)",
     "src/femcal/diagnose/explain.py:_next_measurement": "not split yet (issue 44)",
     "src/femcal/fe/adaptive.py:adapt_surrogate": "not split yet (issue 44)",
     "src/femcal/fe/campaign.py:run_campaign": "not split yet (issue 44)",
@@ -41,11 +39,6 @@ ALLOWED_LONG_FUNCTIONS: dict[str, str] = {
     "src/femcal/fe/geometry.py:build_mesh": "not split yet (issue 44)",
     "src/femcal/fe/refine.py:refine_with_fe": "not split yet (issue 44)",
     "src/femcal/fe/validate.py:validate_calibration": "not split yet (issue 44)",
-    "src/femcal/inverse/model.py:InverseModel.fit": "not split yet (issue 44)",
-    "src/femcal/inverse/train.py:train_inverse": "not split yet (issue 44)",
-    "src/femcal/measurements/data.py:_validated": "not split yet (issue 44)",
-    "src/femcal/surrogates/nn.py:NeuralSurrogate.fit": "not split yet (issue 44)",
-    "src/femcal/train.py:train_surrogate": "not split yet (issue 44)",
 }
 
 #: Public functions over MAX_PUBLIC_PARAMETERS: "src/femcal/<path>.py:<qualified name>" -> why.

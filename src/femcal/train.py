@@ -101,6 +101,47 @@ def table_fingerprint(table: pd.DataFrame) -> str:
     return hashlib.sha256(h.tobytes()).hexdigest()[:12]
 
 
+def _checked_rows(
+    table: pd.DataFrame, target: str, search: StudySearch, final_members: int
+) -> pd.DataFrame:
+    """The rows of ``table`` that :func:`train_surrogate` learns ``target`` from: those that
+    did not fail and, for a target other than ``rom_deg``, where it is finite.
+
+    Raises
+    ------
+    ConfigError
+        On a negative ``n_trials``, ``final_members < 1``, an unknown ``target``, a table
+        without the target's column, or ``idp_mpa`` with a log target (fixed or searched).
+    """
+    if search.n_trials < 0 or final_members < 1:
+        raise ConfigError(
+            f"n_trials must be >= 0 and final_members >= 1; got {search.n_trials} and "
+            f"{final_members}."
+        )
+    if target not in TARGETS:
+        raise ConfigError(
+            f"train: target {target!r} is not an output a surrogate can learn; use one of "
+            f"{sorted(TARGETS)}."
+        )
+    data = ok_rows(table)
+    if target != "rom_deg":
+        if target not in data.columns:
+            raise ConfigError(
+                f"train: the table has no column {target!r} to learn; an FE campaign's prepared "
+                "split has it (femcal simulate, then femcal prepare)."
+            )
+        data = data[np.isfinite(data[target].to_numpy(dtype=float))].reset_index(drop=True)
+    searched = "log_target" in search.search_space
+    if target == "idp_mpa" and (search.fixed.get("log_target", True) or searched):
+        raise ConfigError(
+            "train: target 'idp_mpa' needs fixed log_target: false (a nucleus pressure under a "
+            f"pure moment can be <= 0); got fixed log_target={search.fixed.get('log_target')!r}"
+            f"{' and log_target in the search space' if searched else ''}. Set it in the "
+            "train section's fixed keywords."
+        )
+    return data
+
+
 def train_surrogate(
     table: pd.DataFrame,
     space: ParameterSpace,
@@ -153,33 +194,8 @@ def train_surrogate(
     search = StudySearch(**study)
     seed = search.seed
     t0 = time.perf_counter()
-    if search.n_trials < 0 or final_members < 1:
-        raise ConfigError(
-            f"n_trials must be >= 0 and final_members >= 1; got {search.n_trials} and "
-            f"{final_members}."
-        )
-    if target not in TARGETS:
-        raise ConfigError(
-            f"train: target {target!r} is not an output a surrogate can learn; use one of "
-            f"{sorted(TARGETS)}."
-        )
-    data = ok_rows(table)
-    if target != "rom_deg":
-        if target not in data.columns:
-            raise ConfigError(
-                f"train: the table has no column {target!r} to learn; an FE campaign's prepared "
-                "split has it (femcal simulate, then femcal prepare)."
-            )
-        data = data[np.isfinite(data[target].to_numpy(dtype=float))].reset_index(drop=True)
+    data = _checked_rows(table, target, search, final_members)
     metric = f"val_mae_{TARGETS[target]}"
-    searched = "log_target" in search.search_space
-    if target == "idp_mpa" and (search.fixed.get("log_target", True) or searched):
-        raise ConfigError(
-            "train: target 'idp_mpa' needs fixed log_target: false (a nucleus pressure under a "
-            f"pure moment can be <= 0); got fixed log_target={search.fixed.get('log_target')!r}"
-            f"{' and log_target in the search space' if searched else ''}. Set it in the "
-            "train section's fixed keywords."
-        )
     train_df, val_df = validation_split(data, fraction=val_fraction, seed=seed)
     feature_cols = ["config_id", "load_case", "moment_nm", *space.names]
     X_tr, y_tr = train_df[feature_cols], train_df[target].to_numpy(dtype=float)

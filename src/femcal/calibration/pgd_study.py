@@ -123,46 +123,8 @@ def pgd_study(
     k = mask.sum(1, keepdim=True).float()  # measured rows per start
     y = problem.target[rows].reshape(len(rows), -1)
     clip = projection == "clip"
-    if optimizer == "adam":
-        m1 = torch.zeros((len(rows), y.shape[1], d))
-        m2 = torch.zeros_like(m1)
-        for t in range(1, steps + 1):
-            v, dvdu = _unit_chain(problem, u)
-            f, jac = problem.model.curves_jacobian(v)
-            r = (f.reshape(len(rows), -1) - y) * mask
-            jac_u = jac.reshape(len(rows), -1, d) * dvdu[:, None, :]
-            g = (w * _row_loss_grad(r, loss) / k)[..., None] * jac_u  # (B, R, d)
-            if bounds_penalty:
-                g = g + bounds_penalty * _penalty_grad(u)[:, None, :]
-            g = g * mask[..., None]
-            m1.mul_(_BETA1).add_(g, alpha=1 - _BETA1)
-            m2.mul_(_BETA2).addcmul_(g, g, value=1 - _BETA2)
-            step = lr * (m1 / (1 - _BETA1**t)) / ((m2 / (1 - _BETA2**t)).sqrt() + _EPS)
-            rows_x = u[:, None, :] - step  # every row's own update
-            u = (rows_x * mask[..., None]).sum(1) / k  # the mean over the measured rows
-            if clip:
-                u = u.clamp(0.0, 1.0)
-    else:
-        p = u.clone().requires_grad_(True)
-        opt = torch.optim.LBFGS([p], lr=lr, max_iter=1, history_size=10)
-
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            f = problem.model.curves(problem.model.from_linear_unit(p))
-            r = (f.reshape(len(rows), -1) - y) * mask
-            per = (w * (r.abs() if loss == "l1" else r**2)).sum(1) / k[:, 0]
-            total = per.sum()
-            if bounds_penalty:
-                total = total + bounds_penalty * (torch.relu(p - 1).sum() + torch.relu(-p).sum())
-            total.backward()
-            return total
-
-        for _ in range(steps):
-            opt.step(closure)
-            with torch.no_grad():
-                if clip:
-                    p.clamp_(0.0, 1.0)
-        u = p.detach()
+    run = _adam if optimizer == "adam" else _lbfgs
+    u = run(problem, u, (y, mask, w, k), steps, lr, loss, bounds_penalty, clip)
     with torch.no_grad():
         scores = problem.scores(problem.model.curves(problem.model.from_linear_unit(u)), rows)
     key = -scores["r2"] if select == "r2" else scores["mae"]
@@ -190,3 +152,82 @@ def pgd_study(
             "optimizer": optimizer,
         },
     )
+
+
+def _adam(
+    problem: CalibrationProblem,
+    u: torch.Tensor,
+    rows_data: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+    steps: int,
+    lr: float,
+    loss: str,
+    bounds_penalty: float,
+    clip: bool,
+) -> torch.Tensor:
+    """The study's projected Adam from the starts ``u`` (B, d) in the linear unit box.
+
+    ``rows_data`` holds the targets ``y`` (B, R), the measured-row ``mask`` (B, R), the weights
+    ``w`` (B, R) and the measured rows per start ``k`` (B, 1). Each load-case row takes its own
+    Adam step; the start moves to their mean over the measured rows (clipped to the box with
+    ``clip``). Returns the final starts (B, d).
+    """
+    y, mask, w, k = rows_data
+    b, d = u.shape
+    m1 = torch.zeros((b, y.shape[1], d))
+    m2 = torch.zeros_like(m1)
+    for t in range(1, steps + 1):
+        v, dvdu = _unit_chain(problem, u)
+        f, jac = problem.model.curves_jacobian(v)
+        r = (f.reshape(b, -1) - y) * mask
+        jac_u = jac.reshape(b, -1, d) * dvdu[:, None, :]
+        g = (w * _row_loss_grad(r, loss) / k)[..., None] * jac_u  # (B, R, d)
+        if bounds_penalty:
+            g = g + bounds_penalty * _penalty_grad(u)[:, None, :]
+        g = g * mask[..., None]
+        m1.mul_(_BETA1).add_(g, alpha=1 - _BETA1)
+        m2.mul_(_BETA2).addcmul_(g, g, value=1 - _BETA2)
+        step = lr * (m1 / (1 - _BETA1**t)) / ((m2 / (1 - _BETA2**t)).sqrt() + _EPS)
+        rows_x = u[:, None, :] - step  # every row's own update
+        u = (rows_x * mask[..., None]).sum(1) / k  # the mean over the measured rows
+        if clip:
+            u = u.clamp(0.0, 1.0)
+    return u
+
+
+def _lbfgs(
+    problem: CalibrationProblem,
+    u: torch.Tensor,
+    rows_data: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
+    steps: int,
+    lr: float,
+    loss: str,
+    bounds_penalty: float,
+    clip: bool,
+) -> torch.Tensor:
+    """torch's L-BFGS (one iteration per step) on the summed row losses from the starts ``u``
+    (B, d) in the linear unit box, clipped to the box after every step with ``clip``.
+
+    ``rows_data`` as in :func:`_adam`. Returns the final starts (B, d).
+    """
+    y, mask, w, k = rows_data
+    b = len(u)
+    p = u.clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([p], lr=lr, max_iter=1, history_size=10)
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        f = problem.model.curves(problem.model.from_linear_unit(p))
+        r = (f.reshape(b, -1) - y) * mask
+        per = (w * (r.abs() if loss == "l1" else r**2)).sum(1) / k[:, 0]
+        total = per.sum()
+        if bounds_penalty:
+            total = total + bounds_penalty * (torch.relu(p - 1).sum() + torch.relu(-p).sum())
+        total.backward()
+        return total
+
+    for _ in range(steps):
+        opt.step(closure)
+        with torch.no_grad():
+            if clip:
+                p.clamp_(0.0, 1.0)
+    return p.detach()

@@ -20,7 +20,7 @@ it resembles.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -174,6 +174,102 @@ def _whiten(chol: np.ndarray, a: np.ndarray) -> np.ndarray:
     return np.linalg.solve(chol, a)  # chol is small (P <= 4 x 20); solve is exact enough
 
 
+def _start_amplitude(
+    amplitude_deg: np.ndarray | float | str | None,
+    r3: np.ndarray,
+    mask: np.ndarray,
+    sig: np.ndarray,
+) -> np.ndarray:
+    """The GP amplitude (n, 4) in degrees that :func:`fit_discrepancy` starts from.
+
+    ``r3`` (n, 4, m) are the residuals at the start (0 where not measured), ``mask`` (n, 4, m)
+    the measured points and ``sig`` (n, 4, m) their noise sd (deg). With ``amplitude_deg``
+    None or ``"ml"``: per load case, the RMS misfit beyond the noise, clipped to
+    [min(sig), 5] deg; otherwise ``amplitude_deg`` broadcast to (n, 4).
+
+    Raises
+    ------
+    ValueError
+        On a string other than ``"ml"``.
+    """
+    n, n_lc, _ = r3.shape
+    ml = isinstance(amplitude_deg, str)
+    if ml and amplitude_deg != "ml":
+        raise ValueError(
+            f"amplitude_deg must be a number, an array or 'ml'; got {amplitude_deg!r}."
+        )
+    if amplitude_deg is None or ml:
+        # Per load case: the RMS misfit the model leaves there beyond the noise.
+        count = mask.sum(2).clip(1)  # (n, 4)
+        noise2 = (np.where(mask, sig, 0.0) ** 2).sum(2)
+        amp = np.sqrt(np.clip(((r3**2).sum(2) - noise2) / count, 0.0, None))
+        return np.clip(amp, float(np.min(sig)), 5.0)
+    amp = np.asarray(amplitude_deg, dtype=float)
+    return np.broadcast_to(amp[:, None] if amp.ndim == 1 else amp, (n, n_lc)).copy()
+
+
+def _levenberg_marquardt(
+    model,
+    state: tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray],
+    chol: np.ndarray,
+    residual: Callable[[torch.Tensor], np.ndarray],
+    flat_mask: np.ndarray,
+    max_iter: int,
+) -> np.ndarray:
+    """Projected Levenberg-Marquardt of the model's parameters under the covariance with
+    Cholesky factor ``chol`` (n, P, P), at most ``max_iter`` iterations.
+
+    ``state`` holds the parameters ``v`` (n, d, unit coordinates), the curves ``pred``
+    (n, 4, m), their Jacobian ``jac`` and the residuals ``r`` (n, P), all updated in place
+    where a step lowers the cost. ``residual`` maps curves to residuals (n, P); ``flat_mask``
+    (n, P) marks the measured points. Returns the cost ``r^T C^-1 r`` (n,) at the end.
+    """
+    v, pred, jac, r = state
+    n, d = v.shape
+
+    def cost_of(res: np.ndarray) -> np.ndarray:
+        w = _whiten(chol, res[..., None])[..., 0]
+        return (w**2).sum(1)
+
+    cost = cost_of(r)
+    lam = np.full(n, 1e-3)
+    for _ in range(max_iter):
+        jm = (jac.double().numpy().reshape(n, -1, d)) * flat_mask[..., None]
+        rw = _whiten(chol, r[..., None])[..., 0]  # (n, P)
+        jw = _whiten(chol, jm)  # (n, P, d)
+        hess = np.einsum("npi,npj->nij", jw, jw)
+        grad = np.einsum("npi,np->ni", jw, rw)  # descent direction of r = y - f: +J^T r
+        vn = v.double().numpy()
+        blocked = ((vn <= 0) & (grad < 0)) | ((vn >= 1) & (grad > 0))
+        free = (~blocked).astype(float)
+        hf = hess * free[:, :, None] * free[:, None, :]
+        damp = lam[:, None] * (np.diagonal(hf, axis1=1, axis2=2) + 1e-6) + 1e-9
+        system = hf + np.einsum("ni,ij->nij", damp + (1 - free), np.eye(d))
+        step = np.linalg.solve(system, (grad * free)[..., None])[..., 0]
+        v_new = torch.tensor(np.clip(vn + step, 0.0, 1.0), dtype=torch.float32)
+        with torch.no_grad():
+            p_new = model.curves(v_new)
+        r_new = residual(p_new)
+        c_new = np.nan_to_num(cost_of(r_new), nan=np.inf)
+        ok = c_new < cost
+        if not ok.any():
+            lam *= 4
+            if np.all(lam > 1e6):
+                break
+            continue
+        idx = torch.as_tensor(np.flatnonzero(ok))
+        v[idx] = v_new[idx]
+        pn, jn = model.curves_jacobian(v[idx])
+        pred[idx], jac[idx] = pn, jn
+        r[ok] = r_new[ok]
+        gain = (cost - c_new) / np.maximum(cost, 1e-30)
+        cost = np.where(ok, c_new, cost)
+        lam = np.where(ok, lam / 3, lam * 4)
+        if np.all(~ok | (gain < 1e-5)):
+            break
+    return cost
+
+
 def fit_discrepancy(
     model,
     v0: torch.Tensor,
@@ -228,29 +324,14 @@ def fit_discrepancy(
     x = np.log(model.moments.double().numpy())
     flat_mask = mask.reshape(n, -1)
     v = v0.detach().clone().float()
-    d = v.shape[1]
 
     def residual(pred: torch.Tensor) -> np.ndarray:
         return np.where(mask, y - pred.double().numpy(), 0.0).reshape(n, -1)
 
     pred, jac = model.curves_jacobian(v)
     r = residual(pred)
-    n_lc = len(LOAD_CASES)
     ml = isinstance(amplitude_deg, str)
-    if ml and amplitude_deg != "ml":
-        raise ValueError(
-            f"amplitude_deg must be a number, an array or 'ml'; got {amplitude_deg!r}."
-        )
-    if amplitude_deg is None or ml:
-        # Per load case: the RMS misfit the model leaves there beyond the noise.
-        count = mask.sum(2).clip(1)  # (n, 4)
-        r3 = r.reshape(n, n_lc, m)
-        noise2 = (np.where(mask, sig, 0.0) ** 2).sum(2)
-        amp = np.sqrt(np.clip(((r3**2).sum(2) - noise2) / count, 0.0, None))
-        amp = np.clip(amp, float(np.min(sig)), 5.0)
-    else:
-        amp = np.asarray(amplitude_deg, dtype=float)
-        amp = np.broadcast_to(amp[:, None] if amp.ndim == 1 else amp, (n, n_lc)).copy()
+    amp = _start_amplitude(amplitude_deg, r.reshape(n, n_lc, m), mask, sig)
     for _round in range(ml_rounds if ml else 1):
         if ml:
             amp = ml_amplitude(
@@ -263,47 +344,7 @@ def fit_discrepancy(
             )
         cov = _covariance(mask, sig, x, amp, length_scale)
         chol = np.linalg.cholesky(cov)
-
-        def cost_of(res: np.ndarray, chol=chol) -> np.ndarray:
-            w = _whiten(chol, res[..., None])[..., 0]
-            return (w**2).sum(1)
-
-        cost = cost_of(r)
-        lam = np.full(n, 1e-3)
-        for _ in range(max_iter):
-            jm = (jac.double().numpy().reshape(n, -1, d)) * flat_mask[..., None]
-            rw = _whiten(chol, r[..., None])[..., 0]  # (n, P)
-            jw = _whiten(chol, jm)  # (n, P, d)
-            hess = np.einsum("npi,npj->nij", jw, jw)
-            grad = np.einsum("npi,np->ni", jw, rw)  # descent direction of r = y - f: +J^T r
-            vn = v.double().numpy()
-            blocked = ((vn <= 0) & (grad < 0)) | ((vn >= 1) & (grad > 0))
-            free = (~blocked).astype(float)
-            hf = hess * free[:, :, None] * free[:, None, :]
-            damp = lam[:, None] * (np.diagonal(hf, axis1=1, axis2=2) + 1e-6) + 1e-9
-            system = hf + np.einsum("ni,ij->nij", damp + (1 - free), np.eye(d))
-            step = np.linalg.solve(system, (grad * free)[..., None])[..., 0]
-            v_new = torch.tensor(np.clip(vn + step, 0.0, 1.0), dtype=torch.float32)
-            with torch.no_grad():
-                p_new = model.curves(v_new)
-            r_new = residual(p_new)
-            c_new = np.nan_to_num(cost_of(r_new), nan=np.inf)
-            ok = c_new < cost
-            if not ok.any():
-                lam *= 4
-                if np.all(lam > 1e6):
-                    break
-                continue
-            idx = torch.as_tensor(np.flatnonzero(ok))
-            v[idx] = v_new[idx]
-            pn, jn = model.curves_jacobian(v[idx])
-            pred[idx], jac[idx] = pn, jn
-            r[ok] = r_new[ok]
-            gain = (cost - c_new) / np.maximum(cost, 1e-30)
-            cost = np.where(ok, c_new, cost)
-            lam = np.where(ok, lam / 3, lam * 4)
-            if np.all(~ok | (gain < 1e-5)):
-                break
+        cost = _levenberg_marquardt(model, (v, pred, jac, r), chol, residual, flat_mask, max_iter)
     alpha = np.linalg.solve(np.swapaxes(chol, 1, 2), _whiten(chol, r[..., None]))[..., 0]
     k_pts = _kernel(x, x, amp, length_scale) * flat_mask[:, :, None] * flat_mask[:, None, :]
     delta = np.einsum("nij,nj->ni", k_pts, alpha).reshape(n, n_lc, m)

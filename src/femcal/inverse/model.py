@@ -290,26 +290,7 @@ class InverseModel(BaseEstimator):
         m = np.asarray(moments, dtype=float).reshape(-1)
         if m.size == 0 or not np.all(np.isfinite(m)) or np.any(m <= 0):
             raise InputDataError(f"moments must be finite and > 0 Nm; got {m.tolist()}.")
-        rom = self._check_rom(X_rom, m.size, "X_rom")
-        unit = self._check_unit(U, rom.shape[0], "U")
-        if (X_val is None) != (U_val is None):
-            raise InputDataError("Give both X_val and U_val, or neither.")
-        if X_val is not None:
-            vrom = self._check_rom(X_val, m.size, "X_val")
-            vunit = self._check_unit(U_val, vrom.shape[0], "U_val")
-            if vunit.shape[1] != unit.shape[1]:
-                raise InputDataError(
-                    f"U_val has {vunit.shape[1]} columns and U {unit.shape[1]}; give the same "
-                    "parameters."
-                )
-        else:
-            n = rom.shape[0]
-            n_val = int(round(float(self.val_fraction) * n))
-            n_val = min(max(n_val, 1), n - 1) if self.val_fraction > 0 and n > 1 else 0
-            perm = np.random.default_rng(self.seed).permutation(n)
-            val, train = perm[:n_val], perm[n_val:]
-            vrom, vunit = rom[val], unit[val]
-            rom, unit = rom[train], unit[train]
+        rom, unit, vrom, vunit = self._training_data(X_rom, U, m.size, X_val, U_val)
         has_val = vrom.shape[0] > 0
 
         t = np.log(rom) if self.log_input else rom
@@ -373,6 +354,42 @@ class InverseModel(BaseEstimator):
             self.best_val_mae_,
         )
         return self
+
+    def _training_data(
+        self,
+        X_rom: np.ndarray,
+        U: np.ndarray,
+        n_moments: int,
+        X_val: np.ndarray | None,
+        U_val: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The checked training and validation data of :meth:`fit`: curves (N, 4, m) in
+        degrees and unit-box parameters (N, d) each.
+
+        Without ``X_val``/``U_val``, ``val_fraction`` of the samples (a permutation drawn with
+        ``seed``) are held out for validation.
+        """
+        rom = self._check_rom(X_rom, n_moments, "X_rom")
+        unit = self._check_unit(U, rom.shape[0], "U")
+        if (X_val is None) != (U_val is None):
+            raise InputDataError("Give both X_val and U_val, or neither.")
+        if X_val is not None:
+            vrom = self._check_rom(X_val, n_moments, "X_val")
+            vunit = self._check_unit(U_val, vrom.shape[0], "U_val")
+            if vunit.shape[1] != unit.shape[1]:
+                raise InputDataError(
+                    f"U_val has {vunit.shape[1]} columns and U {unit.shape[1]}; give the same "
+                    "parameters."
+                )
+        else:
+            n = rom.shape[0]
+            n_val = int(round(float(self.val_fraction) * n))
+            n_val = min(max(n_val, 1), n - 1) if self.val_fraction > 0 and n > 1 else 0
+            perm = np.random.default_rng(self.seed).permutation(n)
+            val, train = perm[:n_val], perm[n_val:]
+            vrom, vunit = rom[val], unit[val]
+            rom, unit = rom[train], unit[train]
+        return rom, unit, vrom, vunit
 
     # ------------------------------------------------------------------- predict
     def _forward(self, rom: np.ndarray) -> np.ndarray:

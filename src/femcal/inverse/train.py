@@ -86,6 +86,26 @@ def inverse_kwargs(params: Mapping[str, Any]) -> dict[str, Any]:
     return kw
 
 
+def _check_arguments(search: StudySearch, n_samples: int, val_fraction: float) -> None:
+    """Refuse the arguments of :func:`train_inverse` before any sampling: a negative
+    ``n_trials``, a search without storage, ``val_fraction`` outside (0, 1), fewer than 10
+    samples, or an unknown setting in ``fixed``.
+
+    Raises
+    ------
+    ConfigError
+    """
+    if search.n_trials < 0:
+        raise ConfigError(f"n_trials must be >= 0; got {search.n_trials}.")
+    if search.n_trials > 0 and not search.storage:
+        raise ConfigError("An Optuna search (n_trials > 0) needs an RDB storage URL (sqlite:///…).")
+    if not 0.0 < val_fraction < 1.0:
+        raise ConfigError(f"val_fraction must lie in (0, 1); got {val_fraction}.")
+    if int(n_samples) < 10:
+        raise ConfigError(f"n_samples must be >= 10; got {n_samples}.")
+    inverse_kwargs(search.fixed)  # fail early on unknown settings
+
+
 def train_inverse(
     curve_model: CurveModel,
     *,
@@ -132,15 +152,7 @@ def train_inverse(
     search = StudySearch(**{"study_name": "inverse", **study})
     seed = search.seed
     t0 = time.perf_counter()
-    if search.n_trials < 0:
-        raise ConfigError(f"n_trials must be >= 0; got {search.n_trials}.")
-    if search.n_trials > 0 and not search.storage:
-        raise ConfigError("An Optuna search (n_trials > 0) needs an RDB storage URL (sqlite:///…).")
-    if not 0.0 < val_fraction < 1.0:
-        raise ConfigError(f"val_fraction must lie in (0, 1); got {val_fraction}.")
-    if int(n_samples) < 10:
-        raise ConfigError(f"n_samples must be >= 10; got {n_samples}.")
-    inverse_kwargs(search.fixed)  # fail early on unknown settings
+    _check_arguments(search, n_samples, val_fraction)
 
     rng = np.random.default_rng(seed)
     rom, unit = make_inverse_dataset(curve_model, n_samples, rng, sampling=sampling)

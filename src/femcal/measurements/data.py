@@ -222,16 +222,9 @@ def _float_array(value: object, name: str, source: str) -> np.ndarray:
         ) from None
 
 
-def _validated(
-    specimens: object,
-    moments: object,
-    rom_deg: object,
-    weight: object,
-    idp_mpa: object,
-    source: object,
-) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]:
-    """Check and normalise the fields of :class:`Measurements` (copies, read-only arrays)."""
-    src = str(source)
+def _checked_names(specimens: object, src: str) -> tuple[str, ...]:
+    """The specimen names of :class:`Measurements` from ``specimens``, checked: a non-empty
+    sequence of non-blank, distinct strings (``src`` names the data in the errors)."""
     if isinstance(specimens, str) or not isinstance(specimens, Iterable):
         raise InputDataError(
             f"{src}: specimens must be a sequence of names; got {type(specimens).__name__}. "
@@ -256,8 +249,12 @@ def _validated(
             f"{src}: repeated specimen names {repeated}; each specimen must appear once "
             "(merge its data or rename it)."
         )
-    n = len(names)
+    return names
 
+
+def _checked_moments(moments: object, src: str) -> np.ndarray:
+    """The moments (m,) in Nm of :class:`Measurements` as a float array, checked: non-empty,
+    1-D, finite, positive and strictly increasing (``src`` names the data in the errors)."""
     m_arr = _float_array(moments, "moments", src)
     if m_arr.ndim != 1 or m_arr.size == 0:
         raise InputDataError(
@@ -270,6 +267,23 @@ def _validated(
             f"data point) and strictly increasing; got {m_arr.tolist()}. Sort them, drop 0 "
             "and repeated values and reorder the last axis of the arrays to match."
         )
+    return m_arr
+
+
+def _validated(
+    specimens: object,
+    moments: object,
+    rom_deg: object,
+    weight: object,
+    idp_mpa: object,
+    source: object,
+) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]:
+    """Check and normalise the fields of :class:`Measurements` (copies, read-only arrays)."""
+    src = str(source)
+    names = _checked_names(specimens, src)
+    n = len(names)
+
+    m_arr = _checked_moments(moments, src)
     m = m_arr.size
     shape = (n, len(LOAD_CASES), m)
 

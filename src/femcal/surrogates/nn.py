@@ -330,41 +330,10 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         from femcal.training.lightning import batch_loader, fit_on_cpu, quiet_lightning
 
         self._check_settings()
-        lc, moment, params = self._rows(X)
-        y = self._targets(y, len(lc), "y")
-        if (X_val is None) != (y_val is None):
-            raise InputDataError("Give both X_val and y_val, or neither.")
-        if X_val is not None:
-            vlc, vmom, vpar = self._rows(X_val, what="X_val")
-            vy = self._targets(y_val, len(vlc), "y_val")
-            train = np.ones(len(lc), dtype=bool)
-        else:
-            val = self._split(X, params)
-            train = ~val
-            vlc, vmom, vpar, vy = lc[val], moment[val], params[val], y[val]
-            lc, moment, params, y = lc[train], moment[train], params[train], y[train]
+        lc, moment, params, y, vlc, vmom, vpar, vy = self._training_rows(X, y, X_val, y_val)
         has_val = len(vy) > 0
 
-        t = np.log(y) if self.log_target else y
-        y_loc, y_scale = float(t.mean()), float(t.std())
-        log_m = np.log(moment)
-        m_loc, m_scale = float(log_m.mean()), float(log_m.std())
-        scales = {
-            "moment_loc": m_loc,
-            "moment_scale": m_scale if m_scale > 1e-12 else 1.0,
-            "y_loc": y_loc,
-            "y_scale": y_scale if y_scale > 1e-12 else 1.0,
-        }
-        arch = {
-            "hidden": [int(h) for h in self.hidden],
-            "activation": self.activation,
-            "dropout": float(self.dropout),
-            "log_target": bool(self.log_target),
-            "log_params": bool(self.log_params),
-            "moment_degree": self._moment_degree(
-                moment, 3 if self.moment_degree is None else int(self.moment_degree)
-            ),
-        }
+        scales, arch = self._scales_and_architecture(moment, y)
         start = self._warm_start_members(arch)
         if start is not None:  # the fitted model's scalings: its weights are in their units
             net0 = self.net_
@@ -434,6 +403,60 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         else:
             self.best_val_mae_deg_ = math.nan
         return self
+
+    def _training_rows(
+        self,
+        X: pd.DataFrame,
+        y: np.ndarray,
+        X_val: pd.DataFrame | None,
+        y_val: np.ndarray | None,
+    ) -> tuple[np.ndarray, ...]:
+        """The checked training and validation rows of :meth:`fit`: load-case index, moment
+        (Nm), parameters (rows, d, physical units) and RoM (deg), training rows first.
+
+        Without ``X_val``/``y_val``, ``val_fraction`` of the configurations of ``X`` are held
+        out (:meth:`_split`).
+        """
+        lc, moment, params = self._rows(X)
+        y = self._targets(y, len(lc), "y")
+        if (X_val is None) != (y_val is None):
+            raise InputDataError("Give both X_val and y_val, or neither.")
+        if X_val is not None:
+            vlc, vmom, vpar = self._rows(X_val, what="X_val")
+            vy = self._targets(y_val, len(vlc), "y_val")
+        else:
+            val = self._split(X, params)
+            train = ~val
+            vlc, vmom, vpar, vy = lc[val], moment[val], params[val], y[val]
+            lc, moment, params, y = lc[train], moment[train], params[train], y[train]
+        return lc, moment, params, y, vlc, vmom, vpar, vy
+
+    def _scales_and_architecture(
+        self, moment: np.ndarray, y: np.ndarray
+    ) -> tuple[dict[str, float], dict[str, Any]]:
+        """The input and target scalings of a new :class:`RomNet` from the training moments
+        (Nm) and RoM (deg), shape (rows,) each, and its architecture keywords."""
+        t = np.log(y) if self.log_target else y
+        y_loc, y_scale = float(t.mean()), float(t.std())
+        log_m = np.log(moment)
+        m_loc, m_scale = float(log_m.mean()), float(log_m.std())
+        scales = {
+            "moment_loc": m_loc,
+            "moment_scale": m_scale if m_scale > 1e-12 else 1.0,
+            "y_loc": y_loc,
+            "y_scale": y_scale if y_scale > 1e-12 else 1.0,
+        }
+        arch = {
+            "hidden": [int(h) for h in self.hidden],
+            "activation": self.activation,
+            "dropout": float(self.dropout),
+            "log_target": bool(self.log_target),
+            "log_params": bool(self.log_params),
+            "moment_degree": self._moment_degree(
+                moment, 3 if self.moment_degree is None else int(self.moment_degree)
+            ),
+        }
+        return scales, arch
 
     # --------------------------------------------------------------------- predict
     def _predict_rows(self, lc: np.ndarray, moment: np.ndarray, params: np.ndarray) -> np.ndarray:
