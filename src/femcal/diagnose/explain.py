@@ -310,12 +310,39 @@ def _next_measurement(
     if not rivals:
         return None
 
+    noise = sigma_dense if noise_deg is None else np.minimum(float(noise_deg), sigma_dense)
+    surrogate_var = sigma_dense**2 - noise**2  # (q,): shared by repeats at one moment
+    best_curve, pick = _closest_rival(
+        best, rivals, fits, dense_base, sigma_dense, (noise, surrogate_var), min_delta
+    )
+    if pick is None:
+        return None
+    return _measurement_report(best, best_curve, pick, dense, sigma_dense, measured_moments)
+
+
+def _closest_rival(
+    best: dict[str, Any],
+    rivals: list[dict[str, Any]],
+    fits,
+    dense_base,
+    sigma_dense: np.ndarray,
+    noise_parts: tuple[np.ndarray, np.ndarray],
+    min_delta: float,
+) -> tuple[np.ndarray, tuple | None]:
+    """The rival of :func:`_next_measurement` that the fewest measurements settle against the
+    chosen model ``best`` (ties: the larger difference in sigma, then the smaller criterion
+    gap).
+
+    ``noise_parts`` holds the measurement noise (q,) in degrees and the surrogate's error
+    variance (q,) in deg². Returns the chosen model's curves on the dense grid (4, q) and
+    ``(key, rival, its curves (4, q), the two models' prediction variance (4, q), repeats to
+    settle (4, q))``, or None where no rival has a finite difference.
+    """
+    noise, surrogate_var = noise_parts
+
     def prediction(r: dict[str, Any], sd: bool = True) -> tuple[np.ndarray, np.ndarray]:
         f, pos = fits[tuple(r["effects"])]
         return _dense_prediction(dense_base, tuple(r["effects"]), f, pos, sd)
-
-    noise = sigma_dense if noise_deg is None else np.minimum(float(noise_deg), sigma_dense)
-    surrogate_var = sigma_dense**2 - noise**2  # (q,): shared by repeats at one moment
 
     def repeats(r: dict[str, Any], delta: np.ndarray, var: np.ndarray) -> np.ndarray:
         """(4, q) measurements to settle ``r`` against the chosen model at each point. What
@@ -358,8 +385,22 @@ def _next_measurement(
         k = key(r, k_grid, delta / np.sqrt(sigma_dense[None, :] ** 2 + v))
         if pick is None or k < pick[0]:
             pick = (k, r, c, v, k_grid)
-    if pick is None:
-        return None
+    return best_curve, pick
+
+
+def _measurement_report(
+    best: dict[str, Any],
+    best_curve: np.ndarray,
+    pick: tuple,
+    dense: np.ndarray,
+    sigma_dense: np.ndarray,
+    measured_moments,
+) -> dict[str, Any]:
+    """The point of :func:`_next_measurement` for the rival ``pick`` of :func:`_closest_rival`
+    (the chosen model's curves ``best_curve`` (4, q) on the moments ``dense`` (q,), Nm): where
+    the fewest repeats settle the two, else where they differ most in sigma; with
+    ``measured_moments``, whether it lies within the specimen's measured range and, where it
+    does not, the best point within it (``within_protocol``)."""
     (_, _, gap), second, rival_curve, var, k_grid = pick
     curves = [best_curve, rival_curve]
     # The two models' own uncertainty counts too: where a rival's parameters are not pinned
