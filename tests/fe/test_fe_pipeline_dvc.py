@@ -7,6 +7,7 @@ the root pipeline (./dvc.yaml) is not run.
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -121,7 +122,15 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     adapt = json.loads((fe / "reports/adapt.json").read_text())
     assert adapt["n_rounds"] == 1 and adapt["n_new_configurations"] == 3  # 2 targets + 1
     assert (fe / "models/surrogate-champion/MLmodel").is_file()
-    assert 1 <= metrics["fe_runs_per_specimen_max"] <= 2
+    # FE runs aimed at a Test specimen: up to 2 in validate, plus the adapt round at the same
+    # specimens (adapt.targets are validate.measurements)
+    assert 1 <= metrics["fe_runs_per_specimen_max_validate"] <= 2
+    assert metrics["fe_runs_per_specimen_adapt"] == 1
+    assert metrics["fe_runs_per_specimen_max"] == metrics["fe_runs_per_specimen_max_validate"] + 1
+    assert metrics["target_noise_deg"] == 0.0
+    # the predict stage's figure, copied (NaN, when no predicted point was reached, as null)
+    copied, predicted = metrics["fe_predictive_mae_deg"], predictive["fe_predictive_mae_deg"]
+    assert (copied is None and math.isnan(predicted)) or copied == pytest.approx(predicted)
     assert metrics["fe_fit_residual_deg"] <= metrics["fe_fit_residual_deg_before_refine"] + 1e-12
 
     # One more Test configuration: the campaign resumes (44 jobs from the store, 4 new).
