@@ -13,7 +13,7 @@ from synth import study_space, tidy_table
 MOMENTS = (1.0, 2.0, 3.0, 4.0, 5.0)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def small_surrogate() -> NeuralSurrogate:
     table = tidy_table(48, seed=3)
     model = NeuralSurrogate(

@@ -20,7 +20,7 @@ from femcal.fe.design import split_design
 from synth import study_space
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def coarse_campaign(tmp_path_factory) -> tuple[Path, object, CampaignResult]:
     """(folder, design, result) of the shared campaign; the store is ``folder/runs.jsonl``."""
     if shutil.which("ccx") is None:
