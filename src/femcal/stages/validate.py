@@ -10,8 +10,10 @@ from typing import Any, Unpack
 
 import numpy as np
 
+from femcal.config import settings_of
 from femcal.errors import ConfigError
 from femcal.fe.runtime import FeKeywords, FeRuntime
+from femcal.paths import setting_path
 from femcal.stages.common import (
     StageSettings,
     output_folder,
@@ -76,6 +78,7 @@ class ValidateSettings(StageSettings):
         cfg = typed(params, "validate")
         out = output_folder(params, args, "validate")  # before the FE campaign
         refine = cfg.refine
+        adapt = settings_of(params).adapt  # None without an adapt section
         return cls(
             calibration_dir=(
                 Path(args["calibration"])
@@ -98,9 +101,11 @@ class ValidateSettings(StageSettings):
             published=[p.model_dump() for p in cfg.idp_published],
             idp_model_uri=cfg.idp_model_uri,
             target_noise_deg=cfg.target_noise_deg,
-            predictive_report=_path_or_none(params, cfg.predictive_report),
-            adapt_report=_path_or_none(params, cfg.adapt_report),
-            adapt_targets=_path_or_none(params, (params.get("adapt") or {}).get("targets")),
+            predictive_report=(
+                setting_path(params, cfg.predictive_report) if cfg.predictive_report else None
+            ),
+            adapt_report=setting_path(params, cfg.adapt_report) if cfg.adapt_report else None,
+            adapt_targets=setting_path(params, adapt.targets) if adapt else None,
             params=params,
         )
 
@@ -111,13 +116,6 @@ class ValidateSettings(StageSettings):
         for key in ("target_noise_deg", "predictive_report", "adapt_report", "adapt_targets"):
             args.pop(key)
         return {**args.pop("fe").keywords(), **args}
-
-
-def _path_or_none(params: Mapping[str, Any], value: Any) -> Path | None:
-    """A path setting relative to the project root, or None."""
-    from femcal.paths import setting_path
-
-    return None if value is None else setting_path(params, value)
 
 
 def _read_report(path: Path | None, what: str) -> dict[str, Any] | None:
