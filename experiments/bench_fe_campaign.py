@@ -34,6 +34,7 @@ import numpy as np
 from experiments.common import RESULTS
 from femcal.fe.campaign import CampaignResult, run_campaign
 from femcal.fe.design import design
+from femcal.fe.options import CampaignOptions
 from femcal.stages.simulate import fe_space
 
 #: The study's ParameterBounds.csv.
@@ -61,11 +62,9 @@ def _run(settings: dict, design_df, store: Path, n_workers: int) -> tuple[Campai
         "calculix",
         settings,
         design_df,
+        CampaignOptions(n_workers=n_workers, keep_failed=False, progress=True),
         store=store,
         moments=MOMENTS,
-        n_workers=n_workers,
-        keep_failed=False,
-        progress=True,
     )
     return result, {"load_average_1min_before": round(load, 2)}
 

@@ -31,21 +31,10 @@ MAX_PUBLIC_PARAMETERS = 10
 ALLOWED_LONG_MODULES: dict[str, str] = {}
 
 #: Functions over MAX_FUNCTION_LINES: "src/femcal/<path>.py:<qualified name>" -> why.
-ALLOWED_LONG_FUNCTIONS: dict[str, str] = {
-    "src/femcal/fe/adaptive.py:adapt_surrogate": "not split yet (issue 44)",
-    "src/femcal/fe/campaign.py:run_campaign": "not split yet (issue 44)",
-    "src/femcal/fe/dataset.py:write_dataset": "not split yet (issue 44)",
-    "src/femcal/fe/geometry.py:build_mesh": "not split yet (issue 44)",
-    "src/femcal/fe/refine.py:refine_with_fe": "not split yet (issue 44)",
-    "src/femcal/fe/validate.py:validate_calibration": "not split yet (issue 44)",
-}
+ALLOWED_LONG_FUNCTIONS: dict[str, str] = {}
 
 #: Public functions over MAX_PUBLIC_PARAMETERS: "src/femcal/<path>.py:<qualified name>" -> why.
-ALLOWED_MANY_PARAMETERS: dict[str, str] = {
-    "src/femcal/fe/adaptive.py:adapt_surrogate": "no options object yet (issue 44)",
-    "src/femcal/fe/campaign.py:run_campaign": "no options object yet (issue 44)",
-    "src/femcal/fe/validate.py:validate_calibration": "no options object yet (issue 44)",
-}
+ALLOWED_MANY_PARAMETERS: dict[str, str] = {}
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ from fe_helpers import MOMENTS as FE_MOMENTS
 
 from femcal.errors import ConfigError, InputDataError
 from femcal.fe.adaptive import adapt_surrogate, curves_to_rows, ensemble_spread
+from femcal.fe.options import AdaptOptions
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
 
@@ -45,13 +46,7 @@ def adapted(surrogate):
         calls.append(np.asarray(ids).tolist())
         return true_curves(x)
 
-    result = adapt_surrogate(
-        surrogate,
-        targets=targets,
-        moments=MOMENTS,
-        fe_curves=fe,
-        train=rows(tidy_table(48, seed=3)),
-        heldout=rows(tidy_table(16, seed=99)),
+    options = AdaptOptions(
         rounds=3,
         n_explore=4,
         n_candidates=256,
@@ -59,6 +54,15 @@ def adapted(surrogate):
         calibrate_options={"n_starts": 2},
         seed=0,
         first_id=1000,
+    )
+    result = adapt_surrogate(
+        surrogate,
+        targets,
+        MOMENTS,
+        fe,
+        rows(tidy_table(48, seed=3)),
+        rows(tidy_table(16, seed=99)),
+        options,
     )
     return result, calls
 
@@ -106,6 +110,11 @@ def test_same_seed_same_runs(surrogate):
     a = adapt_surrogate(surrogate, seed=5, **kwargs).runs
     b = adapt_surrogate(surrogate, seed=5, **kwargs).runs
     pd.testing.assert_frame_equal(a, b)
+    # the same options as an object, a field replaced by a keyword
+    data = {k: kwargs.pop(k) for k in ("targets", "moments", "fe_curves", "train", "heldout")}
+    options = AdaptOptions(seed=0, **kwargs)
+    c = adapt_surrogate(surrogate, **data, options=options, seed=5).runs
+    pd.testing.assert_frame_equal(a, c)
 
 
 def test_rounds_start_from_the_runs_and_fine_tune_without_a_split(surrogate, monkeypatch):
@@ -188,6 +197,8 @@ def test_adapt_errors(surrogate):
     )
     with pytest.raises(ConfigError, match="needs rounds >= 1"):
         adapt_surrogate(surrogate, targets=np.zeros((1, 4, 5)), rounds=0, **good)
+    with pytest.raises(ConfigError, match=r"n_candidates >= n_explore; got 3, 16, 8\."):
+        AdaptOptions(n_candidates=8)
     with pytest.raises(InputDataError, match=r"targets must have shape \(n, 4, 5\)"):
         adapt_surrogate(surrogate, targets=np.zeros((1, 4, 3)), **good)
 

@@ -158,19 +158,15 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
 
 
 def test_validate_names_a_missing_calibration(tmp_path):
+    from femcal.fe.options import ValidateOptions
+    from femcal.fe.runtime import FeRuntime
     from femcal.fe.validate import validate_calibration
 
+    fe = FeRuntime("calculix", COARSE, tmp_path / "runs.jsonl")
     with pytest.raises(InputDataError, match=r"parameters.csv do not exist; run the calibrate"):
-        validate_calibration(
-            calibration_dir=tmp_path,
-            measurements=tmp_path,
-            solver="calculix",
-            settings=COARSE,
-            forces=[300],
-            literature=[],
-            store=tmp_path / "runs.jsonl",
-            out_dir=tmp_path / "out",
-        )
+        validate_calibration(tmp_path, tmp_path, fe, tmp_path / "out", ValidateOptions((300,)))
+    with pytest.raises(TypeError, match="unexpected keyword argument 'force'"):
+        validate_calibration(tmp_path, tmp_path, fe, tmp_path / "out", force=[300])
 
 
 @requires_ccx

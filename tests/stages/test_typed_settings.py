@@ -26,6 +26,30 @@ def test_the_diagnosis_defaults_are_those_of_diagnose_options():
     assert DiagnoseOptions(**options).min_delta == options["min_delta"]
 
 
+def test_the_fe_defaults_are_those_of_the_fe_options():
+    from femcal.fe.options import AdaptOptions, CampaignOptions, ValidateOptions
+    from femcal.settings.fe import AdaptSettings, FeSettings, RefineSettings
+
+    for section, options, names in (
+        (AdaptSettings, AdaptOptions, ("rounds", "n_explore", "n_candidates", "seed")),
+        (RefineSettings, ValidateOptions, ("max_fe_runs", "tol_deg")),
+        (FeSettings, CampaignOptions, ("n_workers",)),
+    ):
+        for name in names:
+            assert section.model_fields[name].default == getattr(options, name), name
+
+
+def test_the_adapt_stage_passes_the_settings_as_adapt_options():
+    from femcal.fe.options import AdaptOptions
+    from femcal.settings.fe import AdaptSettings
+
+    fields = {"model_uri": "models/m", "targets": "t", "train": "a", "heldout": "b"}
+    fields |= {"out_model": "o", "out_dir": "d", "store": "s.jsonl", "n_explore": 4}
+    section = AdaptSettings(**fields, finetune={"max_epochs": 2})
+    options = AdaptOptions(**section.options())
+    assert options == AdaptOptions(n_explore=4, finetune={"max_epochs": 2}, calibrate_options={})
+
+
 def test_no_stage_reads_the_raw_mapping():
     for path in STAGES.glob("*.py"):
         text = path.read_text()

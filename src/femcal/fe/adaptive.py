@@ -32,6 +32,7 @@ Whether the result replaces the champion is the caller's decision, on that held-
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +43,7 @@ import pandas as pd
 import torch
 
 from femcal.errors import ConfigError, InputDataError
+from femcal.fe.options import AdaptOptions
 from femcal.fe.refine import FECurves
 from femcal.schema import LOAD_CASES
 
@@ -191,19 +193,13 @@ def _mae(a: np.ndarray, b: np.ndarray) -> float:
 
 def adapt_surrogate(
     surrogate: Any,
-    *,
     targets: np.ndarray,
     moments: Sequence[float],
     fe_curves: FECurves,
     train: tuple[pd.DataFrame, np.ndarray],
     heldout: tuple[pd.DataFrame, np.ndarray],
-    rounds: int = 3,
-    n_explore: int = 16,
-    n_candidates: int = 2048,
-    finetune: Mapping[str, Any] | None = None,
-    calibrate_options: Mapping[str, Any] | None = None,
-    seed: int | np.random.Generator = 0,
-    first_id: int = 0,
+    options: AdaptOptions | None = None,
+    **overrides: Any,
 ) -> AdaptResult:
     """Rounds of FE runs at calibrated solutions and at disagreement, with fine-tuning.
 
@@ -217,53 +213,39 @@ def adapt_surrogate(
         Their moment grid, Nm (also the grid of every new FE run).
     fe_curves : callable
         ``fe_curves(x, ids) -> (k, 4, m)`` (:func:`femcal.fe.refine.campaign_curves`); ids are
-        numbered from ``first_id`` on, one per new configuration.
+        numbered from ``options.first_id`` on, one per new configuration.
     train : (DataFrame, ndarray)
         The surrogate's training rows and RoM; the new runs are added to them.
     heldout : (DataFrame, ndarray)
         FE rows no round trains on, for the held-out MAE.
-    rounds, n_explore, n_candidates : int
-        Rounds; configurations explored per round, the most disputed of ``n_candidates``
-        Latin-hypercube candidates.
-    finetune : mapping, optional
-        ``set_params`` of the fine-tuning (default ``max_epochs=100``, ``patience=100``,
-        ``val_fraction=0``, ``learning_rate`` a third of the surrogate's).
-    calibrate_options : mapping, optional
-        Options of the ``pgd`` calibrator.
-    seed : int or numpy.random.Generator
-        Seeds the candidates and the calibrations; the same seed gives the same runs.
-    first_id : int
-        The first configuration number of the new runs (keep them apart from a store's).
+    options : AdaptOptions, optional
+        Rounds, exploration, fine-tuning, calibration, seed and numbering (default:
+        :class:`~femcal.fe.options.AdaptOptions`'s).
+    **overrides
+        Fields of :class:`~femcal.fe.options.AdaptOptions` replacing those of ``options``.
 
     Returns
     -------
     AdaptResult
-    """
-    from femcal.calibration import SurrogateCurveModel, calibrate
 
-    if int(rounds) < 1 or int(n_explore) < 0 or int(n_candidates) < max(1, int(n_explore)):
-        raise ConfigError(
-            f"adapt_surrogate needs rounds >= 1, n_explore >= 0 and n_candidates >= n_explore; "
-            f"got {rounds}, {n_explore}, {n_candidates}."
-        )
+    Raises
+    ------
+    ConfigError
+        When the rounds, ``n_explore`` or ``n_candidates`` are out of range.
+    InputDataError
+        When ``targets`` do not have the shape (n, 4, m) of ``moments``.
+    """
+    o = dataclasses.replace(options or AdaptOptions(), **overrides)
     targets = np.asarray(targets, dtype=float)
     if targets.ndim != 3 or targets.shape[1:] != (len(LOAD_CASES), len(moments)):
         raise InputDataError(
             f"adapt_surrogate: targets must have shape (n, {len(LOAD_CASES)}, {len(moments)}) "
             f"for the moments {list(moments)}; got {targets.shape}."
         )
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    rng = o.seed if isinstance(o.seed, np.random.Generator) else np.random.default_rng(o.seed)
     model = copy.deepcopy(surrogate)
-    space = model.space
-    names = list(space.names)
-    tune = {
-        "max_epochs": 100,
-        "patience": 100,
-        "learning_rate": float(model.learning_rate) / 3,
-        "val_fraction": 0.0,
-        **dict(finetune or {}),
-        "warm_start": True,
-    }
+    names = list(model.space.names)
+    tune = _finetuning(model, o.finetune)
     # The recipe the surrogate was trained with, restored after the rounds: the challenger's
     # get_params() say how to train it from scratch, not how it was fine-tuned.
     recipe = {k: v for k, v in model.get_params().items() if k in tune}
@@ -273,37 +255,16 @@ def adapt_surrogate(
     logger.info("adaptive sampling: held-out MAE %.4f deg before round 1", heldout_start)
     rows: list[dict[str, Any]] = []
     runs: list[pd.DataFrame] = []
-    next_id = int(first_id)
-    for r in range(1, int(rounds) + 1):
-        bank = _configurations(X_train, names)
-        cal = calibrate(
-            SurrogateCurveModel(model, moments),
-            targets,
-            seed=rng,
-            options={"ranges": False, "start_bank": bank, **dict(calibrate_options or {})},
-        )
-        x_sol = cal.parameters_frame()[names].to_numpy(dtype=float)
-        explore = np.empty((0, len(names)))
-        spread = float("nan")
-        if n_explore:
-            candidates = space.sample_lhs(int(n_candidates), rng)
-            s = ensemble_spread(model, candidates, moments)
-            top = np.argsort(-s, kind="stable")[: int(n_explore)]
-            explore, spread = candidates[top], float(s[top].mean())
+    next_id = int(o.first_id)
+    for r in range(1, int(o.rounds) + 1):
+        x_sol, cal_mae = _calibrate_targets(model, targets, moments, X_train, o, rng)
+        explore, spread = _explore(model, moments, o, rng)
         x_new = np.vstack([x_sol, explore])
         ids = np.arange(next_id, next_id + len(x_new))
         fe = fe_curves(x_new, ids)
-        before = SurrogateCurveModel(model, moments).predict(x_new)
-        n_sol = len(x_sol)
-        row = {
-            "round": r,
-            "n_runs": len(x_new),
-            "n_failed_points": int((~np.isfinite(fe)).sum()),
-            "error_at_solutions_deg": _mae(before[:n_sol], fe[:n_sol]),
-            "fe_calibration_mae_deg": _mae(fe[:n_sol], targets),
-            "surrogate_calibration_mae_deg": float(np.mean(cal.mae_deg)),
-            "spread_explored_deg": spread,
-        }
+        row = _round_row(r, model, moments, x_new, len(x_sol), fe, targets)
+        row["surrogate_calibration_mae_deg"] = cal_mae
+        row["spread_explored_deg"] = spread
         X_new, y_new = curves_to_rows(x_new, fe, moments, names, first_id=next_id)
         X_train = pd.concat([X_train, X_new], ignore_index=True)
         y_train = np.concatenate([y_train, y_new])
@@ -311,11 +272,7 @@ def adapt_surrogate(
         model.fit(X_train, y_train)
         row["heldout_mae_deg"] = _mae(model.predict(X_ho), y_ho)
         rows.append(row)
-        frame = pd.DataFrame(x_new, columns=names)
-        frame.insert(0, "config_id", ids)
-        frame.insert(0, "reason", ["calibration"] * n_sol + ["disagreement"] * len(explore))
-        frame.insert(0, "round", r)
-        runs.append(frame)
+        runs.append(_runs_frame(r, x_new, ids, names, len(x_sol)))
         next_id += len(x_new)
         logger.info(
             "adaptive sampling round %d: %d FE runs; surrogate error at the calibrated solutions "
@@ -332,3 +289,93 @@ def adapt_surrogate(
         heldout_mae_start=heldout_start,
         runs=pd.concat(runs, ignore_index=True),
     )
+
+
+def _finetuning(model: Any, finetune: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The ``set_params`` of each round's fine-tuning: a warm start, without a validation
+    split, for 100 epochs at a third of the surrogate's learning rate, unless ``finetune``
+    says otherwise."""
+    return {
+        "max_epochs": 100,
+        "patience": 100,
+        "learning_rate": float(model.learning_rate) / 3,
+        "val_fraction": 0.0,
+        **dict(finetune or {}),
+        "warm_start": True,
+    }
+
+
+def _calibrate_targets(
+    model: Any,
+    targets: np.ndarray,
+    moments: Sequence[float],
+    X_train: pd.DataFrame,
+    o: AdaptOptions,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, float]:
+    """Calibrate the targets through ``model``, starting from its training configurations.
+
+    Returns the solutions (n, d) in physical units and the mean calibration MAE through the
+    surrogate, degrees.
+    """
+    from femcal.calibration import SurrogateCurveModel, calibrate
+
+    bank = _configurations(X_train, list(model.space.names))
+    cal = calibrate(
+        SurrogateCurveModel(model, moments),
+        targets,
+        seed=rng,
+        options={"ranges": False, "start_bank": bank, **dict(o.calibrate_options or {})},
+    )
+    x_sol = cal.parameters_frame()[list(model.space.names)].to_numpy(dtype=float)
+    return x_sol, float(np.mean(cal.mae_deg))
+
+
+def _explore(
+    model: Any, moments: Sequence[float], o: AdaptOptions, rng: np.random.Generator
+) -> tuple[np.ndarray, float]:
+    """The ``n_explore`` most disputed of ``n_candidates`` Latin-hypercube candidates (k, d)
+    and their mean ensemble spread in degrees (NaN when none are explored)."""
+    explore = np.empty((0, len(model.space.names)))
+    spread = float("nan")
+    if o.n_explore:
+        candidates = model.space.sample_lhs(int(o.n_candidates), rng)
+        s = ensemble_spread(model, candidates, moments)
+        top = np.argsort(-s, kind="stable")[: int(o.n_explore)]
+        explore, spread = candidates[top], float(s[top].mean())
+    return explore, spread
+
+
+def _round_row(
+    r: int,
+    model: Any,
+    moments: Sequence[float],
+    x_new: np.ndarray,
+    n_sol: int,
+    fe: np.ndarray,
+    targets: np.ndarray,
+) -> dict[str, Any]:
+    """The figures of round ``r`` before its fine-tuning: FE at the new configurations
+    ``x_new`` (the first ``n_sol`` the calibrated solutions) against the surrogate and the
+    targets."""
+    from femcal.calibration import SurrogateCurveModel
+
+    before = SurrogateCurveModel(model, moments).predict(x_new)
+    return {
+        "round": r,
+        "n_runs": len(x_new),
+        "n_failed_points": int((~np.isfinite(fe)).sum()),
+        "error_at_solutions_deg": _mae(before[:n_sol], fe[:n_sol]),
+        "fe_calibration_mae_deg": _mae(fe[:n_sol], targets),
+    }
+
+
+def _runs_frame(
+    r: int, x_new: np.ndarray, ids: np.ndarray, names: Sequence[str], n_sol: int
+) -> pd.DataFrame:
+    """Round ``r``'s new configurations: ``round``, ``reason``, ``config_id``, parameters."""
+    frame = pd.DataFrame(x_new, columns=list(names))
+    frame.insert(0, "config_id", ids)
+    frame.insert(0, "reason", ["calibration"] * n_sol + ["disagreement"] * (len(x_new) - n_sol))
+    frame.insert(0, "round", r)
+    return frame

@@ -23,6 +23,7 @@ success and kept for failed jobs.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import shutil
@@ -40,6 +41,7 @@ import pandas as pd
 
 from femcal.errors import ConfigError, InputDataError, SolverError
 from femcal.fe.base import FEJob
+from femcal.fe.options import CampaignOptions
 from femcal.fe.store import (
     STORE_VERSION,
     CampaignStore,
@@ -330,18 +332,14 @@ def run_campaign(
     adapter_name: str,
     adapter_settings: Mapping[str, Any] | PerConfigSettings,
     design_df: pd.DataFrame,
+    options: CampaignOptions | None = None,
     *,
     store: str | Path,
     names: Sequence[str] | None = None,
     load_cases: Sequence[str] = LOAD_CASES,
     moments: Sequence[float] = (1.0, 2.0, 3.0, 4.0, 5.0),
     forces: Sequence[float] = (),
-    scheduler_address: str | None = None,
-    n_workers: int = 2,
-    scratch_dir: str | Path | None = None,
-    keep_failed: bool = True,
-    retry_failed: bool | Callable[[Mapping[str, Any]], bool] = False,
-    progress: bool = True,
+    **overrides: Any,
 ) -> CampaignResult:
     """Run every job of a design on Dask, appending each result to the store as it arrives.
 
@@ -354,6 +352,9 @@ def run_campaign(
         every configuration or per configuration; part of the job hash.
     design_df : pandas.DataFrame, shape (n, >= 1 + d)
         ``config_id`` and the parameters (see :func:`design`).
+    options : CampaignOptions, optional
+        Cluster, scratch folders, retries and progress bar (default:
+        :class:`~femcal.fe.options.CampaignOptions`'s).
     store : str or Path
         The JSON-lines store (created if missing; resumed if present).
     names : sequence of str, optional
@@ -362,20 +363,9 @@ def run_campaign(
         Load cases per configuration (default: the four pure moments).
     moments, forces : sequence of float, optional
         Levels of the pure-moment load cases (Nm) and of ``"Compression"`` (N).
-    scheduler_address : str, optional
-        Dask scheduler to use; None: ``FEMCAL_DASK_ADDRESS``, else a local cluster.
-    n_workers : int, optional
-        Worker processes of the local cluster.
-    scratch_dir : str or Path, optional
-        Parent of the per-job scratch folders (default: the worker's temporary folder).
-    keep_failed : bool, optional
-        Keep failed jobs' scratch folders.
-    retry_failed : bool or callable, optional
-        Run stored failed jobs again: all of them (True), or those whose stored record the
-        predicate accepts (e.g. :func:`timed_out`). Default: a failure is a result and is
-        kept.
-    progress : bool, optional
-        tqdm progress bar.
+    **overrides
+        Fields of :class:`~femcal.fe.options.CampaignOptions` replacing those of ``options``
+        (``n_workers=1``, ``progress=False``, ...).
 
     Returns
     -------
@@ -389,6 +379,7 @@ def run_campaign(
     """
     from femcal.schema import PARAMETER_NAMES
 
+    o = dataclasses.replace(options or CampaignOptions(), **overrides)
     t0 = time.perf_counter()
     names = list(names or PARAMETER_NAMES)
     jobs = make_jobs(design_df, names, load_cases=load_cases, moments=moments, forces=forces)
@@ -398,20 +389,12 @@ def run_campaign(
     if len(set(hashes)) != len(hashes):
         raise InputDataError("The design holds the same job twice (same config_id and inputs).")
     cstore = CampaignStore(store)
-    address = scheduler_address or scheduler_address_from_env()
-    run_id = uuid.uuid4().hex
+    address = o.scheduler_address or scheduler_address_from_env()
     errors: list[str] = []
     n_run = 0
     n_workers_used = 0
     with cstore.writer():
-        if callable(retry_failed):
-            done = {
-                h: rec
-                for h, rec in cstore.finished().items()
-                if rec.get("status") == STATUS_OK or not retry_failed(rec)
-            }
-        else:
-            done = cstore.finished(include_failed=not retry_failed)
+        done = _finished(cstore, o.retry_failed)
         todo = [
             (job, h, settings, digest)
             for job, h, settings, digest in zip(jobs, hashes, job_settings, digests)
@@ -427,56 +410,9 @@ def run_campaign(
                 len(todo),
             )
         if todo:
-            from distributed import as_completed
-            from tqdm.auto import tqdm
-
-            with dask_client(address, n_workers) as client:
-                n_workers_used = sum(client.nthreads().values())
-                scheduler = str(client.scheduler.address)
-                futures = {
-                    client.submit(
-                        run_job,
-                        adapter_name,
-                        settings,
-                        digest,
-                        job,
-                        h,
-                        None if scratch_dir is None else str(scratch_dir),
-                        keep_failed,
-                        key=f"femcal-fe-{job.key}-{h[:10]}-{run_id[:8]}",
-                        pure=False,
-                        retries=0,
-                    ): job
-                    for job, h, settings, digest in todo
-                }
-                bar = tqdm(
-                    total=len(jobs),
-                    initial=n_skipped,
-                    desc="FE campaign",
-                    unit="job",
-                    disable=not progress,
-                )
-                try:
-                    for fut in as_completed(futures):
-                        job = futures[fut]
-                        try:
-                            record = fut.result()
-                        except Exception as exc:  # noqa: BLE001 - reported below
-                            errors.append(f"{job.key}: {type(exc).__name__}: {exc}")
-                            logger.error("FE job %s did not run: %s", job.key, exc)
-                            if _abort_error(exc):
-                                for other in futures:
-                                    other.cancel()
-                                break
-                            continue
-                        record["campaign_run"] = run_id
-                        cstore.append(record)
-                        n_run += 1
-                        bar.update(1)
-                        if record["status"] != STATUS_OK:
-                            logger.warning("FE job %s failed: %s", job.key, record["reason"])
-                finally:
-                    bar.close()
+            n_run, n_workers_used, scheduler = _run_jobs(
+                adapter_name, todo, cstore, address, o, (len(jobs), n_skipped), errors
+            )
         else:
             scheduler = address or ""
     stored = cstore.finished()
@@ -498,3 +434,99 @@ def run_campaign(
             f"{n_run} finished jobs are in {cstore.path}; fix the cause and rerun to resume."
         )
     return result
+
+
+def _finished(
+    cstore: CampaignStore, retry_failed: bool | Callable[[Mapping[str, Any]], bool]
+) -> dict[str, dict]:
+    """The stored jobs not to run again, by job hash: every success, and the failures
+    ``retry_failed`` does not pick (all of them when it is False, none when True)."""
+    if callable(retry_failed):
+        return {
+            h: rec
+            for h, rec in cstore.finished().items()
+            if rec.get("status") == STATUS_OK or not retry_failed(rec)
+        }
+    return cstore.finished(include_failed=not retry_failed)
+
+
+#: A job to run: the job, its hash, its adapter settings and their hash.
+_Todo = tuple[FEJob, str, Mapping[str, Any], str]
+
+
+def _run_jobs(
+    adapter_name: str,
+    todo: Sequence[_Todo],
+    cstore: CampaignStore,
+    address: str | None,
+    o: CampaignOptions,
+    counts: tuple[int, int],
+    errors: list[str],
+) -> tuple[int, int, str]:
+    """Run ``todo`` on a Dask cluster, appending each record to the store as it arrives.
+
+    ``counts`` are the design's jobs and those skipped (for the progress bar). A job whose
+    worker raised goes to ``errors``; an error that would repeat for every job cancels the
+    rest. Returns the jobs run, the cluster's worker threads and the scheduler's address.
+    """
+    from distributed import as_completed
+    from tqdm.auto import tqdm
+
+    run_id = uuid.uuid4().hex
+    n_run = 0
+    n_jobs, n_skipped = counts
+    with dask_client(address, o.n_workers) as client:
+        n_workers_used = sum(client.nthreads().values())
+        scheduler = str(client.scheduler.address)
+        futures = _submit(client, adapter_name, todo, o, run_id)
+        bar = tqdm(
+            total=n_jobs,
+            initial=n_skipped,
+            desc="FE campaign",
+            unit="job",
+            disable=not o.progress,
+        )
+        try:
+            for fut in as_completed(futures):
+                job = futures[fut]
+                try:
+                    record = fut.result()
+                except Exception as exc:  # noqa: BLE001 - reported below
+                    errors.append(f"{job.key}: {type(exc).__name__}: {exc}")
+                    logger.error("FE job %s did not run: %s", job.key, exc)
+                    if _abort_error(exc):
+                        for other in futures:
+                            other.cancel()
+                        break
+                    continue
+                record["campaign_run"] = run_id
+                cstore.append(record)
+                n_run += 1
+                bar.update(1)
+                if record["status"] != STATUS_OK:
+                    logger.warning("FE job %s failed: %s", job.key, record["reason"])
+        finally:
+            bar.close()
+    return n_run, n_workers_used, scheduler
+
+
+def _submit(
+    client: Any, adapter_name: str, todo: Sequence[_Todo], o: CampaignOptions, run_id: str
+) -> dict[Any, FEJob]:
+    """Submit every job of ``todo`` to ``client`` (:func:`run_job`); future -> job."""
+    return {
+        client.submit(
+            run_job,
+            adapter_name,
+            settings,
+            digest,
+            job,
+            h,
+            None if o.scratch_dir is None else str(o.scratch_dir),
+            o.keep_failed,
+            key=f"femcal-fe-{job.key}-{h[:10]}-{run_id[:8]}",
+            pure=False,
+            retries=0,
+        ): job
+        for job, h, settings, digest in todo
+    }

@@ -228,13 +228,11 @@ def _run_rounds(
             fe.solver,
             settings,
             drawn[["config_id", *space.names]],
+            fe.campaign_options(),
             store=fe.store,
             names=space.names,
             load_cases=LOAD_CASES,
             moments=moments,
-            scheduler_address=fe.scheduler_address,
-            n_workers=fe.n_workers,
-            progress=fe.progress,
             retry_failed=timed_out,
         )
         records = result.records

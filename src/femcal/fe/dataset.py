@@ -122,7 +122,6 @@ def write_dataset(
     """
     out_dir = Path(out_dir)
     moments = [float(m) for m in moments]
-    m = len(moments)
     df = design_df.copy()
     if "split" not in df.columns:
         df["split"] = "large"
@@ -133,93 +132,16 @@ def write_dataset(
     stage = OutputStage(out_dir, command="simulate").open()
     tmp = stage.path
     runs: list[dict[str, Any]] = []
-    design_rows = []
+    design_rows: list[dict[str, Any]] = []
     try:
-        for split, layout in SPLITS.items():
+        for split in SPLITS:
             part = df[df["split"] == split].sort_values("config_id").reset_index(drop=True)
             if part.empty:
                 continue
-            folder = tmp / layout.folder
-            folder.mkdir()
-            _write_csv(
-                folder / BOUNDS_FILE,
-                list(space.names),
-                [[_num(v) for v in space.lower], [_num(v) for v in space.upper]],
-            )
-            x = part[list(space.names)].to_numpy(dtype=float)
-            _write_csv(
-                folder / layout.configurations,
-                list(space.names),
-                [[_num(v) for v in row] for row in x],
-            )
+            _write_split(tmp, split, part, space, moments, by_job, allow_missing, runs)
             for i, cid in enumerate(part["config_id"].astype(int)):
                 design_rows.append({"config_id": cid, "split": split, "row": i})
-            for lc in LOAD_CASES:
-                rom_rows, idp_rows = [], []
-                for i, cid in enumerate(part["config_id"].astype(int)):
-                    rec = by_job.get((cid, lc))
-                    run = {"config_id": cid, "split": split, "row": i, "load_case": lc}
-                    if rec is None:
-                        if not allow_missing:
-                            raise InputDataError(
-                                f"Configuration {cid} ({split} row {i}), load case {lc}: no "
-                                "result in the campaign store. Rerun the campaign (`femcal "
-                                "simulate` resumes) before writing the dataset."
-                            )
-                        rom_rows.append(["0.0"] + [""] * m)
-                        idp_rows.append(["0.0"] + [""] * m)
-                        runs.append({**run, "status": "missing", "levels_reached": 0})
-                        continue
-                    levels = [float(v) for v in rec.get("levels", [])]
-                    if not np.allclose(levels, moments):
-                        raise InputDataError(
-                            f"Configuration {cid}, load case {lc}: the stored run has levels "
-                            f"{levels}, the dataset asks for {moments}. Use the moments of "
-                            "the campaign (fe.moments), or rerun it."
-                        )
-                    rom = list(rec.get("rom_deg") or [])
-                    n_reached, why = _reached(rom)
-                    status, reason = str(rec.get("status")), str(rec.get("reason") or "")
-                    if n_reached < m and status == STATUS_OK:
-                        status = STATUS_FAILED
-                        reason = why or f"no RoM from level {n_reached + 1} on"
-                        logger.warning("Configuration %d, %s: %s.", cid, lc, reason)
-                    rom_rows.append(_curve_cells(rom, n_reached, m))
-                    idp_rows.append(_curve_cells(list(rec.get("idp_mpa") or []), n_reached, m))
-                    runs.append(
-                        {
-                            **run,
-                            "status": status,
-                            "reason": reason,
-                            "levels_reached": n_reached,
-                            "solver": rec.get("solver", ""),
-                            "solver_version": rec.get("solver_version", ""),
-                            "deck_hash": rec.get("deck_hash", ""),
-                            "attempts": rec.get("attempts"),
-                            "cpu_seconds": rec.get("cpu_seconds"),
-                            "worker_cpu_seconds": rec.get("worker_cpu_seconds"),
-                            "wall_seconds": rec.get("wall_seconds"),
-                            "worker": rec.get("worker", ""),
-                            "host": rec.get("host", ""),
-                            "campaign_run": rec.get("campaign_run", ""),
-                            "started_at": rec.get("started_at"),
-                            "finished_at": rec.get("finished_at"),
-                        }
-                    )
-                header = ["0.0"] + [_num(v) for v in moments]
-                _write_csv(folder / layout.results("ROM", lc), header, rom_rows)
-                _write_csv(folder / layout.results("IDP", lc), header, idp_rows)
-        design_out = df.merge(pd.DataFrame(design_rows), on=["config_id", "split"], how="left")
-        design_out = design_out[["config_id", "split", "row", *space.names]]
-        design_out.to_csv(tmp / DESIGN_FILE, index=False)
-        runs_df = pd.DataFrame(runs)
-        for col in ("reason", "solver", "solver_version", "deck_hash", "worker", "host"):
-            if col not in runs_df.columns:
-                runs_df[col] = ""
-        runs_df = runs_df.sort_values(["config_id", "load_case"]).reset_index(drop=True)
-        runs_df.to_csv(tmp / RUNS_FILE, index=False)
-        summary = summarize_runs(runs_df, moments=moments, extra=campaign_info)
-        (tmp / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n")
+        summary = _write_tables(tmp, df, design_rows, runs, space, moments, campaign_info)
         stage.commit()
     except BaseException:
         stage.discard()
@@ -231,6 +153,127 @@ def write_dataset(
         summary["n_jobs"],
         summary["n_failed"],
     )
+    return summary
+
+
+def _write_split(
+    tmp: Path,
+    split: str,
+    part: pd.DataFrame,
+    space: ParameterSpace,
+    moments: Sequence[float],
+    by_job: Mapping[tuple[int, str], Mapping[str, Any]],
+    allow_missing: bool,
+    runs: list[dict[str, Any]],
+) -> None:
+    """Write one split's folder in the study's layout; append its jobs to ``runs``.
+
+    ``part`` holds the split's configurations in ``config_id`` order (row i of every file).
+    """
+    layout = SPLITS[split]
+    folder = tmp / layout.folder
+    folder.mkdir()
+    _write_csv(
+        folder / BOUNDS_FILE,
+        list(space.names),
+        [[_num(v) for v in space.lower], [_num(v) for v in space.upper]],
+    )
+    x = part[list(space.names)].to_numpy(dtype=float)
+    _write_csv(
+        folder / layout.configurations,
+        list(space.names),
+        [[_num(v) for v in row] for row in x],
+    )
+    for lc in LOAD_CASES:
+        rom_rows, idp_rows = [], []
+        for i, cid in enumerate(part["config_id"].astype(int)):
+            rec = by_job.get((cid, lc))
+            run = {"config_id": cid, "split": split, "row": i, "load_case": lc}
+            if rec is None:
+                if not allow_missing:
+                    raise InputDataError(
+                        f"Configuration {cid} ({split} row {i}), load case {lc}: no "
+                        "result in the campaign store. Rerun the campaign (`femcal "
+                        "simulate` resumes) before writing the dataset."
+                    )
+                rom_rows.append(["0.0"] + [""] * len(moments))
+                idp_rows.append(["0.0"] + [""] * len(moments))
+                runs.append({**run, "status": "missing", "levels_reached": 0})
+                continue
+            rom, idp, info = _job_cells(rec, cid, lc, moments)
+            rom_rows.append(rom)
+            idp_rows.append(idp)
+            runs.append({**run, **info})
+        header = ["0.0"] + [_num(v) for v in moments]
+        _write_csv(folder / layout.results("ROM", lc), header, rom_rows)
+        _write_csv(folder / layout.results("IDP", lc), header, idp_rows)
+
+
+def _job_cells(
+    rec: Mapping[str, Any], cid: int, lc: str, moments: Sequence[float]
+) -> tuple[list[str], list[str], dict[str, Any]]:
+    """One stored job's RoM and IDP cells (:func:`_curve_cells`) and its ``runs.csv`` entries.
+
+    A run that stops short of the last level is failed, whatever its stored status.
+    """
+    m = len(moments)
+    levels = [float(v) for v in rec.get("levels", [])]
+    if not np.allclose(levels, moments):
+        raise InputDataError(
+            f"Configuration {cid}, load case {lc}: the stored run has levels "
+            f"{levels}, the dataset asks for {moments}. Use the moments of "
+            "the campaign (fe.moments), or rerun it."
+        )
+    rom = list(rec.get("rom_deg") or [])
+    n_reached, why = _reached(rom)
+    status, reason = str(rec.get("status")), str(rec.get("reason") or "")
+    if n_reached < m and status == STATUS_OK:
+        status = STATUS_FAILED
+        reason = why or f"no RoM from level {n_reached + 1} on"
+        logger.warning("Configuration %d, %s: %s.", cid, lc, reason)
+    info = {
+        "status": status,
+        "reason": reason,
+        "levels_reached": n_reached,
+        "solver": rec.get("solver", ""),
+        "solver_version": rec.get("solver_version", ""),
+        "deck_hash": rec.get("deck_hash", ""),
+        "attempts": rec.get("attempts"),
+        "cpu_seconds": rec.get("cpu_seconds"),
+        "worker_cpu_seconds": rec.get("worker_cpu_seconds"),
+        "wall_seconds": rec.get("wall_seconds"),
+        "worker": rec.get("worker", ""),
+        "host": rec.get("host", ""),
+        "campaign_run": rec.get("campaign_run", ""),
+        "started_at": rec.get("started_at"),
+        "finished_at": rec.get("finished_at"),
+    }
+    idp = _curve_cells(list(rec.get("idp_mpa") or []), n_reached, m)
+    return _curve_cells(rom, n_reached, m), idp, info
+
+
+def _write_tables(
+    tmp: Path,
+    df: pd.DataFrame,
+    design_rows: Sequence[Mapping[str, Any]],
+    runs: Sequence[Mapping[str, Any]],
+    space: ParameterSpace,
+    moments: Sequence[float],
+    campaign_info: Mapping[str, Any] | None,
+) -> dict[str, Any]:
+    """Write ``design.csv``, ``runs.csv`` and ``campaign.json`` beside the splits; return the
+    content of ``campaign.json``."""
+    design_out = df.merge(pd.DataFrame(design_rows), on=["config_id", "split"], how="left")
+    design_out = design_out[["config_id", "split", "row", *space.names]]
+    design_out.to_csv(tmp / DESIGN_FILE, index=False)
+    runs_df = pd.DataFrame(runs)
+    for col in ("reason", "solver", "solver_version", "deck_hash", "worker", "host"):
+        if col not in runs_df.columns:
+            runs_df[col] = ""
+    runs_df = runs_df.sort_values(["config_id", "load_case"]).reset_index(drop=True)
+    runs_df.to_csv(tmp / RUNS_FILE, index=False)
+    summary = summarize_runs(runs_df, moments=moments, extra=campaign_info)
+    (tmp / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n")
     return summary
 
 

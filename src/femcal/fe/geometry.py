@@ -375,27 +375,68 @@ def build_mesh(geometry: DiscGeometry) -> DiscMesh:
         Nodes (n, 3), elements (m, 20) in CalculiX order, rings, regions and sets.
     """
     g = geometry
+    points2d, quad, kinds, ij = _quads(_blocks(g))
+    ring2d, region2d, beta2d = _quad_labels(g, points2d, quad, kinds, ij)
+    nodes, elements = _extrude(g, points2d, quad)
+    nz = g.elements_height
+    ring = np.tile(ring2d, nz)
+    region = np.tile(region2d, nz)
+    kind_el = np.tile(kinds, nz)
+    layer_el = np.repeat(np.arange(nz), len(quad))
+    element_sets: dict[str, np.ndarray] = {
+        "NUCLEUS": np.flatnonzero(kind_el != "annulus"),
+        "ANNULUS": np.flatnonzero(kind_el == "annulus"),
+    }
+    middle_layers = [nz // 2] if nz % 2 else [nz // 2 - 1, nz // 2]
+    element_sets["CENTRAL"] = np.flatnonzero((kind_el == "core") & np.isin(layer_el, middle_layers))
+    for r in range(g.n_rings):
+        for c in range(int(g.n_regions)):
+            element_sets[f"A_R{r + 1}C{c + 1}"] = np.flatnonzero((ring == r) & (region == c))
+    tol = 1e-9 * g.height_mm
+    node_sets = {
+        "BOTTOM": np.flatnonzero(np.abs(nodes[:, 2]) < tol),
+        "TOP": np.flatnonzero(np.abs(nodes[:, 2] - g.height_mm) < tol),
+    }
+    mesh = DiscMesh(
+        geometry=g,
+        nodes=nodes,
+        elements=elements,
+        ring=ring,
+        region=region,
+        beta=np.tile(beta2d, nz),
+        element_sets=element_sets,
+        node_sets=node_sets,
+    )
+    logger.debug("Disc mesh: %d nodes, %d C3D20 elements", mesh.n_nodes, mesh.n_elements)
+    return mesh
+
+
+def _beta(h: np.ndarray, n: int, m: int) -> np.ndarray:
+    """Parametric angle of half-step circumferential index ``h`` (0 at anterior, +y;
+    clockwise seen from above) with ``n`` regions of ``m`` elements per side."""
+    h = np.mod(np.asarray(h), 2 * (2 * n * m))
+    return np.deg2rad(90.0 - 180.0 * h / (n * 2 * m))
+
+
+def _blocks(g: DiscGeometry) -> list[tuple[np.ndarray, str]]:
+    """The structured blocks of the unit disc: grids of parametric points (u, v, 2) with
+    their kind, ``"core"`` (the central block), ``"transition"`` (its four edges out to the
+    nucleus boundary) and ``"annulus"`` (a polar grid out to the rim)."""
     n, m = int(g.n_regions), int(g.elements_per_region)
     s = g.nucleus_scale
     kc = _corner_angle_index(n)
     n_circ = 2 * n * m  # elements around the circumference
     nx, ny = 2 * kc * m, (n - 2 * kc) * m  # central block
-
-    def beta(h: np.ndarray) -> np.ndarray:
-        # h: half-step circumferential index, 0 at anterior (+y), clockwise seen from above.
-        h = np.mod(np.asarray(h), 2 * n_circ)
-        return np.deg2rad(90.0 - 180.0 * h / (n * 2 * m))
-
-    phi_c = float(beta(np.array(2 * kc * m)))
+    phi_c = float(_beta(np.array(2 * kc * m), n, m))
     corner_radius = g.core_size * s
     xc, yc = corner_radius * math.cos(phi_c), corner_radius * math.sin(phi_c)
     xs = np.linspace(-xc, xc, 2 * nx + 1)
     ys = np.linspace(-yc, yc, 2 * ny + 1)
 
-    blocks: list[tuple[np.ndarray, str, np.ndarray | None]] = []
+    blocks: list[tuple[np.ndarray, str]] = []
     # Central block: grid (2nx+1, 2ny+1, 2).
     central = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1)
-    blocks.append((central, "core", None))
+    blocks.append((central, "core"))
     # Transition blocks: edge of the central block (u) to the nucleus boundary (v).
     v = np.linspace(0.0, 1.0, 2 * g.elements_core + 1)
     edges = [
@@ -414,25 +455,34 @@ def build_mesh(geometry: DiscGeometry) -> DiscMesh:
         ),
     ]
     for edge, h in edges:
-        b = beta(h)
+        b = _beta(h, n, m)
         arc = s * np.stack([np.cos(b), np.sin(b)], axis=1)
         grid = (1.0 - v)[None, :, None] * edge[:, None, :] + v[None, :, None] * arc[:, None, :]
-        blocks.append((grid, "transition", None))
+        blocks.append((grid, "transition"))
     # Annulus: polar grid, h around the circumference, rho from the nucleus boundary outwards.
     n_rad = g.n_rings * g.elements_per_ring
     h = np.arange(0, 2 * n_circ + 1)
     rho = s + (1.0 - s) * np.arange(2 * n_rad + 1) / (2 * n_rad)
-    b = beta(h)
+    b = _beta(h, n, m)
     annulus = rho[None, :, None] * np.stack([np.cos(b), np.sin(b)], axis=1)[:, None, :]
-    blocks.append((annulus, "annulus", None))
+    blocks.append((annulus, "annulus"))
+    return blocks
 
-    # Quadratic 8-node quads per block; deduplicate points shared between blocks.
+
+def _quads(
+    blocks: list[tuple[np.ndarray, str]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Quadratic 8-node quads of the blocks, points shared between blocks merged.
+
+    Returns the points (p, 2), the quads (q, 8) counter-clockwise seen from above, each
+    quad's kind (q,) and its element indices (i, j) within its block (q, 2).
+    """
     all_points: list[np.ndarray] = []
     quads: list[np.ndarray] = []
     kinds: list[str] = []
     quad_ij: list[tuple[int, int]] = []
     offset = 0
-    for grid, kind, _ in blocks:
+    for grid, kind in blocks:
         nu, nv = (grid.shape[0] - 1) // 2, (grid.shape[1] - 1) // 2
         index = np.arange(grid.shape[0] * grid.shape[1]).reshape(grid.shape[:2]) + offset
         all_points.append(grid.reshape(-1, 2))
@@ -472,22 +522,32 @@ def build_mesh(geometry: DiscGeometry) -> DiscMesh:
     )
     flip = area < 0
     quad[flip] = quad[flip][:, [0, 3, 2, 1, 7, 6, 5, 4]]
+    return points2d, quad, np.array(kinds), np.array(quad_ij)
 
-    # Ring, region and centre angle per quad.
-    kinds_arr = np.array(kinds)
+
+def _quad_labels(
+    g: DiscGeometry, points2d: np.ndarray, quad: np.ndarray, kinds: np.ndarray, ij: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ring and region of each quad (-1 in the nucleus) and the angle of its centre."""
+    n, m = int(g.n_regions), int(g.elements_per_region)
     ring2d = np.full(len(quad), -1)
     region2d = np.full(len(quad), -1)
-    is_annulus = kinds_arr == "annulus"
-    ij = np.array(quad_ij)
+    is_annulus = kinds == "annulus"
     t = ij[is_annulus, 0]  # circumferential element index from anterior, clockwise
     k = ij[is_annulus, 1]  # radial element index from the nucleus boundary
     ring2d[is_annulus] = g.n_rings - 1 - k // g.elements_per_ring
     side_region = t // m
     region2d[is_annulus] = np.where(side_region < n, side_region, 2 * n - 1 - side_region)
     centre2d = points2d[quad[:, :4]].mean(axis=1)
-    beta2d = np.arctan2(centre2d[:, 1], centre2d[:, 0])
+    return ring2d, region2d, np.arctan2(centre2d[:, 1], centre2d[:, 0])
 
-    # Extrude: layers 0..2*nz (even: corners and mid-edges; odd: corners only).
+
+def _extrude(
+    g: DiscGeometry, points2d: np.ndarray, quad: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Extrude the quads through the height: the nodes (n, 3) in mm and the C3D20 elements
+    (e, 20), layer by layer (layers 0..2*nz: even ones hold corners and mid-edges, odd ones
+    corners only)."""
     nz = g.elements_height
     scale = np.array([g.width_mm / 2.0, g.depth_mm / 2.0])
     xy = points2d * scale
@@ -514,38 +574,4 @@ def build_mesh(geometry: DiscGeometry) -> DiscMesh:
     renumber[used] = np.arange(used.size)
     layer_of, point_of = np.divmod(used, n2)
     nodes = np.column_stack([xy[point_of], z[layer_of]])
-    elements_arr = renumber[elements_full]
-
-    n_quad = len(quad)
-    ring = np.tile(ring2d, nz)
-    region = np.tile(region2d, nz)
-    beta_el = np.tile(beta2d, nz)
-    kind_el = np.tile(kinds_arr, nz)
-    layer_el = np.repeat(np.arange(nz), n_quad)
-
-    element_sets: dict[str, np.ndarray] = {
-        "NUCLEUS": np.flatnonzero(kind_el != "annulus"),
-        "ANNULUS": np.flatnonzero(kind_el == "annulus"),
-    }
-    middle_layers = [nz // 2] if nz % 2 else [nz // 2 - 1, nz // 2]
-    element_sets["CENTRAL"] = np.flatnonzero((kind_el == "core") & np.isin(layer_el, middle_layers))
-    for r in range(g.n_rings):
-        for c in range(n):
-            element_sets[f"A_R{r + 1}C{c + 1}"] = np.flatnonzero((ring == r) & (region == c))
-    tol = 1e-9 * g.height_mm
-    node_sets = {
-        "BOTTOM": np.flatnonzero(np.abs(nodes[:, 2]) < tol),
-        "TOP": np.flatnonzero(np.abs(nodes[:, 2] - g.height_mm) < tol),
-    }
-    mesh = DiscMesh(
-        geometry=g,
-        nodes=nodes,
-        elements=elements_arr,
-        ring=ring,
-        region=region,
-        beta=beta_el,
-        element_sets=element_sets,
-        node_sets=node_sets,
-    )
-    logger.debug("Disc mesh: %d nodes, %d C3D20 elements", mesh.n_nodes, mesh.n_elements)
-    return mesh
+    return nodes, renumber[elements_full]

@@ -239,126 +239,234 @@ def refine_with_fe(
     if len(names) != n:
         raise InputDataError(f"refine_with_fe: {len(names)} specimen names for {n} specimens.")
     w = np.ones_like(y) if weight is None else np.asarray(weight, dtype=float)
-
-    def surrogate(v: torch.Tensor) -> np.ndarray:
-        with torch.no_grad():
-            return model.curves(v).double().numpy()
-
-    def run_fe(x: np.ndarray, ids: np.ndarray) -> np.ndarray:
-        out = np.asarray(fe_curves(x, ids), dtype=float)
-        if out.shape != (x.shape[0], *shape[1:]):
-            raise InputDataError(
-                f"refine_with_fe: fe_curves returned shape {out.shape} for {x.shape[0]} "
-                f"rows; expected {(x.shape[0], *shape[1:])}."
-            )
-        return out
-
-    v_best = model.from_physical(x0).float()  # (n, d) unit coordinates, inside the box
-    x_start = model.to_physical(v_best.double().numpy())
-    fe_best = run_fe(x_start, np.arange(n))
-    s_best = surrogate(v_best)
-    mae_best = _mae(fe_best, y)  # over the measured points the run reached
-    missed_best = _missed(fe_best, y)
-    mae_start = mae_best.copy()
-    runs = np.ones(n, dtype=int)
-    rows: list[dict[str, Any]] = [
-        {
-            "specimen": names[i],
-            "run": 1,
-            "fe_mae_deg": mae_start[i],
-            "fe_points_missed": int(missed_best[i]),
-            "surrogate_mae_deg": _mae(s_best[i : i + 1], y[i : i + 1])[0],
-            "accepted": True,
-            "damping": float("nan"),
-        }
-        for i in range(n)
-    ]
-    lam = np.full(n, float(damping))
-    need_jac = np.ones(n, dtype=bool)
-    jac = torch.zeros((n, y[0].size, d))
-    broyden = torch.zeros((n, y[0].size, d))  # what FE taught about the Jacobian
+    run_fe = _checked(fe_curves, shape[1:])
+    st = _Refinement.start(model, y, x0, run_fe, names, damping)
     for round_ in range(1, int(max_fe_runs)):
-        active = np.flatnonzero(~((mae_best <= tol_deg) & (missed_best == 0)))
+        active = np.flatnonzero(~((st.mae <= tol_deg) & (st.missed == 0)))
         if active.size == 0:
             break
-        fresh = active[need_jac[active]]
-        if fresh.size:
-            _, jf = model.curves_jacobian(v_best[fresh])
-            jac[fresh] = jf.reshape(fresh.size, -1, d).float()
-            need_jac[fresh] = False
-        # The FE residual at the best point; points FE or the measurement lack weigh 0.
-        r = y[active] - fe_best[active]
-        wa = np.where(np.isfinite(r), w[active], 0.0).reshape(active.size, -1)
-        r = np.nan_to_num(r).reshape(active.size, -1)
-        step = _lm_step(
-            jac[active] + broyden[active],
-            torch.tensor(r, dtype=torch.float32),
-            torch.tensor(wa, dtype=torch.float32),
-            v_best[active],
-            torch.tensor(lam[active], dtype=torch.float32),
-        )
-        v_try = (v_best[active] + step).clamp(0.0, 1.0)
+        v_try = _step(model, st, y, w, active)
         x_try = model.to_physical(v_try.double().numpy())
         fe_try = run_fe(x_try, active)
-        s_try = surrogate(v_try)
+        s_try = _surrogate(model, v_try)
         mae_try = _mae(fe_try, y[active])
         missed_try = _missed(fe_try, y[active])
-        runs[active] += 1
-        better = _better(fe_try, fe_best[active], y[active], missed_best[active])
-        # Broyden's rank-one update: the Jacobian along the step as FE measured it.
-        dv = v_try - v_best[active]
-        dfe = torch.tensor(np.nan_to_num(fe_try - fe_best[active]), dtype=torch.float32)
-        jb = jac[active] + broyden[active]
-        miss = dfe.reshape(active.size, -1) - (jb @ dv[..., None])[..., 0]
-        norm2 = (dv * dv).sum(1).clamp_min(1e-12)
-        broyden[active] += miss[:, :, None] * dv[:, None, :] / norm2[:, None, None]
+        st.runs[active] += 1
+        better = _better(fe_try, st.fe[active], y[active], st.missed[active])
+        st.learn(active, v_try, fe_try)
         for j, i in enumerate(active):
-            rows.append(
+            st.rows.append(
                 {
                     "specimen": names[i],
-                    "run": int(runs[i]),
+                    "run": int(st.runs[i]),
                     "fe_mae_deg": mae_try[j],
                     "fe_points_missed": int(missed_try[j]),
                     "surrogate_mae_deg": _mae(s_try[j : j + 1], y[i : i + 1])[0],
                     "accepted": bool(better[j]),
-                    "damping": float(lam[i]),
+                    "damping": float(st.lam[i]),
                 }
             )
-        won, lost = active[better], active[~better]
-        v_best[won] = v_try[better]
-        fe_best[won], s_best[won], mae_best[won] = fe_try[better], s_try[better], mae_try[better]
-        missed_best[won] = missed_try[better]
-        need_jac[won] = True
-        lam[won] = np.maximum(lam[won] / 3.0, 1e-6)  # FE agreed: bolder next time
-        lam[lost] *= 4.0  # FE found it worse: a shorter step from the same point
+        won = st.accept(active, better, v_try, fe_try, s_try, mae_try, missed_try)
         logger.info(
             "FE refinement round %d: %d specimens run, %d improved; FE-confirmed MAE %.4f deg "
             "(%d of %d within %.3g deg).",
             round_,
             active.size,
             won.size,
-            _nanmean(np.where(np.isfinite(mae_best), mae_best, np.nan)),
-            int(((mae_best <= tol_deg) & (missed_best == 0)).sum()),
+            _nanmean(np.where(np.isfinite(st.mae), st.mae, np.nan)),
+            int(((st.mae <= tol_deg) & (st.missed == 0)).sum()),
             n,
             tol_deg,
         )
-    # Over the points reached; a run that missed measured points confirms nothing there.
-    confirmed = (mae_best <= tol_deg) & (missed_best == 0)
-    mae_best = np.where(np.isfinite(mae_best), mae_best, np.nan)
-    return RefineResult(
-        specimens=names,
-        x_start=x_start,
-        x=model.to_physical(v_best.double().numpy()),
-        fe_curves=fe_best,
-        surrogate_curves=s_best,
-        fe_mae_start=np.where(np.isfinite(mae_start), mae_start, np.nan),
-        fe_mae_deg=mae_best,
-        fe_runs=runs,
-        fe_points_missed=missed_best,
-        confirmed=confirmed,
-        tol_deg=float(tol_deg),
-        history=pd.DataFrame(rows),
+    return st.result(model, names, tol_deg)
+
+
+def _surrogate(model: Any, v: torch.Tensor) -> np.ndarray:
+    """The uncorrected surrogate's curves (k, 4, m) at unit coordinates ``v`` (k, d)."""
+    with torch.no_grad():
+        return model.curves(v).double().numpy()
+
+
+def _checked(fe_curves: FECurves, curve_shape: tuple[int, int]) -> FECurves:
+    """``fe_curves`` that raises when its answer is not of shape (k, *curve_shape)."""
+
+    def run_fe(x: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        out = np.asarray(fe_curves(x, ids), dtype=float)
+        if out.shape != (x.shape[0], *curve_shape):
+            raise InputDataError(
+                f"refine_with_fe: fe_curves returned shape {out.shape} for {x.shape[0]} "
+                f"rows; expected {(x.shape[0], *curve_shape)}."
+            )
+        return out
+
+    return run_fe
+
+
+@dataclass
+class _Refinement:
+    """The state of :func:`refine_with_fe` for n specimens: the best point FE has seen for
+    each, what steers its next step, and the history so far.
+
+    Attributes
+    ----------
+    v : torch.Tensor, shape (n, d)
+        The best points in unit coordinates, inside the box.
+    fe, s : ndarray, shape (n, 4, m)
+        FE's and the uncorrected surrogate's RoM there, degrees.
+    mae : ndarray, shape (n,)
+        FE-evaluated MAE there over the measured points the run reached (inf: none).
+    missed : ndarray of int, shape (n,)
+        Measured points the run there did not reach.
+    x_start, mae_start : ndarray
+        The calibration refinement started from (n, d, physical units) and its FE MAE (n,).
+    runs : ndarray of int, shape (n,)
+        FE runs so far.
+    lam : ndarray, shape (n,)
+        Levenberg-Marquardt damping of the next step.
+    need_jac : ndarray of bool, shape (n,)
+        The surrogate's Jacobian at ``v`` is still to be computed (the point moved).
+    jac, broyden : torch.Tensor, shape (n, 4 * m, d)
+        The surrogate's Jacobian at ``v`` and what FE taught about it (Broyden's updates).
+    rows : list of dict
+        The history, one row per FE run.
+    """
+
+    v: torch.Tensor
+    fe: np.ndarray
+    s: np.ndarray
+    mae: np.ndarray
+    missed: np.ndarray
+    x_start: np.ndarray
+    mae_start: np.ndarray
+    runs: np.ndarray
+    lam: np.ndarray
+    need_jac: np.ndarray
+    jac: torch.Tensor
+    broyden: torch.Tensor
+    rows: list[dict[str, Any]]
+
+    @classmethod
+    def start(
+        cls,
+        model: Any,
+        y: np.ndarray,
+        x0: np.ndarray,
+        run_fe: FECurves,
+        names: Sequence[str],
+        damping: float,
+    ) -> _Refinement:
+        """Run FE at the calibrated parameters ``x0`` (n, d): the first point of each specimen."""
+        n, d = x0.shape[0], model.dim
+        v_best = model.from_physical(x0).float()  # (n, d) unit coordinates, inside the box
+        x_start = model.to_physical(v_best.double().numpy())
+        fe_best = run_fe(x_start, np.arange(n))
+        s_best = _surrogate(model, v_best)
+        mae_best = _mae(fe_best, y)  # over the measured points the run reached
+        missed_best = _missed(fe_best, y)
+        mae_start = mae_best.copy()
+        rows: list[dict[str, Any]] = [
+            {
+                "specimen": names[i],
+                "run": 1,
+                "fe_mae_deg": mae_start[i],
+                "fe_points_missed": int(missed_best[i]),
+                "surrogate_mae_deg": _mae(s_best[i : i + 1], y[i : i + 1])[0],
+                "accepted": True,
+                "damping": float("nan"),
+            }
+            for i in range(n)
+        ]
+        return cls(
+            v=v_best,
+            fe=fe_best,
+            s=s_best,
+            mae=mae_best,
+            missed=missed_best,
+            x_start=x_start,
+            mae_start=mae_start,
+            runs=np.ones(n, dtype=int),
+            lam=np.full(n, float(damping)),
+            need_jac=np.ones(n, dtype=bool),
+            jac=torch.zeros((n, y[0].size, d)),
+            broyden=torch.zeros((n, y[0].size, d)),  # what FE taught about the Jacobian
+            rows=rows,
+        )
+
+    def learn(self, active: np.ndarray, v_try: torch.Tensor, fe_try: np.ndarray) -> None:
+        """Broyden's rank-one update: the Jacobian along the step as FE measured it."""
+        dv = v_try - self.v[active]
+        dfe = torch.tensor(np.nan_to_num(fe_try - self.fe[active]), dtype=torch.float32)
+        jb = self.jac[active] + self.broyden[active]
+        miss = dfe.reshape(active.size, -1) - (jb @ dv[..., None])[..., 0]
+        norm2 = (dv * dv).sum(1).clamp_min(1e-12)
+        self.broyden[active] += miss[:, :, None] * dv[:, None, :] / norm2[:, None, None]
+
+    def accept(
+        self,
+        active: np.ndarray,
+        better: np.ndarray,
+        v_try: torch.Tensor,
+        fe_try: np.ndarray,
+        s_try: np.ndarray,
+        mae_try: np.ndarray,
+        missed_try: np.ndarray,
+    ) -> np.ndarray:
+        """Move the specimens whose try FE found ``better`` there, with a bolder next step;
+        the others try a shorter step from the same point. Returns the specimens moved."""
+        won, lost = active[better], active[~better]
+        self.v[won] = v_try[better]
+        self.fe[won], self.s[won], self.mae[won] = fe_try[better], s_try[better], mae_try[better]
+        self.missed[won] = missed_try[better]
+        self.need_jac[won] = True
+        self.lam[won] = np.maximum(self.lam[won] / 3.0, 1e-6)  # FE agreed: bolder next time
+        self.lam[lost] *= 4.0  # FE found it worse: a shorter step from the same point
+        return won
+
+    def result(self, model: Any, names: tuple[str, ...], tol_deg: float) -> RefineResult:
+        """The :class:`RefineResult` of the best points."""
+        # Over the points reached; a run that missed measured points confirms nothing there.
+        confirmed = (self.mae <= tol_deg) & (self.missed == 0)
+        mae_best = np.where(np.isfinite(self.mae), self.mae, np.nan)
+        return RefineResult(
+            specimens=names,
+            x_start=self.x_start,
+            x=model.to_physical(self.v.double().numpy()),
+            fe_curves=self.fe,
+            surrogate_curves=self.s,
+            fe_mae_start=np.where(np.isfinite(self.mae_start), self.mae_start, np.nan),
+            fe_mae_deg=mae_best,
+            fe_runs=self.runs,
+            fe_points_missed=self.missed,
+            confirmed=confirmed,
+            tol_deg=float(tol_deg),
+            history=pd.DataFrame(self.rows),
+        )
+
+
+def _step(
+    model: Any, st: _Refinement, y: np.ndarray, w: np.ndarray, active: np.ndarray
+) -> torch.Tensor:
+    """The next point (k, d) to try of the ``active`` specimens, in unit coordinates: a
+    projected Levenberg-Marquardt step on the FE residual at the best point, with the
+    surrogate's Jacobian corrected by FE (computed anew where the best point moved)."""
+    d = model.dim
+    fresh = active[st.need_jac[active]]
+    if fresh.size:
+        _, jf = model.curves_jacobian(st.v[fresh])
+        st.jac[fresh] = jf.reshape(fresh.size, -1, d).float()
+        st.need_jac[fresh] = False
+    # The FE residual at the best point; points FE or the measurement lack weigh 0.
+    r = y[active] - st.fe[active]
+    wa = np.where(np.isfinite(r), w[active], 0.0).reshape(active.size, -1)
+    r = np.nan_to_num(r).reshape(active.size, -1)
+    step = _lm_step(
+        st.jac[active] + st.broyden[active],
+        torch.tensor(r, dtype=torch.float32),
+        torch.tensor(wa, dtype=torch.float32),
+        st.v[active],
+        torch.tensor(st.lam[active], dtype=torch.float32),
     )
+    return (st.v[active] + step).clamp(0.0, 1.0)
 
 
 def _lm_step(
@@ -402,8 +510,12 @@ def campaign_curves(
     NaN from the last level it reached.
     """
     from femcal.fe.campaign import run_campaign
+    from femcal.fe.options import CampaignOptions
 
     levels = [float(m) for m in moments]
+    options = CampaignOptions(
+        scheduler_address=scheduler_address, n_workers=n_workers, progress=progress
+    )
 
     def fe(x: np.ndarray, ids: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=float)
@@ -414,12 +526,10 @@ def campaign_curves(
             solver,
             settings,
             design,
+            options,
             store=store,
             load_cases=LOAD_CASES,
             moments=levels,
-            scheduler_address=scheduler_address,
-            n_workers=n_workers,
-            progress=progress,
         )
         out = np.full((x.shape[0], len(LOAD_CASES), len(levels)), np.nan)
         for rec in campaign.records.itertuples(index=False):

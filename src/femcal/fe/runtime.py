@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
     from femcal.fe.campaign import CampaignResult
+    from femcal.fe.options import CampaignOptions
     from femcal.fe.refine import FECurves
 
 
@@ -29,7 +30,7 @@ SHARED_MACHINE_TIMEOUT_S = 1200
 
 class FeKeywords(TypedDict, total=False):
     """An :class:`FeRuntime` as keywords (:meth:`FeRuntime.keywords`), for the functions that
-    take them one by one (:func:`femcal.fe.validate.validate_calibration`)."""
+    take them one by one (:func:`femcal.stages.validate.run_validate`)."""
 
     solver: Required[str]
     settings: Required[Mapping[str, Any]]
@@ -67,11 +68,22 @@ class FeRuntime:
     progress: bool = False
 
     def keywords(self) -> FeKeywords:
-        """The runtime as the keywords of :func:`femcal.fe.validate.validate_calibration`."""
+        """The runtime as the keywords of :func:`femcal.stages.validate.run_validate`."""
         return FeKeywords(
             solver=self.solver,
             settings=self.settings,
             store=self.store,
+            scheduler_address=self.scheduler_address,
+            n_workers=self.n_workers,
+            progress=self.progress,
+        )
+
+    def campaign_options(self) -> CampaignOptions:
+        """The runtime's cluster and progress bar as the options of
+        :func:`femcal.fe.campaign.run_campaign`."""
+        from femcal.fe.options import CampaignOptions
+
+        return CampaignOptions(
             scheduler_address=self.scheduler_address,
             n_workers=self.n_workers,
             progress=self.progress,
@@ -86,7 +98,9 @@ class FeRuntime:
             ``config_id`` and the parameters.
         **options
             The other keywords of :func:`femcal.fe.campaign.run_campaign` (``names``,
-            ``load_cases``, ``moments``, ``forces``, ``scratch_dir``, ``retry_failed``, ...).
+            ``load_cases``, ``moments``, ``forces``) and fields of
+            :class:`~femcal.fe.options.CampaignOptions` replacing the runtime's
+            (``scratch_dir``, ``retry_failed``, ...).
 
         Returns
         -------
@@ -98,10 +112,8 @@ class FeRuntime:
             self.solver,
             self.settings,
             design_df,
+            self.campaign_options(),
             store=self.store,
-            scheduler_address=self.scheduler_address,
-            n_workers=self.n_workers,
-            progress=self.progress,
             **options,
         )
 

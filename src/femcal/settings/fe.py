@@ -37,9 +37,15 @@ from femcal.settings.values import (
     Keywords,
     ListOf,
     Section,
+    light_class,
     plain,
     setting,
 )
+
+#: The defaults of the FE workflows' options (femcal.fe.options), declared there once.
+_CAMPAIGN = light_class("fe.options", "CampaignOptions")
+_ADAPT = light_class("fe.options", "AdaptOptions")
+_VALIDATE = light_class("fe.options", "ValidateOptions")
 
 
 def _element(cls: type) -> type:
@@ -357,7 +363,7 @@ class FeSettings(Section):
     scheduler_address: DASK_ADDRESS | None = setting(
         "Dask scheduler, tcp://host:port (null: a local cluster, or FEMCAL_DASK_ADDRESS)", None
     )
-    n_workers: Int(1) = setting("workers of the local cluster", 2)
+    n_workers: Int(1) = setting("workers of the local cluster", _CAMPAIGN.n_workers)
 
     @model_validator(mode="after")
     def _all_load_cases(self) -> Any:
@@ -412,14 +418,29 @@ class AdaptSettings(Section):
     out_model: PATH = setting("folder of the champion's files (the winner)")
     out_dir: PATH = setting("folder of the rounds' tables")
     store: PATH = setting("campaign store of the new FE runs")
-    rounds: Int(1) = setting("rounds of FE runs and fine-tuning", 3)
-    n_explore: Int(0) = setting("configurations explored per round (ensemble spread)", 16)
-    n_candidates: Int(1) = setting("Latin-hypercube candidates ranked by spread", 2048)
+    rounds: Int(1) = setting("rounds of FE runs and fine-tuning", _ADAPT.rounds)
+    n_explore: Int(0) = setting(
+        "configurations explored per round (ensemble spread)", _ADAPT.n_explore
+    )
+    n_candidates: Int(1) = setting(
+        "Latin-hypercube candidates ranked by spread", _ADAPT.n_candidates
+    )
     finetune: plain(SurrogateKeywords) = setting(
         "NeuralSurrogate settings of the fine-tuning (warm start)", {}
     )
     calibrate_options: plain(PgdKeywords) = setting("pgd options of the rounds' calibrations", {})
-    seed: Int(0) = setting("seed of the candidates and calibrations", 0)
+    seed: Int(0) = setting("seed of the candidates and calibrations", _ADAPT.seed)
+
+    def options(self) -> dict[str, Any]:
+        """The keywords of :class:`femcal.fe.options.AdaptOptions` this section sets."""
+        return {
+            "rounds": self.rounds,
+            "n_explore": self.n_explore,
+            "n_candidates": self.n_candidates,
+            "finetune": dict(self.finetune),
+            "calibrate_options": dict(self.calibrate_options),
+            "seed": self.seed,
+        }
 
 
 class RefineSettings(Section):
@@ -431,9 +452,12 @@ class RefineSettings(Section):
         "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
     )
     max_fe_runs: Int(1) = setting(
-        "FE runs per specimen at most, the first included (1: validate only)", 1
+        "FE runs per specimen at most, the first included (1: validate only)",
+        _VALIDATE.max_fe_runs,
     )
-    tol_deg: Float(gt=0) = setting("FE-evaluated MAE at which a specimen is confirmed, deg", 0.05)
+    tol_deg: Float(gt=0) = setting(
+        "FE-evaluated MAE at which a specimen is confirmed, deg", _VALIDATE.tol_deg
+    )
 
 
 class ValidateSettings(Section):

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from femcal.fe.options import AdaptOptions
 from femcal.fe.runtime import FeRuntime
 from femcal.stages.common import StageSettings, path_setting, typed, write_metrics
 from femcal.stages.simulate import fe_runtime
@@ -39,12 +40,7 @@ class AdaptSettings(StageSettings):
     out_model: Path
     out_dir: Path
     fe: FeRuntime
-    rounds: int
-    n_explore: int
-    n_candidates: int
-    finetune: Mapping[str, Any]
-    calibrate_options: Mapping[str, Any]
-    seed: int
+    options: AdaptOptions
     model_name: str
 
     @classmethod
@@ -58,12 +54,7 @@ class AdaptSettings(StageSettings):
             out_model=path_setting(params, "adapt", "out_model"),
             out_dir=path_setting(params, "adapt", "out_dir"),
             fe=fe_runtime(params, args, "adapt"),
-            rounds=cfg.rounds,
-            n_explore=cfg.n_explore,
-            n_candidates=cfg.n_candidates,
-            finetune=dict(cfg.finetune),
-            calibrate_options=dict(cfg.calibrate_options),
-            seed=cfg.seed,
+            options=AdaptOptions(**cfg.options()),
             model_name=typed(params, "mlflow").model_name,
             metrics_file=args.get("metrics_file"),
             params=params,
@@ -120,7 +111,10 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
     ``heldout`` prepared tidy tables (``data/prepared/large.csv``, ``small.csv``). Writes
     ``out_dir/rounds.csv``, ``out_dir/runs.csv`` and ``out_dir/adapt.json``, and
     ``out_model``: the challenger's files when it won, else the starting model's. The FE
-    runs go through ``fe`` (solver, settings, campaign store, Dask cluster).
+    runs go through ``fe`` (solver, settings, campaign store, Dask cluster); ``options``
+    (:class:`~femcal.fe.options.AdaptOptions`) sets the rounds, the exploration, the
+    fine-tuning, the calibrations and the seed, and the new runs are numbered after the
+    training table's configurations.
     """
     import mlflow
     from mlflow import MlflowClient
@@ -134,7 +128,8 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
 
     s = settings
     model_uri, targets, train, heldout = s.model_uri, s.targets, s.train, s.heldout
-    out_model, out_dir, rounds, n_explore = s.out_model, s.out_dir, s.rounds, s.n_explore
+    out_model, out_dir = s.out_model, s.out_dir
+    rounds, n_explore = s.options.rounds, s.options.n_explore
     model_name = s.model_name
     check_destination(out_dir)
     meas = read_measurements(targets)
@@ -146,17 +141,12 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
     first_id = int(train_rows[0]["config_id"].max()) + 1
     result = adapt_surrogate(
         surrogate,
-        targets=meas.rom_deg,
-        moments=meas.moments.tolist(),
-        fe_curves=s.fe.curves(meas.moments.tolist()),
-        train=train_rows,
-        heldout=heldout_rows,
-        rounds=rounds,
-        n_explore=n_explore,
-        n_candidates=s.n_candidates,
-        finetune=s.finetune,
-        calibrate_options=s.calibrate_options,
-        seed=s.seed,
+        meas.rom_deg,
+        meas.moments.tolist(),
+        s.fe.curves(meas.moments.tolist()),
+        train_rows,
+        heldout_rows,
+        s.options,
         first_id=first_id,
     )
     champion_mae = result.heldout_mae_start

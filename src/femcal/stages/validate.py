@@ -12,6 +12,7 @@ import numpy as np
 
 from femcal.config import settings_of
 from femcal.errors import ConfigError
+from femcal.fe.options import ValidateOptions
 from femcal.fe.runtime import FeKeywords, FeRuntime
 from femcal.paths import setting_path
 from femcal.stages.common import (
@@ -64,8 +65,8 @@ class ValidateSettings(StageSettings):
     literature: Mapping[str, Any]
     out_dir: Path
     model_uri: str | None = None
-    max_fe_runs: int = 1
-    tol_deg: float = 0.05
+    max_fe_runs: int = ValidateOptions.max_fe_runs
+    tol_deg: float = ValidateOptions.tol_deg
     published: Sequence[Mapping[str, Any]] = ()
     idp_model_uri: str | None = None
     target_noise_deg: float | None = None
@@ -96,8 +97,8 @@ class ValidateSettings(StageSettings):
             out_dir=out,
             metrics_file=args.get("metrics_file"),
             model_uri=refine.model_uri if refine else None,
-            max_fe_runs=refine.max_fe_runs if refine else 1,
-            tol_deg=refine.tol_deg if refine else 0.05,
+            max_fe_runs=refine.max_fe_runs if refine else ValidateOptions.max_fe_runs,
+            tol_deg=refine.tol_deg if refine else ValidateOptions.tol_deg,
             published=[p.model_dump() for p in cfg.idp_published],
             idp_model_uri=cfg.idp_model_uri,
             target_noise_deg=cfg.target_noise_deg,
@@ -263,8 +264,8 @@ def run_validate(
     literature: Mapping[Any, Any],
     out_dir: Path,
     model_uri: str | None = None,
-    max_fe_runs: int = 1,
-    tol_deg: float = 0.05,
+    max_fe_runs: int = ValidateOptions.max_fe_runs,
+    tol_deg: float = ValidateOptions.tol_deg,
     published: Sequence[Mapping[str, Any]] = (),
     idp_model_uri: str | None = None,
     **fe: Unpack[FeKeywords],
@@ -272,8 +273,10 @@ def run_validate(
     """FE re-simulation of a calibration (the study's step 4); tables in ``out_dir``; MLflow.
 
     ``fe`` is the FE runtime's keywords (``solver``, ``settings``, ``store``,
-    ``scheduler_address``, ``n_workers``, ``progress``; :meth:`FeRuntime.keywords`), passed
-    on to :func:`femcal.fe.validate.validate_calibration`. With ``max_fe_runs > 1`` the
+    ``scheduler_address``, ``n_workers``, ``progress``; :meth:`FeRuntime.keywords`); the
+    runtime they make and a :class:`~femcal.fe.options.ValidateOptions` of the forces, the
+    literature, the published pressures and the refinement's budget go to
+    :func:`femcal.fe.validate.validate_calibration`. With ``max_fe_runs > 1`` the
     calibration is first refined with FE in the loop, steered by the surrogate at
     ``model_uri`` (a model folder or a models:/ URI). ``published`` are the published
     pressures without a known force (``validate.idp_published``); ``idp_model_uri`` the IDP
@@ -315,17 +318,19 @@ def run_validate(
     # its tables are staged, and move into place inside the run that logs them.
     with staged_output(out_dir, command="validate") as stage:
         result = validate_calibration(
-            calibration_dir=calibration_dir,
-            measurements=measurements,
-            forces=forces,
-            literature=ranges,
-            out_dir=stage.path,
+            calibration_dir,
+            measurements,
+            FeRuntime(**fe),
+            stage.path,
+            ValidateOptions(
+                forces=forces,
+                literature=ranges,
+                published=values,
+                max_fe_runs=max_fe_runs,
+                tol_deg=tol_deg,
+            ),
             surrogate=surrogate,
-            max_fe_runs=max_fe_runs,
-            tol_deg=tol_deg,
-            published=values,
             idp_head=idp_head,
-            **fe,
         )
         s = result.summary
         with mlflow.start_run(run_name="validate") as run:
