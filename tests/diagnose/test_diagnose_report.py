@@ -130,7 +130,10 @@ def _marks(tmp_path, monkeypatch, next_measurement) -> tuple[list, list[str]]:
         for line in ax.get_lines()
         if line.get_linestyle() == ":"
     ]
-    return lines, [t.get_text() for t in fig.texts if "Measure next" in t.get_text()]
+    # the notes wrap to the figure's width: compared as one line
+    return lines, [
+        " ".join(t.get_text().split()) for t in fig.texts if "Measure next" in t.get_text()
+    ]
 
 
 def test_the_figure_marks_a_practical_measurement_and_only_that(tmp_path, monkeypatch):
@@ -164,3 +167,28 @@ def test_the_point_within_the_protocol_never_settles_sooner():
     n = {"between": ["a", "b"], **_point(0.5), "within_protocol": _point(0.5, moment_nm=4.0)}
     assert practical_next(_specimen(n)) is None
     assert practical_next(_specimen({**n, **_point(3.0)}))["moment_nm"] == 7.5
+
+
+def test_the_notes_below_a_figure_lie_inside_it_below_the_axes(tmp_path):
+    """No tight box crops the saved figure: the notes' band must hold every line, between
+    the figure's bottom edge and the axes' tick labels."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from femcal.diagnose.report import _place_notes
+
+    fig = Figure(figsize=(15.0, 6.6))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 4, sharex=True)
+    for ax in axes[1]:
+        ax.set_xlabel("moment (Nm)")
+    notes = ["Flexion: " + "less rotation than the model " * 12, "Extension: short"]
+    _place_notes(fig, notes)
+    renderer = fig.canvas.get_renderer()
+    (text,) = fig.texts
+    box = text.get_window_extent(renderer)
+    frame = fig.bbox
+    assert text.get_text().count("\n") == 2  # the long note wrapped once
+    assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0
+    labels = max(ax.get_tightbbox(renderer).y0 for ax in axes[1])
+    assert box.y1 < labels

@@ -131,11 +131,9 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     )
     curves = s.curves or {}
     dense = curves.get("moments")
-    # Fixed margins rather than a constrained layout: the layout engine and the saved
-    # figure's tight box would each lay the eight axes out again (the plots are most of a
-    # diagnosis' wall time); the tight box still takes the notes below the axes.
-    fig, axes = plt.subplots(2, 4, figsize=(15, 6.6), sharex=True)
-    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.08, top=0.91, wspace=0.22, hspace=0.1)
+    # Fixed margins, no layout engine and no tight box: each would lay the eight axes out
+    # again (drawing is most of a diagnosis' wall time). The notes get their own band below.
+    fig, axes = plt.subplots(2, 4, figsize=(_WIDTH_IN, _AXES_HEIGHT_IN), sharex=True)
     final_label = s.final_label
     sig_dense = None if dense is None else np.interp(np.log(dense), np.log(diag.moments), sig)
     for j, lc in enumerate(LOAD_CASES):
@@ -208,10 +206,42 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     notes = list(s.discrepancy["description"]) if s.discrepancy is not None else []
     if measure_next:
         notes.append(measure_next)
-    if notes:
-        fig.text(0.01, -0.01, "\n".join(notes), fontsize=8.5, va="top", family="monospace")
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    _place_notes(fig, notes)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+#: Per-specimen figure: width and the height of its axes (inches); each note line below the
+#: axes adds ``_NOTE_LINE_IN``; notes wrap at ``_NOTE_CHARS`` characters (monospace 8.5 pt).
+_WIDTH_IN, _AXES_HEIGHT_IN, _NOTE_LINE_IN, _NOTE_CHARS = 15.0, 6.6, 0.15, 190
+
+
+def _place_notes(fig, notes: list[str]) -> None:
+    """Fixed margins around the axes of a per-specimen figure, and ``notes`` (wrapped) in a
+    band below them that grows the figure by the lines it holds."""
+    import textwrap
+
+    lines = [w for note in notes for w in textwrap.wrap(note, _NOTE_CHARS) or [""]]
+    band = len(lines) * _NOTE_LINE_IN + (0.15 if lines else 0.0)
+    height = _AXES_HEIGHT_IN + band
+    fig.set_size_inches(_WIDTH_IN, height)
+    fig.subplots_adjust(
+        left=0.05,
+        right=0.99,
+        bottom=(0.55 + band) / height,
+        top=1.0 - 0.6 / height,
+        wspace=0.22,
+        hspace=0.1,
+    )
+    if lines:
+        fig.text(
+            0.01,
+            (band - 0.05) / height,
+            "\n".join(lines),
+            fontsize=8.5,
+            va="top",
+            family="monospace",
+        )
 
 
 def plot_heatmap(diag: Diagnosis, path: Path) -> None:
@@ -299,6 +329,7 @@ def _plot_specimens(diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int) -
     forks (the figures are independent; matplotlib takes most of a diagnosis' time)."""
     global _PLOTTING
     _PLOTTING = (diag, measured, pdir)
+    _plt()  # imported once here, not in each worker
     try:
         workers = min(os.cpu_count() or 1, n)
         if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
