@@ -26,8 +26,11 @@ def forward_selection(state: DiagnosisState) -> None:
     specimen's curves (the disc fitted alone has bent towards the missing physics). The first
     effect needs ``min_delta``; a further one ``min_delta_inadequate`` where the current model
     does not explain the data and ``min_delta_adequate`` where it does (None: stop there).
-    Every model within ``beam_delta`` of the best of a level is extended at the next one.
-    Updates ``state.chosen`` and ``state.per_spec``.
+    At the first level every candidate is also fitted split per load case
+    (:func:`_fit_splits`), a split form paying its prior cost ``min_delta_inadequate``; at a
+    further level the effect just added is tried split (:func:`_split_added`). Every model
+    within ``beam_delta`` of the best of a level is extended at the next one. Updates
+    ``state.chosen`` and ``state.per_spec``.
     """
     options = state.options
     frontier: list[list[Model]] = [[()] for _ in range(state.n)]
@@ -38,14 +41,17 @@ def forward_selection(state: DiagnosisState) -> None:
         if active.size == 0:
             return
         children = _extend(state, active, frontier, banks)
+        if _level == 0:
+            _fit_splits(state, [int(i) for i in active], children)
         improved: list[int] = []
         added: dict[int, str] = {}
         for i in active:
             current = state.chosen[i]
-            crits = {e: state.criterion(e, i) for e in children[int(i)]}
+            # a split form's prior cost (min_delta_inadequate) counts against it
+            crits = {e: state.criterion(e, i) + _split_cost(state, e) for e in children[int(i)]}
             if not crits:
                 continue
-            cur_crit = state.criterion(current, i)
+            cur_crit = state.criterion(current, i) + _split_cost(state, current)
             logger.debug(
                 "%s: forward from %s: criterion gains %s",
                 state.specimens[i],
@@ -65,12 +71,8 @@ def forward_selection(state: DiagnosisState) -> None:
                 state.chosen[i] = best_eff
                 frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
                 improved.append(int(i))
-        _split_added(state, added, frontier)
-        if _level == 0:
-            split = _split_first(state, [int(i) for i in active if int(i) not in improved])
-            for i in split:
-                frontier[i] = [state.chosen[i]]
-            improved += split
+        if _level > 0:
+            _split_added(state, added, frontier)
         # Keep adding while it pays; with min_delta_adequate None only where the chosen model
         # still does not explain the data.
         active = np.asarray(
@@ -109,31 +111,28 @@ def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[li
                 frontier[i] = [split if e == current else e for e in frontier[i]]
 
 
-def _split_first(state: DiagnosisState, rows: list[int]) -> list[int]:
-    """Where no effect pays in its tied form, each effect split per load case, from its tied
-    fit: a law tied across load cases may not fit a specimen whose anatomy differs between
-    them. A split form needs ``min_delta`` and a split's prior cost (``min_delta_inadequate``).
-    The specimens that took one."""
+def _split_cost(state: DiagnosisState, model: Model) -> float:
+    """The prior cost a model's split forms add to its criterion in forward selection:
+    ``min_delta_inadequate`` when it holds one."""
+    return state.options.min_delta_inadequate if any(is_split(e) for e in model) else 0.0
+
+
+def _fit_splits(state: DiagnosisState, rows: list[int], children: dict[int, list[Model]]) -> None:
+    """Every candidate effect split per load case, from its tied fit, for the specimens
+    ``rows``, added to their ``children``: a law tied across load cases may not fit a specimen
+    whose anatomy differs between them, and an effect whose tied form loses to another's may
+    win split. The first level then chooses among tied and split forms, a split paying its
+    prior cost (:func:`_split_cost`)."""
     if not rows:
-        return []
-    options = state.options
-    need = options.min_delta + options.min_delta_inadequate
+        return
     for name in state.candidates:
         if has_split_form(name):
             split = (name + SPLIT_SUFFIX,)
             v = state.solutions(rows, (name,))
-            v0, g = _split_starts(v, (name,), split, options.effect_levels)
+            v0, g = _split_starts(v, (name,), split, state.options.effect_levels)
             state.fit(split, np.asarray(rows), v0, g)
-    took = []
-    for i in rows:
-        splits = [e for e in state.per_spec[i] if len(e) == 1 and is_split(e[0])]
-        if not splits:
-            continue
-        best = min(splits, key=lambda e, i=i: state.criterion(e, i))
-        if state.criterion((), i) - state.criterion(best, i) >= need:
-            state.chosen[i] = best
-            took.append(i)
-    return took
+            for i in rows:
+                children[i] = sorted({*children[i], split})
 
 
 def _extend(
