@@ -23,9 +23,9 @@ import torch
 
 from femcal.calibration.model import CurveModel
 from femcal.effects.base import Effect, get_effect
-from femcal.forward_ad import constant_like
+from femcal.forward_ad import constant_like, has_tangent
 from femcal.space import ParameterSpace
-from femcal.surrogates.romnet import forward_tangents
+from femcal.surrogates.romnet import ensemble_forward, ensemble_tangents
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +37,53 @@ _BISECTIONS = 12
 _POLISH = 2
 _JAC_ROWS = 8192
 _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
+#: Points evaluated at once by :func:`_bisect_levels` (rows x load cases x moments x midpoints):
+#: small batches are bisected several levels per evaluation, large ones one level at a time.
+_SECTION_POINTS = 16384
+
+
+def _levels_per_round(n_points: int) -> int:
+    """Bisection levels evaluated together on ``n_points`` brackets (at least 1)."""
+    levels = 1
+    while levels < _BISECTIONS and n_points * (2 ** (levels + 1) - 1) <= _SECTION_POINTS:
+        levels += 1
+    return levels
+
+
+def _bisect_levels(above, lo: torch.Tensor, hi: torch.Tensor, levels: int):
+    """``levels`` steps of bisection of ``[lo, hi]`` (B, c, m, in log M) with one evaluation.
+
+    ``above(md)`` maps moments (B, c, m * q) to bool (B, c, m * q): whether the root lies
+    below (each bracket's ``q`` points consecutive on the last axis). Every midpoint that
+    ``levels`` successive bisections could visit (``2 ** levels - 1`` per bracket, each
+    ``0.5 * (left + right)`` of its neighbours as bisection computes it) is evaluated at once;
+    then the bisection's path through them is followed. Returns the new ``lo, hi`` (B, c, m).
+    """
+    points = np.stack([lo.numpy(), hi.numpy()], axis=-1)  # (B, c, m, 2 ** level + 1)
+    half = points.dtype.type(0.5)
+    for _ in range(levels):
+        grid = np.empty((*points.shape[:-1], 2 * points.shape[-1] - 1), dtype=points.dtype)
+        grid[..., 0::2] = points
+        grid[..., 1::2] = half * (points[..., :-1] + points[..., 1:])
+        points = grid
+    inner = torch.from_numpy(np.ascontiguousarray(points[..., 1:-1]))
+    moments = torch.exp(inner).reshape(*lo.shape[:-1], inner.shape[-2] * inner.shape[-1])
+    up = above(moments).reshape(inner.shape).numpy()
+    # Where the bisection's path ends: below the first point above the root when the points
+    # above it follow those below (as for a monotone g), else by following it level by level.
+    i_lo = (~up).sum(axis=-1, keepdims=True)
+    if not (up[..., 1:] >= up[..., :-1]).all():
+        i_lo = np.zeros((*lo.shape, 1), dtype=np.int64)
+        i_hi = np.full_like(i_lo, 2**levels)
+        for _ in range(levels):
+            i_mid = (i_lo + i_hi) // 2
+            go_down = np.take_along_axis(up, i_mid - 1, axis=-1)
+            i_hi = np.where(go_down, i_mid, i_hi)
+            i_lo = np.where(go_down, i_lo, i_mid)
+    i_hi = i_lo + 1
+    new_lo = np.take_along_axis(points, i_lo, axis=-1)[..., 0]
+    new_hi = np.take_along_axis(points, i_hi, axis=-1)[..., 0]
+    return torch.from_numpy(new_lo), torch.from_numpy(new_hi)
 
 
 class EffectModel:
@@ -55,6 +102,7 @@ class EffectModel:
         self.base = base
         self.effects: list[Effect] = [get_effect(name)() for name in effects]
         self.effect_names = [e.name for e in self.effects]
+        self._lc_masks = [e.load_case_mask() for e in self.effects]
         self.moments = base.moments
         self.net = base.net
         self.n_disc = base.dim
@@ -110,7 +158,7 @@ class EffectModel:
         M (B, c, m) -> (rotation, d rotation / dM or None), ``c`` = 4 or ``len(cases)``.
 
         ``coef`` (K, B, 4, p): the members' coefficients when already computed (the Jacobian
-        passes them as a dual tensor, differentiated by :func:`forward_tangents`).
+        passes them as a dual tensor, differentiated by :func:`ensemble_tangents`).
         ``cases``: only these load cases (indices into
         :data:`~femcal.schema.LOAD_CASES`; the bisection needs only those of its parallel
         effects). ``detached``: without graph or forward-mode tangent (the bisection);
@@ -120,7 +168,7 @@ class EffectModel:
         b = v_disc.shape[0]
         p = net.moment_degree + 1
         if coef is None:
-            coef = torch.stack([m(v_disc).reshape(b, net.n_load_cases, p) for m in net.members])
+            coef = self._coefficients(v_disc)
         if cases is not None:
             coef = coef[:, :, cases]
         n_cases = coef.shape[2]
@@ -147,9 +195,16 @@ class EffectModel:
             # and, with ``slope``, its derivative in z.
             c = prepared[detached]
             t = c[..., p - 1, None]
-            for j in range(p - 2, -1, -1):
-                t = t * z + c[..., j, None]
-            deg = torch.exp(t) if net.log_target else t
+            if detached and p > 1:  # no graph: the same operations, in place
+                t = t * z
+                t.add_(c[..., p - 2, None])
+                for j in range(p - 3, -1, -1):
+                    t.mul_(z).add_(c[..., j, None])
+                deg = t.exp_() if net.log_target else t
+            else:
+                for j in range(p - 2, -1, -1):
+                    t = t * z + c[..., j, None]
+                deg = torch.exp(t) if net.log_target else t
             if not slope:
                 return deg.mean(0), None
             if p == 1:
@@ -190,48 +245,84 @@ class EffectModel:
 
         return phi
 
-    def _disc_share(self, v: torch.Tensor) -> torch.Tensor:
+    def _coefficients(self, v_disc: torch.Tensor) -> torch.Tensor:
+        """The disc members' polynomial coefficients (K, B, 4, p) at ``v_disc`` (B, 13)."""
+        net = self.net
+        shape = (v_disc.shape[0], net.n_load_cases, net.moment_degree + 1)
+        if torch.is_grad_enabled() or has_tangent(v_disc):
+            return torch.stack([m(v_disc).reshape(shape) for m in net.members])
+        return ensemble_forward(net.members, v_disc).reshape(len(net.members), *shape)
+
+    def _disc_share(
+        self,
+        v: torch.Tensor,
+        coef: torch.Tensor | None = None,
+        params: list[dict[str, torch.Tensor]] | None = None,
+    ) -> torch.Tensor:
         """The disc's share of the applied moment (n, 4, m) by bisection, no graph, no tangent
-        (the Newton step in :meth:`curves` gives the exact derivative at the solution)."""
+        (the Newton step in :meth:`curves` gives the exact derivative at the solution).
+
+        ``coef`` (K, n, 4, p) and ``params`` (each effect's physical parameters by name, (n,)
+        each): the disc members' coefficients and the effects' parameters at ``v`` when
+        already computed. The bisection's midpoints are evaluated several levels at a time
+        (:func:`_bisect_levels`): the same iterates as one midpoint at a time.
+        """
         v = v.detach()
         b = v.shape[0]
         applied = self.moments.to(v.dtype).expand(b, 4, -1)
-        params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
-        parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
+        if params is None:
+            params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
+        else:
+            params = [{k: t.detach() for k, t in p.items()} for p in params]
+        parallel = [
+            (e, p, lc)
+            for e, p, lc in zip(self.effects, params, self._lc_masks)
+            if e.kind == "parallel"
+        ]
         if not parallel:
             return applied.clone()
         lc_mask = torch.zeros(4, dtype=torch.bool)
-        for e, _ in parallel:
-            lc_mask |= e.load_case_mask()
+        for _, _, lc in parallel:
+            lc_mask |= lc
         # Only the load cases a parallel effect acts in (elsewhere the disc carries it all).
         cases = torch.nonzero(lc_mask).flatten().tolist()
         with torch.no_grad():
-            phi_disc = self._disc(v[:, : self.n_disc], cases=cases)
+            coef = None if coef is None else coef.detach()
+            phi_disc = self._disc(v[:, : self.n_disc], coef, cases=cases)
             target = applied[:, cases]
             lo = torch.log(target * _MIN_SHARE)
             hi = torch.log(target).clone()
-            masks = [e.load_case_mask()[None, cases, None].to(v.dtype) for e, _ in parallel]
-            for _ in range(_BISECTIONS):
-                mid = 0.5 * (lo + hi)
-                md = torch.exp(mid)
+            masks = [lc[None, cases, None].to(v.dtype) for _, _, lc in parallel]
+            parallel = [(e, p) for e, p, _ in parallel]
+
+            def above(md: torch.Tensor) -> torch.Tensor:
+                # md (B, c, q): whether md + sum M_e(phi(md)) exceeds the applied moment
                 phi = phi_disc(md, detached=True, slope=False)[0]
-                g = md - target
+                g = md - target.repeat_interleave(md.shape[2] // target.shape[2], 2)
                 for (e, p), lc in zip(parallel, masks):
                     g = g + e.moment_at(phi, p, cases) * lc
-                up = g > 0
-                hi = torch.where(up, mid, hi)
-                lo = torch.where(up, lo, mid)
+                return g > 0
+
+            per_round = _levels_per_round(target.numel())
+            done = 0
+            while done < _BISECTIONS:
+                levels = min(per_round, _BISECTIONS - done)
+                lo, hi = _bisect_levels(above, lo, hi, levels)
+                done += levels
             md = torch.exp(0.5 * (lo + hi))
+            low, high = torch.exp(lo), torch.exp(hi)
             for _ in range(_POLISH):
-                md = self._newton_in_bracket(phi_disc, parallel, masks, cases, md, target, lo, hi)
+                md = self._newton_in_bracket(
+                    phi_disc, parallel, masks, cases, md, target, low, high
+                )
             share = applied.clone()
             share[:, cases] = md
             return share
 
     @staticmethod
-    def _newton_in_bracket(phi_disc, parallel, masks, cases, md, target, lo, hi) -> torch.Tensor:
+    def _newton_in_bracket(phi_disc, parallel, masks, cases, md, target, low, high) -> torch.Tensor:
         """One Newton step on ``md + sum M_e(phi(md)) = target`` (B, c, m), clipped to the
-        bracket ``[exp(lo), exp(hi)]`` that bisection left around the root."""
+        bracket ``[low, high]`` that bisection left around the root."""
         phi, slope = phi_disc(md, detached=True, slope=True)
         phi = phi.detach().requires_grad_(True)
         with torch.enable_grad():
@@ -240,7 +331,7 @@ class EffectModel:
         g = md + carried.detach() - target
         step = md - g / (1.0 + dm * slope)
         step = torch.where(torch.isfinite(step), step, md)
-        return torch.minimum(torch.maximum(step, torch.exp(lo)), torch.exp(hi))
+        return torch.minimum(torch.maximum(step, low), high)
 
     def _share_of(self, v: torch.Tensor) -> torch.Tensor:
         """:meth:`_disc_share` at ``v`` (n, dim); the rows that the last :meth:`curves` call
@@ -272,26 +363,29 @@ class EffectModel:
         """
         self.n_evaluations += int(v.shape[0])
         b = v.shape[0]
+        if coef is None:
+            coef = self._coefficients(v[:, : self.n_disc])
         phi_disc = self._disc(v[:, : self.n_disc], coef)
         applied = constant_like(self.moments.to(v.dtype).expand(b, 4, -1), v)
         params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
         parallel = [(e, p) for e, p in zip(self.effects, params) if e.kind == "parallel"]
+        masks = dict(zip(self.effect_names, self._lc_masks))
         if parallel:
             lc_mask = torch.zeros(4, dtype=torch.bool)
             for e, _ in parallel:
-                lc_mask |= e.load_case_mask()
+                lc_mask |= masks[e.name]
 
             def extra(phi: torch.Tensor, p_detach: bool) -> torch.Tensor:
                 total = None
                 for e, p in parallel:
                     pp = {k: t.detach() for k, t in p.items()} if p_detach else p
-                    mask = constant_like(e.load_case_mask()[None, :, None], phi)
+                    mask = constant_like(masks[e.name][None, :, None], phi)
                     term = e.moment_at(phi, pp) * mask
                     total = term if total is None else total + term
                 return total
 
             if share is None:
-                md0 = self._disc_share(v)
+                md0 = self._disc_share(v, coef, params)
                 rows = v.detach().cpu().numpy()
                 self._shares = {r.tobytes(): md0[i] for i, r in enumerate(rows)}
             else:
@@ -310,7 +404,7 @@ class EffectModel:
             phi, _ = phi_disc(applied, slope=False)
         for e, p in zip(self.effects, params):
             if e.kind == "series":
-                mask = constant_like(e.load_case_mask()[None, :, None], v)
+                mask = constant_like(masks[e.name][None, :, None], v)
                 phi = phi + e.rotation_at(applied, p) * mask
         return phi
 
@@ -343,22 +437,18 @@ class EffectModel:
             # (n rows, not n * d dual rows through every layer: forward-mode AD of the MLP
             # costs far more per operation); row i * d + j carries d coef_i / d v_j.
             shape = (n * d, net.n_load_cases, net.moment_degree + 1)
-            coef, dcoef = [], []
             # Each distinct disc once: a fit's starts from one grid share the disc's parameters.
             disc, inverse = torch.unique(vc[:, :nd], dim=0, return_inverse=True)
-            with torch.no_grad():
-                for member in net.members:
-                    h, t = forward_tangents(member, disc)  # (u, out), (u, nd, out)
-                    h, t = h[inverse], t[inverse]
-                    full = t.new_zeros((n, d, t.shape[-1]))
-                    full[:, :nd] = t
-                    coef.append(h.repeat_interleave(d, 0).reshape(shape))
-                    dcoef.append(full.reshape(shape))
+            h, t = ensemble_tangents(net.members, disc)  # (K, u, out), (K, u, nd, out)
+            h, t = h[:, inverse], t[:, inverse]
+            full = t.new_zeros((t.shape[0], n, d, t.shape[-1]))
+            full[:, :, :nd] = t
+            coef = h.repeat_interleave(d, 1).reshape(-1, *shape)
             with fwad.dual_level():
                 out = self.curves(
                     fwad.make_dual(primal, tangent),
                     share=share,
-                    coef=fwad.make_dual(torch.stack(coef), torch.stack(dcoef)),
+                    coef=fwad.make_dual(coef, full.reshape(-1, *shape)),
                 )
                 val, jac = fwad.unpack_dual(out)
             shape = (n, d, *val.shape[1:])

@@ -5,7 +5,8 @@ log-moment in log-RoM space, so :class:`RomNet` maps the parameters (unit box; p
 bounds are strictly positive in log scale) through an MLP to the 4 x 4 coefficients of those
 cubics (the estimator: :mod:`femcal.surrogates.nn`; its accuracy: ``reports/surrogates.md``).
 :func:`forward_tangents` differentiates a member MLP in forward mode (the curve model's
-Jacobian). Training with Lightning: :mod:`femcal.surrogates.romnet_training`.
+Jacobian); :func:`ensemble_forward` and :func:`ensemble_tangents` give the same values for all
+members at once, without graph. Training with Lightning: :mod:`femcal.surrogates.romnet_training`.
 """
 
 from __future__ import annotations
@@ -378,5 +379,80 @@ def forward_tangents(member: nn.Sequential, v: torch.Tensor) -> tuple[torch.Tens
             assert z is not None and tangent is not None
             tangent = tangent * _activation_derivative(layer, z)[:, None, :]
             h = layer(z)
+    assert tangent is not None
+    return h, tangent
+
+
+def _member_layers(members: Sequence[nn.Sequential]) -> list[list[nn.Module]]:
+    """Each member's layers without its dropouts (the identity in eval mode); ValueError when
+    the members differ in their layer types."""
+    layers = [[layer for layer in m if not isinstance(layer, nn.Dropout)] for m in members]
+    kinds = {tuple(type(layer) for layer in ls) for ls in layers}
+    if len(kinds) != 1:
+        raise ValueError("The ensemble's members differ in their layers.")
+    return layers
+
+
+def _ensemble_linear(layers, i: int, h: torch.Tensor, shared: bool) -> torch.Tensor:
+    """Layer ``i`` (Linear) of every member, (K, n, out): member ``k`` applied to ``h``
+    (n, in) if ``shared`` else to ``h[k]``, each computed as :class:`torch.nn.Linear` does."""
+    first = layers[0][i]
+    out = h.new_empty((len(layers), h.shape[-2], first.out_features))
+    for k, member in enumerate(layers):
+        layer = member[i]
+        if layer.bias is None:
+            torch.mm(h if shared else h[k], layer.weight.t(), out=out[k])
+        else:
+            torch.addmm(layer.bias, h if shared else h[k], layer.weight.t(), out=out[k])
+    return out
+
+
+def ensemble_forward(members: Sequence[nn.Sequential], v: torch.Tensor) -> torch.Tensor:
+    """Every member's output at ``v`` (n, d), shape (K, n, out), without graph.
+
+    The same values as ``torch.stack([m(v) for m in members])`` in eval mode, each member's
+    linear layers computed alone, the activations of all members at once.
+    """
+    layers = _member_layers(members)
+    h = v
+    with torch.no_grad():
+        for i, layer in enumerate(layers[0]):
+            if isinstance(layer, nn.Linear):
+                h = _ensemble_linear(layers, i, h, shared=h is v)
+            else:
+                h = layer(h)
+    return h
+
+
+def ensemble_tangents(
+    members: Sequence[nn.Sequential], v: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every member's output and Jacobian at ``v`` (n, d): shapes (K, n, out), (K, n, d, out).
+
+    The values of :func:`forward_tangents` for each member (eval mode), without graph; the
+    activations and their derivatives of all members computed at once.
+    """
+    layers = _member_layers(members)
+    n_members, n = len(layers), v.shape[0]
+    h = v
+    tangent: torch.Tensor | None = None  # (K, n, d, width); None = identity
+    z: torch.Tensor | None = None
+    with torch.no_grad():
+        for i, layer in enumerate(layers[0]):
+            if isinstance(layer, nn.Linear):
+                z = _ensemble_linear(layers, i, h, shared=h is v)
+                weights = [member[i].weight.T for member in layers]
+                if tangent is None:
+                    tangent = torch.stack(weights)[:, None].expand(n_members, n, *weights[0].shape)
+                else:
+                    t_new = z.new_empty((n_members, n, tangent.shape[2], layer.out_features))
+                    for k, w in enumerate(weights):
+                        torch.matmul(tangent[k], w, out=t_new[k])
+                    tangent = t_new
+                h = z
+            else:
+                assert z is not None and tangent is not None
+                tangent = tangent * _activation_derivative(layer, z)[:, :, None, :]
+                h = layer(z)
     assert tangent is not None
     return h, tangent
