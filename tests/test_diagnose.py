@@ -159,14 +159,19 @@ def test_same_seed_same_diagnosis(world):
     )
 
 
-def test_the_verdicts_do_not_depend_on_the_number_of_workers(world):
+def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch):
+    from femcal.diagnose import workers
+
     base, rom, _, _ = world
-    rom16 = np.concatenate([rom, rom[:1]])  # 16 specimens: two groups of 8 (workers.MIN_ROWS)
-    names = [f"S{i:02d}" for i in range(len(rom16))]
+    # two groups of 3 (workers.MIN_ROWS lowered from 8): every kind of the world, twice
+    monkeypatch.setattr(workers, "MIN_ROWS", 3)
+    rom6 = rom[:6]
+    names = [f"S{i:02d}" for i in range(len(rom6))]
     runs = [
-        diagnose(base, rom16, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=k))
+        diagnose(base, rom6, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=k))
         for k in (1, 2)
     ]
+    assert len(workers.groups(len(rom6), 2)) == 2
     assert [s.specimen for s in runs[1].specimens] == names
     assert [s.verdict for s in runs[1].specimens] == [s.verdict for s in runs[0].specimens]
     # Batches of other sizes round differently in the last float32 digits (see above), and a
