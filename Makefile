@@ -16,8 +16,10 @@ $(VENV)/.installed: pyproject.toml constraints.txt  ## the versions pinned in co
 repro: install  ## fetch the data, train, evaluate: the whole pipeline
 	dvc repro
 
+# `make test` shares the tests over one process per core (pytest-xdist), each test file on one
+# process (--dist loadfile: a file's fixtures are built once), each process on one thread.
 test: install  ## the test suite without the slow tests (pyproject.toml's addopts: -m 'not slow')
-	pytest $(PYTEST_ARGS)
+	OMP_NUM_THREADS=1 pytest -n auto --dist loadfile $(PYTEST_ARGS)
 
 test-slow: install  ## only the slow tests: the whole pipelines (dvc repro) and the FE runs
 	pytest -m slow $(PYTEST_ARGS)

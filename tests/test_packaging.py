@@ -110,13 +110,17 @@ def test_licence_is_mit():
 
 
 def test_the_default_run_leaves_the_slow_tests_to_their_own_ci_step():
-    """`make test` excludes the slow tests; every test module that runs `dvc repro` is slow;
-    CI runs the slow ones as a step of their own (`make test-slow`)."""
+    """`make test` excludes the slow tests and shares the rest over one process per core;
+    every test module that runs `dvc repro` is slow; CI runs the slow ones as a step of their
+    own (`make test-slow`)."""
     pytest_config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]
     assert "-m 'not slow'" in pytest_config["ini_options"]["addopts"]
     repro = [p for p in (ROOT / "tests").rglob("test_*.py") if '"repro"' in p.read_text()]
     assert repro, "no test runs dvc repro any more: update this test"
     unmarked = [p.name for p in repro if "pytest.mark.slow" not in p.read_text()]
     assert unmarked == []
-    assert re.search(r"^test-slow:.*\n\tpytest -m slow", (ROOT / "Makefile").read_text(), re.M)
+    makefile = (ROOT / "Makefile").read_text()
+    parallel = r"^test:.*\n\tOMP_NUM_THREADS=1 pytest -n auto --dist loadfile "
+    assert re.search(parallel, makefile, re.M)
+    assert re.search(r"^test-slow:.*\n\tpytest -m slow", makefile, re.M)
     assert "make test-slow" in (ROOT / ".ci" / "run").read_text()
