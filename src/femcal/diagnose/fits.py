@@ -16,9 +16,16 @@ from femcal.calibration.pgd_options import GaussNewtonOptions
 from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
 from femcal.effects.composite import EffectModel
+from femcal.effects.split import is_split
 
 #: A fit has converged when a step lowers its chi-square by less than this fraction.
 _GN_TOL = 1e-6
+#: Successive halving of a fit's starts: after ``keep_after`` iterations only the ``keep``
+#: best go on. A model with a split form keeps more starts for longer: its per-load-case
+#: parameters leave the tied compromise slowly, and the start that wins is often not among the
+#: best two after three iterations.
+_KEEP = {"keep_after": 3, "keep": 2}
+_KEEP_SPLIT = {"keep_after": 5, "keep": 4}
 
 
 # ------------------------------------------------------------------------ fitting helpers
@@ -202,7 +209,9 @@ def _fit_from(
     problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
     r = len(rows)
     idx = torch.arange(r).repeat_interleave(g)
-    keep = {"keep_after": 3, "keep": 2} if g > 2 else {}
+    split = any(is_split(e) for e in getattr(model, "effect_names", ()))
+    keep = _KEEP_SPLIT if split else _KEEP
+    keep = keep if g > keep["keep"] else {}
     options = GaussNewtonOptions(max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
     v, _, _ = gauss_newton(problem, v0, idx, options)
     with torch.no_grad():

@@ -42,35 +42,19 @@ def forward_selection(state: DiagnosisState) -> None:
             return
         children = _extend(state, active, frontier, banks)
         if _level == 0:
-            _fit_splits(state, [int(i) for i in active], children)
+            _fit_splits(state, [int(i) for i in active], children, banks)
         improved: list[int] = []
         added: dict[int, str] = {}
-        for i in active:
-            current = state.chosen[i]
-            # a split form's prior cost (min_delta_inadequate) counts against it
-            crits = {e: state.criterion(e, i) + _split_cost(state, e) for e in children[int(i)]}
-            if not crits:
+        choice = {int(i): _best_child(state, int(i), children[int(i)]) for i in active}
+        for i, c in choice.items():
+            if c is None or not c[2]:
                 continue
-            cur_crit = state.criterion(current, i) + _split_cost(state, current)
-            logger.debug(
-                "%s: forward from %s: criterion gains %s",
-                state.specimens[i],
-                frontier[i],
-                {e: round(cur_crit - b, 1) for e, b in crits.items()},
-            )
-            best_eff = min(crits, key=crits.get)
+            best_eff, crits, _ = c
+            added[i] = next(e for e in best_eff if e not in state.chosen[i])
+            state.chosen[i] = best_eff
             best_crit = crits[best_eff]
-            need = options.min_delta
-            if current:
-                if not state.adequate(current, i):
-                    need = options.min_delta_inadequate
-                elif options.min_delta_adequate is not None:
-                    need = options.min_delta_adequate
-            if cur_crit - best_crit >= need:
-                added[int(i)] = next(e for e in best_eff if e not in current)
-                state.chosen[i] = best_eff
-                frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
-                improved.append(int(i))
+            frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
+            improved.append(i)
         if _level > 0:
             _split_added(state, added, frontier)
         # Keep adding while it pays; with min_delta_adequate None only where the chosen model
@@ -83,6 +67,36 @@ def forward_selection(state: DiagnosisState) -> None:
             ],
             dtype=int,
         )
+
+
+def _best_child(
+    state: DiagnosisState, i: int, children: list[Model]
+) -> tuple[Model, dict[Model, float], bool] | None:
+    """Specimen ``i``'s best child model, every child's criterion (a split form's prior cost
+    counted, :func:`_split_cost`) and whether the best gains what it needs over the current
+    model: ``min_delta`` for a first effect, ``min_delta_inadequate`` where the current model
+    does not explain the data, ``min_delta_adequate`` where it does (None: ``min_delta``).
+    None without children."""
+    options = state.options
+    current = state.chosen[i]
+    crits = {e: state.criterion(e, i) + _split_cost(state, e) for e in children}
+    if not crits:
+        return None
+    cur_crit = state.criterion(current, i) + _split_cost(state, current)
+    logger.debug(
+        "%s: forward from %s: criterion gains %s",
+        state.specimens[i],
+        current,
+        {e: round(cur_crit - b, 1) for e, b in crits.items()},
+    )
+    best_eff = min(crits, key=crits.get)
+    need = options.min_delta
+    if current:
+        if not state.adequate(current, i):
+            need = options.min_delta_inadequate
+        elif options.min_delta_adequate is not None:
+            need = options.min_delta_adequate
+    return best_eff, crits, bool(cur_crit - crits[best_eff] >= need)
 
 
 def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[list[Model]]) -> None:
@@ -117,22 +131,63 @@ def _split_cost(state: DiagnosisState, model: Model) -> float:
     return state.options.min_delta_inadequate if any(is_split(e) for e in model) else 0.0
 
 
-def _fit_splits(state: DiagnosisState, rows: list[int], children: dict[int, list[Model]]) -> None:
-    """Every candidate effect split per load case, from its tied fit, for the specimens
-    ``rows``, added to their ``children``: a law tied across load cases may not fit a specimen
-    whose anatomy differs between them, and an effect whose tied form loses to another's may
-    win split. The first level then chooses among tied and split forms, a split paying its
-    prior cost (:func:`_split_cost`)."""
+def _fit_splits(
+    state: DiagnosisState,
+    rows: list[int],
+    children: dict[int, list[Model]],
+    banks: dict[Model, tuple[torch.Tensor, torch.Tensor]],
+) -> None:
+    """Every candidate effect split per load case for the specimens ``rows``, added to their
+    ``children``: a law tied across load cases may not fit a specimen whose anatomy differs
+    between them, and an effect whose tied form loses to another's may win split. Each split
+    form starts from its tied fit (:func:`femcal.diagnose.fits._split_starts`) and, like a new
+    effect, from the disc alone's solution with the effect's grid and from the start bank
+    (:func:`_new_effect_starts`): the disc the tied law bent holds a split fit near the tied
+    one. The first level then chooses among tied and split forms, a split paying its prior
+    cost (:func:`_split_cost`)."""
     if not rows:
         return
+    rows_a = np.asarray(rows)
     for name in state.candidates:
         if has_split_form(name):
             split = (name + SPLIT_SUFFIX,)
             v = state.solutions(rows, (name,))
             v0, g = _split_starts(v, (name,), split, state.options.effect_levels)
-            state.fit(split, np.asarray(rows), v0, g)
+            w0 = _new_effect_starts(state, rows_a, (), split[0], banks)
+            v0 = torch.cat([v0.reshape(len(rows), g, -1), w0], dim=1)
+            g = v0.shape[1]
+            state.fit(split, rows_a, v0.reshape(len(rows) * g, -1), g)
             for i in rows:
                 children[i] = sorted({*children[i], split})
+
+
+def _new_effect_starts(
+    state: DiagnosisState,
+    rows: np.ndarray,
+    current: Model,
+    new: str,
+    banks: dict[Model, tuple[torch.Tensor, torch.Tensor]],
+) -> torch.Tensor:
+    """Starts (r, g, dim) of model ``current`` plus ``new`` for specimens ``rows``: the
+    current model's solution with a grid over the new effect's box, and the ``bank_starts``
+    disc-and-effect combinations of the start bank nearest each specimen's curves (the disc
+    fitted alone has bent towards the missing physics)."""
+    options = state.options
+    effects = tuple(sorted((*current, new)))
+    model = state.model(effects)
+    levels, shapes, grids = options.effect_levels, options.shape_starts, options.grid_shapes
+    g = len(_grid(model, new, levels, shapes, grids)[1])
+    v_prev = state.solutions(rows, current)
+    v0 = _starts(model, current, v_prev, new, levels, shapes, grids).reshape(len(rows), g, -1)
+    if state.start_bank is not None and options.bank_starts > 0:
+        if effects not in banks:
+            banks[effects] = effect_bank(
+                model, state.start_bank, state.model_rng(effects), options.bank_samples
+            )
+        problem = CalibrationProblem.from_arrays(model, state.measured[rows], state.weight[rows])
+        near = nearest_starts(problem, *banks[effects], options.bank_starts)  # (r, K)
+        v0 = torch.cat([v0, banks[effects][0][near]], dim=1)
+    return v0
 
 
 def _extend(
@@ -143,7 +198,6 @@ def _extend(
 ) -> dict[int, list[Model]]:
     """Fit every model one effect larger than a frontier model, each once per specimen (from
     its best parent in the frontier); per specimen, the models fitted."""
-    options = state.options
     jobs: dict[tuple[Model, str], list[int]] = {}
     children: dict[int, list[Model]] = {}
     for i in active:
@@ -160,25 +214,10 @@ def _extend(
         children[int(i)] = sorted(seen)
     for (current, new), members in jobs.items():
         rows = np.asarray(members)
-        v_prev = state.solutions(rows, current)
         effects = tuple(sorted((*current, new)))
-        model = state.model(effects)
-        levels, shapes, grids = options.effect_levels, options.shape_starts, options.grid_shapes
-        g = len(_grid(model, new, levels, shapes, grids)[1])
-        v0 = _starts(model, current, v_prev, new, levels, shapes, grids)
-        if state.start_bank is not None and options.bank_starts > 0:
-            if effects not in banks:
-                banks[effects] = effect_bank(
-                    model, state.start_bank, state.model_rng(effects), options.bank_samples
-                )
-            problem = CalibrationProblem.from_arrays(
-                model, state.measured[rows], state.weight[rows]
-            )
-            near = nearest_starts(problem, *banks[effects], options.bank_starts)  # (r, K)
-            v0 = torch.cat([v0.reshape(len(rows), g, -1), banks[effects][0][near]], dim=1)
-            g = v0.shape[1]
-            v0 = v0.reshape(len(rows) * g, -1)
-        fit = state.fit(effects, rows, v0, g)
+        v0 = _new_effect_starts(state, rows, current, new, banks)
+        g = v0.shape[1]
+        fit = state.fit(effects, rows, v0.reshape(len(rows) * g, -1), g)
         if len(effects) > 1:
             _refine_combination(state, fit)
     return children
