@@ -45,16 +45,32 @@ def forward_selection(state: DiagnosisState) -> None:
             _fit_splits(state, [int(i) for i in active], children, banks)
         improved: list[int] = []
         added: dict[int, str] = {}
-        choice = {int(i): _best_child(state, int(i), children[int(i)]) for i in active}
-        for i, c in choice.items():
-            if c is None or not c[2]:
+        for i in active:
+            current = state.chosen[i]
+            # a split form's prior cost (min_delta_inadequate) counts against it
+            crits = {e: state.criterion(e, i) + _split_cost(state, e) for e in children[int(i)]}
+            if not crits:
                 continue
-            best_eff, crits, _ = c
-            added[i] = next(e for e in best_eff if e not in state.chosen[i])
-            state.chosen[i] = best_eff
+            cur_crit = state.criterion(current, i) + _split_cost(state, current)
+            logger.debug(
+                "%s: forward from %s: criterion gains %s",
+                state.specimens[i],
+                frontier[i],
+                {e: round(cur_crit - b, 1) for e, b in crits.items()},
+            )
+            best_eff = min(crits, key=crits.get)
             best_crit = crits[best_eff]
-            frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
-            improved.append(i)
+            need = options.min_delta
+            if current:
+                if not state.adequate(current, i):
+                    need = options.min_delta_inadequate
+                elif options.min_delta_adequate is not None:
+                    need = options.min_delta_adequate
+            if cur_crit - best_crit >= need:
+                added[int(i)] = next(e for e in best_eff if e not in current)
+                state.chosen[i] = best_eff
+                frontier[i] = [e for e, b in crits.items() if b - best_crit < beam or e == best_eff]
+                improved.append(int(i))
         if _level > 0:
             _split_added(state, added, frontier)
         # Keep adding while it pays; with min_delta_adequate None only where the chosen model
@@ -67,36 +83,6 @@ def forward_selection(state: DiagnosisState) -> None:
             ],
             dtype=int,
         )
-
-
-def _best_child(
-    state: DiagnosisState, i: int, children: list[Model]
-) -> tuple[Model, dict[Model, float], bool] | None:
-    """Specimen ``i``'s best child model, every child's criterion (a split form's prior cost
-    counted, :func:`_split_cost`) and whether the best gains what it needs over the current
-    model: ``min_delta`` for a first effect, ``min_delta_inadequate`` where the current model
-    does not explain the data, ``min_delta_adequate`` where it does (None: ``min_delta``).
-    None without children."""
-    options = state.options
-    current = state.chosen[i]
-    crits = {e: state.criterion(e, i) + _split_cost(state, e) for e in children}
-    if not crits:
-        return None
-    cur_crit = state.criterion(current, i) + _split_cost(state, current)
-    logger.debug(
-        "%s: forward from %s: criterion gains %s",
-        state.specimens[i],
-        current,
-        {e: round(cur_crit - b, 1) for e, b in crits.items()},
-    )
-    best_eff = min(crits, key=crits.get)
-    need = options.min_delta
-    if current:
-        if not state.adequate(current, i):
-            need = options.min_delta_inadequate
-        elif options.min_delta_adequate is not None:
-            need = options.min_delta_adequate
-    return best_eff, crits, bool(cur_crit - crits[best_eff] >= need)
 
 
 def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[list[Model]]) -> None:
