@@ -3,10 +3,9 @@
 PyTorch stands in an efficient zero tensor for a missing forward-mode tangent, and that tensor's
 kernels work out each result's shape through Python meta functions (pytorch/pytorch#69687): an
 operation between a dual tensor and a plain constant costs ~250 us instead of ~10 us on the CPU
-(torch 2.13). :meth:`femcal.effects.composite.EffectModel.curves_jacobian` runs every curve
-operation on dual tensors, and its constants were half of its time on the hidden cohorts of
-experiments/bench_diagnose.py. :func:`constant_like` gives a constant an explicit zero tangent
-instead.
+(torch 2.13). The effects' parameter derivatives
+(:func:`femcal.effects.jacobian.parameter_partials`) run the effects' laws on dual tensors;
+:func:`constant_like` gives their constants an explicit zero tangent instead.
 """
 
 from __future__ import annotations

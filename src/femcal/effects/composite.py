@@ -23,6 +23,7 @@ import torch
 
 from femcal.calibration.model import CurveModel
 from femcal.effects.base import Effect, get_effect
+from femcal.effects.jacobian import disc_partials, parameter_partials, repeated
 from femcal.forward_ad import constant_like, has_tangent
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import ensemble_forward, ensemble_tangents
@@ -411,52 +412,80 @@ class EffectModel:
     def curves_jacobian(
         self, v: torch.Tensor, *, jacobian_members: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim), exact, by forward-mode AD.
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim), exact.
 
-        Each row is repeated ``dim`` times, row ``j`` of a block carrying the tangent ``e_j``,
-        so one forward pass gives every column. The bisection for the disc's share of the
-        moment carries no tangent (its iterates do not depend on ``v``), and the Newton step
-        that follows gives the implicit-function derivative exactly at the solution.
-        (``jacobian_members`` is accepted and ignored.)
+        The curves are those of :meth:`curves`. The Jacobian follows from the implicit-function
+        theorem at the disc's share of the moment (:mod:`femcal.effects.jacobian`): the disc
+        network's coefficients and their derivatives once per distinct disc, the disc's terms
+        in closed form, each effect's parameter derivatives by forward-mode AD over its own
+        parameters. (``jacobian_members`` is accepted and ignored.)
         """
-        import torch.autograd.forward_ad as fwad
-
         b, d = v.shape
-        net, nd = self.net, self.n_disc
-        # Chunks of at most _JAC_ROWS dual rows bound the memory of the temporaries.
-        step = max(1, _JAC_ROWS // d)
+        step = max(1, _JAC_ROWS // d)  # chunks bound the memory of the temporaries
         values, jacs = [], []
         for start in range(0, b, step):
             vc = v[start : start + step].detach()
-            n = vc.shape[0]
-            self.n_evaluations += n * d
-            primal = vc.repeat_interleave(d, 0)
-            tangent = torch.eye(d, dtype=v.dtype).repeat(n, 1)
-            share = self._share_of(vc).repeat_interleave(d, 0)  # bisected once per row
-            # The disc network's coefficients and their d/dv by explicit forward tangents
-            # (n rows, not n * d dual rows through every layer: forward-mode AD of the MLP
-            # costs far more per operation); row i * d + j carries d coef_i / d v_j.
-            shape = (n * d, net.n_load_cases, net.moment_degree + 1)
-            # Each distinct disc once: a fit's starts from one grid share the disc's parameters.
-            disc, inverse = torch.unique(vc[:, :nd], dim=0, return_inverse=True)
-            h, t = ensemble_tangents(net.members, disc)  # (K, u, out), (K, u, nd, out)
-            h, t = h[:, inverse], t[:, inverse]
-            full = t.new_zeros((t.shape[0], n, d, t.shape[-1]))
-            full[:, :, :nd] = t
-            coef = h.repeat_interleave(d, 1).reshape(-1, *shape)
-            with fwad.dual_level():
-                out = self.curves(
-                    fwad.make_dual(primal, tangent),
-                    share=share,
-                    coef=fwad.make_dual(coef, full.reshape(-1, *shape)),
-                )
-                val, jac = fwad.unpack_dual(out)
-            shape = (n, d, *val.shape[1:])
-            if jac is None:  # no path from v to the curves
-                jac = torch.zeros_like(val)
-            values.append(val.reshape(shape)[:, 0].detach())
-            jacs.append(jac.reshape(shape).permute(0, 2, 3, 1).detach())
+            value, jac = self._jacobian_chunk(vc)
+            self.n_evaluations += vc.shape[0] * d
+            values.append(value)
+            jacs.append(jac)
         return torch.cat(values), torch.cat(jacs)
+
+    def _jacobian_chunk(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`curves_jacobian` of the rows ``v`` (n, dim), without chunking."""
+        net, nd = self.net, self.n_disc
+        n, d = v.shape
+        share = self._share_of(v)  # (n, 4, m): the applied moment where no parallel effect acts
+        # Each distinct disc once: a fit's starts from one grid share the disc's parameters.
+        disc, inverse = torch.unique(v[:, :nd], dim=0, return_inverse=True)
+        h, t = ensemble_tangents(net.members, disc)  # (K, u, out), (K, u, nd, out)
+        k, p = h.shape[0], net.moment_degree + 1
+        coef = h[:, inverse].reshape(k, n, net.n_load_cases, p)
+        dcoef = t[:, inverse].reshape(k, n, nd, net.n_load_cases, p)
+        with torch.no_grad():
+            value = self.curves(v, share=share, coef=coef)
+        phi, slope, along = disc_partials(net, coef, dcoef, share, float(np.log(self.m_low)))
+        m = share.shape[-1]
+        jac = v.new_zeros((n, d, 4, m))  # columns first, moved last at the end
+        jac[:, :nd] = along
+        params = [e.from_unit(v[:, sl]) for e, sl in zip(self.effects, self._slices)]
+        parallel = [
+            (e, q, sl, lc[None, :, None].to(v.dtype))
+            for e, q, sl, lc in zip(self.effects, params, self._slices, self._lc_masks)
+            if e.kind == "parallel"
+        ]
+        if parallel:
+            # k_e = sum_e dM_e/dphi at the solution, then dM_d along every column.
+            phi_req = phi.detach().requires_grad_(True)
+            with torch.enable_grad():
+                carried = sum(e.moment_at(phi_req, q) * lc for e, q, _, lc in parallel)
+                (stiff,) = torch.autograd.grad(carried.sum(), phi_req)
+            d_g = stiff[:, None] * along  # (n, nd, 4, m); the effects' columns below
+            d_g = torch.cat([d_g, v.new_zeros((n, d - nd, 4, m))], dim=1)
+            for e, _, sl, lc in parallel:
+                width = sl.stop - sl.start
+                d_g[:, sl] += parameter_partials(
+                    e,
+                    v[:, sl],
+                    lambda q, like, e=e, lc=lc, w=width: (
+                        e.moment_at(repeated(phi, w, like), q) * constant_like(lc, like)
+                    ),
+                )
+            d_share = -d_g / (1.0 + stiff * slope)[:, None]
+            jac = jac + slope[:, None] * d_share
+        for e, sl, lc in zip(self.effects, self._slices, self._lc_masks):
+            if e.kind == "series":
+                width = sl.stop - sl.start
+                mask = lc[None, :, None].to(v.dtype)
+                applied = self.moments.to(v.dtype).expand(n, 4, -1)
+                jac[:, sl] += parameter_partials(
+                    e,
+                    v[:, sl],
+                    lambda q, like, e=e, w=width, a=applied, mask=mask: (
+                        e.rotation_at(repeated(a, w, like), q) * constant_like(mask, like)
+                    ),
+                )
+        return value.detach(), jac.permute(0, 2, 3, 1).contiguous()
 
     def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
         v = self.from_physical(np.asarray(x, dtype=float).reshape(len(x), -1), clip=clip)
