@@ -192,3 +192,31 @@ def test_the_notes_below_a_figure_lie_inside_it_below_the_axes(tmp_path):
     assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0
     labels = max(ax.get_tightbbox(renderer).y0 for ax in axes[1])
     assert box.y1 < labels
+
+
+def test_a_figure_drawn_again_for_another_specimen_matches_a_new_one(tmp_path, monkeypatch):
+    """Each process draws every specimen on one figure: the PNG of a specimen drawn after
+    another (with its curves, marks and notes) is pixel for pixel the one a new figure gives."""
+    import matplotlib.image
+
+    from femcal.diagnose import report
+
+    noted = _diagnosis({"between": ["facet_contact", "facet_contact+neutral_zone"], **_point(3.0)})
+    plain = _diagnosis(None)
+    dense = np.geomspace(1.0, 5.0, 20)
+    plain.specimens[0].curves = {"moments": dense, "none": np.outer(np.arange(1, 5), dense)}
+    plain.specimens[0].verdict, plain.specimens[0].effects = "none", []
+    rom = np.arange(12.0).reshape(4, 3)
+
+    def png(diag, measured, name, new: bool):
+        if new:
+            monkeypatch.setattr(report, "_FIGURE", None)
+        report.plot_specimen(diag, 0, measured, tmp_path / name)
+        return matplotlib.image.imread(tmp_path / name)
+
+    first = png(noted, np.ones((4, 3)), "noted-new.png", new=True)
+    other = png(plain, rom, "plain-new.png", new=True)
+    assert first.shape != other.shape  # the notes' band makes the figure taller
+    png(noted, np.ones((4, 3)), "noted-first.png", new=True)
+    assert np.array_equal(png(plain, rom, "plain-after.png", new=False), other)
+    assert np.array_equal(png(noted, np.ones((4, 3)), "noted-after.png", new=False), first)

@@ -122,7 +122,6 @@ def _mark_next_measurement(s: SpecimenDiagnosis, axes) -> str | None:
 def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> None:
     """Measured points and continuous model curves (disc alone, with the verdict's effects),
     residuals against the ±2σ band, and the discrepancy estimate with its band."""
-    plt = _plt()
     s = diag.specimens[i]
     sig = (
         diag.sigma_by_moment
@@ -133,7 +132,7 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     dense = curves.get("moments")
     # Fixed margins, no layout engine and no tight box: each would lay the eight axes out
     # again (drawing is most of a diagnosis' wall time). The notes get their own band below.
-    fig, axes = plt.subplots(2, 4, figsize=(_WIDTH_IN, _AXES_HEIGHT_IN), sharex=True)
+    fig, axes = _specimen_figure()
     final_label = s.final_label
     sig_dense = None if dense is None else np.interp(np.log(dense), np.log(diag.moments), sig)
     for j, lc in enumerate(LOAD_CASES):
@@ -208,7 +207,37 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
         notes.append(measure_next)
     _place_notes(fig, notes)
     fig.savefig(path, dpi=100)
-    plt.close(fig)
+
+
+#: The per-specimen figure of this process and its (2, 4) axes, drawn again for each specimen:
+#: building eight axes and their ticks anew costs about as much as drawing them.
+_FIGURE: tuple[Any, np.ndarray] | None = None
+
+
+def _specimen_figure() -> tuple[Any, np.ndarray]:
+    """This process's per-specimen figure and axes, emptied of the last specimen's artists,
+    titles, legends and notes, with their data limits to be set anew (as on new axes)."""
+    global _FIGURE
+    if _FIGURE is None:
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(_WIDTH_IN, _AXES_HEIGHT_IN))
+        _FIGURE = fig, fig.subplots(2, 4, sharex=True)
+        return _FIGURE
+    fig, axes = _FIGURE
+    for ax in axes.flat:
+        for artist in [*ax.lines, *ax.collections, *ax.texts, *ax.patches]:
+            artist.remove()
+        if ax.get_legend() is not None:
+            ax.get_legend().remove()
+        ax.set_title("")
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+        ax.ignore_existing_data_limits = True
+        ax.set_autoscale_on(True)
+    for text in list(fig.texts):
+        text.remove()
+    return fig, axes
 
 
 #: Per-specimen figure: width and the height of its axes (inches); each note line below the
