@@ -63,7 +63,7 @@ class DiagnoseOptions:
         Seeds the start banks.
     workers : int or None
         Processes the specimens are shared out over (None: one per CPU this process may use;
-        :mod:`femcal.diagnose.workers`). The verdicts do not depend on it.
+        :mod:`femcal.diagnose.workers`). A verdict where models are nearly tied can depend on it.
     """
 
     min_delta: float = 10.0

@@ -3,9 +3,11 @@
 Every step after the disc-alone fit works specimen by specimen (its fits are batched only to be
 fast), and each model's random draws come from a generator of its own
 (:meth:`femcal.diagnose.state.DiagnosisState.model_rng`). So the specimens can be diagnosed in
-groups, one worker process per core, and the verdicts do not depend on how many workers there
-are. The groups interleave the specimens (``i % workers``), so that a cohort sorted by class
-shares its hard specimens out evenly.
+groups, one worker process per core. A specimen's fits then share their batches with other
+specimens; where two starts or two models are nearly tied, batches of another size (and their
+float32 rounding) can send the search another way, so a verdict can differ with the number of
+workers (docs/anatomy-cohorts.md, *Time*). The groups interleave the specimens
+(``i % workers``), so that a cohort sorted by class shares its hard specimens out evenly.
 """
 
 from __future__ import annotations
