@@ -23,7 +23,7 @@ import torch
 
 from femcal.calibration.model import CurveModel
 from femcal.effects.base import Effect, get_effect
-from femcal.effects.jacobian import disc_partials, parameter_partials, repeated
+from femcal.effects.jacobian import LOW_SLOPE, disc_partials, parameter_partials, repeated
 from femcal.forward_ad import constant_like, has_tangent
 from femcal.space import ParameterSpace
 from femcal.surrogates.romnet import ensemble_forward, ensemble_tangents
@@ -228,7 +228,7 @@ class EffectModel:
             if detached not in ends:
                 log_m = constant_like(torch.full((b, n_cases, 1), log_low), coef)
                 deg, ddeg = members(detached, z_of(log_m), True)
-                ends[detached] = (ddeg * inv_scale / deg).clamp(0.05, 3.0)
+                ends[detached] = (ddeg * inv_scale / deg).clamp(*LOW_SLOPE)
             return ends[detached]
 
         def phi(moment: torch.Tensor, detached: bool = False, slope: bool = True):
@@ -463,31 +463,25 @@ class EffectModel:
             d_g = stiff[:, None] * along  # (n, nd, 4, m); the effects' columns below
             d_g = torch.cat([d_g, v.new_zeros((n, d - nd, 4, m))], dim=1)
             for e, _, sl, lc in parallel:
-                width = sl.stop - sl.start
-                d_g[:, sl] += parameter_partials(
-                    e,
-                    v[:, sl],
-                    lambda q, like, e=e, lc=lc, w=width: (
-                        e.moment_at(repeated(phi, w, like), q) * constant_like(lc, like)
-                    ),
-                )
+                law = _masked_law(e.moment_at, phi, lc, sl.stop - sl.start)
+                d_g[:, sl] += parameter_partials(e, v[:, sl], law)
             d_share = -d_g / (1.0 + stiff * slope)[:, None]
             jac = jac + slope[:, None] * d_share
         for e, sl, lc in zip(self.effects, self._slices, self._lc_masks):
             if e.kind == "series":
-                width = sl.stop - sl.start
                 mask = lc[None, :, None].to(v.dtype)
                 applied = self.moments.to(v.dtype).expand(n, 4, -1)
-                jac[:, sl] += parameter_partials(
-                    e,
-                    v[:, sl],
-                    lambda q, like, e=e, w=width, a=applied, mask=mask: (
-                        e.rotation_at(repeated(a, w, like), q) * constant_like(mask, like)
-                    ),
-                )
+                law = _masked_law(e.rotation_at, applied, mask, sl.stop - sl.start)
+                jac[:, sl] += parameter_partials(e, v[:, sl], law)
         return value.detach(), jac.permute(0, 2, 3, 1).contiguous()
 
     def predict(self, x: np.ndarray, *, clip: bool = True) -> np.ndarray:
         v = self.from_physical(np.asarray(x, dtype=float).reshape(len(x), -1), clip=clip)
         with torch.no_grad():
             return self.curves(v).double().numpy()
+
+
+def _masked_law(law, x: torch.Tensor, mask: torch.Tensor, k: int):
+    """``law(x, params) * mask`` in the form :func:`parameter_partials` takes: each row of
+    ``x`` (n, 4, m) repeated ``k`` times, ``x`` and ``mask`` constants of the dual input."""
+    return lambda q, like: law(repeated(x, k, like), q) * constant_like(mask, like)
