@@ -13,6 +13,10 @@ further effect or split form), the lower of the thorough fit's and the diagnosis
   with these laws and this criterion no search names the truth; the ceiling of the
   strict rate is what the diagnosis got right plus the search misses.
 
+With ``--pairs``, the visible facet-and-ligament specimens not named strictly right are
+judged the same way: the pair's four forms (each effect tied or split) against the verdict's
+model.
+
 Run on the output of ``bench_anatomy`` (its ``seed-*/cohort`` and ``seed-*/diagnosis``)::
 
     OMP_NUM_THREADS=1 .venv/bin/python -m experiments.anatomy_ceiling --bench DIR --out FILE
@@ -129,11 +133,70 @@ def judge_misses(bench: Path) -> list[dict[str, Any]]:
     return rows
 
 
+#: The facet and the ligament, each tied or split: the four forms of the pair class.
+PAIR_FORMS = [
+    ("facet_contact", "ligament_tension"),
+    ("facet_contact:split", "ligament_tension:split"),
+    ("facet_contact:split", "ligament_tension"),
+    ("facet_contact", "ligament_tension:split"),
+]
+
+
+def judge_pairs(bench: Path) -> list[dict[str, Any]]:
+    """Per visible facet-and-ligament specimen not named strictly right: the best thorough
+    score of the pair's four forms against the verdict model's (the lower of its thorough and
+    its own fit), and whether the pair wins by more than a tie."""
+    table = pd.read_csv(bench / "specimens.csv", dtype={"expected": str}).fillna({"model": ""})
+    table = table[(table["expected"] == "facet_contact+ligament_tension") & table["visible"]]
+    table = table[~table["strict"].astype(bool)]
+    rows = []
+    for seed, group in table.groupby("seed"):
+        root = bench / f"seed-{seed}"
+        own = {
+            d["specimen"]: d for d in json.loads((root / "diagnosis/diagnosis.json").read_text())
+        }
+        verdicts = {tuple(sorted(m for m in str(v).split("+") if m)) for v in group["model"]}
+        models = PAIR_FORMS + sorted(v for v in verdicts if v and v not in PAIR_FORMS)
+        scores = thorough_scores(root / "cohort", list(group["specimen"]), models)
+        for k, (_, r) in enumerate(group.iterrows()):
+            ranking = {
+                tuple(sorted(x["effects"])): x["criterion"] for x in own[r["specimen"]]["ranking"]
+            }
+
+            def best(m: tuple[str, ...], k: int = k, ranking: dict = ranking, s=scores) -> float:
+                mine = float(s[m][k]) if m in s else np.inf
+                return min(mine, ranking.get(tuple(sorted(m)), np.inf)) + prior(m)
+
+            verdict_model = tuple(sorted(m for m in str(r["model"]).split("+") if m))
+            pair = min(PAIR_FORMS, key=best)
+            rows.append(
+                {
+                    "seed": int(seed),
+                    "specimen": r["specimen"],
+                    "verdict": r["verdict"],
+                    "verdict_score": round(best(verdict_model), 1),
+                    "pair": "+".join(pair),
+                    "pair_score": round(best(pair), 1),
+                    "search_miss": best(pair) < best(verdict_model) - TIE,
+                }
+            )
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--bench", type=Path, required=True, help="a bench_anatomy output folder")
     ap.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    ap.add_argument(
+        "--pairs", action="store_true", help="judge the facet-and-ligament misses instead"
+    )
     args = ap.parse_args(argv)
+    if args.pairs:
+        rows = judge_pairs(args.bench)
+        summary = {"pair_misses": len(rows), "search_misses": sum(r["search_miss"] for r in rows)}
+        args.out.write_text(json.dumps({**summary, "misses": rows}, indent=2) + "\n")
+        print(json.dumps(summary))
+        return
     rows = judge_misses(args.bench)
     table = pd.read_csv(args.bench / "specimens.csv")
     single = table["expected"].notna() & ~table["expected"].fillna("").str.contains(r"\+")

@@ -403,6 +403,9 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
     assert torch.equal(fit.v[torch.as_tensor(same)], v[torch.as_tensor(same)])
 
 
+FACET_LIGAMENT = ("facet_contact", "ligament_tension")
+
+
 def _pairs(ranking) -> set[tuple[str, str]]:
     """The pairs of effects a ranking holds, tied or split (by their registered names)."""
     return {
@@ -431,22 +434,25 @@ def test_the_beam_extends_every_model_close_to_the_best(world):
         noise_deg=NOISE,
         options=DiagnoseOptions(beam_delta=0.0, **kw),
     )
-    every = {("facet_contact", "ligament_tension"), ("facet_contact", "neutral_zone")}
+    every = {FACET_LIGAMENT, ("facet_contact", "neutral_zone")}
     every.add(("ligament_tension", "neutral_zone"))
     reached = 0
     for w, g in zip(wide.specimens, greedy.specimens):
         pairs_w, pairs_g = _pairs(w.ranking), _pairs(g.ranking)
-        if pairs_g:  # the greedy search went on to a second effect: so did the wide one
+        assert FACET_LIGAMENT in pairs_g  # the complementary pair of the first level
+        extended = pairs_g - {FACET_LIGAMENT}
+        if extended:  # the greedy search went on from its best effect: the wide one from all
             reached += 1
             assert pairs_w == every, (w.specimen, pairs_w)
-            assert len(pairs_g) == 2 and len(set.intersection(*map(set, pairs_g))) == 1
+            assert set.intersection(*map(set, extended)), pairs_g  # one effect extended
     assert reached >= 1
 
 
 def test_a_model_that_explains_the_data_is_still_offered_a_further_effect(world):
     """A single facet (a linear spring, not femcal's law) that disc + facet explains: the
     default search still fits the pairs that extend it (``min_delta_adequate``) and keeps the
-    single effect, because no pair pays; with ``min_delta_adequate=None`` it stops there."""
+    single effect, because no pair pays; with ``min_delta_adequate=None`` it stops there, with
+    only the complementary pair the first level fits where the disc alone misses."""
     base, _, _, _ = world
     rng = np.random.default_rng(5)
     fe = base.predict(study_space().sample_uniform(2, rng))
@@ -464,7 +470,7 @@ def test_a_model_that_explains_the_data_is_still_offered_a_further_effect(world)
             ("facet_contact", "ligament_tension"),
             ("facet_contact", "neutral_zone"),
         }
-        assert pairs_off == set()
+        assert pairs_off == {FACET_LIGAMENT}
 
 
 def test_the_criterion_counts_the_parameters_the_data_determine(world):
@@ -600,3 +606,41 @@ def test_bad_point_weights_are_refused(world, weight, match):
     base, rom, _, _ = world
     with pytest.raises(ConfigError, match=match):
         _quick(base, rom[:1], noise_deg=NOISE, point_weight=weight)
+
+
+def test_complementary_pairs_act_on_disjoint_load_cases():
+    from femcal.diagnose.forward import complementary_pairs
+
+    assert complementary_pairs(["neutral_zone", "ligament_tension", "facet_contact"]) == [
+        FACET_LIGAMENT
+    ]
+    assert complementary_pairs(["facet_contact", "neutral_zone"]) == []
+
+
+def test_a_pair_neither_of_whose_effects_pays_alone_is_fitted_and_named(world):
+    """A facet and a ligament together: the greedy search (beam 0) extends only its best
+    single effect, and still offers the pair, fitted at the first level in every form, at the
+    second, where it names it. With one effect at most (``max_effects=1``) no pair is
+    fitted."""
+    base, rom, truth, _ = world
+    rows = np.flatnonzero(truth == "combination")
+    names = [f"S{i}" for i in rows]
+    kw = dict(specimens=names, noise_deg=NOISE)
+    greedy = diagnose(
+        base, rom[rows], options=DiagnoseOptions(beam_delta=0.0, discrepancy=False), **kw
+    )
+    one = diagnose(base, rom[rows], options=DiagnoseOptions(max_effects=1, discrepancy=False), **kw)
+    forms = {
+        tuple(sorted(f))
+        for f in [
+            FACET_LIGAMENT,
+            ("facet_contact:split", "ligament_tension"),
+            ("facet_contact", "ligament_tension:split"),
+            ("facet_contact:split", "ligament_tension:split"),
+        ]
+    }
+    for g, o in zip(greedy.specimens, one.specimens):
+        fitted = {tuple(sorted(r["effects"])) for r in g.ranking}
+        assert forms <= fitted, (g.specimen, fitted)
+        assert {"facet_contact", "ligament_tension"} <= set(g.effects), g.verdict
+        assert len(o.effects) <= 1 and _pairs(o.ranking) == set(), o.verdict

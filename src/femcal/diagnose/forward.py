@@ -3,6 +3,7 @@ they pay, batched over the specimens that share a current model."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -13,6 +14,7 @@ from femcal.calibration.starts import _combination_starts, effect_bank, nearest_
 from femcal.diagnose.fits import _Fit, _fit_from, _grid, _split_starts, _starts
 from femcal.diagnose.forms import split_one
 from femcal.diagnose.state import DiagnosisState, Model
+from femcal.effects.base import get_effect
 from femcal.effects.split import SPLIT_SUFFIX, base_name, has_split_form, is_split
 
 logger = logging.getLogger(__name__)
@@ -27,8 +29,12 @@ def forward_selection(state: DiagnosisState) -> None:
     effect needs ``min_delta``; a further one ``min_delta_inadequate`` where the current model
     does not explain the data and ``min_delta_adequate`` where it does (None: stop there).
     At the first level every candidate is also fitted split per load case
-    (:func:`_fit_splits`), a split form paying its prior cost ``min_delta_inadequate``; at a
-    further level the effect just added is tried split (:func:`_split_added`). Every model
+    (:func:`_fit_splits`), a split form paying its prior cost ``min_delta_inadequate``, and
+    every pair of effects on disjoint load cases in all its forms where the disc alone misses
+    (:func:`_fit_pairs`): the pairs compete with the models of the second level, and at the
+    first only where no single effect pays, their second effect then paying
+    ``min_delta_inadequate``. At a further level the effect just added is tried split
+    (:func:`_split_added`). Every model
     within ``beam_delta`` of the best of a level is extended at the next one. Updates
     ``state.chosen`` and ``state.per_spec``.
     """
@@ -36,6 +42,7 @@ def forward_selection(state: DiagnosisState) -> None:
     frontier: list[list[Model]] = [[()] for _ in range(state.n)]
     beam = options.min_delta if options.beam_delta is None else float(options.beam_delta)
     banks: dict[Model, tuple[torch.Tensor, torch.Tensor]] = {}
+    pairs: dict[int, list[Model]] = {}
     active = np.arange(state.n)
     for _level in range(options.max_effects):
         if active.size == 0:
@@ -43,12 +50,15 @@ def forward_selection(state: DiagnosisState) -> None:
         children = _extend(state, active, frontier, banks)
         if _level == 0:
             _fit_splits(state, [int(i) for i in active], children, banks)
+            pairs = _fit_pairs(state, [int(i) for i in active], banks)
+        elif _level == 1:  # the pairs compete with the models one effect larger
+            for i in active:
+                children[int(i)] = sorted({*children[int(i)], *pairs.pop(int(i), [])})
         improved: list[int] = []
         added: dict[int, str] = {}
         for i in active:
             current = state.chosen[i]
-            # a split form's prior cost (min_delta_inadequate) counts against it
-            crits = {e: state.criterion(e, i) + _split_cost(state, e) for e in children[int(i)]}
+            crits = _costed(state, i, children[int(i)], current)
             if not crits:
                 continue
             cur_crit = state.criterion(current, i) + _split_cost(state, current)
@@ -58,14 +68,17 @@ def forward_selection(state: DiagnosisState) -> None:
                 frontier[i],
                 {e: round(cur_crit - b, 1) for e, b in crits.items()},
             )
-            best_eff = min(crits, key=crits.get)
-            best_crit = crits[best_eff]
             need = options.min_delta
             if current:
                 if not state.adequate(current, i):
                     need = options.min_delta_inadequate
                 elif options.min_delta_adequate is not None:
                     need = options.min_delta_adequate
+            if _level == 0 and cur_crit - min(crits.values()) < need and pairs.get(int(i)):
+                # no single effect pays: a pair may, its second effect paying too
+                crits.update(_costed(state, i, pairs.pop(int(i)), current))
+            best_eff = min(crits, key=crits.get)
+            best_crit = crits[best_eff]
             if cur_crit - best_crit >= need:
                 added[int(i)] = next(e for e in best_eff if e not in current)
                 state.chosen[i] = best_eff
@@ -96,10 +109,12 @@ def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[li
         if has_split_form(new):
             jobs.setdefault((state.chosen[i], split_one(state.chosen[i], new)), []).append(i)
     for (current, split), rows in jobs.items():
-        v0, g = _split_starts(
-            state.solutions(rows, current), current, split, state.options.effect_levels
-        )
-        state.fit(split, np.asarray(rows), v0, g)
+        todo = [i for i in rows if split not in state.per_spec[i]]  # a pair's form is fitted
+        if todo:
+            v0, g = _split_starts(
+                state.solutions(todo, current), current, split, state.options.effect_levels
+            )
+            state.fit(split, np.asarray(todo), v0, g)
     for (current, split), rows in jobs.items():
         for i in rows:
             gain = state.criterion(current, i) - state.criterion(split, i)
@@ -109,6 +124,97 @@ def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[li
                 )
                 state.chosen[i] = split
                 frontier[i] = [split if e == current else e for e in frontier[i]]
+
+
+def _costed(state: DiagnosisState, i: int, models: list[Model], current: Model) -> dict:
+    """Specimen ``i``'s criterion of each of ``models`` plus the prior costs forward selection
+    counts against it from ``current``: a split form's (:func:`_split_cost`) and that of every
+    effect beyond the one a level adds (:func:`_extra_cost`)."""
+    return {
+        e: state.criterion(e, i) + _split_cost(state, e) + _extra_cost(state, e, current)
+        for e in models
+    }
+
+
+def _extra_cost(state: DiagnosisState, model: Model, current: Model) -> float:
+    """The prior cost of the effects ``model`` holds beyond ``current`` and the one a level
+    adds: ``min_delta_inadequate`` each (a pair fitted at the first level pays for its
+    second effect as if added at the next)."""
+    return state.options.min_delta_inadequate * max(0, len(model) - len(current) - 1)
+
+
+def complementary_pairs(candidates: list[str]) -> list[Model]:
+    """The pairs of ``candidates`` whose effects act on disjoint load cases (sorted names):
+    each explains its own load cases, so neither may pay alone where the specimen needs both
+    (a facet in extension and axial rotation beside a ligament in flexion and lateral
+    bending)."""
+    masks = {name: get_effect(name).load_case_mask() for name in candidates}
+    return [
+        (a, b)
+        for k, a in enumerate(sorted(candidates))
+        for b in sorted(candidates)[k + 1 :]
+        if not bool((masks[a] & masks[b]).any())
+    ]
+
+
+def _fit_pairs(
+    state: DiagnosisState, rows: list[int], banks: dict[Model, tuple[torch.Tensor, torch.Tensor]]
+) -> dict[int, list[Model]]:
+    """Every complementary pair (:func:`complementary_pairs`), tied and in each split form,
+    fitted at the first level for the specimens ``rows`` the disc alone does not explain: a
+    beam over single effects misses a pair whose members each explain half the misfit when a
+    flexible effect over all load cases explains more of it alone. The tied pair starts from
+    the better-fitting member's solution with the other's grid and the start bank
+    (:func:`_new_effect_starts`); a split form from the tied pair's fit
+    (:func:`femcal.diagnose.fits._split_starts`) and from its members' own fits side by side
+    (:func:`_members_start`); each then takes the combination rounds of the next levels.
+    Returns, per specimen, the pair models fitted."""
+    out: dict[int, list[Model]] = {}
+    if state.options.max_effects < 2:
+        return out
+    rows = [i for i in rows if not state.adequate((), i)]
+    if not rows:
+        return out
+    for pair in complementary_pairs(state.candidates):
+        jobs: dict[str, list[int]] = {}
+        for i in rows:
+            parent = min(pair, key=lambda e, i=i: state.criterion((e,), i))
+            jobs.setdefault(parent, []).append(i)
+        for parent, members in jobs.items():
+            new = next(e for e in pair if e != parent)
+            rows_a = np.asarray(members)
+            v0 = _new_effect_starts(state, rows_a, (parent,), new, banks)
+            fit = state.fit(pair, rows_a, v0.reshape(len(members) * v0.shape[1], -1), v0.shape[1])
+            _refine_combination(state, fit)
+        forms = _split_forms(pair)
+        for form in forms:
+            v0, g = _split_starts(
+                state.solutions(rows, pair), pair, form, state.options.effect_levels
+            )
+            v0 = torch.cat([v0.reshape(len(rows), g, -1), _members_start(state, rows, form)], 1)
+            fit = state.fit(form, np.asarray(rows), v0.reshape(len(rows) * (g + 1), -1), g + 1)
+            _refine_combination(state, fit)
+        for i in rows:
+            out[i] = sorted({*out.get(i, []), pair, *forms})
+    return out
+
+
+def _split_forms(effects: Model) -> list[Model]:
+    """The forms of ``effects`` with at least one effect split per load case."""
+    options = [[e, e + SPLIT_SUFFIX] if has_split_form(e) else [e] for e in effects]
+    forms = [tuple(sorted(f)) for f in itertools.product(*options)]
+    return [f for f in forms if any(is_split(e) for e in f)]
+
+
+def _members_start(state: DiagnosisState, rows: list[int], form: Model) -> torch.Tensor:
+    """A start (r, 1, dim) of model ``form`` from its members' own fits at the first level:
+    each effect's parameters from its own fit (in the same form), the disc from the member
+    that fits the specimen better."""
+    n_disc = state.base.dim
+    own = {e: state.solutions(rows, (e,)) for e in form}
+    better = [min(form, key=lambda e, i=i: state.criterion((e,), i)) for i in rows]
+    disc = torch.stack([own[e][k, :n_disc] for k, e in enumerate(better)])
+    return torch.cat([disc, *(own[e][:, n_disc:] for e in form)], dim=1)[:, None]
 
 
 def _split_cost(state: DiagnosisState, model: Model) -> float:
@@ -196,7 +302,8 @@ def _extend(
                 if new in held or effects in seen:
                     continue
                 seen.add(effects)
-                jobs.setdefault((current, new), []).append(int(i))
+                if effects not in state.per_spec[i]:  # a pair of the first level is fitted
+                    jobs.setdefault((current, new), []).append(int(i))
         children[int(i)] = sorted(seen)
     for (current, new), members in jobs.items():
         rows = np.asarray(members)

@@ -10,8 +10,9 @@ For every specimen, :func:`diagnose` runs these steps over one :class:`Diagnosis
    (material and effect parameters jointly, inside all bounds), tied and, for the first
    effect, split per load case too: the form that lowers the criterion ``chi^2 + k ln n``
    most (``k`` the effective number of parameters, the trace of the hat matrix; a split form
-   pays ``min_delta_inadequate`` more) is added when it pays ``min_delta``; further effects
-   while they pay
+   pays ``min_delta_inadequate`` more) is added when it pays ``min_delta``; two effects on
+   disjoint load cases (a facet and a ligament) are also fitted together from the start and
+   compete with the second level's models; further effects while they pay
    ``min_delta_inadequate`` (the model does not explain the data yet) or
    ``min_delta_adequate``;
 3. **tied or split** (:mod:`femcal.diagnose.forms`): each chosen effect's parameters per load
