@@ -623,12 +623,11 @@ def test_a_pair_neither_of_whose_effects_pays_alone_is_fitted_and_named(world):
     second, where it names it. With one effect at most (``max_effects=1``) no pair is
     fitted."""
     base, rom, truth, _ = world
-    rows = np.flatnonzero(truth == "combination")
+    rows = np.flatnonzero(truth == "combination")[:3]
     names = [f"S{i}" for i in rows]
     kw = dict(specimens=names, noise_deg=NOISE)
-    greedy = diagnose(
-        base, rom[rows], options=DiagnoseOptions(beam_delta=0.0, discrepancy=False), **kw
-    )
+    greedy = DiagnoseOptions(beam_delta=0.0, max_effects=2, discrepancy=False)
+    greedy = diagnose(base, rom[rows], options=greedy, **kw)
     one = diagnose(base, rom[rows], options=DiagnoseOptions(max_effects=1, discrepancy=False), **kw)
     forms = {
         tuple(sorted(f))
