@@ -26,7 +26,8 @@ cut to the box, is the parameter's range. A parameter the curves do not determin
 the whole box.
 
 ``optimizer="adam"`` and ``optimizer="lbfgsb"`` run the same starts with projected Adam or
-SciPy's L-BFGS-B instead, for the measured comparison in ``reports/bench_calibration.md``.
+SciPy's L-BFGS-B instead; the docs' page *Benchmarks > Surrogates and calibration* compares
+them (stage ``bench_calibration`` of ``experiments/dvc.yaml``).
 """
 
 from __future__ import annotations

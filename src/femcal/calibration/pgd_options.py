@@ -77,17 +77,13 @@ class PgdOptions:
         Effect models: after ``keep_after`` iterations only the ``effect_keep`` best starts of
         each specimen go on (0: every start runs to the end). The disc-alone start with every
         effect at its weak end is the best at first wherever no effect is needed, so it stays.
-        Measured on hidden cohort 2025's laxity and no-effect specimens recalibrated with three
-        effects (reports/bench_diagnose.md): 8 culled the start that leads to the laxity-only
-        optimum (laxity class 0.043 deg, 1.58 x the no-effect floor; laxity alone 0.038 deg);
-        24 reached 0.030 deg (1.14 x) at 1.3 x the time, 0 (all) 0.031 deg at 2.6 x.
+        Too few kept starts cull the start that leads to a single effect's optimum (docs:
+        *Benchmarks > Measurements behind the defaults*).
     effect_rounds : int
         Effect models with several effects: rounds of starts. The first starts one effect at a
         time; each further round starts every effect again from the best solution so far, the
-        other effects as found (a combination of effects, found one at a time). Measured on
-        the hidden cohorts (reports/bench_diagnose.md, recalibration with three effects):
-        rounds 2 -> 3 with ``effect_max_iter`` 12 -> 24 took the worst combination class from
-        1.99 to 1.31 times the no-effect floor, at twice the time.
+        other effects as found (a combination of effects, found one at a time; docs:
+        *Benchmarks > Measurements behind the defaults*).
     effect_max_iter : int, optional
         Effect models: Gauss-Newton iterations of the effect rounds (the disc-alone fit that
         comes first keeps ``max_iter``); None: ``max_iter``. The disc's 13 parameters and up to
@@ -101,9 +97,8 @@ class PgdOptions:
         four times the starts, four kept after at least four iterations and at least 40
         iterations in all; the better fit (lower chi-square) is kept. The light default
         settings, fast where the fit explains the data, sometimes leave a specimen in a poorer
-        basin (a Test specimen with noise 0.05 deg: MAE 0.075 deg, p < 1e-4; refitted 0.037
-        deg, p 0.51; reports/bench_calibrate_noise.md), and a fit that misses for lack of
-        starts would read as missing physics. 0: no retry.
+        basin, and a fit that misses for lack of starts would read as missing physics. 0: no
+        retry.
 
     """
 

@@ -91,7 +91,7 @@ def shape_design(n_parameters: int, n_points: int) -> np.ndarray:
 
     The starts of an effect's shape parameters: a law of the family far from its classic
     member (a soft contact onset, a long toe region) is not reached from the classic member's
-    basin by the local optimiser (reports/bench_diagnose.md).
+    basin by the local optimiser (docs: *Benchmarks > Measurements behind the defaults*).
     """
     if n_points <= 0:
         return np.zeros((0, n_parameters))

@@ -8,8 +8,7 @@ calibration only needs it good where the specimens' solutions lie. Each round of
    configurations it was trained on whose curves lie nearest each specimen's, the earlier
    rounds' FE runs among them (as the ``calibrate`` stage starts from its training set): the
    parameters are not identifiable from RoM, and from uniform random starts each round's
-   solution landed anywhere along the specimen's valley of equal fits (a median unit-box
-   distance of 1.3 between rounds, measured on the FE campaign), where the earlier rounds had
+   solution lands anywhere along the specimen's valley of equal fits, where the earlier rounds
    taught the surrogate nothing;
 2. runs FE at their solutions, and measures the surrogate's error there *before* learning
    from those runs (the error near the calibrated solutions, the figure that should fall
@@ -19,10 +18,9 @@ calibration only needs it good where the specimens' solutions lie. Each round of
    surrogate's error);
 4. fine-tunes the surrogate on the training data and every new run
    (:attr:`NeuralSurrogate.warm_start <femcal.surrogates.nn.NeuralSurrogate>`), for a fixed
-   number of epochs without a validation split: keeping the best epoch on a split of the old
-   configurations kept the weights from before the new runs (after fine-tuning on round 1's
-   runs the error at those very runs fell only from 0.132 to 0.126 deg; without the split,
-   to 0.075 deg, and the held-out error fell too, 0.210 -> 0.202 deg);
+   number of epochs without a validation split (keeping the best epoch on a split of the old
+   configurations would keep the weights from before the new runs; docs: *Benchmarks >
+   Measurements behind the defaults*);
 5. scores it on held-out FE configurations, which no round trains on.
 
 Whether the result replaces the champion is the caller's decision, on that held-out score

@@ -61,7 +61,8 @@ HEX20_NATURAL: np.ndarray = np.array(
     dtype=float,
 )
 
-#: Mesh densities by name (see :meth:`DiscGeometry.preset`); timings in reports/fe_mesh.md.
+#: Mesh densities by name (see :meth:`DiscGeometry.preset`); timings: docs' *Benchmarks > Open FE
+#: model*.
 MESH_PRESETS: dict[str, dict[str, int]] = {
     "coarse": {
         "elements_per_region": 1,

@@ -19,9 +19,8 @@ a few FE runs per specimen:
 The damping keeps the steps short along the directions the data do not identify (most of the
 disc's parameters, from RoM): solving the corrected problem to the end instead moves far
 along them, where the correction measured at ``x_k`` no longer holds, and FE refuses.
-Measured on the synthetic study (tests/fe/test_refine.py: a surrogate 0.12 deg off its true
-model at the calibrations, 8 specimens, 6 runs): the mean true-model error fell to 0.027 deg
-without the Broyden update and to 0.004 deg with it.
+``tests/fe/test_refine.py`` checks both on a synthetic study; the figures with and without
+the Broyden update are on the docs' page *Benchmarks > Measurements behind the defaults*.
 
 The surrogate's Jacobian steers, FE decides: when the surrogate's sensitivities are right the
 iteration converges to a point where FE itself fits the measurement, not to one where the

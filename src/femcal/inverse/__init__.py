@@ -9,15 +9,10 @@ surrogate. The study reports it as fast (0.01 s for the Test set) but ill-posed:
 0.52 deg and mean R^2 0.54 on the synthetic Test specimens, because many configurations give
 nearly the same curves.
 
-Measured with this module (defaults; 50,000 Latin-hypercube samples from
-``models/surrogate-large``; one CPU thread): training stops after 125 epochs in 176 s (2 s for
-the samples), validation MAE 0.126 in the unit box. On the study's 64 Test specimens
-(``calibrate(..., method="inverse")``, curves evaluated through the surrogate) the mean MAE is
-0.080 deg and the mean R^2 0.990 in 1 ms for the batch (box centre: 1.48 deg, R^2 -1.48).
-The problem is still ill-posed in the parameters: against the true Test configurations the
-unit-box MAE is 0.03-0.08 for C10Annulus, Kappa, FiberAngle, K1Annulus and FiberAngleCirc but
-0.2-0.3 for C01Nucleus, K2Circ, K1Rad, K2Rad and FiberAngleRad (box centre: 0.25) - the
-curves fit, the parameters the curves do not determine are guesses.
+The problem stays ill-posed in the parameters: the predicted configurations reproduce the
+curves, while the parameters the curves do not determine are guesses. Its figures (fit,
+parameter recovery, time) are on the docs' page *Benchmarks > Measurements behind the
+defaults*.
 
 Pieces:
 

@@ -19,11 +19,10 @@ if TYPE_CHECKING:  # pragma: no cover
     pass
 
 
-#: Widening of the envelope in log-RoM: a finite sample's extremes fall short of the box's.
-#: Measured on the champion (5 moments, FE curves joined): the extremes of 65,536 samples lie
-#: beyond those of 1,024 by a median 0.14 (90%: 0.29; the flexion/extension balance at 1 Nm:
-#: 0.49). With 0.1, none of the study's 1,216 FE curve sets (Large without the FE reference,
-#: Small, Test) is flagged; a specimen at the far edge of the box may get a warning.
+#: Widening of the envelope in log-RoM: a finite sample's extremes fall short of the box's,
+#: so a specimen at the far edge of the box may get a warning. The value is chosen so that none
+#: of the study's FE curve sets is flagged (docs: *Benchmarks > Measurements behind the
+#: defaults*).
 MARGIN = 0.1
 
 

@@ -11,14 +11,8 @@ any moment > 0), exactly differentiable in the parameters, and it trains on conf
 rather than rows: 20 times fewer MLP evaluations per epoch than a row-wise MLP on the study's
 grid, at equal accuracy per epoch.
 
-Measured with this module on the study's Test set (64 configurations x 4 load cases x 5
-moments; MAE in deg, R^2 per (configuration, load case) over the 5 moments averaged, pooled
-R^2 per load case averaged), one CPU thread:
-
-* Large (1024 configurations), defaults: 1 member 0.026 deg / 0.9973 / 0.9995 in 60-70 s;
-  ``n_members=5``: 0.023 deg / 0.9977 / 0.9996, ~60 s per member.
-* Small (128 configurations), ``hidden=(64, 64, 64), batch_size=16, max_epochs=1000,
-  patience=300``: 1 member 0.24 deg, ``n_members=5`` 0.21 deg (~11 s per member).
+Its accuracy and training time on the study's Test set are on the docs' page *Benchmarks >
+Surrogates and calibration*.
 
 Normalisation lives in two places only: the :class:`~femcal.space.ParameterSpace` bounds and
 the buffers of the fitted :class:`RomNet` (bounds, moment and output scaling).
