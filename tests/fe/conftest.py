@@ -1,12 +1,16 @@
 """A small real CalculiX campaign (coarse mesh, two Dask workers), shared by the FE tests.
 
 Every FE test runs the real solver (``ccx`` on PATH; ``make install`` installs it); none
-fakes it. The shared campaign (built once per test run) holds three configurations (one per
-split: Large, Small, Test) x four load cases = 12 jobs.
+fakes it. The shared campaign holds three configurations (one per split: Large, Small, Test)
+x four load cases = 12 jobs. It is built once per test run: under pytest-xdist the first
+worker that needs it runs it in the run's shared temporary folder, under a file lock, and the
+others load its result (the tests only read the campaign's folder).
 """
 
 from __future__ import annotations
 
+import os
+import pickle
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,7 +29,20 @@ def coarse_campaign(tmp_path_factory) -> tuple[Path, object, CampaignResult]:
     """(folder, design, result) of the shared campaign; the store is ``folder/runs.jsonl``."""
     if shutil.which("ccx") is None:
         pytest.skip("CalculiX (ccx) is not installed; `make install`")
-    folder = tmp_path_factory.mktemp("campaign")
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return _run_coarse(tmp_path_factory.mktemp("campaign"))
+    from filelock import FileLock
+
+    folder = tmp_path_factory.getbasetemp().parent / "coarse-campaign"  # shared by the workers
+    done = folder / "campaign.pickle"
+    with FileLock(f"{folder}.lock"):
+        if not done.exists():
+            folder.mkdir(exist_ok=True)
+            done.write_bytes(pickle.dumps(_run_coarse(folder)))
+    return pickle.loads(done.read_bytes())
+
+
+def _run_coarse(folder: Path) -> tuple[Path, object, CampaignResult]:
     design_df = split_design(study_space(), SPLITS, seed=1)  # all 12 jobs converge
     result = run_campaign(
         "calculix",
