@@ -20,7 +20,7 @@ from importlib import metadata
 
 from femcal.config import load_params
 from femcal.errors import FemcalError
-from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATORS, PLOT_CHOICES, SPLITS
+from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATOR_NAMES, PLOT_CHOICES, SPLITS
 from femcal.stages import settings_class, stage_module
 
 #: Logging level of the ``femcal`` logger per verbosity option (none given: INFO).
@@ -162,7 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
         "calibrate.datasets.<name>.noise_deg; none: only the surrogate's error is counted)",
     )
     p.add_argument(
-        "--method", choices=CALIBRATORS, help="calibration method (default: calibrate.method)"
+        "--method", choices=CALIBRATOR_NAMES, help="calibration method (default: calibrate.method)"
     )
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
     p.add_argument("--model-version", help="version of the registered surrogate")

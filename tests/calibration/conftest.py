@@ -32,3 +32,27 @@ def truth(curve_model: CurveModel) -> tuple[np.ndarray, np.ndarray]:
     """Six configurations inside the box and their surrogate curves (exactly reachable)."""
     x = curve_model.space.sample_uniform(6, np.random.default_rng(11))
     return x, curve_model.predict(x)
+
+
+@pytest.fixture
+def registry(tmp_path, monkeypatch, small_surrogate):
+    """A temporary MLflow store in ``tmp_path`` where ``small_surrogate`` is the champion of
+    ``ivd-rom-surrogate`` and of ``ivd-rom-surrogate-holdout``; yields ``tmp_path``."""
+    import mlflow
+
+    from femcal.tracking import (
+        configure_tracking,
+        ensure_experiment,
+        log_surrogate,
+        register_and_promote,
+    )
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    configure_tracking(store_dir=tmp_path / "mlruns")
+    ensure_experiment("test", store_dir=tmp_path / "mlruns")
+    for name in ("ivd-rom-surrogate", "ivd-rom-surrogate-holdout"):
+        with mlflow.start_run():
+            info = log_surrogate(small_surrogate, small_surrogate.space)
+        register_and_promote(info.model_uri, name=name, val_metric=0.1)
+    yield tmp_path
+    mlflow.set_tracking_uri(None)

@@ -14,12 +14,6 @@ import yaml
 from femcal.cli import main
 from femcal.errors import InputDataError, ModelRegistryError
 from femcal.stages.calibrate import CalibrateSettings, run_calibrate
-from femcal.tracking import (
-    configure_tracking,
-    ensure_experiment,
-    log_surrogate,
-    register_and_promote,
-)
 
 from synth import long_csv
 
@@ -42,19 +36,6 @@ def _calibrate(measurements, out_dir, **overrides):
     tracker = overrides.pop("tracker", None)
     settings = CalibrateSettings(measurements=measurements, out_dir=out_dir, **(kwargs | overrides))
     return run_calibrate(settings, tracker=tracker)
-
-
-@pytest.fixture
-def registry(tmp_path, monkeypatch, small_surrogate):
-    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    configure_tracking(store_dir=tmp_path / "mlruns")
-    ensure_experiment("test", store_dir=tmp_path / "mlruns")
-    for name in ("ivd-rom-surrogate", "ivd-rom-surrogate-holdout"):
-        with mlflow.start_run():
-            info = log_surrogate(small_surrogate, small_surrogate.space)
-        register_and_promote(info.model_uri, name=name, val_metric=0.1)
-    yield tmp_path
-    mlflow.set_tracking_uri(None)
 
 
 def test_run_calibrate_logs_one_run_with_tables(registry, truth):

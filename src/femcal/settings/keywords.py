@@ -12,6 +12,7 @@ log}``, ``{type: int, low, high, log}`` or ``{type: categorical, choices}``; bou
 must be valid values of the keyword itself.
 """
 
+import sys
 from types import UnionType
 from typing import Annotated, Any, ClassVar, Literal, Union, get_args, get_origin
 
@@ -20,6 +21,7 @@ from pydantic import (
     Field,
     TypeAdapter,
     ValidationError,
+    WrapValidator,
     create_model,
     model_validator,
 )
@@ -50,7 +52,7 @@ BASELINE_MODELS: tuple[str, ...] = (
     *("linear", "poly2", "poly3", "poly4", "poly5", "svr", "random_forest"),
     *("gaussian_process", "lightgbm"),
 )
-#: Registered calibrators (femcal.calibration registry).
+#: Built-in calibrators (femcal.calibration registry); installed plugins add more.
 CALIBRATORS: tuple[str, ...] = ("pgd", "pgd-study", "ga", "inverse")
 #: Built-in physical effects (femcal.effects.builtin); plugins and effect files add more.
 BUILTIN_EFFECTS: tuple[str, ...] = ("facet_contact", "ligament_tension", "neutral_zone")
@@ -60,6 +62,56 @@ SPLITS: tuple[str, ...] = ("large", "small", "test")
 SOLVERS: tuple[str, ...] = ("calculix",)
 #: Mesh presets of the disc geometry (femcal.fe.geometry.MESH_PRESETS).
 MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
+
+
+def plugin_calibrators() -> tuple[str, ...]:
+    """The calibrators beyond :data:`CALIBRATORS`, sorted: the names of the installed plugins'
+    entry points (group ``femcal.calibrators``; a plugin names its entry point after its
+    calibrator) and, once the registry is loaded, every name registered in this process.
+
+    Imports nothing: the calibrate stage looks the name up in the registry itself
+    (:func:`femcal.calibration.get_calibrator`, which names the choices when it is unknown).
+    """
+    from importlib.metadata import entry_points
+
+    names = {ep.name for ep in entry_points(group="femcal.calibrators")}
+    loaded = sys.modules.get("femcal.calibration.base")
+    if loaded is not None:
+        names.update(loaded.calibrator_registry.names())
+    return tuple(sorted(names - set(CALIBRATORS)))
+
+
+class Calibrators(tuple):
+    """The built-in calibrators (what help texts and messages list) that also contain every
+    registered plugin calibrator (``name in CALIBRATOR_NAMES``, :func:`plugin_calibrators`)."""
+
+    def __contains__(self, name: object) -> bool:
+        return tuple.__contains__(self, name) or name in plugin_calibrators()
+
+
+#: ``name in CALIBRATOR_NAMES``: a built-in or a plugin calibrator; iterating: the built-ins.
+CALIBRATOR_NAMES = Calibrators(CALIBRATORS)
+
+
+def _or_plugin(value: Any, handler: Any) -> Any:
+    try:
+        return handler(value)
+    except ValidationError:
+        plugins = plugin_calibrators()
+        if not plugins or not isinstance(value, str):
+            raise
+        if value in plugins:
+            return value
+        names = (*CALIBRATORS, *plugins)
+        close = closest(value, names)
+        fix = f"; did you mean {close!r}?" if close else ""
+        raise fail(
+            f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
+        ) from None
+
+
+#: A calibration method: a built-in (``Literal``, its messages) or a plugin's name.
+METHOD = Annotated[Literal[CALIBRATORS], WrapValidator(_or_plugin)]
 
 
 # ------------------------------------------------------------------ network hyper-parameters
@@ -270,10 +322,28 @@ CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = {
     "ga": GaKeywords,
     "inverse": InverseCalibratorKeywords,
 }
+
+
+class _Options(Section):
+    @model_validator(mode="before")
+    @classmethod
+    def _plugins_as_given(cls, value: Any) -> Any:
+        """A plugin calibrator's options pass as given; its signature checks them where it is
+        called (:func:`femcal.stages.calibrate.plugin_options`)."""
+        if not isinstance(value, dict) or set(value) <= set(CALIBRATOR_OPTIONS):
+            return value
+        plugins = [k for k in value if k not in CALIBRATOR_OPTIONS and k in plugin_calibrators()]
+        for name in plugins:
+            if value[name] is not None and not isinstance(value[name], dict):
+                message = f"expected a mapping of the {name} calibrator's keyword options"
+                raise fail(f"{message}, got {got(value[name])}", name)
+        return {k: v for k, v in value.items() if k not in plugins}
+
+
 #: ``calibrate.options``: the options model of each calibrator, by method.
 CalibratorOptions = create_model(
     "CalibratorOptions",
-    __base__=Section,
+    __base__=_Options,
     __doc__="``calibrate.options``: each calibrator's keyword options, by method.",
     **{
         m.replace("-", "_"): (plain(model), Field(None, alias=m, description=model.__doc__))

@@ -13,7 +13,7 @@ from femcal.schema import TARGETS
 from femcal.settings._format import fail, got, keys_of
 from femcal.settings.keywords import (
     BASELINE_MODELS,
-    CALIBRATORS,
+    METHOD,
     SPLITS,
     CalibratorOptions,
     InverseKeywords,
@@ -273,7 +273,7 @@ class CalibrateSettings(Section):
     }
 
     out_dir: PATH = setting("outputs go to <out_dir>/<dataset>/")
-    method: Literal[CALIBRATORS] = setting("calibration method")
+    method: METHOD = setting("calibration method")
     model_uri: MODEL_URI = setting("the surrogate: a model folder or a models:/ URI")
     datasets: Annotated[dict[DATASET_NAME, DatasetSettings], WrapValidator(_datasets)] = setting(
         "name -> {measurements: path, effects: [names], noise_deg: sd}, one calibrate@<name> "

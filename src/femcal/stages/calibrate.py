@@ -8,6 +8,7 @@ with command-line overrides (another file, model, method, effects, output folder
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import time
@@ -21,6 +22,7 @@ import numpy as np
 from femcal.datasets import training_configurations
 from femcal.errors import ConfigError
 from femcal.paths import setting_path, setting_uri
+from femcal.settings.keywords import CALIBRATORS
 from femcal.stages.common import (
     StageSettings,
     check_measurements,
@@ -89,6 +91,8 @@ class CalibrateSettings(StageSettings):
                 setting_uri(params, cfg.holdout_uri) if cfg.holdout_uri else None
             )
         options = cfg.method_options(method)
+        if method not in CALIBRATORS:
+            plugin_options(method, options, where)
         if isinstance(options.get("model_uri"), str):  # the inverse network's folder or URI
             options["model_uri"] = setting_uri(params, options["model_uri"])
         bank = setting_path(params, cfg.start_bank) if cfg.start_bank else None
@@ -465,6 +469,38 @@ def _write_and_log(
             raise
         tracker.call(end_calibration_run, status="FINISHED")
     return figures
+
+
+def plugin_options(method: str, options: Mapping[str, Any], where: str) -> None:
+    """Check a plugin calibrator's options (``calibrate.options.<method>``) against the
+    keywords its function takes after the problem (all of them if it takes ``**kwargs``).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, each keyword it does not take, and those it does.
+    """
+    from femcal.calibration import get_calibrator
+    from femcal.settings._format import closest
+
+    parameters = list(inspect.signature(get_calibrator(method)).parameters.values())
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return
+    named = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    takes = [p.name for p in parameters[1:] if p.kind in named and p.name != "rng"]
+    problems = []
+    for key in (k for k in options if k not in takes):
+        close = closest(str(key), takes)
+        fix = "set calibrate.seed" if key == "rng" else f"did you mean {close}?" if close else ""
+        problems.append(
+            f"calibrate.options.{method}.{key}: not a keyword of the {method} calibrator"
+            + (f" ({fix})" if fix else "")
+        )
+    if problems:
+        raise ConfigError(
+            f"{where}: {'; '.join(problems)}. It takes: {', '.join(takes) or 'no options'}; fix "
+            "or remove the others."
+        )
 
 
 def calibration_options(
