@@ -42,22 +42,36 @@ def centre(problem, *, rng, shift: float = 0.0):
 '''
 
 
-@pytest.fixture
-def plugin(tmp_path, monkeypatch):
-    """The distribution ``regtest-calib`` with the calibrator ``centre``; removed afterwards."""
-    site = tmp_path / "site"
+def _install(site, entry_points: str, modules: dict[str, str]) -> None:
+    """An installed distribution ``regtest-calib``: its entry points and modules."""
     info = site / "regtest_calib-0.1.dist-info"
     info.mkdir(parents=True)
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: regtest-calib\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[femcal.calibrators]\ncentre = regtest_calib\n")
-    (site / "regtest_calib.py").write_text(textwrap.dedent(PLUGIN))
+    (info / "entry_points.txt").write_text(f"[femcal.calibrators]\n{entry_points}")
+    for name, text in modules.items():
+        (site / f"{name}.py").write_text(textwrap.dedent(text))
+
+
+@pytest.fixture
+def site(tmp_path, monkeypatch):
+    """A folder on sys.path for plugins; the registry and the modules restored afterwards."""
+    folder = tmp_path / "site"
+    folder.mkdir()
     state = calibrator_registry.snapshot()
-    monkeypatch.syspath_prepend(str(site))
+    monkeypatch.syspath_prepend(str(folder))
+    yield folder
+    calibrator_registry.restore(state)
+    for name in [m for m in sys.modules if m.startswith("regtest_")]:
+        del sys.modules[name]
+
+
+@pytest.fixture
+def plugin(site):
+    """The calibrator ``centre`` of the installed distribution ``regtest-calib``."""
+    _install(site, "centre = regtest_calib\n", {"regtest_calib": PLUGIN})
     importlib.invalidate_caches()
     calibrator_registry.rescan_plugins()
-    yield "centre"
-    calibrator_registry.restore(state)
-    sys.modules.pop("regtest_calib", None)
+    return "centre"
 
 
 def test_params_choose_a_plugin_calibrator_and_pass_its_options(plugin):
@@ -123,3 +137,25 @@ def test_the_calibrate_stage_runs_a_plugin_calibrator(plugin, registry, truth, c
     )
     _, figures = run_calibrate(settings)
     assert figures["method"] == plugin and figures["n_specimens"] == 3
+
+
+def test_a_broken_plugin_is_named_where_it_is_used_not_in_the_settings(site):
+    """The settings read entry-point names and load nothing: the registry, where the stage
+    looks the calibrator up, names the plugin that fails and the fix."""
+    _install(site, "broken = regtest_broken\n", {"regtest_broken": "raise ImportError('no')\n"})
+    importlib.invalidate_caches()
+    calibrator_registry.rescan_plugins()
+    assert validate_params({"calibrate": {"method": "broken"}}).require("calibrate").method == (
+        "broken"
+    )
+    with pytest.raises(ConfigError, match=r"plugin 'broken = regtest_broken'.*failed to load"):
+        calibrator_registry.get("broken")
+
+
+def test_a_calibrator_registered_in_this_process_is_a_method(site):
+    from femcal.calibration import register_calibrator
+
+    register_calibrator("inline")(lambda problem, *, rng: None)
+    assert validate_params({"calibrate": {"method": "inline"}}).require("calibrate").method == (
+        "inline"
+    )

@@ -67,17 +67,18 @@ MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
 def plugin_calibrators() -> tuple[str, ...]:
     """The calibrators beyond :data:`CALIBRATORS`, sorted: the names of the installed plugins'
     entry points (group ``femcal.calibrators``; a plugin names its entry point after its
-    calibrator) and, once the registry is loaded, every name registered in this process.
+    calibrator) and, once the registry is loaded, the names registered in this process.
 
-    Imports nothing: the calibrate stage looks the name up in the registry itself
-    (:func:`femcal.calibration.get_calibrator`, which names the choices when it is unknown).
+    Imports and loads nothing: the calibrate stage looks the name up in the registry itself
+    (:func:`femcal.calibration.get_calibrator`, which names the choices when it is unknown
+    and the plugin when it fails to load).
     """
     from importlib.metadata import entry_points
 
     names = {ep.name for ep in entry_points(group="femcal.calibrators")}
     loaded = sys.modules.get("femcal.calibration.base")
     if loaded is not None:
-        names.update(loaded.calibrator_registry.names())
+        names.update(name for name, _ in loaded.calibrator_registry.items(load=False))
     return tuple(sorted(names - set(CALIBRATORS)))
 
 
