@@ -8,21 +8,16 @@ from __future__ import annotations
 
 import importlib
 import sys
-import textwrap
-from pathlib import Path
+from functools import partial
 
+import dists
 import pytest
+from dists import write
 
 from femcal.errors import ConfigError, FemcalError
 from femcal.registry import Registry
 
 GROUP = "femcal.tests"
-
-
-def write(path: Path, text: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(textwrap.dedent(text))
-    return path
 
 
 @pytest.fixture
@@ -48,14 +43,8 @@ def hub(site):
     return module.REG
 
 
-def install(site: Path, entry_points: str, modules: dict[str, str], group: str = GROUP) -> None:
-    """An installed distribution: a dist-info with entry points, and its modules."""
-    info = site / "regtest_demo-0.1.dist-info"
-    write(info / "METADATA", "Metadata-Version: 2.1\nName: regtest-demo\nVersion: 0.1\n")
-    write(info / "entry_points.txt", f"[{group}]\n{textwrap.dedent(entry_points)}")
-    for name, text in modules.items():
-        write(site / f"{name}.py", text)
-    importlib.invalidate_caches()
+#: An installed distribution: a dist-info with entry points (of GROUP), and its modules.
+install = partial(dists.install, group=GROUP)
 
 
 def widgets(**kwargs) -> Registry:

@@ -8,12 +8,11 @@ The plugin is real: a dist-info folder with an ``entry_points.txt`` (group
 
 from __future__ import annotations
 
-import importlib
 import sys
-import textwrap
 
 import numpy as np
 import pytest
+from dists import install
 
 from femcal.calibration import calibrate
 from femcal.calibration.base import calibrator_registry
@@ -43,13 +42,8 @@ def centre(problem, *, rng, shift: float = 0.0):
 
 
 def _install(site, entry_points: str, modules: dict[str, str]) -> None:
-    """An installed distribution ``regtest-calib``: its entry points and modules."""
-    info = site / "regtest_calib-0.1.dist-info"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: regtest-calib\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text(f"[femcal.calibrators]\n{entry_points}")
-    for name, text in modules.items():
-        (site / f"{name}.py").write_text(textwrap.dedent(text))
+    """The distribution ``regtest-calib`` with ``entry_points`` of ``femcal.calibrators``."""
+    install(site, entry_points, modules, group="femcal.calibrators", name="regtest-calib")
 
 
 @pytest.fixture
@@ -69,7 +63,6 @@ def site(tmp_path, monkeypatch):
 def plugin(site):
     """The calibrator ``centre`` of the installed distribution ``regtest-calib``."""
     _install(site, "centre = regtest_calib\n", {"regtest_calib": PLUGIN})
-    importlib.invalidate_caches()
     calibrator_registry.rescan_plugins()
     return "centre"
 
@@ -143,7 +136,6 @@ def test_a_broken_plugin_is_named_where_it_is_used_not_in_the_settings(site):
     """The settings read entry-point names and load nothing: the registry, where the stage
     looks the calibrator up, names the plugin that fails and the fix."""
     _install(site, "broken = regtest_broken\n", {"regtest_broken": "raise ImportError('no')\n"})
-    importlib.invalidate_caches()
     calibrator_registry.rescan_plugins()
     assert validate_params({"calibrate": {"method": "broken"}}).require("calibrate").method == (
         "broken"
