@@ -81,6 +81,24 @@ def test_split_design_seed_contract() -> None:
         )
 
 
+def test_split_design_batches_keep_every_stored_configuration() -> None:
+    counts = {"large": 12, "small": 4, "test": 5}
+    base = split_design(SPACE, counts, seed=3)
+    grown = split_design(SPACE, counts, seed=3, batches=[6, 8])
+    # every configuration of the base design keeps its id and values (its job hash)
+    pd.testing.assert_frame_equal(grown.iloc[: len(base)], base)
+    assert grown["config_id"].tolist() == list(range(21 + 14))
+    assert (grown["split"].iloc[len(base) :] == "large").all()
+    for b, (start, n) in enumerate([(21, 6), (27, 8)], start=1):  # default_rng([seed, 0, b])
+        part = grown[NAMES].to_numpy()[start : start + n]
+        expected = latin_hypercube(SPACE, n, np.random.default_rng([3, 0, b]))
+        np.testing.assert_array_equal(part, SPACE.clip(expected))
+    # adding a batch leaves the earlier ones unchanged
+    pd.testing.assert_frame_equal(split_design(SPACE, counts, seed=3, batches=[6]), grown.iloc[:27])
+    with pytest.raises(ConfigError, match=r"fe.batches\[1\] is 0; each batch is a number"):
+        split_design(SPACE, counts, seed=3, batches=[6, 0])
+
+
 def test_design_errors() -> None:
     with pytest.raises(ConfigError, match=r"at least one configuration; got n=0"):
         design(SPACE, 0, np.random.default_rng(0))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -80,7 +80,12 @@ def design(
     return df
 
 
-def split_design(space: ParameterSpace, counts: Mapping[str, int], seed: int) -> pd.DataFrame:
+def split_design(
+    space: ParameterSpace,
+    counts: Mapping[str, int],
+    seed: int,
+    batches: Sequence[int] = (),
+) -> pd.DataFrame:
     """One design holding the splits of a study-like dataset (Large, Small, Test).
 
     Every split is sampled with its own generator ``default_rng([seed, k])`` (k = index of
@@ -88,12 +93,19 @@ def split_design(space: ParameterSpace, counts: Mapping[str, int], seed: int) ->
     the others unchanged. Large and Small are Latin hypercubes, Test is uniform random, as in
     the study (:data:`SPLIT_SAMPLING`).
 
+    ``batches`` grows the large split without touching a stored job: batch ``b`` (1, 2, ...)
+    is a Latin hypercube of its own drawn with ``default_rng([seed, 0, b])``, numbered after
+    every split and every earlier batch, so each configuration keeps its ``config_id`` (part
+    of the job hash) when a batch is added.
+
     Parameters
     ----------
     space : ParameterSpace
     counts : mapping of str to int
         Configurations per split, e.g. ``{"large": 96, "small": 24, "test": 16}``.
     seed : int
+    batches : sequence of int, optional
+        Sizes of the further batches of the large split (each >= 1).
 
     Returns
     -------
@@ -119,6 +131,15 @@ def split_design(space: ParameterSpace, counts: Mapping[str, int], seed: int) ->
         frames.append(part)
     if not frames:
         raise ConfigError("fe.splits asks for no configurations; give at least one split > 0.")
+    for b, n in enumerate(batches, start=1):
+        if int(n) < 1:
+            raise ConfigError(
+                f"fe.batches[{b - 1}] is {n}; each batch is a number of configurations >= 1 "
+                "(remove the entry instead)."
+            )
+        part = design(space, int(n), np.random.default_rng([int(seed), 0, b]), method="lhs")
+        part.insert(1, "split", "large")
+        frames.append(part)
     df = pd.concat(frames, ignore_index=True)
     df["config_id"] = np.arange(len(df), dtype=np.int64)
     return df

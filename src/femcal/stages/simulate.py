@@ -45,6 +45,7 @@ class SimulateSettings(StageSettings):
     bounds: Any
     splits: Mapping[str, int]
     seed: int
+    batches: Sequence[int]
     load_cases: Sequence[str]
     moments: Sequence[float]
     out_dir: Path
@@ -61,6 +62,7 @@ class SimulateSettings(StageSettings):
             bounds=cfg.bounds,
             splits=cfg.splits,
             seed=cfg.seed,
+            batches=list(cfg.batches),
             load_cases=list(cfg.load_cases),
             moments=list(cfg.moments),
             out_dir=out,
@@ -139,6 +141,7 @@ def run_simulate(
     bounds: Any,
     splits: Mapping[str, int],
     seed: int,
+    batches: Sequence[int],
     load_cases: Sequence[str],
     moments: Sequence[float],
     out_dir: Path,
@@ -177,7 +180,7 @@ def run_simulate(
             f"four load cases {list(LOAD_CASES)}."
         )
     space = fe_space(bounds)
-    design_df = split_design(space, splits, seed)
+    design_df = split_design(space, splits, seed, batches)
     result = fe.campaign(
         design_df,
         names=space.names,
@@ -198,6 +201,7 @@ def run_simulate(
             "settings_hash": settings_hash(fe.solver, fe.settings),
             "seed": int(seed),
             "splits": {k: int(v) for k, v in splits.items()},
+            "batches": [int(n) for n in batches],
             "store": str(fe.store),
             "jobs_run_now": result.n_run,
             "jobs_resumed_from_store": result.n_skipped,
