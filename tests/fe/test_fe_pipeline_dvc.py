@@ -133,6 +133,17 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     assert (copied is None and math.isnan(predicted)) or copied == pytest.approx(predicted)
     assert metrics["fe_fit_residual_deg"] <= metrics["fe_fit_residual_deg_before_refine"] + 1e-12
 
+    # Rebuilt from the committed stores (no CalculiX run), the dataset and the cohort hash as
+    # the lock says: no time, host or process is part of a DVC output.
+    def outs(lock: dict, stage: str) -> list:
+        return [(o["path"], o["md5"]) for o in lock["stages"][stage]["outs"]]
+
+    locked = yaml.safe_load((fe / "dvc.lock").read_text())
+    for stage in ("simulate", "cohort"):
+        rebuilt = _run([BIN / "dvc", "repro", "-f", "-s", f"fe/dvc.yaml:{stage}"], root, env)
+        assert "run now" not in rebuilt.stdout or "0 run now" in rebuilt.stdout
+        assert outs(yaml.safe_load((fe / "dvc.lock").read_text()), stage) == outs(locked, stage)
+
     # One more Test configuration: the campaign resumes (44 jobs from the store, 4 new).
     params["fe"]["splits"]["test"] = 3
     params_path.write_text(yaml.safe_dump(params, sort_keys=False))

@@ -203,10 +203,6 @@ def run_simulate(
             "splits": {k: int(v) for k, v in splits.items()},
             "batches": [int(n) for n in batches],
             "store": str(fe.store),
-            "jobs_run_now": result.n_run,
-            "jobs_resumed_from_store": result.n_skipped,
-            "wall_seconds_this_run": round(result.wall_seconds, 2),
-            "n_workers": result.n_workers,
         },
     )
     return result, summary
