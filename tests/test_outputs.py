@@ -319,7 +319,7 @@ def test_outputs_of_two_runs_hash_alike_for_dvc(
     Repo.init(str(root), no_scm=True)
     monkeypatch.chdir(root)
     digests = []
-    for run in range(2):
+    for _ in range(2):
         with staged_output(root / "out", command="test") as stage:
             (stage.path / "table.csv").write_text("x\n1\n")
         assert read_marker(root / "out")["status"] == "complete"
@@ -328,4 +328,3 @@ def test_outputs_of_two_runs_hash_alike_for_dvc(
         digests.append((root / "out.dvc").read_text())
         (root / "out.dvc").unlink()
     assert digests[0] == digests[1]
-
