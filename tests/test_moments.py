@@ -101,6 +101,34 @@ def test_point_weights_are_inverse_variances(policy: MomentPolicy) -> None:
     assert got[1, 0] == pytest.approx((0.05**2 + e**2) / (0.05**2 / 4 + e**2))
 
 
+def test_a_validation_profile_gives_the_error_by_moment() -> None:
+    profile = {"moments": [1.0, 2.0, 5.0], "rms_deg": [0.01, 0.02, 0.08]}
+    surrogate = SimpleNamespace(
+        moment_range_=(1.0, 5.0), best_val_mae_deg_=VAL_MAE, val_error_profile_=profile
+    )
+    policy = MomentPolicy.for_surrogate(surrogate, growth=GROWTH, max_log_ratio=LMAX)
+    assert policy.profile == ((1.0, 2.0, 5.0), (0.01, 0.02, 0.08))
+    sd = policy.sigma_surrogate([1.0, math.sqrt(2.0), 5.0, 7.5])
+    # in range: interpolated in log-moment; beyond: the end's value grown as without a profile
+    np.testing.assert_allclose(sd[:3], [0.01, 0.015, 0.08], rtol=1e-12)
+    assert sd[3] == pytest.approx(0.08 * 1.5**GROWTH)
+    # calibrate's weights are the inverse variances of the same sd
+    got = policy.point_weights(np.array([1.0, 5.0]), np.ones(2), 0.05)
+    e = policy.error_deg
+    np.testing.assert_allclose(got, (0.05**2 + e**2) / (0.05**2 + np.array([0.01, 0.08]) ** 2))
+    # an explicit error_deg is the whole in-range error (no profile)
+    flat = MomentPolicy.for_surrogate(surrogate, growth=1, max_log_ratio=0.2, error_deg=0.05)
+    assert flat.profile is None and flat.sigma_surrogate([1.0, 5.0]).tolist() == [0.05, 0.05]
+
+
+@pytest.mark.parametrize(
+    "bad", [([1.0, 2.0], [0.1]), ([2.0, 1.0], [0.1, 0.1]), ([1.0], [-0.1]), "x", ([0.0], [0.1])]
+)
+def test_a_bad_profile_is_refused(bad: object) -> None:
+    with pytest.raises(ConfigError, match=r"profile must be \(moments, sd\) of equal length"):
+        MomentPolicy((1.0, 5.0), 0.03, 1.0, 0.2, bad)
+
+
 def test_average_sd_is_the_scale_of_a_point_of_average_weight(policy: MomentPolicy) -> None:
     e = VAL_MAE * math.sqrt(math.pi / 2)
     moments = np.array([1.0, 3.0, 5.0])

@@ -135,6 +135,23 @@ def _pair(value: Any, name: str) -> tuple[float, float]:
     return out[0], out[1]
 
 
+def _profile(value: Any) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """``(moments, sd)`` checked: equal lengths >= 1, moments > 0 ascending, sd finite >= 0."""
+    try:
+        at, sd = (np.asarray(v, dtype=np.float64).ravel() for v in value)
+        ok = len(at) == len(sd) >= 1 and bool(np.all(at > 0) and np.all(np.diff(at) > 0))
+        ok = ok and bool(np.all(np.isfinite(sd)) and np.all(sd >= 0))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ConfigError(
+            "MomentPolicy: profile must be (moments, sd) of equal length, moments > 0 in Nm "
+            f"ascending and sd >= 0 in degrees; got {value!r}. Pass a surrogate's "
+            "val_error_profile_ or None."
+        )
+    return tuple(at.tolist()), tuple(sd.tolist())
+
+
 @dataclass(frozen=True)
 class MomentPolicy:
     """The moments a surrogate may be used at, and its error there.
@@ -156,6 +173,10 @@ class MomentPolicy:
         accepted moments are ``lo * exp(-max_log_ratio[0]) .. hi * exp(max_log_ratio[1])`` Nm
         (measured: params.yaml ``moments.max_log_ratio``, the largest ``L`` the growth was
         measured at on that side). Stored as the pair.
+    profile : (moments, sd) or None, optional
+        The in-range error sd by moment (Nm ascending, deg), interpolated in log-moment
+        (constant beyond its ends): a surrogate's validation error by moment
+        (``val_error_profile_``). None: ``error_deg`` at every moment.
 
     Raises
     ------
@@ -167,6 +188,7 @@ class MomentPolicy:
     error_deg: float
     growth: tuple[float, float]
     max_log_ratio: tuple[float, float]
+    profile: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "trained_range", _range(self.trained_range))
@@ -183,6 +205,8 @@ class MomentPolicy:
         object.__setattr__(self, "error_deg", value)
         object.__setattr__(self, "growth", _pair(self.growth, "growth"))
         object.__setattr__(self, "max_log_ratio", _pair(self.max_log_ratio, "max_log_ratio"))
+        if self.profile is not None:
+            object.__setattr__(self, "profile", _profile(self.profile))
 
     @classmethod
     def for_surrogate(
@@ -212,6 +236,8 @@ class MomentPolicy:
         MomentPolicy
         """
         trained = tuple(getattr(surrogate, "moment_range_", (1.0, 5.0)))
+        found = getattr(surrogate, "val_error_profile_", None) if error_deg is None else None
+        profile = (found["moments"], found["rms_deg"]) if found else None
         if error_deg is None:
             val = float(getattr(surrogate, "best_val_mae_deg_", math.nan))
             if math.isfinite(val):
@@ -222,7 +248,7 @@ class MomentPolicy:
                     "error is not counted (error_deg = 0)."
                 )
                 error_deg = 0.0
-        return cls(trained, error_deg, growth, max_log_ratio)
+        return cls(trained, error_deg, growth, max_log_ratio, profile)
 
     def as_params(self) -> dict[str, float]:
         """The per-side settings as flat names (``moments.error_growth.below``, ...), to log."""
@@ -268,9 +294,17 @@ class MomentPolicy:
         Returns
         -------
         ndarray, shape (m,)
-            ``error_deg * exp(growth * L)`` in degrees; ``error_deg`` inside the range.
+            ``sd_in(M) * exp(growth * L)`` in degrees: ``sd_in`` is the profile at ``M`` (at
+            the nearest end of the trained range beyond it), or ``error_deg`` without one.
         """
-        return self.error_deg * self.error_factor(moments)
+        m = np.atleast_1d(np.asarray(moments, dtype=np.float64))
+        if self.profile is None:
+            inside = np.full(m.shape, self.error_deg)
+        else:
+            at, sd = (np.asarray(v, dtype=np.float64) for v in self.profile)
+            x = np.log(np.clip(m, *self.trained_range))
+            inside = np.interp(x, np.log(at), sd)
+        return inside * self.error_factor(m)
 
     def weights(self, moments: Any) -> np.ndarray:
         """Relative fit weights ``(error_deg / sd(M))^2 = exp(-2 * growth * L)``, shape (m,).
@@ -312,9 +346,12 @@ class MomentPolicy:
             ``noise_deg`` is not a finite number > 0.
         """
         w = np.asarray(weight, dtype=float)
-        factor2 = self.error_factor(moments) ** 2
+        sd2 = self.sigma_surrogate(moments) ** 2
         if noise_deg is None:
-            return w / factor2
+            rel2 = (
+                sd2 / self.error_deg**2 if self.error_deg > 0 else self.error_factor(moments) ** 2
+            )
+            return w / rel2
         try:
             noise = math.nan if isinstance(noise_deg, bool) else float(noise_deg)
         except (TypeError, ValueError):
@@ -326,7 +363,7 @@ class MomentPolicy:
                 "only the surrogate's error."
             )
         positive = w > 0
-        var = noise**2 / np.where(positive, w, 1.0) + self.error_deg**2 * factor2
+        var = noise**2 / np.where(positive, w, 1.0) + sd2
         return np.where(positive, (noise**2 + self.error_deg**2) / var, 0.0)
 
     def unit_sd(self, noise_deg: float) -> float:

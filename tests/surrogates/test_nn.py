@@ -71,6 +71,10 @@ def test_fit_sets_fitted_attributes(fitted: NeuralSurrogate) -> None:
     assert fitted.net_.n_members == 2
     assert fitted.n_features_in_ == 2 + SPACE.dim
     assert np.isfinite(fitted.best_val_mae_deg_) and fitted.best_val_mae_deg_ > 0
+    profile = fitted.val_error_profile_  # RMS by training moment >= the MAE over all moments
+    assert profile["moments"] == sorted(set(profile["moments"])) and len(profile["moments"]) > 1
+    rms_all = np.sqrt(np.mean(np.square(profile["rms_deg"])))
+    assert rms_all >= fitted.best_val_mae_deg_ * 0.99
     assert {r["member"] for r in fitted.history_} == {0, 1}
     first = fitted.history_[0]
     assert set(first) == {"member", "epoch", "train_loss", "val_loss", "val_mae_deg"}
@@ -161,6 +165,7 @@ def test_save_load_round_trip(
     assert loaded.get_params()["hidden"] == tuple(FAST["hidden"])
     assert loaded.space == SPACE
     assert loaded.best_val_mae_deg_ == pytest.approx(fitted.best_val_mae_deg_)
+    assert loaded.val_error_profile_ == fitted.val_error_profile_
     assert len(loaded.history_) == len(fitted.history_)
 
 

@@ -123,6 +123,11 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         2 + d: load_case, moment_nm and the d parameters.
     moment_range_ : tuple of float
         Smallest and largest training moment in Nm (the range the surrogate interpolates in).
+    val_error_profile_ : dict or None
+        The ensemble's error on the validation rows by training moment:
+        ``{"moments": [...], "rms_deg": [...]}`` (Nm, deg; root mean square over the rows at
+        each moment, all load cases), which :meth:`femcal.moments.MomentPolicy.for_surrogate`
+        reads as the surrogate's error sd inside the trained range. None without validation.
     """
 
     def __init__(
@@ -394,8 +399,10 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         if has_val:
             pred = self._predict_rows(vlc, vmom, vpar)
             self.best_val_mae_deg_ = float(np.mean(np.abs(pred - vy)))
+            self.val_error_profile_ = error_profile(vmom, pred - vy)
         else:
             self.best_val_mae_deg_ = math.nan
+            self.val_error_profile_ = None
         return self
 
     def _training_rows(
@@ -514,6 +521,7 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
                 "best_val_mae_deg": persist.finite_or_none(self.best_val_mae_deg_),
                 "n_features_in": self.n_features_in_,
                 "moment_range": list(self.moment_range_),
+                "val_error_profile": getattr(self, "val_error_profile_", None),
                 "history": persist.history_to_json(self.history_),
             },
         }
@@ -549,4 +557,29 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         # Models saved before moment_range was recorded were all trained on 1..5 Nm.
         model.moment_range_ = tuple(float(v) for v in fitted.get("moment_range", (1.0, 5.0)))
         model.history_ = persist.history_from_json(fitted.get("history", []))
+        model.val_error_profile_ = fitted.get("val_error_profile")
         return model
+
+
+def error_profile(moments: np.ndarray, error: np.ndarray) -> dict[str, list[float]] | None:
+    """The root-mean-square error at each distinct moment.
+
+    Parameters
+    ----------
+    moments : ndarray, shape (n,)
+        The rows' moments, Nm.
+    error : ndarray, shape (n,)
+        Prediction minus truth, deg (non-finite rows are left out).
+
+    Returns
+    -------
+    dict or None
+        ``{"moments": [...], "rms_deg": [...]}``, moments ascending; None when no row is
+        finite.
+    """
+    ok = np.isfinite(error) & np.isfinite(moments)
+    if not ok.any():
+        return None
+    levels, index = np.unique(np.round(moments[ok], 6), return_inverse=True)
+    rms = np.sqrt(np.bincount(index, error[ok] ** 2) / np.bincount(index))
+    return {"moments": levels.tolist(), "rms_deg": rms.tolist()}
