@@ -50,6 +50,7 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     params_path = root / "fe" / "params.yaml"
     params = yaml.safe_load(params_path.read_text())
     params["fe"]["splits"] = {"large": 8, "small": 1, "test": 2}
+    params["fe"]["batches"] = []  # the shipped campaign's further batches: hours of CalculiX
     params["fe"]["moments"] = [1, 2, 3, 4, 5]  # the shipped 0.5..10 Nm grid costs 2-3x more
     params["validate"]["refine"]["max_fe_runs"] = 2  # one refinement step per specimen
     params["adapt"].update(
@@ -58,7 +59,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     params["adapt"]["calibrate_options"] = {"n_starts": 2, "max_iter": 3}
     # A loaded CI machine must not turn slow runs into timeouts (failures are tested elsewhere).
     params["fe"]["settings"]["timeout_s"] = 300
-    params["train"]["large"].update({"final_members": 2})  # adapt needs an ensemble
+    # adapt needs an ensemble; two trials of the FE training's Optuna study
+    params["train"]["large"].update({"final_members": 2, "n_trials": 2})
     params["train"]["large"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
     params["train"]["idp"].update({"final_members": 1})
     params["train"]["idp"]["fixed"].update({"width": 16, "depth": 2, "max_epochs": 5})
