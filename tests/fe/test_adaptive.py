@@ -78,6 +78,10 @@ def test_the_error_at_the_calibrated_solutions_falls(adapted):
     assert result.rounds["heldout_mae_deg"].iloc[-1] < 0.85 * result.heldout_mae_start
     s = result.summary()
     assert s["n_rounds"] == 3 and s["n_new_configurations"] == 30
+    # the fine-tuned model's own error is the held-out split's, by moment
+    model = result.surrogate
+    assert model.best_val_mae_deg_ == pytest.approx(result.rounds["heldout_mae_deg"].iloc[-1])
+    assert model.val_error_profile_["moments"] == sorted(MOMENTS)
 
 
 @pytest.mark.slow  # real CalculiX runs (minutes): CI runs it in its slow step

@@ -281,6 +281,10 @@ def adapt_surrogate(
             row["heldout_mae_deg"],
         )
     model.set_params(**recipe)
+    if rows and hasattr(model, "record_validation_error"):
+        # the fine-tuning had no validation rows: the held-out split's error is the model's
+        moments_ho = X_ho["moment_nm"].to_numpy(dtype=float)
+        model.record_validation_error(moments_ho, model.predict(X_ho) - y_ho)
     return AdaptResult(
         surrogate=model,
         rounds=pd.DataFrame(rows),

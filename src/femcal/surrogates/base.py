@@ -205,3 +205,27 @@ def encode_features(X: pd.DataFrame, space: ParameterSpace) -> np.ndarray:
     moment = X["moment_nm"].to_numpy(dtype=float)[:, None]
     params = space.to_unit(X[list(space.names)].to_numpy(dtype=float))
     return np.hstack([onehot, moment, params])
+
+
+def error_profile(moments: np.ndarray, error: np.ndarray) -> dict[str, list[float]] | None:
+    """The root-mean-square error at each distinct moment.
+
+    Parameters
+    ----------
+    moments : ndarray, shape (n,)
+        The rows' moments, Nm.
+    error : ndarray, shape (n,)
+        Prediction minus truth, deg (non-finite rows are left out).
+
+    Returns
+    -------
+    dict or None
+        ``{"moments": [...], "rms_deg": [...]}``, moments ascending; None when no row is
+        finite.
+    """
+    ok = np.isfinite(error) & np.isfinite(moments)
+    if not ok.any():
+        return None
+    levels, index = np.unique(np.round(moments[ok], 6), return_inverse=True)
+    rms = np.sqrt(np.bincount(index, error[ok] ** 2) / np.bincount(index))
+    return {"moments": levels.tolist(), "rms_deg": rms.tolist()}

@@ -34,7 +34,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from femcal.errors import ConfigError, InputDataError, SurrogateNotFittedError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
-from femcal.surrogates.base import check_features, register_surrogate
+from femcal.surrogates.base import check_features, error_profile, register_surrogate
 from femcal.surrogates.romnet import (
     ACTIVATIONS,  # noqa: F401 (re-exported: the activations NeuralSurrogate takes)
     LOSSES,
@@ -398,11 +398,27 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         self.moment_range_ = (float(np.min(moment)), float(np.max(moment)))
         if has_val:
             pred = self._predict_rows(vlc, vmom, vpar)
-            self.best_val_mae_deg_ = float(np.mean(np.abs(pred - vy)))
-            self.val_error_profile_ = error_profile(vmom, pred - vy)
+            self.record_validation_error(vmom, pred - vy)
         else:
             self.best_val_mae_deg_ = math.nan
             self.val_error_profile_ = None
+        return self
+
+    def record_validation_error(self, moments: np.ndarray, error: np.ndarray) -> NeuralSurrogate:
+        """Set ``best_val_mae_deg_`` and ``val_error_profile_`` from held-out rows.
+
+        ``fit`` calls it on its validation rows; a fit without them (e.g. a fine-tuning on
+        every row) calls it on rows held out elsewhere.
+
+        Parameters
+        ----------
+        moments : ndarray, shape (n,)
+            The rows' moments, Nm.
+        error : ndarray, shape (n,)
+            Prediction minus truth, deg.
+        """
+        self.best_val_mae_deg_ = float(np.nanmean(np.abs(error)))
+        self.val_error_profile_ = error_profile(np.asarray(moments), np.asarray(error))
         return self
 
     def _training_rows(
@@ -559,27 +575,3 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         model.history_ = persist.history_from_json(fitted.get("history", []))
         model.val_error_profile_ = fitted.get("val_error_profile")
         return model
-
-
-def error_profile(moments: np.ndarray, error: np.ndarray) -> dict[str, list[float]] | None:
-    """The root-mean-square error at each distinct moment.
-
-    Parameters
-    ----------
-    moments : ndarray, shape (n,)
-        The rows' moments, Nm.
-    error : ndarray, shape (n,)
-        Prediction minus truth, deg (non-finite rows are left out).
-
-    Returns
-    -------
-    dict or None
-        ``{"moments": [...], "rms_deg": [...]}``, moments ascending; None when no row is
-        finite.
-    """
-    ok = np.isfinite(error) & np.isfinite(moments)
-    if not ok.any():
-        return None
-    levels, index = np.unique(np.round(moments[ok], 6), return_inverse=True)
-    rms = np.sqrt(np.bincount(index, error[ok] ** 2) / np.bincount(index))
-    return {"moments": levels.tolist(), "rms_deg": rms.tolist()}
