@@ -88,7 +88,7 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
 
     first = _run([BIN / "dvc", "repro", "fe/dvc.yaml"], root, env)
     stages = ("simulate", "prepare", "train@large", "train@idp", "adapt", "calibrate@fe-test")
-    for stage in (*stages, "validate", "cohort", "predict"):
+    for stage in (*stages, "validate", "cohort", "predict", "sigma"):
         assert f"Running stage 'fe/dvc.yaml:{stage}'" in first.stdout
     assert "Running stage 'fetch'" not in first.stdout  # the root pipeline is not run
     fe = root / "fe"
@@ -121,6 +121,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     assert predictive["split_nm"] == 3.0 and predictive["n_specimens"] == 1
     assert "fe_predictive_mae_deg" in predictive and "noisy" not in predictive
     assert json.loads((fe / "reports/cohort.json").read_text())["n_specimens"] == 4
+    sigma = json.loads((fe / "reports/sigma.json").read_text())
+    assert 0.0 <= sigma["coverage_2sigma"]["0.5-5"] <= 1.0  # 1..5 Nm here: one band
     adapt = json.loads((fe / "reports/adapt.json").read_text())
     assert adapt["n_rounds"] == 1 and adapt["n_new_configurations"] == 3  # 2 targets + 1
     assert (fe / "models/surrogate-champion/MLmodel").is_file()
