@@ -232,3 +232,49 @@ def test_every_stage_with_metrics_passes_its_metrics_file(dvc_yaml):
         assert f"--metrics-file {metrics}" in body["cmd"], (name, body["cmd"])
         checked += 1
     assert checked >= 2
+
+
+def test_comparison_names_its_baseline_and_compare_to_chooses_it(project, capsys, caplog):
+    """The default "before" is the disc alone (an effect run is never compared with another
+    effect run); ``--compare-to`` takes a folder or a run id; the log names the final folder."""
+    base = ["--params", "noplots.yaml", "calibrate", "--measurements", "meas.csv"]
+    caplog.set_level("INFO", logger="femcal")
+    assert main([*base, "--out", "alone"]) == 0
+    assert not (project / "alone" / "comparison.md").exists()  # the disc alone: the baseline
+    assert "this run is of the disc alone" in caplog.text
+    assert main([*base, "--out", "facets", "--effects", "facet_contact"]) == 0
+    assert main([*base, "--out", "nz", "--effects", "neutral_zone"]) == 0
+    alone, facets, _ = _calibrate_runs()["run_id"]
+    page = (project / "nz" / "comparison.md").read_text()
+    assert json.loads((project / "nz" / "comparison.json").read_text())["before"]["run_id"] == alone
+    assert f"Compared with run {alone}, the default: the latest earlier finished" in page
+    log = caplog.text
+    assert f"Compared with run {alone}" in log and "): nz/comparison.md" in log
+    assert ".partial-" not in log.split("Compared with")[-1]
+    # A folder: its summary.json, and its run (marker) for the effects.
+    assert main([*base, "--out", "vs_folder", "--effects", "neutral_zone",
+                 "--compare-to", "facets"]) == 0  # fmt: skip
+    page = (project / "vs_folder" / "comparison.md").read_text()
+    assert (
+        f"Compared with folder {project / 'facets'} (femcal calibrate), given by --compare-to"
+        in page
+    )
+    assert f"run `{facets}`, effects: facet_contact" in page
+    assert "| mae_deg |" in page
+    # A run id.
+    assert (
+        main([*base, "--out", "vs_run", "--effects", "neutral_zone", "--compare-to", facets]) == 0
+    )
+    assert (
+        f"Compared with run {facets}, given by --compare-to"
+        in (project / "vs_run" / "comparison.md").read_text()
+    )
+    capsys.readouterr()
+    # Neither a folder nor a run id: refused before any work, with the fix.
+    assert main([*base, "--out", "bad", "--compare-to", "no/such/folder"]) == 2
+    err = capsys.readouterr().err
+    assert "--compare-to no/such/folder: no such folder, and not an MLflow run id" in err
+    assert not (project / "bad").exists()
+    # An unknown run id: named with the store.
+    assert main([*base, "--out", "bad", "--compare-to", "0" * 32]) == 2
+    assert f"--compare-to {'0' * 32}: no MLflow run with this id" in capsys.readouterr().err

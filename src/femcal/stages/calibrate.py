@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from femcal.compare import check_compare_to
 from femcal.datasets import training_configurations
 from femcal.errors import ConfigError
 from femcal.paths import setting_path, setting_uri
@@ -70,6 +71,7 @@ class CalibrateSettings(StageSettings):
     effects: Sequence[str] = ()
     effect_modules: Sequence[Path] = ()
     noise_deg: float | None = None
+    compare_to: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> CalibrateSettings:
@@ -125,6 +127,7 @@ class CalibrateSettings(StageSettings):
         # before anything heavy is imported
         out = output_folder(params, args, "calibrate", subfolder=name or "custom")
         check_measurements(measurements)
+        compare_to = check_compare_to(args.get("compare_to"))
         return cls(
             measurements=measurements,
             out_dir=out,
@@ -142,6 +145,7 @@ class CalibrateSettings(StageSettings):
             effects=tuple(effects),
             effect_modules=effect_modules(params, args.get("effects_module")),
             noise_deg=noise,
+            compare_to=compare_to,
             metrics_file=args.get("metrics_file"),
             params=params,
         )
@@ -449,7 +453,7 @@ def _write_and_log(
             figures["n_dropped_points"] = len(screened.dropped)
             lap(f"outputs (tables, plots: {plots})")
             stage.note(mlflow_run_id=tracker.result())
-            tracker.call(
+            compared = tracker.call(
                 log_calibration,
                 tags=tags,
                 params=logged,
@@ -458,6 +462,7 @@ def _write_and_log(
                 measurements=s.measurements,
                 figures=figures,
                 out_dir=stage.path,
+                compare_to=s.compare_to,
             )
             stage.finalize()
             tracker.call(
@@ -468,7 +473,23 @@ def _write_and_log(
             tracker.abort()  # the run ends FAILED (started or not)
             raise
         tracker.call(end_calibration_run, status="FINISHED")
+    _log_comparison(compared, s.out_dir)
     return figures
+
+
+def _log_comparison(compared: Mapping[str, str], out_dir: Path) -> None:
+    """Say what the run was compared with, naming ``comparison.md`` in its final folder."""
+    if "none" in compared:
+        logger.info(
+            "No comparison.md: %s; --compare-to RUN_OR_FOLDER chooses one.", compared["none"]
+        )
+    else:
+        logger.info(
+            "Compared with %s (%s): %s",
+            compared["source"],
+            compared["chosen"],
+            Path(out_dir) / "comparison.md",
+        )
 
 
 def plugin_options(method: str, options: Mapping[str, Any], where: str) -> None:

@@ -42,37 +42,57 @@ def log_artifacts(folder: Path, artifact_path: str, *, progress: bool = False) -
 
 
 def compare_with_previous(
-    measurements: Path, logged: Mapping[str, Any], figures: Mapping[str, Any], out_dir: Path
-) -> None:
-    """Before and after: the latest earlier calibration of the same file with other effects."""
+    measurements: Path,
+    logged: Mapping[str, Any],
+    figures: Mapping[str, Any],
+    out_dir: Path,
+    compare_to: str | None = None,
+) -> dict[str, str]:
+    """Before and after (:mod:`femcal.compare`): this run against ``compare_to`` (a folder or
+    run id), else against the baseline :data:`femcal.compare.BASELINE_RULE` picks.
+
+    Writes ``comparison.md`` and ``comparison.json`` into ``out_dir`` and tags the run
+    ``femcal.compared_to``. Returns what was compared with (``source``) and how it was chosen
+    (``chosen``); when nothing was compared, only ``none``: why not.
+    """
     import mlflow
 
-    from femcal.compare import comparison_frame, previous_calibration, write_comparison
+    from femcal.compare import (
+        BASELINE_RULE,
+        DISC_ALONE,
+        comparison_frame,
+        resolve_baseline,
+        write_comparison,
+    )
 
     this = mlflow.active_run().info.run_id
-    prev = previous_calibration(
-        measurements=str(measurements), effects=logged["effects"], exclude_run_id=this
+    before = resolve_baseline(
+        compare_to,
+        measurements=str(measurements),
+        effects=logged["effects"],
+        exclude_run_id=this,
     )
-    if prev is None:
-        return
+    if before is None:
+        why = (
+            "this run is of the disc alone, the default baseline itself"
+            if logged["effects"] == DISC_ALONE
+            else f"no earlier run matches the default rule, {BASELINE_RULE}"
+        )
+        return {"none": why}
     after = {k: v for k, v in figures.items() if isinstance(v, (int, float))}
-    frame = comparison_frame(prev.data.metrics, after)
+    frame = comparison_frame(before["metrics"], after)
     write_comparison(
         frame,
         out_dir,
-        before={
-            "run_id": prev.info.run_id,
-            "effects": prev.data.params.get("effects", ""),
-            "model": prev.data.params.get("model_version", ""),
-        },
+        before=before,
         after={
             "run_id": this,
             "effects": logged["effects"],
             "model": logged.get("model_version", ""),
         },
     )
-    mlflow.set_tag("femcal.compared_to", prev.info.run_id)
-    logger.info("Compared with run %s: %s", prev.info.run_id, out_dir / "comparison.md")
+    mlflow.set_tag("femcal.compared_to", before["run_id"] or before["source"])
+    return {"source": before["source"], "chosen": before["chosen"]}
 
 
 # --------------------------------------------------------------------------- the MLflow run
@@ -99,9 +119,11 @@ def log_calibration(
     measurements: Path,
     figures: Mapping[str, Any],
     out_dir: Path,
-) -> None:
+    compare_to: str | None = None,
+) -> dict[str, str]:
     """Tags, parameters, metrics and the two tables of the active run; the comparison with
-    the previous calibration of the same file (written into ``out_dir``)."""
+    ``compare_to`` or the default baseline (written into ``out_dir``; what was compared with
+    is returned, :func:`compare_with_previous`)."""
     import mlflow
     import pandas as pd
 
@@ -112,7 +134,7 @@ def log_calibration(
     metrics_df["missing_load_cases"] = metrics_df["missing_load_cases"].fillna("")
     mlflow.log_table(metrics_df, artifact_file="tables/metrics.json")
     mlflow.log_table(parameters, artifact_file="tables/parameters.json")
-    compare_with_previous(measurements, params, figures, out_dir)
+    return compare_with_previous(measurements, params, figures, out_dir, compare_to)
 
 
 def end_calibration_run(status: str, run_id: str | None = None) -> None:
