@@ -71,6 +71,7 @@ def project(tmp_path, monkeypatch, clean_registry):
     # In this world the surrogate's curves ARE the truth: its own error is zero, not its
     # validation error against the synthetic table (which the moment policy would count).
     surrogate.best_val_mae_deg_ = 1e-3
+    surrogate.val_error_profile_ = None
     configure_tracking(store_dir=tmp_path / "mlruns")
     ensure_experiment("story", store_dir=tmp_path / "mlruns")
     with mlflow.start_run():
