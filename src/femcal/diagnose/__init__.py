@@ -9,6 +9,7 @@ the data within the noise; what it says of each specimen is a :class:`SpecimenDi
 * :mod:`.state`: what its steps share; :mod:`.forward`, :mod:`.forms` (tied or split per
   load case), :mod:`.elimination` (open world): the steps;
 * :mod:`.probabilities`: how probable each model, effect and unexplained residue is;
+* :mod:`.outside`: a disc outside the parameter box told apart from a missing element;
 * :mod:`.fits`: fitting a model to many specimens at once (starts, Gauss-Newton, chi-square);
 * :mod:`.explain`: adequacy tests, rankings, what each effect adds, what to measure next;
 * :mod:`.discrepancy`: the smooth model discrepancy (Kennedy & O'Hagan) and its description;
@@ -20,6 +21,7 @@ Measured figures: the docs' benchmark pages.
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.diagnose.result import (
     NONE,
+    OUTSIDE_BOX,
     UNEXPLAINED,
     Diagnosis,
     SpecimenDiagnosis,
@@ -30,6 +32,7 @@ from femcal.diagnose.search import diagnose
 
 __all__ = [
     "NONE",
+    "OUTSIDE_BOX",
     "UNEXPLAINED",
     "DiagnoseOptions",
     "Diagnosis",

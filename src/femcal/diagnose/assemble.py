@@ -28,6 +28,7 @@ from femcal.diagnose.explain import (
     _summary,
 )
 from femcal.diagnose.fits import _Fit
+from femcal.diagnose.outside import assess
 from femcal.diagnose.probabilities import specimen_probabilities
 from femcal.diagnose.result import (
     NONE,
@@ -85,6 +86,7 @@ def _assemble(
             if rows != old.get(effects):  # the fits are per group, in its order
                 gp[effects] = _gp_fit(state, effects, rows)
         probabilities = _probabilities(state, finals, gp)
+    probabilities, outside = _outside_box(state, disc, finals, gp, probabilities)
     adequacy = _adequacies(state, disc)
     moments = state.base.moments.double().numpy()
     dense = dense_grid(moments, options.curve_points)
@@ -102,11 +104,15 @@ def _assemble(
         ranking = _ranking(state.per_spec[i], i, measured, sigma, state.log_n, base, mask)
         effects = list(state.chosen[i])
         adequate = not probabilities[i]["unexplained"]
+        verdict, model = verdict_label(effects, adequate), effects
+        if outside[i] is not None and outside[i]["named"]:
+            # The box, not the stand-ins: the verdict keeps the effects that engage.
+            verdict, adequate, model = outside[i]["verdict"], False, outside[i]["model"]
         f, pos = state.per_spec[i][state.chosen[i]]
         final_res = measured[i] - f.pred[pos].double().numpy()
         own = _own_range(dense, moments, mask[i])
         curves = {"moments": dense, NONE: np.where(own, curves0[i], np.nan)}
-        if effects:
+        if model and model == effects:
             curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
             ranking,
@@ -123,13 +129,13 @@ def _assemble(
         out.append(
             SpecimenDiagnosis(
                 specimen=str(spec),
-                verdict=verdict_label(effects, adequate),
+                verdict=verdict,
                 baseline_mae_deg=float(mae0[i]),
                 ranking=ranking,
                 residuals=resid,
                 failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
-                effects=[base_name(e) for e in effects],
-                model=effects,
+                effects=[base_name(e) for e in model],
+                model=model,
                 adequate=adequate,
                 adequacy=adequacy[i],
                 final_mae_deg=float(np.nanmean(np.abs(final_res))),
@@ -139,6 +145,7 @@ def _assemble(
                 next_measurement=nxt,
                 probabilities=probabilities[i],
                 sigma=np.where(mask[i], sigma[i], np.nan),
+                outside_box=outside[i],
             )
         )
     return Diagnosis(
@@ -152,6 +159,25 @@ def _assemble(
         sigma_by_moment=state.sigma_m,
         alpha=options.alpha,
     )
+
+
+def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
+    """The out-of-box reading (:func:`femcal.diagnose.outside.assess`) with each specimen's
+    discrepancy and curves of its final model (``finals``, ``gp`` per final model): the
+    probabilities shared out, and per specimen the reading or None. Where the box is named,
+    ``unexplained`` says whether a discrepancy is named beside it."""
+    delta = np.full(state.measured.shape, np.nan)
+    pred = np.full(state.measured.shape, np.nan)
+    for effects, rows in finals.items():
+        for pos, i in enumerate(rows):
+            delta[i] = gp[effects].delta_at_points[pos]
+            f, at = state.per_spec[i][effects]
+            pred[i] = f.pred[at].double().numpy()
+    probabilities, outside = assess(state, disc, probabilities, delta, pred)
+    for p, reading in zip(probabilities, outside):
+        if reading is not None and reading["named"]:
+            p["unexplained"] = UNEXPLAINED in reading["verdict"].split("+")
+    return probabilities, outside
 
 
 def _adequacies(state: DiagnosisState, disc: _Fit) -> list[dict[str, Any]]:

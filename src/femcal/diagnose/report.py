@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.report import safe_file_name
+from femcal.diagnose.outside import REPORTED
 from femcal.diagnose.result import NONE, Diagnosis, SpecimenDiagnosis
 from femcal.schema import LOAD_CASES
 
@@ -203,6 +204,8 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     )
     fig.suptitle(title, fontsize=11)
     notes = list(s.discrepancy["description"]) if s.discrepancy is not None else []
+    if (box := outside_box_note(s)) is not None:
+        notes.insert(0, box)
     if measure_next:
         notes.append(measure_next)
     _place_notes(fig, notes)
@@ -308,16 +311,18 @@ def plot_heatmap(diag: Diagnosis, path: Path) -> None:
 
 
 def plot_inclusion(diag: Diagnosis, path: Path) -> None:
-    """Cohort heat map of inclusion probabilities: each effect (and something outside the
-    library) x each specimen, 0 to 1 (:mod:`femcal.diagnose.probabilities`)."""
+    """Cohort heat map of inclusion probabilities: each effect (something outside the library,
+    a disc outside the parameter box) x each specimen, 0 to 1
+    (:mod:`femcal.diagnose.probabilities`, :mod:`femcal.diagnose.outside`)."""
     plt = _plt()
     rows = sorted({e for s in diag.specimens for e in s.probabilities.get("inclusion", {})})
     names = [s.specimen for s in diag.specimens]
     p = np.array(
         [[s.probabilities.get("inclusion", {}).get(e, 0.0) for s in diag.specimens] for e in rows]
         + [[s.probabilities.get("outside_library", 0.0) for s in diag.specimens]]
+        + [[s.probabilities.get("outside_box", 0.0) for s in diag.specimens]]
     )
-    labels = [*rows, "outside the library"]
+    labels = [*rows, "outside the library", "outside the box"]
     fig, ax = plt.subplots(
         figsize=(max(6.0, 0.22 * len(names) + 3.0), 0.5 * len(labels) + 1.8),
         constrained_layout=True,
@@ -333,6 +338,26 @@ def plot_inclusion(diag: Diagnosis, path: Path) -> None:
     plt.close(fig)
 
 
+def outside_box_note(s: SpecimenDiagnosis) -> str | None:
+    """The specimen's out-of-box reading in words (side, load cases, parameters at their
+    bounds, remedy) where the verdict names the box or the reading is at least
+    :data:`~femcal.diagnose.outside.REPORTED` probable; else None."""
+    box = s.outside_box
+    if box is None or not (box["named"] or box["probability"] >= REPORTED):
+        return None
+    return ("Outside the box: " if box["named"] else "Or outside the box: ") + box["summary"]
+
+
+def _missing(s: SpecimenDiagnosis) -> str:
+    """What is missing, for summary.md: the discrepancy's summary, and the out-of-box
+    reading where there is one to report (first where the verdict names the box)."""
+    text = s.discrepancy["summary"] if s.discrepancy else ""
+    box = outside_box_note(s)
+    if box is None:
+        return text
+    return f"{box} {text}".strip() if s.outside_box["named"] else f"{text} {box}".strip()
+
+
 def _probable(s: SpecimenDiagnosis) -> str:
     """The most probable models (p >= 0.05) and the effects' inclusion probabilities."""
     pr = s.probabilities
@@ -340,6 +365,8 @@ def _probable(s: SpecimenDiagnosis) -> str:
         return ""
     top = [f"{k} {v:.2f}" for k, v in pr.get("models", {}).items() if v >= 0.05][:3]
     inc = [f"{k} {v:.2f}" for k, v in pr.get("inclusion", {}).items() if v >= 0.05]
+    if pr.get("outside_box", 0.0) >= 0.05:
+        inc.append(f"outside the box {pr['outside_box']:.2f}")
     return "; ".join(top) + (f" (inclusion: {', '.join(inc)})" if inc else "")
 
 
@@ -449,7 +476,10 @@ def write_diagnosis(
         "surrogate's own error in quadrature). Each explanation's probability weighs its "
         "criterion with the evidence the search asks before naming it; the verdict says "
         "`unexplained` where a smooth discrepancy on top of the model is more probable than "
-        f"the model alone (the χ² test's p beside it). Verdicts {diag.verdicts()}; effects "
+        "the model alone (the χ² test's p beside it), and `outside_box` where a disc outside "
+        "the sampled parameter box is more probable than not (its effects act from about 0 Nm "
+        "rather than engage; the remedy: widen `fe.bounds` and run the FE campaign on the "
+        f"widened box, `dvc repro fe/dvc.yaml`). Verdicts {diag.verdicts()}; effects "
         f"named {diag.effect_counts()}; {diag.seconds:.1f} s.",
         "",
         "| specimen | verdict | probabilities | disc-alone MAE (°) | final MAE (°) | χ² p | "
@@ -457,7 +487,7 @@ def write_diagnosis(
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for s in diag.specimens:
-        missing = s.discrepancy["summary"] if s.discrepancy else ""
+        missing = _missing(s)
         p = s.adequacy.get("final", {}).get("p_chi2", float("nan")) if s.adequacy else np.nan
         lines.append(
             f"| {s.specimen} | {s.verdict} | {_probable(s)} | {s.baseline_mae_deg:.3f} | "

@@ -15,6 +15,9 @@ NONE = "none"
 
 UNEXPLAINED = "unexplained"
 
+#: The verdict of a disc outside the sampled parameter box (:mod:`femcal.diagnose.outside`).
+OUTSIDE_BOX = "outside_box"
+
 
 #: Similarity (cosine, in sigma units) above which a discrepancy "resembles" an effect.
 RESEMBLES = 0.8
@@ -42,7 +45,8 @@ class SpecimenDiagnosis:
     ----------
     verdict : str
         ``none``, ``unexplained``, the effects found joined by ``+``, possibly ending in
-        ``+unexplained``.
+        ``+unexplained``; ``outside_box`` (after the effects that engage, if any) where a disc
+        outside the parameter box is the most probable explanation.
     effects : list of str
         The registered effects found, by name.
     model : list of str
@@ -58,7 +62,8 @@ class SpecimenDiagnosis:
     residuals : ndarray, shape (4, m)
         Disc-alone residuals, measured - model (deg, NaN where not measured).
     final_residuals : ndarray, shape (4, m)
-        The same for the final model.
+        The same for the final model as fitted (with an ``outside_box`` verdict, the chosen
+        model with the effects that stand in for the disc).
     sigma : ndarray, shape (4, m), or None
         Each point's sigma (deg): the noise over the square root of the point's weight (the
         mean of ``k`` repeated measurements weighs ``k``) with the surrogate's error.
@@ -79,7 +84,17 @@ class SpecimenDiagnosis:
         ``models`` (label -> posterior probability of every model fitted, and of the chosen
         one with a discrepancy, ``<model>+unexplained``), ``inclusion`` (effect ->
         probability), ``outside_library`` and ``most_probable``
-        (:mod:`femcal.diagnose.probabilities`).
+        (:mod:`femcal.diagnose.probabilities`); where the specimen looks beyond the
+        parameter box, also ``outside_box`` (the probability of a disc outside it) and the
+        models' out-of-box alternatives (``facet_contact+outside_box``, ``outside_box``).
+    outside_box : dict or None
+        Where the specimen lies beyond the disc's reach or its disc-alone fit presses against
+        the box (:func:`femcal.diagnose.outside.assess`): ``named`` (the verdict names the
+        box), ``probability``, ``side`` (``stiffer`` or ``softer``), ``load_cases``,
+        ``on_bounds`` (``parameter``, ``bound``, ``value``), ``outside_points``,
+        ``stand_ins`` (per effect of the chosen model: ``flatness`` per load case,
+        ``stand_in`` probability), ``discrepancy``, ``remedy`` and ``summary``; None
+        elsewhere.
     """
 
     specimen: str
@@ -99,6 +114,7 @@ class SpecimenDiagnosis:
     next_measurement: dict[str, Any] | None = None
     probabilities: dict[str, Any] = field(default_factory=dict)
     sigma: np.ndarray | None = None
+    outside_box: dict[str, Any] | None = None
 
     @property
     def discrepancy_mae_deg(self) -> float | None:
@@ -130,6 +146,7 @@ class SpecimenDiagnosis:
             "next_measurement": self.next_measurement,
             "probabilities": self.probabilities,
             "failures": self.failures,
+            "outside_box": self.outside_box,
         }
 
 
@@ -158,16 +175,22 @@ class Diagnosis:
         return out
 
     def effect_counts(self) -> dict[str, int]:
-        """How many specimens name each registered effect, and ``unexplained``."""
+        """How many specimens name each registered effect, ``unexplained`` and
+        ``outside_box``."""
         out: dict[str, int] = {}
         for s in self.specimens:
-            for e in [*s.effects, *([] if s.adequate else [UNEXPLAINED])]:
+            parts = s.verdict.split("+")
+            box = [OUTSIDE_BOX] if OUTSIDE_BOX in parts else []
+            missing = not s.adequate and (not box or UNEXPLAINED in parts)
+            for e in [*s.effects, *box, *([UNEXPLAINED] if missing else [])]:
                 out[e] = out.get(e, 0) + 1
         return out
 
     def found_effects(self) -> list[str]:
         """Registered effects named for at least one specimen, most frequent first."""
-        counts = {k: v for k, v in self.effect_counts().items() if k != UNEXPLAINED}
+        counts = {
+            k: v for k, v in self.effect_counts().items() if k not in (UNEXPLAINED, OUTSIDE_BOX)
+        }
         return sorted(counts, key=lambda k: (-counts[k], k))
 
     def found_forms(self) -> list[str]:

@@ -102,6 +102,7 @@ SHOWN = 5
 
 
 def describe(figures: Mapping[str, Any]) -> list[str]:
+    from femcal.diagnose.outside import cohort_note
     from femcal.diagnose.report import practical_next
 
     diag = figures["diagnosis"]
@@ -142,6 +143,9 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
             "missing (load cases, laxity or stiffening, from which moment, how large). Write "
             "it as an effect (docs/how-to/effect-plugin.md) and pass --effects-module FILE."
         )
+    box = [s.outside_box for s in diag.specimens if s.outside_box and s.outside_box["named"]]
+    if box:
+        lines.append(cohort_note(box))
     return lines
 
 

@@ -1,0 +1,556 @@
+"""A disc outside the parameter box, told apart from a missing element.
+
+The surrogate knows the discs of its parameter box (``fe.bounds``) and no others. A specimen
+whose disc is stiffer (or softer) than every disc in the box is still "explained" by the
+search: the disc alone is pressed against the box, and flexible effects make up the rest. Such
+effects do not *engage*; they stand in for a stiffer disc. This module tells the two apart with
+evidence the diagnosis already holds, and shares the probability between them where they
+cannot be told apart (:func:`assess`).
+
+**When it looks** (:func:`box_evidence`): the specimen lies beyond the disc's reachable
+envelope (at least :data:`REACH_POINTS` points beyond the level of every curve the disc alone
+produces over its box, :func:`femcal.reachability.build_envelope`), or the disc-alone fit
+presses against the box (at least :data:`BOUNDS_PRESSED` of its parameters on a bound).
+Otherwise nothing here changes a diagnosis. Looking is not deciding: a disc inside the box with
+strong posterior elements also leaves the disc alone's reach, and the shapes decide.
+
+**The side**: ``stiffer`` where the points beyond the envelope lie below it (``softer``
+above), else from the sign of the disc alone's residuals. Only an effect that moves the curves
+that way can stand in for the disc: a parallel element stiffens, a series element adds
+rotation.
+
+**What separates them** (:class:`ShapeReader`): an element engages, a stiffer or softer disc
+does not. Each fitted effect's share of the load is followed over the moments, from
+:data:`LOW_FRACTION` of a load case's largest measured moment to it, in every load case it acts
+in (where its share reaches :data:`ACTIVE_SHARE`): the share of the applied moment a parallel
+element carries, the share of the rotation a series element adds. An element with a gap, a
+slack or a knee carries next to nothing at low moments and a clear share beyond its onset: its
+share varies by a large factor. A disc stand-in, acting from about 0 Nm with a law near the
+disc's own, keeps about the same share at every moment. The *flatness* of a load case, its
+smallest share over its largest (0 where the share changes sign), is read on a ramp: at most
+:data:`FLAT_ELEMENT` an element (stand-in probability 0), at least :data:`FLAT_DISC` a disc (1),
+linear between. An effect's stand-in probability is the mean over the load cases it acts in:
+one acting from about 0 Nm in every load case is the disc, one engaging in every load case an
+element, and one that does each in half of them is either (probability 0.5).
+
+A discrepancy (``unexplained``) is read the same way (:func:`discrepancy_stand_in`): a disc
+beyond the box leaves a miss of one sign (the side's) and about the same share of the curves at
+every moment, in every load case but one at most. It is read on the chosen model's
+discrepancy, or on the disc alone's residuals where every effect of the chosen model stands in
+(the stand-ins took part of the disc's miss).
+
+**The probabilities** (:func:`split_probabilities`): each fitted model of probability ``p``
+whose parts (effects, discrepancy) stand in with probabilities ``s`` keeps ``p prod(1 - s)``;
+the rest goes to its out-of-box alternatives, the parts kept as real with ``outside_box``
+(``facet_contact+outside_box``, ``outside_box``). Inclusion probabilities are summed anew, so
+an effect that only stands in for the disc loses the probability it had. The verdict names the
+box where such an alternative is the most probable explanation; the reading says the side, the
+load cases, the disc parameters at their bounds and the remedy (:data:`REMEDY`): widen
+``fe.bounds``, run the FE campaign on the widened box (``dvc repro fe/dvc.yaml``) and train
+the surrogate on it.
+
+The thresholds were set on the specimens of ``tests/diagnose/test_outside_box.py`` and the
+synthetic world of ``tests/test_diagnose.py`` (docs: *Explanation > Diagnosis*).
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any
+
+import numpy as np
+import torch
+
+from femcal.calibration.model import SurrogateCurveModel
+from femcal.diagnose.result import OUTSIDE_BOX, UNEXPLAINED, model_label
+from femcal.effects.composite import EffectModel
+from femcal.effects.split import base_name
+from femcal.reachability import Z_OUTSIDE, build_envelope
+from femcal.reachability.envelope import _distances
+from femcal.schema import LOAD_CASES
+
+Model = tuple[str, ...]
+
+#: Points beyond the disc alone's envelope (its level, by more than the reachability check's
+#: ``Z_OUTSIDE`` sigma) from which a specimen lies beyond the disc's reach: two, so that one
+#: wild point does not make a disc outside the box.
+REACH_POINTS = 2
+#: Parameters of the disc-alone fit on a bound (of 13) from which the fit presses against the
+#: box. Discs inside the box leave at most five there on the issue's held-out cohort (1-5,
+#: discs beyond it 8-12); a disc with strong posterior elements presses more (the synthetic
+#: world of the tests: 13), which is why the shapes, not this count, decide.
+BOUNDS_PRESSED = 6
+#: A unit-box coordinate closer than this to 0 or 1 is on its bound (as in the failures the
+#: diagnosis reports, :func:`femcal.diagnose.explain._failures`).
+AT_BOUND = 1e-3
+#: The shapes are read from this fraction of a load case's largest measured moment up to it:
+#: "from about 0 Nm", where a gap or a slack has not closed yet.
+LOW_FRACTION = 0.05
+#: Log-spaced moments of the shapes' grid.
+SHAPE_POINTS = 40
+#: An effect acts in a load case where its largest share of the load reaches this.
+ACTIVE_SHARE = 0.02
+#: Flatness (smallest share over the largest) at most this: an element that engages. Real gaps
+#: and slacks give 0.00-0.01 in every load case on the tests' specimens (the share is 0 until
+#: the gap closes); the stand-ins of a stiffer disc 0.25-0.85 in at least one load case.
+FLAT_ELEMENT = 0.1
+#: Flatness at least this: a disc stand-in (stand-in probability 1); linear between.
+FLAT_DISC = 0.3
+#: The probability a model needs to be read for its shape (below, too little to move).
+MODEL_FLOOR = 1e-3
+#: The verdict names the box where a disc outside it is more probable than this (more probable
+#: than not), with the effects whose inclusion probability, shared out, still exceeds it.
+NAMED = 0.5
+#: An out-of-box reading at least this probable is reported beside a verdict that does not
+#: name the box (summary.md, the printed summary): the two could not be told apart.
+REPORTED = 0.1
+#: The side of the box each kind of effect can stand in for: a parallel element stiffens, a
+#: series element adds rotation.
+STIFFER, SOFTER = "stiffer", "softer"
+_SIDE_OF_KIND = {"parallel": STIFFER, "series": SOFTER}
+#: The remedy, named in every out-of-box verdict.
+REMEDY = (
+    "widen fe.bounds beyond these parameters' bounds, run the FE campaign on the widened box "
+    "(`dvc repro fe/dvc.yaml`) and train the surrogate on it (`dvc repro`)"
+)
+
+
+def _ramp(flat: np.ndarray) -> np.ndarray:
+    """Stand-in probability of flatness values: 0 up to :data:`FLAT_ELEMENT`, 1 from
+    :data:`FLAT_DISC`, linear between (NaN, where nothing acts, counts 0)."""
+    ramp = (np.asarray(flat, dtype=float) - FLAT_ELEMENT) / (FLAT_DISC - FLAT_ELEMENT)
+    return np.nan_to_num(np.clip(ramp, 0.0, 1.0), nan=0.0)
+
+
+def flatness(share: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """Per load case, the smallest share over the largest inside the window.
+
+    Parameters
+    ----------
+    share : ndarray, shape (4, q)
+        The share of the load at each moment of the grid (a sign change reads as 0).
+    window : ndarray of bool, shape (4, q)
+        The moments each load case is read at.
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        Flatness in [0, 1]; NaN where the largest share stays below :data:`ACTIVE_SHARE`
+        (nothing acts there) or the window is empty.
+    """
+    out = np.full(share.shape[0], np.nan)
+    for j in range(share.shape[0]):
+        s = share[j][window[j] & np.isfinite(share[j])]
+        if not s.size:
+            continue
+        big = np.max(np.abs(s))
+        if big < ACTIVE_SHARE:
+            continue
+        one_sign = np.all(s > 0) or np.all(s < 0)
+        out[j] = float(np.min(np.abs(s)) / big) if one_sign else 0.0
+    return out
+
+
+class ShapeReader:
+    """Reads the shapes of fitted effects of a cohort on one moment grid.
+
+    Parameters
+    ----------
+    base : SurrogateCurveModel
+        The disc surrogate on the measurement grid.
+    mask : ndarray of bool, shape (n, 4, m)
+        The measured points.
+    """
+
+    def __init__(self, base, mask: np.ndarray) -> None:
+        moments = base.moments.double().numpy()
+        largest = np.where(mask, moments[None, None, :], 0.0).max(axis=2)  # (n, 4)
+        top = float(np.max(largest)) if np.any(largest > 0) else float(moments.max())
+        self.grid = np.geomspace(LOW_FRACTION * top, top, SHAPE_POINTS)
+        self.dense = SurrogateCurveModel(base.surrogate, self.grid, space=base.space)
+        g = self.grid[None, None, :]
+        lo = LOW_FRACTION * largest[..., None] * (1 - 1e-9)
+        #: (n, 4, q): per specimen and load case, the grid up to its largest measured moment.
+        self.window = (g <= largest[..., None] * (1 + 1e-9)) & (g >= lo)
+        self._models: dict[Model, EffectModel] = {}
+
+    def shares(self, effects: Model, v: np.ndarray) -> list[tuple[str, np.ndarray]]:
+        """Each effect's side and share of the load (r, 4, q) at unit coordinates ``v``
+        (r, dim): the share of the applied moment a parallel element carries, the share of
+        the rotation a series element adds."""
+        if effects not in self._models:
+            self._models[effects] = EffectModel(self.dense, list(effects))
+        model = self._models[effects]
+        vt = torch.as_tensor(np.asarray(v, dtype=np.float32))
+        out = []
+        with torch.no_grad():
+            phi = model.curves(vt).double()
+            applied = model.moments.double().expand_as(phi)
+            for e, sl, lc in zip(model.effects, model._slices, model._lc_masks):
+                p = {k: t.double() for k, t in e.from_unit(vt[:, sl]).items()}
+                mask = lc[None, :, None].double()
+                if e.kind == "parallel":
+                    share = e.moment_at(phi, p) * mask / applied
+                else:
+                    share = e.rotation_at(applied, p) * mask / phi.clamp_min(1e-9)
+                out.append((_SIDE_OF_KIND[e.kind], share.numpy()))
+        return out
+
+    def effect_stand_ins(self, effects: Model, v: np.ndarray, i: int, side: str) -> dict:
+        """Per effect of model ``effects`` fitted to specimen ``i`` (unit coordinates ``v``,
+        shape (dim,)): its flatness in each load case it acts in and its stand-in
+        probability, the mean of its load cases' (a law acting from about 0 Nm in a load case
+        is the disc's there; one engaging in every load case is an element); 0 for an effect
+        that cannot stand in for a disc on ``side``."""
+        out = {}
+        for name, (kind_side, share) in zip(effects, self.shares(effects, v[None, :])):
+            flat = flatness(share[0], self.window[i])
+            acts = np.flatnonzero(np.isfinite(flat))
+            ramp = _ramp(flat[acts])
+            out[name] = {
+                "flatness": {LOAD_CASES[j]: round(float(flat[j]), 3) for j in acts},
+                "stand_in_load_cases": [LOAD_CASES[j] for j, r in zip(acts, ramp) if r >= 0.5],
+                "stand_in": float(ramp.mean()) if ramp.size and kind_side == side else 0.0,
+            }
+        return out
+
+
+def discrepancy_stand_in(delta: np.ndarray, pred: np.ndarray, side: str) -> dict[str, Any]:
+    """Whether a discrepancy looks like a disc beyond the box: a share of the model's curves of
+    one sign (the side's) and about the same size at every moment, in (nearly) every load case.
+
+    Parameters
+    ----------
+    delta : ndarray, shape (4, m)
+        The discrepancy's mean at the measured points (NaN elsewhere).
+    pred : ndarray, shape (4, m)
+        The model's curves it sits on.
+    side : {"stiffer", "softer"}
+
+    Returns
+    -------
+    dict
+        ``flatness`` per load case and ``stand_in``: the second smallest of the load cases'
+        stand-in probabilities (every load case but one; a load case with no discrepancy
+        counts 0).
+    """
+    sign = -1.0 if side == STIFFER else 1.0
+    share = sign * np.asarray(delta, dtype=float) / np.maximum(np.abs(pred), 1e-9)
+    everywhere = np.isfinite(share)
+    flat = flatness(share, everywhere)
+    for j in range(len(flat)):  # the wrong sign is no stand-in for this side
+        ok = everywhere[j]
+        if np.isfinite(flat[j]) and np.mean(share[j][ok]) <= 0:
+            flat[j] = 0.0
+    ramp = np.sort(_ramp(flat))
+    return {
+        "flatness": {LOAD_CASES[j]: round(float(f), 3) for j, f in enumerate(flat)},
+        "stand_in": float(ramp[1]) if ramp.size >= 2 else 0.0,
+    }
+
+
+def box_evidence(base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarray, unit_disc):
+    """Per specimen, whether it lies beyond the disc's reach or presses against the box.
+
+    Parameters
+    ----------
+    base : SurrogateCurveModel
+        The disc surrogate on the measurement grid (its envelope is built here).
+    measured : ndarray, shape (n, 4, m)
+        Measured RoM (deg), NaN where not measured.
+    sigma : ndarray, shape (n, 4, m)
+        Each point's sd (noise and surrogate error).
+    pred0 : ndarray, shape (n, 4, m)
+        The disc-alone fit's curves.
+    unit_disc : ndarray, shape (n, 13)
+        The disc-alone fit in the box's unit coordinates.
+
+    Returns
+    -------
+    list of dict
+        ``looks`` (beyond reach or pressed), ``outside_points`` (beyond the envelope),
+        ``outside_load_cases`` (load case -> ``stiffer`` below every disc's curve or
+        ``softer`` above), ``side`` (where most points lie beyond, else the sign of the disc
+        alone's residuals) and ``on_bounds`` (parameter -> ``lower`` or ``upper``).
+    """
+    sigma_m = np.nanmin(np.where(np.isfinite(measured), sigma, np.nan), axis=(0, 1))
+    sigma_m = np.where(np.isfinite(sigma_m), sigma_m, np.nanmin(sigma))
+    env = build_envelope(base, sigma_model=np.zeros(len(sigma_m)))
+    d = _distances(measured, env, sigma_m)
+    names = list(base.space.names)
+    out = []
+    for i in range(len(measured)):
+        beyond = np.nan_to_num(d.level_z[i], nan=0.0) > Z_OUTSIDE
+        level = np.where(beyond, np.nan_to_num(d.level[i], nan=0.0), 0.0)
+        lcs = {
+            lc: STIFFER if level[j].sum() < 0 else SOFTER
+            for j, lc in enumerate(LOAD_CASES)
+            if beyond[j].any()
+        }
+        if beyond.any():
+            side = STIFFER if np.sum(np.sign(level[beyond])) < 0 else SOFTER
+        else:
+            z = (measured[i] - pred0[i]) / sigma[i]
+            side = STIFFER if np.nansum(z) < 0 else SOFTER
+        bounds = {
+            n: "lower" if u < AT_BOUND else "upper"
+            for n, u in zip(names, unit_disc[i])
+            if u < AT_BOUND or u > 1 - AT_BOUND
+        }
+        n_out = int(beyond.sum())
+        out.append(
+            {
+                "looks": bool(n_out >= REACH_POINTS or len(bounds) >= BOUNDS_PRESSED),
+                "outside_points": n_out,
+                "outside_load_cases": lcs,
+                "side": side,
+                "on_bounds": bounds,
+            }
+        )
+    return out
+
+
+def split_probabilities(
+    probabilities: dict[str, Any], components: dict[str, list[tuple[str, float]]]
+) -> dict[str, Any]:
+    """Share each model's probability between it and its out-of-box alternatives.
+
+    Parameters
+    ----------
+    probabilities : dict
+        A specimen's probabilities (:func:`femcal.diagnose.probabilities.specimen_probabilities`).
+    components : dict
+        Model label -> its parts (effects as fitted, and ``unexplained`` for a discrepancy),
+        each with the probability that it stands in for a disc outside the box.
+
+    Returns
+    -------
+    dict
+        A copy with ``models`` shared out: a model of probability ``p`` whose parts stand in
+        with probabilities ``s`` keeps ``p prod(1 - s)``; each subset ``R`` of its parts kept as
+        real gives ``p prod_R (1 - s) prod_(not R) s`` to the label of ``R`` with
+        ``outside_box`` (the parts by registered name); ``inclusion``, ``outside_library`` and
+        ``most_probable`` summed anew; ``outside_box`` the probability of every label naming
+        the box.
+    """
+    shared: dict[str, float] = {}
+    for label, p in probabilities["models"].items():
+        parts = components.get(label, [])
+        for keep in itertools.product((True, False), repeat=len(parts)):
+            w = float(p)
+            for (_, s), real in zip(parts, keep):
+                w *= (1.0 - s) if real else s
+            if w <= 0.0:
+                continue
+            if all(keep):
+                key = label
+            else:
+                kept = [base_name(n) for (n, _), real in zip(parts, keep) if real]
+                effects = [n for n in dict.fromkeys(kept) if n != UNEXPLAINED]
+                tail = [UNEXPLAINED] if UNEXPLAINED in kept else []
+                key = "+".join([*effects, OUTSIDE_BOX, *tail])
+            shared[key] = shared.get(key, 0.0) + w
+    total = sum(shared.values()) or 1.0
+    models = {k: v / total for k, v in sorted(shared.items(), key=lambda kv: -kv[1])}
+    inclusion: dict[str, float] = {}
+    for label, p in models.items():
+        for e in {base_name(x) for x in label.split("+")} - {UNEXPLAINED, OUTSIDE_BOX, "none"}:
+            inclusion[e] = inclusion.get(e, 0.0) + p
+    out = dict(probabilities)
+    out["models"] = {k: round(v, 4) for k, v in models.items() if v >= 1e-4}
+    out["inclusion"] = {
+        k: round(inclusion.get(k, 0.0), 4)
+        for k in sorted(set(inclusion) | set(probabilities["inclusion"]))
+    }
+    out["outside_library"] = round(sum(v for k, v in models.items() if UNEXPLAINED in k), 4)
+    out["outside_box"] = round(sum(v for k, v in models.items() if OUTSIDE_BOX in k), 4)
+    out["most_probable"] = next(iter(models))
+    return out
+
+
+def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred: np.ndarray):
+    """The out-of-box reading of every specimen (see the module docstring).
+
+    Parameters
+    ----------
+    state : DiagnosisState
+        The search's state: every fitted model, the chosen ones.
+    disc : _Fit
+        The disc alone's fit of every specimen.
+    probabilities : list of dict, length n
+        Each specimen's probabilities
+        (:func:`~femcal.diagnose.probabilities.specimen_probabilities`).
+    delta : ndarray, shape (n, 4, m)
+        The discrepancy on top of each specimen's chosen model at the measured points.
+    final_pred : ndarray, shape (n, 4, m)
+        The chosen model's curves.
+
+    Returns
+    -------
+    probabilities : list of dict
+        Shared out (:func:`split_probabilities`) where the specimen looks beyond the box,
+        else as given.
+    outside : list of dict or None
+        Per specimen that looks beyond the box: ``named`` (the verdict names the box),
+        ``verdict``, ``probability``, ``side``, ``load_cases``, ``on_bounds``,
+        ``outside_points``, ``stand_ins`` (the chosen model's effects), ``discrepancy``,
+        ``remedy`` and ``summary``; None elsewhere.
+    """
+    base, n = state.base, state.n
+    pred0 = disc.pred.double().numpy()
+    unit = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
+    evidence = box_evidence(base, state.measured, state.sigma, pred0, unit)
+    outside: list[dict[str, Any] | None] = [None] * n
+    if not any(e["looks"] for e in evidence):
+        return probabilities, outside
+    reader = ShapeReader(base, state.mask)
+    out = list(probabilities)
+    for i in range(n):
+        ev = evidence[i]
+        if not ev["looks"] or not probabilities[i].get("models"):
+            continue
+        labels = {model_label(m): m for m in state.per_spec[i]}
+        chosen = state.chosen[i]
+        parts: dict[str, list[tuple[str, float]]] = {}
+        shapes: dict[str, dict] = {}
+        gap = None
+        for label, p in probabilities[i]["models"].items():
+            discrepancy = label.endswith(UNEXPLAINED)
+            m = chosen if discrepancy else labels.get(label)
+            if p < MODEL_FLOOR or m is None:
+                continue
+            st = {}
+            if m:
+                fit, pos = state.per_spec[i][m]
+                st = reader.effect_stand_ins(m, fit.v[pos].double().numpy(), i, ev["side"])
+            parts[label] = [(e, st[e]["stand_in"]) for e in m]
+            if m == chosen:
+                shapes = st
+            if discrepancy:
+                gap = _gap_stand_in(i, st, delta[i], final_pred[i], pred0[i], state, ev["side"])
+                parts[label].append((UNEXPLAINED, gap["stand_in"]))
+        out[i] = split_probabilities(probabilities[i], parts)
+        fitted = [chosen, *(labels[k] for k in probabilities[i]["models"] if k in labels)]
+        outside[i] = _reading(state, ev, out[i], (shapes, gap), fitted)
+    return out, outside
+
+
+def _gap_stand_in(i, shapes, delta, pred, pred0, state, side: str) -> dict[str, Any]:
+    """The stand-in reading of specimen ``i``'s discrepancy (``delta`` on top of the chosen
+    model's curves ``pred``, each (4, m)): where every effect of the chosen model stands in
+    for the disc (or it holds none), what is missing is read on the disc alone's residuals
+    (``pred0``), as the stand-ins took part of the disc's miss."""
+    if all(s["stand_in"] >= 0.5 for s in shapes.values()):
+        return discrepancy_stand_in(state.measured[i] - pred0, pred0, side)
+    return discrepancy_stand_in(delta, pred, side)
+
+
+def _reading(state, ev: dict, prob: dict, stand_ins: tuple, fitted: list[Model]) -> dict:
+    """A specimen's out-of-box reading: the verdict, side, load cases, bounds and remedy
+    (``ev`` its :func:`box_evidence`, ``prob`` its shared-out probabilities, ``stand_ins``
+    the chosen model's effects' and discrepancy's readings, ``fitted`` its models, the chosen
+    first: where the verdict's effects take their forms from)."""
+    shapes, gap = stand_ins
+    named = prob["outside_box"] > NAMED
+    kept = [e for e, p in prob["inclusion"].items() if p > NAMED]
+    model: list[str] = []
+    for f in (f for m in fitted for f in m):
+        if base_name(f) in kept and base_name(f) not in map(base_name, model):
+            model.append(f)
+    tail = [UNEXPLAINED] if prob["outside_library"] > NAMED else []
+    lcs = set(ev["outside_load_cases"])
+    for s in shapes.values():
+        if s["stand_in"] >= 0.5:
+            lcs.update(s["stand_in_load_cases"])
+    if gap is not None and gap["stand_in"] >= 0.5:
+        lcs.update(lc for lc, f in gap["flatness"].items() if _ramp(np.array([f]))[0] >= 0.5)
+    space = state.base.space
+    bounds = [
+        {
+            "parameter": name,
+            "bound": which,
+            "value": float(space.lower[k] if which == "lower" else space.upper[k]),
+        }
+        for k, name in enumerate(space.names)
+        if (which := ev["on_bounds"].get(name))
+    ]
+    reading = {
+        "named": named,
+        "verdict": "+".join([*map(base_name, model), OUTSIDE_BOX, *tail]) if named else None,
+        "model": model if named else None,
+        "probability": prob["outside_box"],
+        "side": ev["side"],
+        "load_cases": [lc for lc in LOAD_CASES if lc in lcs],
+        "on_bounds": bounds,
+        "outside_points": ev["outside_points"],
+        "outside_load_cases": ev["outside_load_cases"],
+        "stand_ins": shapes,
+        "discrepancy": gap,
+        "remedy": REMEDY,
+    }
+    reading["summary"] = summary(reading)
+    return reading
+
+
+def summary(reading: dict[str, Any]) -> str:
+    """An out-of-box reading in words: side, probability, evidence and remedy."""
+    side, p = reading["side"], reading["probability"]
+    lcs = ", ".join(reading["load_cases"]) or "every load case"
+    head = (
+        f"a disc {side} than every disc in the parameter box"
+        + (" is the most probable explanation" if reading["named"] else " is possible")
+        + f" (probability {p:.2f}), in {lcs}"
+    )
+    why = []
+    if reading["outside_points"]:
+        why.append(
+            f"{reading['outside_points']} points lie beyond every curve the disc produces over "
+            "its box"
+        )
+    if reading["on_bounds"]:
+        at = ", ".join(
+            f"{b['parameter']} at its {b['bound']} bound {b['value']:g}"
+            for b in reading["on_bounds"]
+        )
+        why.append(f"the disc-alone fit presses {len(reading['on_bounds'])} parameters ({at})")
+    stand = [e for e, s in reading["stand_ins"].items() if s["stand_in"] >= 0.5]
+    if stand:
+        why.append(
+            f"{', '.join(base_name(e) for e in stand)} act from about 0 Nm without engaging (a "
+            f"{side} disc, not an element with a gap or a slack)"
+        )
+    gap = reading["discrepancy"]
+    if gap is not None and gap["stand_in"] >= 0.5:
+        why.append("what the model misses is about the same share of every curve")
+    text = head + (": " + "; ".join(why) if why else "") + "."
+    return text + f" Remedy: {reading['remedy']}."
+
+
+def cohort_note(readings: list[dict[str, Any]]) -> str:
+    """One line for the printed summary on the specimens whose verdict names the box: how many
+    on each side, the disc parameters their fits press against the box (most often first)
+    and the remedy; "" when there are none.
+
+    Parameters
+    ----------
+    readings : list of dict
+        The out-of-box readings (:func:`assess`) of the specimens whose verdict names the box.
+    """
+    if not readings:
+        return ""
+    sides = [r["side"] for r in readings]
+    counts: dict[str, int] = {}
+    for r in readings:
+        for b in r["on_bounds"]:
+            key = f"{b['parameter']} ({b['bound']} {b['value']:g})"
+            counts[key] = counts.get(key, 0) + 1
+    pressed = sorted(counts, key=lambda k: -counts[k])
+    shown = ", ".join(pressed[:6]) + (f" and {len(pressed) - 6} more" if len(pressed) > 6 else "")
+    return (
+        f"outside the box: {len(readings)} specimens ({sides.count(STIFFER)} stiffer, "
+        f"{sides.count(SOFTER)} softer than every disc in the parameter box; their effects act "
+        "from about 0 Nm rather than engage)"
+        + (f"; their disc-alone fits press {shown}" if pressed else "")
+        + f". Remedy: {REMEDY}; summary.md names each specimen's side, load cases and "
+        "parameters."
+    )
