@@ -10,7 +10,14 @@ from importlib import metadata
 import pytest
 import yaml
 
-from femcal.cli import _progress, build_parser, main
+from femcal.cli import (
+    MLFLOW_PROGRESS_VARIABLE,
+    _progress,
+    build_parser,
+    configure_logging,
+    configure_mlflow_progress,
+    main,
+)
 from femcal.config import load_params, section
 from femcal.errors import ConfigError
 from femcal.settings import BUILTIN_EFFECTS, CALIBRATORS
@@ -234,3 +241,74 @@ def test_progress_bars_only_on_a_terminal_and_not_when_quiet(monkeypatch):
         monkeypatch.setattr(sys, "stderr", devnull)  # a file or pipe (dvc repro, CI)
         assert not _progress(parser.parse_args(["prepare"]))
     os.close(master)
+
+
+def test_mlflow_progress_bars_are_off_without_a_terminal(tmp_path, monkeypatch):
+    """``dvc repro`` logs: no "Downloading artifacts" bars when stderr is no terminal."""
+    from mlflow.environment_variables import MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR
+
+    monkeypatch.setenv(MLFLOW_PROGRESS_VARIABLE, "x")
+    monkeypatch.delenv(MLFLOW_PROGRESS_VARIABLE)  # restored after the test
+    assert MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR.get() is True  # MLflow's default
+    main(["--params", str(tmp_path / "nope.yaml"), "prepare"])  # stderr: no terminal here
+    assert MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR.get() is False
+    monkeypatch.delenv(MLFLOW_PROGRESS_VARIABLE)
+    configure_mlflow_progress(True)  # a terminal: MLflow's own default
+    assert MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR.get() is True
+    monkeypatch.setenv(MLFLOW_PROGRESS_VARIABLE, "true")
+    configure_mlflow_progress(False)  # the user's choice wins
+    assert MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR.get() is True
+
+
+def test_a_moment_warning_is_one_log_line_on_the_command_line(caplog):
+    """The moment policy's warnings: one log line each, not also a UserWarning with its
+    source line."""
+    import warnings
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from femcal.measurements import from_arrays
+    from femcal.moments import MomentPolicy
+
+    surrogate = SimpleNamespace(moment_range_=(1.0, 5.0), best_val_mae_deg_=0.024)
+    policy = MomentPolicy.for_surrogate(surrogate, growth=3.2, max_log_ratio=0.51)
+    m = np.array([1.0, 2.0, 7.5, 12.0])
+    meas = from_arrays(["A"], m, np.broadcast_to(m, (1, 4, 4)).copy(), source="far.csv")
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        configure_logging(logging.INFO)
+        with caplog.at_level(logging.WARNING, logger="femcal"):
+            policy.screen(meas)
+    logged = [r.getMessage() for r in caplog.records if r.name == "femcal.moments"]
+    assert len(logged) == 2  # the dropped points, the points beyond the trained range
+    assert "far.csv: dropped 4 measured point(s) at moments 12 Nm" in logged[0]
+    assert [str(w.message) for w in shown] == []
+
+
+def test_every_run_a_command_starts_is_tagged_with_its_stage(tmp_path, monkeypatch):
+    """Nested runs too (an evaluation's per-model runs), so the MLflow UI groups them all."""
+    import mlflow
+
+    import femcal.cli
+
+    monkeypatch.setenv("MLFLOW_RUN_CONTEXT", '{"mine": "kept"}')
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    started = []
+
+    def dispatch(args, params):
+        mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+        with mlflow.start_run(run_name="evaluate") as parent:
+            with mlflow.start_run(run_name="eval-nn-large", nested=True) as child:
+                started.extend([parent.info.run_id, child.info.run_id])
+
+    monkeypatch.setattr(femcal.cli, "dispatch", dispatch)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        assert main(["--params", os.path.join(root, "params.yaml"), "evaluate"]) == 0
+        tags = [mlflow.get_run(run_id).data.tags for run_id in started]
+    finally:
+        mlflow.set_tracking_uri(None)
+    assert [t.get("femcal.stage") for t in tags] == ["evaluate", "evaluate"]
+    assert all(t.get("mine") == "kept" for t in tags)
+    assert os.environ["MLFLOW_RUN_CONTEXT"] == '{"mine": "kept"}'  # as before the command

@@ -363,6 +363,29 @@ def test_repeated_rows_of_weight_zero_keep_their_plain_mean(tmp_path: Path) -> N
     assert meas.weight[0, 0, 0] == 0.0
 
 
+def test_repeats_that_differ_beyond_the_noise_are_warned_about(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Two rows at one point 1 deg apart (20 sd of a 0.05 deg noise): averaged, with a
+    warning naming the specimen, load case, moment, values and lines."""
+    path = long_file(tmp_path, "S1,Flexion,2,3.1", "S1,Flexion,1,1.0", "S1,Flexion,2,4.1")
+    with caplog.at_level(logging.INFO, logger="femcal.measurements"):
+        meas = read_measurements(path)
+    assert meas.rom_deg[0, 0, 1] == pytest.approx(3.6)
+    (warned,) = [r for r in caplog.records if "differ by" in r.getMessage()]
+    assert warned.levelno == logging.WARNING
+    assert (
+        "the repeats of 1 point differ by more than 0.25 deg (5 sd of a 0.05 deg noise) and "
+        "were averaged: specimen 'S1' Flexion 2 Nm: 3.1, 4.1 deg (lines 2, 4)"
+        in warned.getMessage()
+    )
+    caplog.clear()
+    write(tmp_path, f"{HEADER}\nS1,Flexion,2,3.1\nS1,Flexion,2,3.2\n", name="close.csv")
+    with caplog.at_level(logging.INFO, logger="femcal.measurements"):
+        read_measurements(tmp_path / "close.csv")
+    assert not [r for r in caplog.records if "differ by" in r.getMessage()]
+
+
 def test_a_copied_row_is_warned_about(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     path = long_file(tmp_path, "S1,Flexion,1,1.0", "S1,Flexion,1.0,1.0")
     with caplog.at_level(logging.INFO, logger="femcal.measurements"):

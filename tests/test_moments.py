@@ -300,6 +300,28 @@ def test_newton_millimetres_are_recognised(policy: MomentPolicy) -> None:
         policy.screen(measured(1250.0, 2500.0, 5000.0, 7500.0))
 
 
+def test_a_load_case_in_newton_millimetres_beside_others_in_nm_is_refused(
+    policy: MomentPolicy,
+) -> None:
+    """One load case given in N·mm (1000-5000) is named, not dropped as beyond the moments."""
+    m = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 1000.0, 2000.0, 3000.0, 4000.0, 5000.0])
+    rom = np.full((2, 4, m.size), np.nan)
+    rom[:, :3, :5] = np.arange(1.0, 6.0)  # Flexion, Extension, LateralBending in Nm
+    rom[:, 3, 5:] = np.arange(1.0, 6.0)  # AxialRotation in N·mm
+    meas = from_arrays(["A", "B"], m, rom, source="mixed.csv")
+    with pytest.raises(
+        InputDataError,
+        match=r"^mixed\.csv: the moments of load case AxialRotation \(all 2 specimens\) look "
+        r"like N·mm, not Nm: field moment_nm holds 1000, 2000, 3000, 4000, 5000 there, and 1, 2, "
+        r"3, 4, 5 for the other curves\. .* Divide those moments by 1000",
+    ):
+        policy.screen(meas)
+    rom[1, 3] = np.nan  # one specimen only: named
+    rom[1, 3, :5] = np.arange(1.0, 6.0)
+    with pytest.raises(InputDataError, match=r"load case AxialRotation \(specimens 'A'\)"):
+        policy.screen(from_arrays(["A", "B"], m, rom, source="mixed.csv"))
+
+
 # -------------------------------------------------------------- both ends of the trained range
 BELOW, ABOVE = (0.8, 1.1), (3.2, 0.51)  # (growth, max_log_ratio) of each side
 

@@ -6,7 +6,8 @@ Reads what ``dvc repro`` (or ``dvc pull``) leaves in the project:
 * ``reports/diagnosis/diagnosis.json``, ``residuals.csv`` and ``plots/`` (stage ``diagnose``);
 * ``reports/calibration/planted/metrics.csv`` (stage ``calibrate@planted``);
 
-and writes into ``docs/figures/`` (not committed: they derive from the study's data):
+and writes into ``docs/figures/`` (``--out FOLDER`` elsewhere; not committed: they derive
+from the study's data):
 
 * ``tutorial-cohort.png``: one specimen of each planted class, four load cases;
 * ``tutorial-residuals.png``: the disc model's RMS residual / sigma per specimen and load case;
@@ -14,19 +15,22 @@ and writes into ``docs/figures/`` (not committed: they derive from the study's d
 * ``tutorial-before-after.png``: each specimen's MAE, disc alone and with the found effects;
 * ``tutorial-verdicts.md`` and ``tutorial-before-after.md``: the tables the page includes.
 
-Run it from anywhere: ``.venv/bin/python docs/scripts/tutorial_figures.py``. Where the
+Run it from anywhere: ``.venv/bin/python docs/scripts/tutorial_figures.py [--out FOLDER]``
+(a relative ``FOLDER`` starts at the current folder). Where the
 pipeline's outputs are absent (a fresh clone, as in CI), it says which and exits 0: the page
 then shows how to make the figures instead.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+#: Where the figures go without ``--out``.
 OUT = ROOT / "docs" / "figures"
 PLANTED = ROOT / "data" / "planted"
 DIAGNOSIS = ROOT / "reports" / "diagnosis"
@@ -59,7 +63,7 @@ def _plt():
     return plt
 
 
-def cohort_figure(measured, truth) -> None:
+def cohort_figure(measured, truth, out: Path) -> None:
     plt = _plt()
     fig, axes = plt.subplots(1, 4, figsize=(12, 3.2), sharey=False)
     for effect in CLASSES:
@@ -75,11 +79,11 @@ def cohort_figure(measured, truth) -> None:
     axes[0].set_ylabel("RoM (deg)")
     axes[-1].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    fig.savefig(OUT / "tutorial-cohort.png", dpi=90)
+    fig.savefig(out / "tutorial-cohort.png", dpi=90)
     plt.close(fig)
 
 
-def residual_figure(residuals, truth) -> None:
+def residual_figure(residuals, truth, out: Path) -> None:
     import numpy as np
 
     plt = _plt()
@@ -104,7 +108,7 @@ def residual_figure(residuals, truth) -> None:
         start = end
     fig.colorbar(im, ax=ax, label="RMS residual / sigma")
     fig.tight_layout()
-    fig.savefig(OUT / "tutorial-residuals.png", dpi=90)
+    fig.savefig(out / "tutorial-residuals.png", dpi=90)
     plt.close(fig)
 
 
@@ -138,7 +142,7 @@ def before_after(diagnosis, metrics, truth):
     return both
 
 
-def before_after_figure(both) -> None:
+def before_after_figure(both, out: Path) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
     for effect in CLASSES:
@@ -153,7 +157,7 @@ def before_after_figure(both) -> None:
     ax.set_ylabel("MAE, disc + found effects (deg)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / "tutorial-before-after.png", dpi=90)
+    fig.savefig(out / "tutorial-before-after.png", dpi=90)
     plt.close(fig)
 
 
@@ -168,18 +172,30 @@ def before_after_table(both) -> str:
     return "\n".join(lines) + "\n"
 
 
-def specimen_figure(diagnosis) -> None:
+def specimen_figure(diagnosis, out: Path) -> None:
     """Copy the diagnosis' figure of the first specimen given a single registered effect."""
     plots = DIAGNOSIS / "plots"
     for effect in CLASSES[1:]:
         for d in diagnosis:
             path = plots / f"{d['specimen']}.png"
             if d["verdict"] == effect and path.is_file():
-                shutil.copyfile(path, OUT / "tutorial-specimen.png")
+                shutil.copyfile(path, out / "tutorial-specimen.png")
                 return
 
 
-def main() -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=OUT,
+        help=f"folder of the figures and tables (default: {OUT.relative_to(ROOT)})",
+    )
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    out = parse_args(argv).out
     missing = missing_outputs()
     if missing:
         print("tutorial_figures: the pipeline's outputs are not here, so no figures were made:")
@@ -189,22 +205,22 @@ def main() -> int:
         return 0
     import pandas as pd
 
-    OUT.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     measured = pd.read_csv(PLANTED / "measurements.csv", dtype={"specimen": str})
     truth = pd.read_csv(PLANTED / "truth.csv", dtype={"specimen": str})
     residuals = pd.read_csv(DIAGNOSIS / "residuals.csv", dtype={"specimen": str})
     diagnosis = json.loads((DIAGNOSIS / "diagnosis.json").read_text())
     metrics = pd.read_csv(CALIBRATION / "metrics.csv", dtype={"specimen": str})
 
-    cohort_figure(measured, truth)
-    residual_figure(residuals, truth)
-    specimen_figure(diagnosis)
-    (OUT / "tutorial-verdicts.md").write_text(verdict_table(diagnosis, truth))
+    cohort_figure(measured, truth, out)
+    residual_figure(residuals, truth, out)
+    specimen_figure(diagnosis, out)
+    (out / "tutorial-verdicts.md").write_text(verdict_table(diagnosis, truth))
     both = before_after(diagnosis, metrics, truth)
-    before_after_figure(both)
-    (OUT / "tutorial-before-after.md").write_text(before_after_table(both))
-    for path in sorted(OUT.glob("tutorial-*")):
-        print(f"tutorial_figures: {path.relative_to(ROOT)} ({path.stat().st_size // 1024} kB)")
+    before_after_figure(both, out)
+    (out / "tutorial-before-after.md").write_text(before_after_table(both))
+    for path in sorted(out.glob("tutorial-*")):
+        print(f"tutorial_figures: {path} ({path.stat().st_size // 1024} kB)")
     return 0
 
 

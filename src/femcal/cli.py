@@ -15,13 +15,17 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
+import warnings
 from importlib import metadata
 
 from femcal.config import load_params
-from femcal.errors import FemcalError
+from femcal.errors import FemcalError, FemcalWarning
 from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATOR_NAMES, PLOT_CHOICES, SPLITS
 from femcal.stages import settings_class, stage_module
+from femcal.threads import limit_threads
+from femcal.tracking_runs import tag_runs_with_stage
 
 #: Logging level of the ``femcal`` logger per verbosity option (none given: INFO).
 LOG_LEVELS = {"verbose": logging.DEBUG, "default": logging.INFO, "quiet": logging.WARNING}
@@ -40,8 +44,11 @@ def version() -> str:
 def configure_logging(level: int) -> None:
     """Route log records to stderr; femcal logs at ``level``, other libraries from WARNING.
 
-    ``-v`` (DEBUG) also lets other libraries' INFO records through.
+    ``-v`` (DEBUG) also lets other libraries' INFO records through. femcal's own warnings
+    (:class:`~femcal.errors.FemcalWarning`) are logged where they arise: one line each, not
+    printed again as a ``UserWarning`` with its source line.
     """
+    warnings.filterwarnings("ignore", category=FemcalWarning)
     logging.basicConfig(
         level=logging.INFO if level <= logging.DEBUG else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
@@ -52,6 +59,20 @@ def configure_logging(level: int) -> None:
 def _progress(args: argparse.Namespace) -> bool:
     """Progress bars: on a terminal (stderr) only, and not with ``-q``."""
     return sys.stderr.isatty() and args.log_level < LOG_LEVELS["quiet"]
+
+
+#: MLflow's switch of its artifact progress bars ("Downloading artifacts", "Uploading ...").
+MLFLOW_PROGRESS_VARIABLE = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
+
+
+def configure_mlflow_progress(progress: bool) -> None:
+    """MLflow's artifact progress bars where femcal shows its own only (:func:`_progress`):
+    off when stderr is no terminal (``dvc repro``, a log file) or with ``-q``.
+
+    A value the user set in :data:`MLFLOW_PROGRESS_VARIABLE` is kept.
+    """
+    if not progress:
+        os.environ.setdefault(MLFLOW_PROGRESS_VARIABLE, "false")
 
 
 def _add_metrics_file(p: argparse.ArgumentParser) -> None:
@@ -228,12 +249,15 @@ def dispatch(args: argparse.Namespace, params: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.log_level)
+    configure_mlflow_progress(_progress(args))
     try:
         params = load_params(args.params)  # validated against femcal.settings' schema
         from femcal.settings import check_environment
 
         check_environment(args.command)  # the variables this command reads
-        dispatch(args, params)
+        limit_threads()  # the cores free now, before torch starts its threads
+        with tag_runs_with_stage(args.command):  # every MLflow run of the command, nested too
+            dispatch(args, params)
     except FemcalError as exc:
         print(f"femcal {args.command}: error: {exc}", file=sys.stderr)
         return 2

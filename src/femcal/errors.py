@@ -40,6 +40,11 @@ class SolverError(FemcalError, RuntimeError):
     """An FE solver is missing or cannot start (failed simulations are data, not errors)."""
 
 
+class FemcalWarning(UserWarning):
+    """A warning femcal also logs where it arises: the command line prints the log line only;
+    a library caller can catch or filter it as a ``UserWarning``."""
+
+
 _lazy_lock = threading.Lock()
 
 

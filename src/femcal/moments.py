@@ -31,15 +31,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from femcal.errors import ConfigError, InputDataError
+from femcal.errors import ConfigError, FemcalWarning, InputDataError
 
 if TYPE_CHECKING:  # pragma: no cover
     from femcal.measurements import Measurements
 
 logger = logging.getLogger(__name__)
 
-#: Measured moments all at least this large look like N·mm rather than Nm.
-NMM_THRESHOLD = 100.0
 _MAX_LISTED = 6
 _BENCH = "experiments/bench_extrapolation.py (docs/benchmarks/index.md)"
 _TOL = 1e-9
@@ -425,15 +423,21 @@ class MomentPolicy:
         ------
         InputDataError
             No measured point is usable; the message names the file, the field
-            (``moment_nm``), the accepted moments and the fixes.
+            (``moment_nm``), the accepted moments and the fixes. Or some curves' moments are
+            all at least :data:`femcal.measurements.units.NMM_THRESHOLD` while others' are not
+            (N·mm beside Nm): the message names the file, the field, the load cases and
+            specimens, and the fix.
 
         Warns
         -----
-        UserWarning
+        FemcalWarning
             Points are dropped, or a measured moment lies outside the trained range but is
-            accepted.
+            accepted (a ``UserWarning``, also logged: the command line shows the log line).
         """
+        from femcal.measurements.units import refuse_mixed_units
+
         measured = meas.mask()
+        refuse_mixed_units(meas, measured)
         used_cols = measured.any(axis=(0, 1))
         used = np.asarray(meas.moments)[used_cols]
         accepted = self.accepts(meas.moments)
@@ -461,6 +465,8 @@ class MomentPolicy:
         return Screened(kept, dropped)
 
     def _refuse_all(self, meas: Measurements, used: np.ndarray) -> None:
+        from femcal.measurements.units import NMM_THRESHOLD
+
         lo, hi = self.trained_range
         a_lo, a_hi = self.accepted_range
         hint = (
@@ -549,9 +555,10 @@ class MomentPolicy:
 
 
 def _warn(message: str, stacklevel: int = 3) -> None:
-    """Log ``message`` and warn with it at the caller of :meth:`MomentPolicy.screen`."""
+    """Log ``message`` and warn with it at the caller of :meth:`MomentPolicy.screen`
+    (a :class:`~femcal.errors.FemcalWarning`, which the command line does not print again)."""
     logger.warning(message)
-    warnings.warn(message, UserWarning, stacklevel=stacklevel)
+    warnings.warn(message, FemcalWarning, stacklevel=stacklevel)
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,15 +8,21 @@ new run, nested ones included), and every command, before it starts its own runs
 RUNNING runs of its experiment whose process on this host is gone
 (:func:`close_killed_runs`): status KILLED, end time now, and a tag ``femcal.killed`` saying
 why. Runs of other hosts, of live processes and runs without these tags are left alone.
+
+The same variable gives every run a command starts, nested ones included, the tag
+``femcal.stage`` (:func:`tag_runs_with_stage`: the command's name), so that the MLflow UI can
+group all of them; a stage that tags its run more precisely (``train-large``) sets the tag
+again on its run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import socket
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -25,10 +31,12 @@ from femcal.outputs import pid_alive
 __all__ = [
     "HOST_TAG",
     "PID_TAG",
+    "STAGE_TAG",
     "START_TAG",
     "close_killed_runs",
     "process_tags",
     "tag_runs_with_process",
+    "tag_runs_with_stage",
 ]
 
 logger = logging.getLogger(__name__)
@@ -40,6 +48,8 @@ HOST_TAG = "femcal.host"
 START_TAG = "femcal.pid_start"
 #: Why a run was closed as KILLED.
 KILLED_TAG = "femcal.killed"
+#: The femcal command (pipeline stage) that started a run.
+STAGE_TAG = "femcal.stage"
 _CONTEXT_VARIABLE = "MLFLOW_RUN_CONTEXT"
 
 
@@ -62,26 +72,51 @@ def process_tags() -> dict[str, str]:
     return tags
 
 
+def _tag_new_runs(tags: dict[str, str]) -> dict[str, str]:
+    """Add ``tags`` to ``MLFLOW_RUN_CONTEXT`` (MLflow's run-context environment variable: a
+    JSON object of tags that :func:`mlflow.start_run` adds to each new run), keeping the
+    other tags it already holds; returns all of them."""
+    try:
+        context = json.loads(os.environ.get(_CONTEXT_VARIABLE) or "{}")
+    except ValueError:
+        context = {}
+    if not isinstance(context, dict):
+        context = {}
+    context.update(tags)
+    os.environ[_CONTEXT_VARIABLE] = json.dumps(context)
+    return context
+
+
 def tag_runs_with_process() -> dict[str, str]:
     """Make every MLflow run this process starts carry :func:`process_tags`.
-
-    Sets ``MLFLOW_RUN_CONTEXT`` (MLflow's run-context environment variable: a JSON object of
-    tags that :func:`mlflow.start_run` adds to each new run), keeping tags it already holds.
 
     Returns
     -------
     dict
         The tags every new run gets.
     """
+    return _tag_new_runs(process_tags())
+
+
+@contextlib.contextmanager
+def tag_runs_with_stage(stage: str) -> Iterator[dict[str, str]]:
+    """Within the block, every MLflow run this process (and a child it starts) starts
+    carries ``femcal.stage = stage`` (:data:`STAGE_TAG`); afterwards ``MLFLOW_RUN_CONTEXT``
+    is as before.
+
+    Yields
+    ------
+    dict
+        The tags every new run gets.
+    """
+    before = os.environ.get(_CONTEXT_VARIABLE)
     try:
-        tags = json.loads(os.environ.get(_CONTEXT_VARIABLE) or "{}")
-    except ValueError:
-        tags = {}
-    if not isinstance(tags, dict):
-        tags = {}
-    tags.update(process_tags())
-    os.environ[_CONTEXT_VARIABLE] = json.dumps(tags)
-    return tags
+        yield _tag_new_runs({STAGE_TAG: str(stage)})
+    finally:
+        if before is None:
+            os.environ.pop(_CONTEXT_VARIABLE, None)
+        else:
+            os.environ[_CONTEXT_VARIABLE] = before
 
 
 def _dead(pid_text: str | None, start: str | None) -> bool:

@@ -40,6 +40,11 @@ WIDE_COLUMNS: tuple[str, ...] = ("specimen", "load_case")
 ZERO_MOMENT_ATOL = 1e-6
 
 
+#: Repeats of one point whose RoM values span more than this (degrees; 5 sd of a 0.05 deg
+#: measurement noise) conflict: they are still averaged, with a warning naming them.
+REPEAT_CONFLICT_DEG = 0.25
+
+
 _MISSING_TOKENS = frozenset({"", "nan", "na", "n/a", "null", "none", "-nan"})
 
 
@@ -384,6 +389,7 @@ def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
         float(np.sqrt(ss / dof)),
         dof,
     )
+    _warn_conflicts(source, repeats)
     copies = []
     for g in repeats:
         seen: dict[tuple[float, float, float], int] = {}
@@ -400,6 +406,36 @@ def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
             source,
             _listing(copies),
         )
+
+
+def _warn_conflicts(source: str, repeats: list[list[_Point]]) -> None:
+    """Warn where the repeats of one point span more than :data:`REPEAT_CONFLICT_DEG`, naming
+    each point (specimen, load case, moment), its values and lines."""
+    conflicts: list[str] = []
+    for g in repeats:
+        rom = [p.rom for p in g]
+        if max(rom) - min(rom) > REPEAT_CONFLICT_DEG:
+            conflicts.append(
+                f"specimen {g[0].specimen!r} {LOAD_CASES[g[0].load_case]} {g[0].moment:g} Nm: "
+                f"{', '.join(f'{r:g}' for r in rom)} deg (lines "
+                f"{_listing([str(p.line) for p in g])})"
+            )
+    if conflicts:
+        logger.warning(
+            "%s: the repeats of %d point%s differ by more than %g deg (5 sd of a 0.05 deg noise) "
+            "and were averaged: %s. Repeats of one point should agree within the noise: check "
+            "those rows for a typo, another specimen or another load case, and correct or "
+            "delete the wrong one.",
+            source,
+            len(conflicts),
+            "s" if len(conflicts) > 1 else "",
+            REPEAT_CONFLICT_DEG,
+            "; ".join(conflicts[:_MAX_LISTED]) + _more(len(conflicts)),
+        )
+
+
+def _more(total: int) -> str:
+    return f" (and {total - _MAX_LISTED} more)" if total > _MAX_LISTED else ""
 
 
 def _moment_columns(
