@@ -3,7 +3,9 @@
 Every DVC stage is one sub-command, e.g. ``femcal train --split large``, run by its module in
 :mod:`femcal.stages` (settings from params.yaml and the command line, then ``run``). ``-v``
 logs femcal's debug messages, ``-q`` only its warnings (and hides the progress bars, which are
-shown on a terminal only); ``--version`` prints the installed version.
+shown on a terminal only); ``--version`` prints the installed version. torch, OpenMP and BLAS
+run on the cores free when the command starts (:mod:`femcal.threads`); ``OMP_NUM_THREADS``,
+``MKL_NUM_THREADS`` or ``OPENBLAS_NUM_THREADS`` set by the user wins.
 
 Relative paths typed on the command line start at the current folder; relative paths in
 params.yaml start at its folder (the project root), and the stores' (``mlflow.store_dir``,

@@ -50,6 +50,7 @@ from femcal.calibration.pgd_options import LOSSES as LOSSES
 from femcal.calibration.pgd_options import OPTIMIZERS as OPTIMIZERS
 from femcal.calibration.pgd_options import SELECT as SELECT
 from femcal.calibration.pgd_options import GaussNewtonOptions, PgdOptions
+from femcal.calibration.progress import report_step
 from femcal.calibration.starts import (
     _bank,
     _combination_starts,
@@ -113,12 +114,18 @@ def gauss_newton(
     active = torch.arange(b)
     eye = torch.eye(d)
     nit = 0
+    n_specimens = int(torch.unique(rows).numel())
     for nit in range(1, max_iter + 1):
         if keep_after and keep and nit == keep_after + 1:
             active = _keep_best(problem, v, rows, active, keep, w, loss, keep_first)
         if active.numel() == 0:
             nit -= 1
             break
+        report_step(
+            f"Gauss-Newton iteration {nit}/{max_iter}",
+            settled=n_specimens - int(torch.unique(rows[active]).numel()),
+            of=n_specimens,
+        )
         if jacobian_members and nit == max_iter - exact_final + 1:
             need_jac[:] = True  # switch to the exact Jacobian for the final iterations
         cheap = jacobian_members if nit <= max_iter - exact_final else None

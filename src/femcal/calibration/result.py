@@ -22,6 +22,7 @@ from femcal.calibration.base import (
     get_calibrator,
 )
 from femcal.calibration.model import CurveModel
+from femcal.calibration.progress import specimen_bar
 from femcal.errors import InputDataError
 from femcal.metrics import curve_metrics
 from femcal.schema import LOAD_CASES
@@ -215,7 +216,8 @@ def calibrate(
         Specimens per call of the calibrator (bounds memory; the progress bar advances per
         chunk). Default: the whole batch.
     progress : bool
-        Show a progress bar over chunks.
+        Show a progress bar over the specimens (:func:`~femcal.calibration.progress.
+        specimen_bar`: from 2 s on, with the step a chunk is at).
     options : mapping, optional
         Keyword options of the calibrator.
     weight_sd : float, optional
@@ -235,23 +237,16 @@ def calibrate(
         raise InputDataError(f"Got {len(names)} specimen names for {n} specimens.")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     chunk = n if not chunk_size else max(1, int(chunk_size))
-    bounds = range(0, n, chunk)
-    if progress and len(bounds) > 1:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, desc=f"calibrate ({method})", unit="specimen")
-    else:
-        bar = None
     model.n_evaluations = 0
     start = time.perf_counter()
     parts: list[Solution] = []
-    for lo in bounds:
-        parts.append(fn(problem.subset(slice(lo, lo + chunk)), rng=rng, **dict(options or {})))
-        if bar is not None:
-            bar.update(min(chunk, n - lo))
+    with specimen_bar(n, f"calibrate ({method})", enabled=progress and n > 1) as bar:
+        for lo in range(0, n, chunk):
+            part = problem.subset(slice(lo, lo + chunk))
+            parts.append(fn(part, rng=rng, **dict(options or {})))
+            if bar is not None:
+                bar.update(min(chunk, n - lo))
     seconds = time.perf_counter() - start
-    if bar is not None:
-        bar.close()
     sol = _concat(parts)
     return evaluate_solution(model, problem, sol, names, method=method, seconds=seconds)
 
