@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
 from femcal.errors import FemcalError, SolverError
-from femcal.fe.hidden import _femcal, found_effects, score
+from femcal.fe.hidden import _femcal, found_effects, score, visible_threshold
 
 ANSWERS = pd.DataFrame(
     {
@@ -33,26 +34,36 @@ def test_split_forms_count_as_their_effect():
     assert found_effects([]) == ()
 
 
-def test_score_counts_right_verdicts_where_the_disc_misses():
+def test_score_counts_right_verdicts_over_all_and_where_visible():
     diag = diagnosis(
         [[], ["facet_contact:split"], [], ["facet_contact", "ligament_tension"], ["neutral_zone"]],
         [0.05, 0.5, 0.15, 0.9, 0.6],
     )
     disc = {"0": 0.1, "1": 0.4, "2": 0.2, "3": 0.8, "4": 0.5}
     after = {"0": 0.1, "1": 0.12, "2": 0.2, "3": 0.15, "4": 0.3}
-    out = score(diag, ANSWERS, 0.1, disc, after)
+    out = score(diag, ANSWERS, 0.2, disc, after)
     # the disc alone misses (> 0.2 deg) specimens 1, 3, 4; 1 and 3 are right
-    assert out["n_missed_by_disc"] == 3
-    assert out["right_fraction"] == pytest.approx(2 / 3)
-    # specimen 2 (ligaments) got "none": 1 of the 4 with an element
-    assert out["none_given_effect_fraction"] == pytest.approx(0.25)
-    # ... but the disc alone fits it within 2 sigma: none of the 3 missed ones got "none"
-    assert out["none_given_missed_element_fraction"] == 0.0
+    assert out["n_visible"] == 3 and out["visible_threshold_deg"] == 0.2
+    assert out["right_fraction_visible"] == pytest.approx(2 / 3)
+    assert out["right_fraction_all"] == pytest.approx(3 / 5)  # and the none specimen 0
+    # specimen 2 (ligaments) got "none": 1 of the 4 with an element, none of the visible 3
+    assert out["none_given_element_fraction_all"] == pytest.approx(0.25)
+    assert out["none_given_element_fraction_visible"] == 0.0
+    assert out["none_false_alarms"] == 0 and out["n_none"] == 1
     assert out["disc_only_floor_mae_deg"] == pytest.approx(0.1)
     assert out["classes"]["both"]["error_ratio"] == pytest.approx((0.15 + 0.3) / 2 / 0.1)
     assert out["error_ratio_max"] == pytest.approx(2.25)
     assert out["classes"]["facets"]["verdicts"] == {"facet_contact": 1}
     assert out["classes"]["both"]["n"] == 2 and out["classes"]["both"]["right"] == 1
+    assert out["classes"]["both"]["n_visible"] == 2
+
+
+def test_visible_means_beyond_twice_the_noise_plus_the_surrogate_error():
+    # sigma by moment sqrt(noise^2 + sd^2) with sd 0.03 and 0.12: mean sd 0.075
+    sigma = [float(np.hypot(0.05, 0.03)), float(np.hypot(0.05, 0.12))]
+    summary = {"sigma_deg": sigma[0], "sigma_by_moment": sigma}
+    assert visible_threshold(summary, 0.05) == pytest.approx(0.1 + 0.075)
+    assert visible_threshold({"sigma_deg": 0.05, "sigma_by_moment": None}, 0.05) == 0.1
 
 
 def test_a_failing_command_is_an_error_with_its_output(tmp_path: Path):

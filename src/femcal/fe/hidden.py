@@ -8,19 +8,20 @@
    calibrate --effects <found>`` on the specimens of each verdict;
 3. the verdicts and errors against ``answers.csv``: ``hidden.json``.
 
-The figures (:func:`score`):
+The figures (:func:`score`), each over all specimens and over the visible ones:
 
-``right_fraction``
-    among the specimens the disc alone misses by more than 2 sigma (its fit's MAE above twice
-    the diagnosis's sigma: measurement noise and surrogate error), the fraction whose verdict
-    names exactly the class's elements (facets: ``facet_contact``; ligaments:
-    ``ligament_tension``; a per-load-case ``:split`` form counts as its effect);
-``none_given_effect_fraction``
-    among the specimens with an element, the fraction with the verdict ``none`` (an element
-    whose effect on the curves is within the noise counts too);
-``none_given_missed_element_fraction``
-    the same among the specimens with an element that the disc alone misses by more than 2
-    sigma (the element is visible in the data);
+*visible*
+    the disc alone misses the specimen by more than ``2 noise + sd_surrogate``: its fit's MAE
+    above twice the measurement noise plus the surrogate's own error sd at the specimen's
+    moments (the diagnosis' summary: ``sigma_by_moment`` with the noise taken out), so an
+    element whose effect stays within the noise and the surrogate's error is not counted;
+``right_fraction_visible``, ``right_fraction_all``
+    the fraction whose verdict names exactly the class's elements (facets: ``facet_contact``;
+    ligaments: ``ligament_tension``; a per-load-case ``:split`` form counts as its effect);
+``none_given_element_fraction_visible``, ``none_given_element_fraction_all``
+    among the specimens with an element, the fraction with the verdict ``none``;
+``none_false_alarms``
+    the specimens of the ``none`` class given an effect (of ``n_none``);
 ``error_ratio_max``
     the largest, over the classes, of the mean MAE after calibrating with the found effects
     over the disc-only floor: the mean MAE of ``femcal calibrate --effects ''`` on the
@@ -44,8 +45,9 @@ import pandas as pd
 from femcal.errors import SolverError
 from femcal.fe.cohort import CLASS_EFFECTS, CLASSES
 
-#: Misfit of the disc alone, in units of the diagnosis's sigma, beyond which it "misses".
-MISS_SIGMAS = 2.0
+#: Misfit of the disc alone beyond which an element is visible: this many noise sds, plus the
+#: surrogate's own error sd.
+VISIBLE_NOISE_SDS = 2.0
 
 
 def _femcal(args: Sequence[str], cwd: Path) -> None:
@@ -64,10 +66,27 @@ def found_effects(effects: Sequence[str]) -> tuple[str, ...]:
     return tuple(sorted({str(e).split(":")[0] for e in effects}))
 
 
+def visible_threshold(summary: Mapping[str, Any], noise_deg: float) -> float:
+    """``2 noise + sd_surrogate`` in degrees, from the diagnosis' ``summary.json``.
+
+    ``sd_surrogate`` is the mean over the diagnosed moments of the surrogate's error sd,
+    ``sqrt(sigma_by_moment^2 - noise^2)`` (``sigma_deg`` when no moment profile is given).
+    """
+    noise = float(noise_deg)
+    by_moment = summary.get("sigma_by_moment") or [summary["sigma_deg"]]
+    sigma = np.asarray(by_moment, dtype=float)
+    surrogate = np.sqrt(np.clip(sigma**2 - noise**2, 0.0, None))
+    return VISIBLE_NOISE_SDS * noise + float(np.mean(surrogate))
+
+
+def _fraction(flags: pd.Series) -> float:
+    return float(flags.mean()) if len(flags) else float("nan")
+
+
 def score(
     diagnosis: Sequence[Mapping[str, Any]],
     answers: pd.DataFrame,
-    sigma_deg: float,
+    visible_deg: float,
     mae_disc: Mapping[str, float],
     mae_after: Mapping[str, float],
 ) -> dict[str, Any]:
@@ -80,8 +99,8 @@ def score(
         ``baseline_mae_deg`` (the disc alone's fit).
     answers : pandas.DataFrame
         ``answers.csv``: ``specimen``, ``class``.
-    sigma_deg : float
-        The diagnosis's sigma (noise and surrogate error), deg.
+    visible_deg : float
+        The disc-alone MAE beyond which a specimen is visible (:func:`visible_threshold`), deg.
     mae_disc, mae_after : mapping of str to float
         Specimen -> MAE of ``femcal calibrate`` with the disc alone, and with the found
         effects (the disc alone where none is found), deg.
@@ -106,7 +125,7 @@ def score(
                 "class": cls,
                 "found": " ".join(found) or "none",
                 "right": found == tuple(sorted(CLASS_EFFECTS[cls])),
-                "misses": float(rec["baseline_mae_deg"]) > MISS_SIGMAS * sigma_deg,
+                "visible": float(rec["baseline_mae_deg"]) > visible_deg,
                 "diagnosis_disc_mae_deg": float(rec["baseline_mae_deg"]),
                 "disc_mae_deg": float(mae_disc.get(name, np.nan)),
                 "after_mae_deg": float(mae_after.get(name, np.nan)),
@@ -115,34 +134,34 @@ def score(
     df = pd.DataFrame(rows)
     floor = float(df.loc[df["class"] == "none", "disc_mae_deg"].mean())
     element = df["class"] != "none"
-    missed = df[df["misses"]]
+    visible = df["visible"]
     classes = {}
     for cls in CLASSES:
         part = df[df["class"] == cls]
         classes[cls] = {
             "n": int(len(part)),
             "right": int(part["right"].sum()),
-            "n_missed_by_disc": int(part["misses"].sum()),
-            "right_where_missed": int(part.loc[part["misses"], "right"].sum()),
+            "n_visible": int(part["visible"].sum()),
+            "right_where_visible": int(part.loc[part["visible"], "right"].sum()),
             "verdicts": {str(k): int(v) for k, v in part["found"].value_counts().items()},
             "disc_mae_deg": float(part["disc_mae_deg"].mean()),
             "after_mae_deg": float(part["after_mae_deg"].mean()),
             "error_ratio": float(part["after_mae_deg"].mean() / floor),
             "error_ratio_disc_alone": float(part["disc_mae_deg"].mean() / floor),
         }
+    none_class = df[~element]
     return {
         "n_specimens": int(len(df)),
-        "sigma_deg": float(sigma_deg),
-        "miss_threshold_deg": MISS_SIGMAS * float(sigma_deg),
-        "n_missed_by_disc": int(len(missed)),
-        "right_fraction": float(missed["right"].mean()) if len(missed) else float("nan"),
-        "right_fraction_all": float(df["right"].mean()),
-        "none_given_effect_fraction": float((df.loc[element, "found"] == "none").mean()),
-        "none_given_missed_element_fraction": (
-            float((df.loc[element & df["misses"], "found"] == "none").mean())
-            if (element & df["misses"]).any()
-            else float("nan")
+        "visible_threshold_deg": float(visible_deg),
+        "n_visible": int(visible.sum()),
+        "right_fraction_visible": _fraction(df.loc[visible, "right"]),
+        "right_fraction_all": _fraction(df["right"]),
+        "none_given_element_fraction_visible": _fraction(
+            df.loc[element & visible, "found"] == "none"
         ),
+        "none_given_element_fraction_all": _fraction(df.loc[element, "found"] == "none"),
+        "none_false_alarms": int((none_class["found"] != "none").sum()),
+        "n_none": int(len(none_class)),
         "disc_only_floor_mae_deg": floor,
         "error_ratio_max": max(c["error_ratio"] for c in classes.values()),
         "classes": classes,
@@ -227,11 +246,12 @@ def run_hidden(
         root,
     )
     diagnosis = json.loads((diagnosis_dir / "diagnosis.json").read_text())
-    sigma = float(json.loads((diagnosis_dir / "summary.json").read_text())["sigma_deg"])
+    summary = json.loads((diagnosis_dir / "summary.json").read_text())
+    threshold = visible_threshold(summary, noise_deg)
     answers = pd.read_csv(cohort_dir / "answers.csv", dtype={"specimen": str})
     options = {"model_uri": model_uri, "noise_deg": noise_deg, "root": root}
     disc, after = _calibrate_groups(measured, diagnosis, out_dir, options)
-    figures = score(diagnosis, answers, sigma, disc, after)
+    figures = score(diagnosis, answers, threshold, disc, after)
     commit = subprocess.run(
         ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True
     ).stdout.strip()
@@ -259,7 +279,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if args.metrics_file:
         headline = {k: v for k, v in figures.items() if k != "specimens"}
         args.metrics_file.write_text(json.dumps(headline, indent=2) + "\n")
-    print(json.dumps({k: figures[k] for k in ("right_fraction", "error_ratio_max")}))
+    keys = ("right_fraction_visible", "right_fraction_all", "error_ratio_max")
+    print(json.dumps({k: figures[k] for k in keys}))
     return figures
 
 
