@@ -37,7 +37,7 @@ def test_the_count_chosen_is_set_for_every_thread_pool():
     choice = limit_threads(environ, cpus=2, load=1.1)
     assert choice.threads == 1 and not choice.user
     assert {k: environ[k] for k in THREAD_VARIABLES} == dict.fromkeys(THREAD_VARIABLES, "1")
-    assert "1 of 2 cores (load average 1.10" in choice.describe()
+    assert "on 1 thread of 2 cores (load average 1.10" in choice.describe()
 
 
 @pytest.mark.parametrize("variable", THREAD_VARIABLES)
@@ -46,7 +46,7 @@ def test_a_count_the_user_set_wins(variable):
     choice = limit_threads(environ, cpus=2, load=1.5)
     assert environ == {variable: "3"}  # nothing else set either
     assert choice.threads is None and choice.user == {variable: "3"}
-    assert f"as set by the user ({variable}=3)" in choice.describe()
+    assert f"threads as set by the user ({variable}=3)" in choice.describe()
 
 
 def test_fewer_threads_than_cores_are_said(caplog):
@@ -54,8 +54,8 @@ def test_fewer_threads_than_cores_are_said(caplog):
         limit_threads({}, cpus=2, load=1.0)
         limit_threads({}, cpus=2, load=0.0)
     levels = [(r.levelno, r.getMessage()) for r in caplog.records]
-    assert levels[0][0] == logging.INFO and "1 of 2 cores" in levels[0][1]
-    assert levels[1][0] == logging.DEBUG and "2 of 2 cores" in levels[1][1]
+    assert levels[0][0] == logging.INFO and "on 1 thread of 2 cores" in levels[0][1]
+    assert levels[1][0] == logging.DEBUG and "on 2 threads of 2 cores" in levels[1][1]
 
 
 def test_the_command_line_chooses_before_the_stage_runs(monkeypatch):

@@ -91,10 +91,11 @@ class ThreadChoice:
         """One line for the log: the count and why."""
         if self.user:
             given = ", ".join(f"{k}={v}" for k, v in self.user.items())
-            return f"threads: as set by the user ({given})"
+            return f"torch, OpenMP and BLAS threads as set by the user ({given})"
+        plural = "s" if self.threads != 1 else ""
         return (
-            f"threads: {self.threads} of {self.cpus} cores (load average {self.load:.2f}; "
-            "set OMP_NUM_THREADS to choose another count)"
+            f"torch, OpenMP and BLAS on {self.threads} thread{plural} of {self.cpus} cores (load "
+            f"average {self.load:.2f}; set OMP_NUM_THREADS to choose another count)"
         )
 
 
