@@ -121,6 +121,31 @@ def test_a_validation_profile_gives_the_error_by_moment() -> None:
     assert flat.profile is None and flat.sigma_surrogate([1.0, 5.0]).tolist() == [0.05, 0.05]
 
 
+def test_a_relative_profile_gives_the_error_where_the_specimen_sits() -> None:
+    policy = MomentPolicy((1.0, 5.0), 0.03, 1.0, 0.5, ((1.0, 5.0), (0.01, 0.08)), (0.02, 0.03))
+    rom = np.array([[2.0, 10.0], [np.nan, 4.0]])  # (2 curves, 2 moments), one unmeasured
+    sd = policy.sigma_surrogate([1.0, 5.0], rom)
+    np.testing.assert_allclose(sd, [[0.04, 0.3], [0.01, 0.12]])  # unmeasured: the profile
+    beyond = policy.sigma_surrogate([7.5], np.array([10.0]))  # grown beyond the range
+    assert beyond[0] == pytest.approx(0.03 * 10.0 * 1.5)
+    assert policy.sigma_surrogate([1.0, 5.0]).tolist() == [0.01, 0.08]  # without curves
+    surrogate = SimpleNamespace(
+        moment_range_=(1.0, 5.0),
+        best_val_mae_deg_=VAL_MAE,
+        val_error_profile_={
+            "moments": [1, 5],
+            "rms_deg": [0.01, 0.08],
+            "relative_rms": [0.02, 0.03],
+        },
+    )
+    assert MomentPolicy.for_surrogate(surrogate, growth=1, max_log_ratio=0.5).relative == (
+        0.02,
+        0.03,
+    )
+    with pytest.raises(ConfigError, match=r"profile must be \(moments, sd\) of equal length"):
+        MomentPolicy((1.0, 5.0), 0.03, 1.0, 0.5, ((1.0, 5.0), (0.01, 0.08)), (0.02,))
+
+
 @pytest.mark.parametrize(
     "bad", [([1.0, 2.0], [0.1]), ([2.0, 1.0], [0.1, 0.1]), ([1.0], [-0.1]), "x", ([0.0], [0.1])]
 )

@@ -175,6 +175,9 @@ class MomentPolicy:
         The in-range error sd by moment (Nm ascending, deg), interpolated in log-moment
         (constant beyond its ends): a surrogate's validation error by moment
         (``val_error_profile_``). None: ``error_deg`` at every moment.
+    relative : sequence of float or None, optional
+        The in-range error sd over the RoM at the profile's moments (``relative_rms``), for
+        :meth:`sigma_surrogate` at given curves. None: the profile alone.
 
     Raises
     ------
@@ -187,6 +190,7 @@ class MomentPolicy:
     growth: tuple[float, float]
     max_log_ratio: tuple[float, float]
     profile: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    relative: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "trained_range", _range(self.trained_range))
@@ -205,6 +209,9 @@ class MomentPolicy:
         object.__setattr__(self, "max_log_ratio", _pair(self.max_log_ratio, "max_log_ratio"))
         if self.profile is not None:
             object.__setattr__(self, "profile", _profile(self.profile))
+        if self.relative is not None:
+            at = self.profile[0] if self.profile is not None else ()
+            object.__setattr__(self, "relative", _profile((at, self.relative))[1])
 
     @classmethod
     def for_surrogate(
@@ -236,6 +243,7 @@ class MomentPolicy:
         trained = tuple(getattr(surrogate, "moment_range_", (1.0, 5.0)))
         found = getattr(surrogate, "val_error_profile_", None) if error_deg is None else None
         profile = (found["moments"], found["rms_deg"]) if found else None
+        relative = found.get("relative_rms") if found else None
         if error_deg is None:
             val = float(getattr(surrogate, "best_val_mae_deg_", math.nan))
             if math.isfinite(val):
@@ -246,7 +254,7 @@ class MomentPolicy:
                     "error is not counted (error_deg = 0)."
                 )
                 error_deg = 0.0
-        return cls(trained, error_deg, growth, max_log_ratio, profile)
+        return cls(trained, error_deg, growth, max_log_ratio, profile, relative)
 
     def as_params(self) -> dict[str, float]:
         """The per-side settings as flat names (``moments.error_growth.below``, ...), to log."""
@@ -281,28 +289,36 @@ class MomentPolicy:
         limit = self._per_side(self.max_log_ratio, moments)
         return self.log_distance(moments) <= limit + _TOL
 
-    def sigma_surrogate(self, moments: Any) -> np.ndarray:
-        """The surrogate's error sd at each moment.
+    def sigma_surrogate(self, moments: Any, rom_deg: Any = None) -> np.ndarray:
+        """The surrogate's error sd at each moment, or at each point of given curves.
 
         Parameters
         ----------
         moments : array_like, shape (m,)
             Moments in Nm, > 0.
+        rom_deg : array_like, shape (..., m), optional
+            RoM at those moments, e.g. the measured curves (NaN where not measured).
 
         Returns
         -------
-        ndarray, shape (m,)
-            ``sd_in(M) * exp(growth * L)`` in degrees: ``sd_in`` is the profile at ``M`` (at
-            the nearest end of the trained range beyond it), or ``error_deg`` without one.
+        ndarray, shape (m,) or (..., m)
+            ``sd_in(M) * exp(growth * L)`` in degrees: ``sd_in`` is the profile at ``M`` (its
+            end beyond the trained range), else ``error_deg``; ``relative(M) * |RoM|`` at a
+            point of ``rom_deg`` when a ``relative`` profile is given.
         """
         m = np.atleast_1d(np.asarray(moments, dtype=np.float64))
+        x = np.log(np.clip(m, *self.trained_range))
         if self.profile is None:
             inside = np.full(m.shape, self.error_deg)
         else:
             at, sd = (np.asarray(v, dtype=np.float64) for v in self.profile)
-            x = np.log(np.clip(m, *self.trained_range))
             inside = np.interp(x, np.log(at), sd)
-        return inside * self.error_factor(m)
+        absolute = inside * self.error_factor(m)
+        if rom_deg is None or self.relative is None:
+            return absolute
+        rel = np.interp(x, np.log(np.asarray(self.profile[0])), np.asarray(self.relative))
+        local = rel * self.error_factor(m) * np.abs(np.asarray(rom_deg, dtype=np.float64))
+        return np.where(np.isfinite(local), local, absolute)
 
     def weights(self, moments: Any) -> np.ndarray:
         """Relative fit weights ``(error_deg / sd(M))^2 = exp(-2 * growth * L)``, shape (m,).

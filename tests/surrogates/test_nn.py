@@ -73,6 +73,8 @@ def test_fit_sets_fitted_attributes(fitted: NeuralSurrogate) -> None:
     assert np.isfinite(fitted.best_val_mae_deg_) and fitted.best_val_mae_deg_ > 0
     profile = fitted.val_error_profile_  # RMS by training moment >= the MAE over all moments
     assert profile["moments"] == sorted(set(profile["moments"])) and len(profile["moments"]) > 1
+    assert len(profile["relative_rms"]) == len(profile["moments"])
+    assert all(r > 0 for r in profile["relative_rms"])
     rms_all = np.sqrt(np.mean(np.square(profile["rms_deg"])))
     assert rms_all >= fitted.best_val_mae_deg_ * 0.99
     assert {r["member"] for r in fitted.history_} == {0, 1}

@@ -104,9 +104,10 @@ def diagnose(
     specimens : sequence of str, length n
     noise_deg : float, optional
         Measurement noise (sd, deg). Estimated from the disc-alone residuals when omitted.
-    surrogate_error_deg : float or ndarray, shape (m,)
-        The surrogate's own error (sd, deg) at each moment (or one value), added in
-        quadrature to the noise (:meth:`femcal.moments.MomentPolicy.sigma_surrogate`).
+    surrogate_error_deg : float or ndarray, shape (m,) or (n, 4, m)
+        The surrogate's own error (sd, deg): one value, one per moment, or one per point (at
+        the specimen's own curves), added in quadrature to the noise
+        (:meth:`femcal.moments.MomentPolicy.sigma_surrogate`).
     point_weight : ndarray, shape (n, 4, m), optional
         Each point's weight, a relative inverse noise variance (the mean of ``k`` repeated
         measurements weighs ``k``; 0 leaves a point out). Default: 1.
@@ -140,9 +141,13 @@ def diagnose(
         )
     measured = np.where(w > 0, measured, np.nan)  # weight 0: left out
     w = np.where(w > 0, w, 1.0)  # where not measured it does not count
-    sur = np.broadcast_to(np.asarray(surrogate_error_deg, dtype=float), (m,)).copy()
+    sur = np.asarray(surrogate_error_deg, dtype=float)
+    sur = np.broadcast_to(sur, measured.shape if sur.ndim == 3 else (m,)).copy()
     if np.any(~np.isfinite(sur)) or np.any(sur < 0):
-        raise ConfigError(f"surrogate_error_deg must be finite and >= 0; got {sur.tolist()}.")
+        raise ConfigError(
+            "surrogate_error_deg must be finite and >= 0 (one value, one per moment, or one "
+            f"per point); got {np.unique(sur[~(np.isfinite(sur) & (sur >= 0))])[:3].tolist()}."
+        )
     rng = np.random.default_rng(options.seed)
     state = DiagnosisState(
         base=base,
@@ -157,7 +162,7 @@ def diagnose(
         rng=rng,
     )
     noise_used, noise_sd = _noise(state, w, sur, noise_deg)
-    state.sigma_m = np.sqrt(noise_used**2 + sur**2)  # (m,): a point of weight 1
+    state.sigma_m = np.sqrt(noise_used**2 + _per_moment(sur**2, state.mask))  # (m,): weight 1
     state.sigma = np.sqrt(noise_used**2 / w + sur**2)  # (n, 4, m): every point's own
     state.weight = np.ascontiguousarray(_weights(state.sigma, measured.shape))
     v_disc, pred0 = _disc_fit(state, state.weight)
@@ -204,6 +209,16 @@ def _disc_fit(state: DiagnosisState, weight: np.ndarray) -> tuple[torch.Tensor, 
     v = base.from_physical(sol.x)
     with torch.no_grad():
         return v, base.curves(v)
+
+
+def _per_moment(value: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``value`` (m,) as is, or (n, 4, m) averaged over the measured points at each moment
+    (over every point where a moment has none)."""
+    if value.ndim == 1:
+        return value
+    count = mask.sum(axis=(0, 1))
+    mean = np.where(mask, value, 0.0).sum(axis=(0, 1)) / np.maximum(count, 1)
+    return np.where(count > 0, mean, value.mean(axis=(0, 1)))
 
 
 def _noise(

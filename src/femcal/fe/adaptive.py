@@ -283,8 +283,8 @@ def adapt_surrogate(
     model.set_params(**recipe)
     if rows and hasattr(model, "record_validation_error"):
         # the fine-tuning had no validation rows: the held-out split's error is the model's
-        moments_ho = X_ho["moment_nm"].to_numpy(dtype=float)
-        model.record_validation_error(moments_ho, model.predict(X_ho) - y_ho)
+        moments_ho, pred_ho = X_ho["moment_nm"].to_numpy(dtype=float), model.predict(X_ho)
+        model.record_validation_error(moments_ho, pred_ho - y_ho, pred_ho)
     return AdaptResult(
         surrogate=model,
         rounds=pd.DataFrame(rows),

@@ -215,7 +215,7 @@ def run_diagnose(settings: DiagnoseSettings):
         meas.rom_deg,
         specimens=meas.specimens,
         noise_deg=noise_deg,
-        surrogate_error_deg=policy.sigma_surrogate(meas.moments),
+        surrogate_error_deg=policy.sigma_surrogate(meas.moments, meas.rom_deg),  # each point's
         point_weight=meas.weight,
         candidates=candidates,
         start_bank=training_configurations(start_bank) if start_bank else None,

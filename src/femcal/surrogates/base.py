@@ -207,8 +207,14 @@ def encode_features(X: pd.DataFrame, space: ParameterSpace) -> np.ndarray:
     return np.hstack([onehot, moment, params])
 
 
-def error_profile(moments: np.ndarray, error: np.ndarray) -> dict[str, list[float]] | None:
-    """The root-mean-square error at each distinct moment.
+#: Smallest |prediction| (deg) a relative error is taken against.
+RELATIVE_FLOOR_DEG = 0.01
+
+
+def error_profile(
+    moments: np.ndarray, error: np.ndarray, prediction: np.ndarray | None = None
+) -> dict[str, list[float]] | None:
+    """The root-mean-square error at each distinct moment, absolute and relative.
 
     Parameters
     ----------
@@ -216,16 +222,28 @@ def error_profile(moments: np.ndarray, error: np.ndarray) -> dict[str, list[floa
         The rows' moments, Nm.
     error : ndarray, shape (n,)
         Prediction minus truth, deg (non-finite rows are left out).
+    prediction : ndarray, shape (n,), optional
+        The predictions, deg: the relative error is ``error / |prediction|`` (``|prediction|``
+        floored at :data:`RELATIVE_FLOOR_DEG`).
 
     Returns
     -------
     dict or None
-        ``{"moments": [...], "rms_deg": [...]}``, moments ascending; None when no row is
-        finite.
+        ``{"moments": [...], "rms_deg": [...], "relative_rms": [...]}`` (the last with
+        ``prediction`` only), moments ascending; None when no row is finite.
     """
+    moments, error = np.asarray(moments, dtype=float), np.asarray(error, dtype=float)
     ok = np.isfinite(error) & np.isfinite(moments)
     if not ok.any():
         return None
     levels, index = np.unique(np.round(moments[ok], 6), return_inverse=True)
-    rms = np.sqrt(np.bincount(index, error[ok] ** 2) / np.bincount(index))
-    return {"moments": levels.tolist(), "rms_deg": rms.tolist()}
+    count = np.bincount(index)
+    out = {
+        "moments": levels.tolist(),
+        "rms_deg": np.sqrt(np.bincount(index, error[ok] ** 2) / count).tolist(),
+    }
+    if prediction is not None:
+        scale = np.maximum(np.abs(np.asarray(prediction, dtype=float)[ok]), RELATIVE_FLOOR_DEG)
+        rel = np.sqrt(np.bincount(index, (error[ok] / scale) ** 2) / count)
+        out["relative_rms"] = rel.tolist()
+    return out

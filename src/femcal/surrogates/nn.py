@@ -125,8 +125,9 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         Smallest and largest training moment in Nm (the range the surrogate interpolates in).
     val_error_profile_ : dict or None
         The ensemble's error on the validation rows by training moment:
-        ``{"moments": [...], "rms_deg": [...]}`` (Nm, deg; root mean square over the rows at
-        each moment, all load cases), which :meth:`femcal.moments.MomentPolicy.for_surrogate`
+        ``{"moments": [...], "rms_deg": [...], "relative_rms": [...]}`` (Nm, deg, 1; root mean
+        square over the rows at each moment, all load cases, of the error and of the error
+        over the prediction), which :meth:`femcal.moments.MomentPolicy.for_surrogate`
         reads as the surrogate's error sd inside the trained range. None without validation.
     """
 
@@ -398,13 +399,15 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
         self.moment_range_ = (float(np.min(moment)), float(np.max(moment)))
         if has_val:
             pred = self._predict_rows(vlc, vmom, vpar)
-            self.record_validation_error(vmom, pred - vy)
+            self.record_validation_error(vmom, pred - vy, pred)
         else:
             self.best_val_mae_deg_ = math.nan
             self.val_error_profile_ = None
         return self
 
-    def record_validation_error(self, moments: np.ndarray, error: np.ndarray) -> NeuralSurrogate:
+    def record_validation_error(
+        self, moments: np.ndarray, error: np.ndarray, prediction: np.ndarray | None = None
+    ) -> NeuralSurrogate:
         """Set ``best_val_mae_deg_`` and ``val_error_profile_`` from held-out rows.
 
         ``fit`` calls it on its validation rows; a fit without them (e.g. a fine-tuning on
@@ -416,9 +419,11 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
             The rows' moments, Nm.
         error : ndarray, shape (n,)
             Prediction minus truth, deg.
+        prediction : ndarray, shape (n,), optional
+            The predictions, deg (the relative error by moment is recorded with them).
         """
         self.best_val_mae_deg_ = float(np.nanmean(np.abs(error)))
-        self.val_error_profile_ = error_profile(np.asarray(moments), np.asarray(error))
+        self.val_error_profile_ = error_profile(moments, error, prediction)
         return self
 
     def _training_rows(
