@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from femcal.dvc_metrics import VOCABULARY
 from femcal.errors import FemcalError
 from femcal.evaluate import Score, prediction_table, training_curves, write_reports
 from femcal.headlines import (
@@ -44,32 +45,26 @@ def _calibration_figures() -> dict:
     }
 
 
-def test_calibration_headline_is_flat_and_small():
+def test_calibration_headline_is_flat_and_on_the_vocabulary():
     head = calibration_headline(_calibration_figures())
-    assert len(head) <= MAX_KEYS
-    assert not any(isinstance(v, (dict, list)) for v in head.values())
-    assert head["determined_mean"] == pytest.approx(0.6)
-    assert head["holdout_mae_deg"] is None  # NaN: "-" in dvc metrics show, valid JSON
-    assert {"n_specimens", "mae_deg", "n_outside_bounds"} <= set(head)
-    assert "determined" not in head and "mae_deg_Flexion" not in head
-    assert "n_plotted" not in head  # how many PNGs: summary.json, not a headline
-    # With a noise, the specimens the model does not explain within it (a headline), their
-    # median residual in sd (summary.json).
+    assert set(head) <= set(VOCABULARY)
+    # NaN (no held-out surrogate) is left out: "-" in dvc metrics show, valid JSON
+    assert head == {"mae_deg": 0.01, "r2": 0.999, "n": 4, "flagged": 0, "failed": 0, "seconds": 0.5}
+    # With a noise, the specimens the model does not explain within it are flagged
+    # (summary.json keeps their median residual in sd).
     noisy = {**_calibration_figures(), "n_beyond_noise": 2, "rms_z_median": 0.9}
-    head = calibration_headline(noisy)
-    assert head["n_beyond_noise"] == 2 and "rms_z_median" not in head
+    assert calibration_headline(noisy)["flagged"] == 2
     json.dumps(head, allow_nan=False)
 
 
 def test_every_calibration_headline_key_at_once_fits():
     # A calibration with every figure a headline can take (a held-out surrogate, ranges,
-    # reachability and a noise) still fits the limit: n_beyond_noise and n_plotted together
-    # would make the planted stage's headline 17 keys, so n_plotted stays in summary.json.
+    # reachability and a noise) still fits the limit before it is mapped onto the vocabulary.
     figures = {**_calibration_figures(), "holdout_mae_deg": 0.02, "holdout_r2_mean": 0.99}
     figures.update({k: 1 for k in CALIBRATION_KEYS if k not in figures})
     head = calibration_headline(figures)
-    assert set(head) == {*CALIBRATION_KEYS, "determined_mean"}
-    assert len(head) <= MAX_KEYS
+    assert head["ref_mae_deg"] == 0.02 and set(head) <= set(VOCABULARY)
+    assert len(CALIBRATION_KEYS) + 1 <= MAX_KEYS
 
 
 def test_diagnosis_headline_counts():
@@ -90,10 +85,7 @@ def test_diagnosis_headline_counts():
         "n_specimens": 7,
         "found_effects": ["neutral_zone", "facet_contact"],
     }
-    head = diagnosis_headline(summary)
-    assert head["n_none"] == 2 and head["n_with_effects"] == 4 and head["n_unexplained"] == 2
-    assert head["found_effects"] == "neutral_zone+facet_contact" and head["n_effects_found"] == 2
-    assert "sigma_by_moment" not in head and len(head) <= MAX_KEYS
+    assert diagnosis_headline(summary) == {"n": 7, "flagged": 2, "seconds": 1.0}
 
 
 def test_a_headline_without_its_figures_says_what_is_missing():
@@ -132,7 +124,7 @@ def test_evaluation_writes_a_headline_and_a_table(tmp_path: Path):
     paths = {k: tmp_path / f"{k}.x" for k in ("markdown", "json_path", "table_path")}
     head = write_reports(scores, **paths)
     assert json.loads(paths["json_path"].read_text()) == head
-    assert head["nn_large_mae_deg"] == 0.02 and head["best_baseline_large"] == "linear"
+    assert head == {"mae_deg": 0.02, "ref_mae_deg": 0.9, "r2": 0.99, "n": 24}
     table = json.loads(paths["table_path"].read_text())
     assert set(table["trained_on_large"]) == {"nn@large", "linear@large"}
     pred = prediction_table(_Shifted(), test)

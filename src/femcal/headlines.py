@@ -1,8 +1,9 @@
 """The headline figures of each stage: what its DVC metrics file holds.
 
-``dvc metrics show`` prints one row per metrics file and one column per key; a stage's metrics
-file therefore holds a few flat figures (at most :data:`MAX_KEYS`), and its tables go to plain
-outputs beside it:
+``dvc metrics show`` prints one table for the whole repository, one row per metrics file and one
+column per key of any of them; a stage's metrics file therefore holds its figures on the shared
+vocabulary of :mod:`femcal.dvc_metrics` (chosen from at most :data:`MAX_KEYS` flat figures),
+and its tables go to plain outputs beside it:
 
 * evaluate: ``reports/surrogates.json`` (:func:`surrogate_headline`); every model x training
   set x load case in ``reports/surrogates_table.json`` and ``reports/surrogates.md``;
@@ -70,7 +71,11 @@ def _scalar(value: Any) -> Any:
     return value
 
 
-def _checked(headline: dict[str, Any], what: str) -> dict[str, Any]:
+def _checked(headline: dict[str, Any], what: str, kind: str) -> dict[str, Any]:
+    """``headline`` checked (flat, at most :data:`MAX_KEYS`) and mapped onto the DVC metrics
+    vocabulary of a stage of ``kind`` (:func:`femcal.dvc_metrics.headline`)."""
+    from femcal.dvc_metrics import headline as on_vocabulary
+
     nested = [k for k, v in headline.items() if isinstance(v, (dict, list, tuple))]
     if nested or len(headline) > MAX_KEYS:
         raise HeadlineError(
@@ -78,7 +83,7 @@ def _checked(headline: dict[str, Any], what: str) -> dict[str, Any]:
             f"{len(headline)} keys, nested: {nested}. Move tables to a plain output under "
             "reports/ (see femcal.headlines)."
         )
-    return headline
+    return on_vocabulary(kind, headline)
 
 
 def _require(figures: Mapping[str, Any], keys: Sequence[str], what: str) -> None:
@@ -102,8 +107,9 @@ def calibration_headline(figures: Mapping[str, Any]) -> dict[str, Any]:
     Returns
     -------
     dict
-        :data:`CALIBRATION_KEYS` that are present, plus ``determined_mean``: the mean over
-        the parameters of the share of specimens whose identifiability range is narrow
+        On the DVC metrics vocabulary (:data:`femcal.dvc_metrics.SOURCES` ``calibrate``), of
+        :data:`CALIBRATION_KEYS` that are present and ``determined_mean``: the mean over the
+        parameters of the share of specimens whose identifiability range is narrow
         (``figures["determined"]``, which stays in ``summary.json`` per parameter).
     """
     _require(figures, ("n_specimens", "mae_deg", "r2_mean"), "calibration")
@@ -113,7 +119,7 @@ def calibration_headline(figures: Mapping[str, Any]) -> dict[str, Any]:
         out["determined_mean"] = round(
             sum(float(v) for v in determined.values()) / len(determined), 4
         )
-    return _checked(out, "calibration")
+    return _checked(out, "calibration", "calibrate")
 
 
 def diagnosis_headline(summary: Mapping[str, Any]) -> dict[str, Any]:
@@ -128,6 +134,7 @@ def diagnosis_headline(summary: Mapping[str, Any]) -> dict[str, Any]:
     Returns
     -------
     dict
+        On the DVC metrics vocabulary (:data:`femcal.dvc_metrics.SOURCES` ``diagnose``), of
         :data:`DIAGNOSIS_KEYS` that are present, and the counts: ``n_none`` (the disc alone
         explains the specimen), ``n_with_effects`` (at least one effect named),
         ``n_unexplained`` (not explained within the noise), ``n_effects_found`` and
@@ -145,7 +152,7 @@ def diagnosis_headline(summary: Mapping[str, Any]) -> dict[str, Any]:
     out["n_unexplained"] = int(effects.get("unexplained", 0))
     out["n_effects_found"] = len(found)
     out["found_effects"] = "+".join(found)
-    return _checked(out, "diagnosis")
+    return _checked(out, "diagnosis", "diagnose")
 
 
 def surrogate_headline(
@@ -163,7 +170,8 @@ def surrogate_headline(
     Returns
     -------
     dict
-        Per training set (``large``, ``small``): the network's ``nn_<set>_mae_deg``,
+        On the DVC metrics vocabulary (:data:`femcal.dvc_metrics.SOURCES` ``evaluate``), of:
+        per training set (``large``, ``small``), the network's ``nn_<set>_mae_deg``,
         ``nn_<set>_r2_mean`` and the best baseline's name and MAE; the network's MAE at unseen
         moments (``interpolation_nn_mae_deg``) and the number of Test rows.
     """
@@ -192,4 +200,4 @@ def surrogate_headline(
     if interp:
         out["interpolation_nn_mae_deg"] = _scalar(interp[0]["mae"])
         out["interpolation_nn_r2_mean"] = _scalar(interp[0]["r2_mean"])
-    return _checked(out, "evaluation")
+    return _checked(out, "evaluation", "evaluate")

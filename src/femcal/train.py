@@ -9,7 +9,6 @@ the heartbeat and retried.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import time
 from collections.abc import Mapping
@@ -261,7 +260,11 @@ def train_surrogate(
 
 
 def write_summary(result: TrainResult, path: str | Path) -> None:
-    """Write the training summary (DVC metrics file)."""
+    """Write the training's DVC metrics file ``path`` (its headline on the shared vocabulary,
+    :mod:`femcal.dvc_metrics`) and every figure beside it (``<name>.details.json``: the
+    validation error, trials, time, MLflow run, version, promotion and best parameters)."""
+    from femcal.dvc_metrics import write
+
     summary = {
         result.val_metric: result.val_mae_deg,
         "n_trials": result.n_trials,
@@ -271,5 +274,4 @@ def write_summary(result: TrainResult, path: str | Path) -> None:
         "promoted": result.promoted,
         "best_params": {k: v for k, v in result.best_params.items()},
     }
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    write(path, "train", summary, details=True)

@@ -184,7 +184,7 @@ def test_an_adhoc_diagnose_leaves_the_pipelines_metrics_alone(project, capsys):
     assert (project / "elsewhere" / "diagnosis.json").is_file()
     # The DVC stage names its metrics file (dvc.yaml: --metrics-file ${diagnose.metrics_file}).
     assert main([*args[:-1], "elsewhere2", "--metrics-file", "reports/diagnose.json"]) == 0
-    assert json.loads(tracked.read_text())["n_specimens"] == 2
+    assert json.loads(tracked.read_text())["n"] == 2
     assert sorted(p.name for p in tracked.parent.iterdir()) == ["diagnose.json"]
 
 

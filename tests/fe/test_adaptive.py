@@ -267,7 +267,10 @@ def test_adapt_stage_registers_a_challenger_and_writes_the_champion(
     assert main(argv) == 0
     client = mlflow.MlflowClient()
     challenger = client.get_model_version_by_alias("fe-sur", "challenger")
-    figures = json.loads(metrics.read_text())
+    figures = json.loads((tmp_path / "adapt" / "adapt.json").read_text())  # every figure
+    headline = json.loads(metrics.read_text())  # the DVC metrics
+    assert headline["version"] == figures["challenger_version"]
+    assert headline["promoted"] == figures["promoted"]
     assert figures["n_rounds"] == 1 and figures["n_new_configurations"] == 2  # 1 target + 1
     assert figures["challenger_version"] == str(challenger.version)
     assert figures["promoted"] == (

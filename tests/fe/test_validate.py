@@ -135,7 +135,7 @@ def test_validate_resimulates_calibrated_parameters(coarse_campaign, tmp_path, m
     assert summary["idp"][2]["n_in_range"] == 0 and summary["idp"][0]["n_in_range"] == 1
     assert set(summary["fe_mae_deg_per_load_case"]) == set(LOAD_CASES)
     assert summary["solver_versions"] and summary["n_specimens"] == 1
-    assert json.loads((tmp_path / "validate.json").read_text())["n_specimens"] == 1
+    assert json.loads((tmp_path / "validate.json").read_text())["n"] == 1
     # A published pressure below the disc's pressure at 300 N is reached by interpolation,
     # one beyond its pressure at 2000 N is not (nothing is extrapolated).
     low, high = summary["idp_published"]
@@ -221,7 +221,8 @@ def test_validate_refines_with_fe_in_the_loop(coarse_campaign, tmp_path, mlflow_
     assert main(["--params", str(tmp_path / "params.yaml"), *stage]) == 0
     runs = mlflow.search_runs(filter_string="tags.`femcal.stage` = 'validate'")
     assert runs["metrics.fe_runs_per_specimen_max"].iloc[0] == 2
-    figures = json.loads(metrics.read_text())
+    assert json.loads(metrics.read_text())["n"] == 1  # the DVC metrics; every figure:
+    figures = json.loads((tmp_path / "validate.details.json").read_text())
     assert figures["n_specimens"] == 1 and figures["fe_runs_per_specimen_max"] == 2
     assert figures["fe_fit_residual_deg_before_refine"] > 0.05  # the perturbed calibration misses
     assert figures["fe_fit_residual_deg"] <= figures["fe_fit_residual_deg_before_refine"]

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from femcal.dvc_metrics import write as write_dvc_metrics
 from femcal.errors import SolverError
 from femcal.schema import LOAD_CASES, STATUS_OK
 from femcal.settings.fe import LIGAMENT_DEFAULTS, LIGAMENTS, CohortSettings
@@ -397,9 +398,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     fe = fe_runtime(params, {"store": cohort.store, "progress": args.progress}, "fe")
     space, moments = fe_space(params["fe"]["bounds"]), params["fe"]["moments"]
     info = build_cohort(fe, space, cohort, moments, partial=args.partial)
-    if args.metrics_file:
-        args.metrics_file.parent.mkdir(parents=True, exist_ok=True)
-        args.metrics_file.write_text(json.dumps(info, indent=2) + "\n")
+    # the headline; every figure in the cohort folder's cohort.json
+    write_dvc_metrics(args.metrics_file, "cohort", info)
     print(json.dumps({k: info[k] for k in ("n_specimens", "classes", "n_failed_jobs")}))
     return info
 

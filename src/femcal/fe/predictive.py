@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from femcal.dvc_metrics import write as write_dvc_metrics
 from femcal.errors import InputDataError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 
@@ -285,8 +286,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     calibrate = _cli_calibrate(args.model_uri, args.out, args.noise_deg)
     figures = run_predictive(truth, curves, calibrate, args.noise_deg, args.seed, args.variants)
     figures.update(model_uri=args.model_uri, measurements=str(args.measurements))
-    args.metrics_file.parent.mkdir(parents=True, exist_ok=True)
-    args.metrics_file.write_text(json.dumps(figures, indent=2) + "\n")
+    write_dvc_metrics(args.metrics_file, "predictive", figures, details=True)
     print(json.dumps({k: v for k, v in figures.items() if k.startswith("fe_predictive")}))
     return figures
 

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from femcal.dvc_metrics import write as write_dvc_metrics
 from femcal.errors import InputDataError
 from femcal.schema import LOAD_CASES
 
@@ -138,8 +139,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     )
     figures = sigma_coverage(surrogate, pd.read_csv(args.heldout), policy)
     figures.update(model_uri=args.model_uri, heldout=str(args.heldout))
-    args.metrics_file.parent.mkdir(parents=True, exist_ok=True)
-    args.metrics_file.write_text(json.dumps(figures, indent=2) + "\n")
+    write_dvc_metrics(args.metrics_file, "sigma", figures, details=True)
     print(json.dumps({"coverage_2sigma": figures["coverage_2sigma"]}))
     return figures
 

@@ -65,7 +65,8 @@ def run(settings: AdaptSettings) -> dict[str, Any]:
     """Adapt, register the challenger, promote it if it wins; returns the figures."""
     tracking(settings.params)
     figures = run_adapt(settings)
-    write_metrics(settings.metrics_file, figures)
+    # the headline; every figure beside it (adapt.details.json, which validate reads)
+    write_metrics(settings.metrics_file, figures, "adapt", details=True)
     return figures
 
 

@@ -134,12 +134,40 @@ def check_measurements(path: Path) -> None:
         )
 
 
-def write_metrics(path: str | Path | None, figures: Mapping[str, Any]) -> None:
-    """A stage's DVC metrics file (``--metrics-file``), written whole or not at all."""
-    if path:
-        from femcal.outputs import write_text_atomic
+def write_metrics(
+    path: str | Path | None,
+    figures: Mapping[str, Any],
+    kind: str | None = None,
+    *,
+    details: bool = False,
+) -> None:
+    """A stage's DVC metrics file (``--metrics-file``), written whole or not at all.
 
-        write_text_atomic(path, json.dumps(figures, indent=2) + "\n")
+    ``figures`` on the shared vocabulary of :mod:`femcal.dvc_metrics` (a headline of
+    :mod:`femcal.headlines`), or, with ``kind``, the stage's figures, mapped onto it
+    (:func:`femcal.dvc_metrics.write`; ``details`` also writes them whole beside the file).
+
+    Raises
+    ------
+    MetricsFileError
+        A key of ``figures`` (without ``kind``) is not in the vocabulary.
+    """
+    if not path:
+        return
+    from femcal.dvc_metrics import VOCABULARY, MetricsFileError, write
+
+    if kind is not None:
+        write(path, kind, figures, details=details)
+        return
+    unknown = sorted(set(figures) - set(VOCABULARY))
+    if unknown:
+        raise MetricsFileError(
+            f"{path}: {unknown} are not DVC metrics keys ({', '.join(VOCABULARY)}); map the "
+            "figures with femcal.dvc_metrics.headline."
+        )
+    from femcal.outputs import write_text_atomic
+
+    write_text_atomic(path, json.dumps(dict(figures), indent=2) + "\n")
 
 
 def optuna_storage(params: Mapping[str, Any]) -> str:

@@ -5,12 +5,12 @@ Registered as ``inverse.register_as``; ``models/inverse`` is the logged MLflow m
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from femcal.dvc_metrics import write as write_dvc_metrics
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import StageSettings, typed
 from femcal.stages.store import export_folder, registry_figures, study_search, tracking
@@ -108,25 +108,22 @@ def run_train_inverse(
     for key, value in source.tags("surrogate").items():
         client.set_tag(result.run_id, key, value)
     export_folder(result, out_dir, register_as)
-    metrics_path.parent.mkdir(parents=True, exist_ok=True)
-    metrics_path.write_text(
-        json.dumps(
-            {
-                "val_mae_unit": result.val_mae,
-                "val_rom_mae_deg": result.val_rom_mae_deg,
-                "n_trials": result.n_trials,
-                "seconds": round(result.seconds, 1),
-                "mlflow_run_id": result.run_id,
-                "registered_version": result.version,
-                "promoted": result.promoted,
-                "surrogate_uri": surrogate_uri,
-                "surrogate_sha256": source.sha256,
-                "surrogate_version": source.version,
-                "best_params": result.best_params,
-            },
-            indent=2,
-            default=str,
-        )
-        + "\n"
-    )
+    write_dvc_metrics(
+        metrics_path,
+        "train",
+        {
+            "val_mae_unit": result.val_mae,
+            "val_rom_mae_deg": result.val_rom_mae_deg,
+            "n_trials": result.n_trials,
+            "seconds": round(result.seconds, 1),
+            "mlflow_run_id": result.run_id,
+            "registered_version": result.version,
+            "promoted": result.promoted,
+            "surrogate_uri": surrogate_uri,
+            "surrogate_sha256": source.sha256,
+            "surrogate_version": source.version,
+            "best_params": result.best_params,
+        },
+        details=True,
+    )  # the headline; every figure in train-inverse.details.json
     return result

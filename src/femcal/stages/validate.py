@@ -120,9 +120,15 @@ class ValidateSettings(StageSettings):
 
 
 def _read_report(path: Path | None, what: str) -> dict[str, Any] | None:
-    """The JSON figures of another stage, or None when ``path`` is None."""
+    """The JSON figures of another stage, or None when ``path`` is None: every figure, from
+    the plain output beside its DVC metrics file (:func:`femcal.dvc_metrics.details_path`)
+    when there is one."""
+    from femcal.dvc_metrics import details_path
+
     if path is None:
         return None
+    if details_path(path).is_file():
+        path = details_path(path)
     if not path.is_file():
         raise ConfigError(
             f"validate.{what}: {path} does not exist. Run its stage first (dvc repro runs it "
@@ -196,7 +202,9 @@ def run(settings: ValidateSettings) -> dict[str, Any]:
     result = run_validate(**settings.call_args())
     s = {**result.summary, **honest_figures(result.summary, settings, predictive, adapt)}
     # only when asked (the DVC stage)
-    write_metrics(settings.metrics_file, json_safe({k: s[k] for k in METRICS_KEYS}))
+    # the headline; every figure of METRICS_KEYS in validate.details.json beside it
+    figures = json_safe({k: s[k] for k in METRICS_KEYS})
+    write_metrics(settings.metrics_file, figures, "validate", details=True)
     return {"summary": s, "out": str(settings.out_dir)}
 
 
