@@ -1,11 +1,11 @@
 """Is the surrogate's stated error honest? Its sd against FE on held-out configurations.
 
-The diagnosis and calibrate count the surrogate's own error as an sd at each moment
+The diagnosis and calibrate count the surrogate's own error as an sd
 (:meth:`femcal.moments.MomentPolicy.sigma_surrogate`: the model's validation error by moment,
-grown beyond the trained range). Against FE curves the surrogate never saw, a calibrated sd
-holds about 95 % of the errors within 2 sd (Gaussian errors) in every moment band; much less
-means the diagnosis sees physics in the surrogate's error, much more that it hides effects in
-an inflated sd.
+relative to the RoM at each point where the model records it, grown beyond the trained
+range). Against FE curves the surrogate never saw, a calibrated sd holds about 95 % of the
+errors within 2 sd (Gaussian errors) in every moment band; much less means the diagnosis sees
+physics in the surrogate's error, much more that it hides effects in an inflated sd.
 
 Command line (from ``fe/``, the FE pipeline's ``sigma`` stage)::
 
@@ -79,7 +79,9 @@ def sigma_coverage(
         )
     err = np.asarray(surrogate.predict(rows), dtype=float) - rows["rom_deg"].to_numpy(float)
     moment = rows["moment_nm"].to_numpy(dtype=float)
-    sd = np.asarray(policy.sigma_surrogate(moment), dtype=float)
+    # the sd the diagnosis gives a point of these curves (relative to the RoM where it can)
+    truth = rows["rom_deg"].to_numpy(float)
+    sd = np.asarray(policy.sigma_surrogate(moment, truth), dtype=float)
     within = np.abs(err) <= 2.0 * sd
     out: dict[str, Any] = {
         k: {} for k in ("coverage_2sigma", "mae_deg", "rms_deg", "sigma_deg", "n_points")
