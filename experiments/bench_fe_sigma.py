@@ -7,7 +7,9 @@ validation split of ``femcal train``) on the campaign's Large split and compares
 the held-out configurations:
 
 * ``global``: one sd at every moment, the validation MAE times sqrt(pi / 2);
-* ``profile``: the validation error by moment (``val_error_profile_``, what femcal uses);
+* ``profile``: the validation error by moment (``val_error_profile_``'s ``rms_deg``);
+* ``relative``: the validation error relative to the RoM by moment times each point's RoM
+  (``relative_rms``: what the diagnosis counts at a specimen's own curves);
 * ``spread``: the members' spread at each point times a factor per moment band, the factor
   chosen on the Small split so that 95 % of its errors lie within 2 sd, scored on Test (a
   local sd: where the specimen sits in the parameter box).
@@ -75,6 +77,21 @@ def train_fe_recipe(prepared: Path) -> Any:
     )
 
 
+def validation_profile(model: Any, prepared: Path) -> Any:
+    """``model`` with its error profile measured again on the validation split of
+    ``femcal train`` (a model saved without ``relative_rms``)."""
+    from femcal.train import validation_split
+
+    params = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())["train"]
+    table = pd.read_csv(prepared / "large.csv")
+    table = table[np.isfinite(table["rom_deg"])]
+    _, val = validation_split(table, fraction=params["val_fraction"], seed=params["seed"])
+    pred = model.predict(val)
+    return model.record_validation_error(
+        val["moment_nm"].to_numpy(float), pred - val["rom_deg"].to_numpy(float), pred
+    )
+
+
 def errors_and_spread(model: Any, table: pd.DataFrame) -> pd.DataFrame:
     """Per reached point: moment, error (deg) and the members' sd (deg)."""
     rows = table[np.isfinite(table["rom_deg"])].reset_index(drop=True)
@@ -119,7 +136,7 @@ def stated_sd(model: Any, table: pd.DataFrame, policy: MomentPolicy) -> dict[str
     """Coverage of a policy's sd, with its median and mean per band."""
     cov = sigma_coverage(model, table, policy)
     rows = table[np.isfinite(table["rom_deg"])]
-    sd = policy.sigma_surrogate(rows["moment_nm"].to_numpy(float))
+    sd = policy.sigma_surrogate(rows["moment_nm"].to_numpy(float), rows["rom_deg"].to_numpy(float))
     out = {}
     for band in BANDS:
         name = f"{band[0]:g}-{band[1]:g}"
@@ -138,6 +155,21 @@ def measure(model: Any, tables: dict[str, pd.DataFrame]) -> dict[str, Any]:
     root = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())["moments"]
     keywords = {"growth": root["error_growth"], "max_log_ratio": root["max_log_ratio"]}
     profile = MomentPolicy.for_surrogate(model, **keywords)
+    relative = MomentPolicy(
+        profile.trained_range,
+        profile.error_deg,
+        profile.growth,
+        profile.max_log_ratio,
+        profile.profile,
+        model.val_error_profile_["relative_rms"],
+    )
+    profile = MomentPolicy(
+        profile.trained_range,
+        profile.error_deg,
+        profile.growth,
+        profile.max_log_ratio,
+        profile.profile,
+    )
     flat = MomentPolicy.for_surrogate(
         model, **keywords, error_deg=model.best_val_mae_deg_ * math.sqrt(math.pi / 2)
     )
@@ -145,6 +177,7 @@ def measure(model: Any, tables: dict[str, pd.DataFrame]) -> dict[str, Any]:
     figures = {
         "global": stated_sd(model, tables["test"], flat),
         "profile": stated_sd(model, tables["test"], profile),
+        "relative": stated_sd(model, tables["test"], relative),
         "spread": spread_sd(errors_and_spread(model, tables["small"]), test),
         "val_mae_deg": model.best_val_mae_deg_,
         "val_error_profile": model.val_error_profile_,
@@ -166,7 +199,7 @@ def markdown(figures: dict[str, Any], command: str) -> str:
         "| sd | band (Nm) | within 2 sd (Test) | sd median (deg) | sd mean (deg) |",
         "| --- | --- | --- | --- | --- |",
     ]
-    for kind in ("global", "profile", "spread"):
+    for kind in ("global", "profile", "relative", "spread"):
         for name, row in figures[kind].items():
             lines.append(
                 f"| {kind} | {name} | {row['coverage_2sigma']:.3f} | "
@@ -203,7 +236,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         else:
             from femcal.surrogates.nn import NeuralSurrogate
 
-            model = NeuralSurrogate.load(args.model)
+            model = validation_profile(NeuralSurrogate.load(args.model), prepared)
     figures = measure(model, tables)
     command = reproduce_command("bench_fe_sigma", argv)
     args.out.mkdir(parents=True, exist_ok=True)
