@@ -142,6 +142,13 @@ def test_a_relative_profile_gives_the_error_where_the_specimen_sits() -> None:
         0.02,
         0.03,
     )
+    # calibrate's weights: the inverse variances of the same sd at each measured point
+    got = policy.point_weights([1.0, 5.0], np.ones(rom.shape), 0.05, rom)
+    expected = (0.05**2 + 0.03**2) / (0.05**2 + np.array([[0.04, 0.3], [0.01, 0.12]]) ** 2)
+    np.testing.assert_allclose(got, expected)
+    assert policy.average_sd([1.0, 5.0], np.ones(rom.shape), 0.05, None, rom) == pytest.approx(
+        policy.unit_sd(0.05) / np.sqrt(expected.mean())
+    )
     with pytest.raises(ConfigError, match=r"profile must be \(moments, sd\) of equal length"):
         MomentPolicy((1.0, 5.0), 0.03, 1.0, 0.5, ((1.0, 5.0), (0.01, 0.08)), (0.02,))
 

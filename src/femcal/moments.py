@@ -1,14 +1,11 @@
 """One moment policy for every command: which applied moments a surrogate may be used at.
 
-A surrogate is trained on moments ``[lo, hi]`` (its ``moment_range_``, 1..5 Nm for the
-champion). Outside that range it extrapolates, and its error grows with the log-moment distance
-``L = log(M / hi)`` above the range and ``log(lo / M)`` below it (``L = 0`` inside). The policy
-models the surrogate's error sd at a moment ``M`` as ``error_deg * exp(growth[side] * L)``, one
-growth rate per side of the range (``side`` is ``below`` or ``above``): above the range that is
-``error_deg * (M / hi) ** growth``. Each side's growth rate and its limit ``max_log_ratio[side]``
-(the largest ``L`` the error was measured at on that side) are measured by the same code for
-both ends, ``experiments/bench_extrapolation.py`` on the Test split's held-out FE curves
-(docs: Benchmarks, surrogates and calibration), and set in params.yaml's ``moments`` section.
+A surrogate is trained on moments ``[lo, hi]`` (its ``moment_range_``). Outside that range it
+extrapolates, and its error grows with the log-moment distance ``L = log(M / hi)`` above the
+range and ``log(lo / M)`` below it (``L = 0`` inside): the policy's error sd at ``M`` is the
+in-range sd times ``exp(growth[side] * L)`` (``side``: ``below`` or ``above``). Each side's
+growth and its limit ``max_log_ratio[side]`` (the largest ``L`` measured) come from
+``experiments/bench_extrapolation.py`` on held-out FE curves, set in params.yaml's ``moments``.
 
 ``femcal calibrate`` and ``femcal diagnose`` both screen a file with :meth:`MomentPolicy.screen`:
 points at moments within the limits are used (a warning beyond the trained range, with the
@@ -328,7 +325,7 @@ class MomentPolicy:
         return 1.0 / self.error_factor(moments) ** 2
 
     def point_weights(
-        self, moments: Any, weight: Any, noise_deg: float | None = None
+        self, moments: Any, weight: Any, noise_deg: float | None = None, rom_deg: Any = None
     ) -> np.ndarray:
         """Relative fit weights of measured points: their inverse variances.
 
@@ -348,6 +345,8 @@ class MomentPolicy:
             The measurements' own weights, >= 0 (0: the point does not count).
         noise_deg : float, optional
             Measurement noise sd in degrees, > 0.
+        rom_deg : array_like, shape (..., m), optional
+            The measured curves: ``sd(M)`` at each point as :meth:`sigma_surrogate` gives it.
 
         Returns
         -------
@@ -360,7 +359,7 @@ class MomentPolicy:
             ``noise_deg`` is not a finite number > 0.
         """
         w = np.asarray(weight, dtype=float)
-        sd2 = self.sigma_surrogate(moments) ** 2
+        sd2 = self.sigma_surrogate(moments, rom_deg) ** 2
         if noise_deg is None:
             rel2 = (
                 sd2 / self.error_deg**2 if self.error_deg > 0 else self.error_factor(moments) ** 2
@@ -385,15 +384,16 @@ class MomentPolicy:
         measurement inside the trained range, ``hypot(noise_deg, error_deg)``."""
         return float(math.hypot(noise_deg, self.error_deg))
 
-    def average_sd(self, moments: Any, weight: Any, noise_deg: float, mask: Any = None) -> float:
+    def average_sd(
+        self, moments: Any, weight: Any, noise_deg: float, mask: Any = None, rom_deg: Any = None
+    ) -> float:
         """The error sd of a point of average fit weight: ``sqrt(1 / mean(1 / var))``.
 
         ``var = noise_deg^2 / w + sd(M)^2`` as in :meth:`point_weights`, averaged over the
         points with ``w > 0`` (and ``mask``). A calibration normalises each specimen's weights
         to a mean of 1, so this is the error scale that gives the points their own variances
-        (exactly where every specimen has the same weights): one measurement per point inside
-        the trained range gives ``hypot(noise_deg, error_deg)``; the mean of ``k`` repeats at
-        every point ``sqrt(noise_deg^2 / k + error_deg^2)``.
+        (exactly where every specimen has the same weights): one measurement per point with
+        ``sd(M) = error_deg`` gives ``hypot(noise_deg, error_deg)``.
 
         Parameters
         ----------
@@ -402,15 +402,15 @@ class MomentPolicy:
             The measurements' own weights, >= 0.
         noise_deg : float
             Measurement noise sd in degrees, > 0.
-        mask : array_like of bool, shape (..., m), optional
-            The measured points (default: every point).
+        mask, rom_deg : array_like, shape (..., m), optional
+            The measured points (default: every point), the curves (:meth:`point_weights`).
 
         Returns
         -------
         float
             In degrees.
         """
-        rel = self.point_weights(moments, weight, noise_deg)
+        rel = self.point_weights(moments, weight, noise_deg, rom_deg)
         keep = rel > 0 if mask is None else (rel > 0) & np.asarray(mask, dtype=bool)
         if not keep.any():
             raise ConfigError("average_sd: no point has a positive weight; give a measured point.")

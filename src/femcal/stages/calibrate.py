@@ -323,14 +323,16 @@ def run_calibrate(
     screened = policy.screen(meas)  # points beyond the measured limits dropped, with a warning
     meas = screened.measurements
     # (n, 4, m): relative inverse variances (noise^2 / w + sd(M)^2, or w / sd(M)^2 without noise)
-    weight = policy.point_weights(meas.moments, meas.weight, noise_deg)
+    weight = policy.point_weights(meas.moments, meas.weight, noise_deg, meas.rom_deg)
     model = _curve_model(surrogate, meas.moments, effects)
     # Before the fit: can the model produce these curves at all? (raises or warns)
     reach = assess_reachability(
         meas, model, sigma_model=policy.sigma_surrogate(meas.moments), reference=start_bank
     )
     # the error scale of a point of average weight (pgd's ranges)
-    point_sd = noise_deg and policy.average_sd(meas.moments, meas.weight, noise_deg, meas.mask())
+    point_sd = noise_deg and policy.average_sd(
+        meas.moments, meas.weight, noise_deg, meas.mask(), meas.rom_deg
+    )
     opts = calibration_options(
         method, s.options, surrogate=surrogate, start_bank=start_bank, point_sd_deg=point_sd
     )
