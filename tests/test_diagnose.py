@@ -12,7 +12,14 @@ import numpy as np
 import pytest
 
 from femcal.calibration import SurrogateCurveModel
-from femcal.diagnose import NONE, UNEXPLAINED, DiagnoseOptions, diagnose, verdict_label
+from femcal.diagnose import (
+    NONE,
+    OUTSIDE_BOX,
+    UNEXPLAINED,
+    DiagnoseOptions,
+    diagnose,
+    verdict_label,
+)
 from femcal.effects.planted import fe_rotation
 from femcal.effects.split import base_name
 from femcal.errors import ConfigError
@@ -129,6 +136,20 @@ def test_none_only_when_the_disc_alone_explains_the_data(world):
             assert s.verdict != NONE
     none = [s.verdict for s, t in zip(diag.specimens, truth) if t == "none"]
     assert none.count(NONE) >= 4, none
+
+
+def test_no_disc_inside_the_box_is_called_outside_it(world):
+    """Every disc of this world lies inside the box. Its facet-and-ligament discs leave the
+    disc alone's reach and press the box, so the out-of-box reading looks at them, and their
+    elements engage: no verdict names the box (femcal.diagnose.outside)."""
+    _, _, truth, diag = world
+    assert all(OUTSIDE_BOX not in s.verdict for s in diag.specimens), [
+        s.verdict for s in diag.specimens
+    ]
+    for s, t in zip(diag.specimens, truth):
+        if t == "combination":
+            assert s.outside_box is not None and not s.outside_box["named"]
+            assert s.probabilities["outside_box"] < 0.5
 
 
 def test_outputs_carry_curves_over_each_specimens_own_range(world):
@@ -384,6 +405,7 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
         weight=np.ascontiguousarray(_weights(sigma, rom.shape)),
         sigma=sigma,
         sigma_m=sigma[0, 0],
+        surrogate_sd=np.zeros(rom.shape),
         options=DiagnoseOptions(max_iter=3),
         candidates=["facet_contact", "ligament_tension"],
         start_bank=None,

@@ -249,7 +249,9 @@ def discrepancy_stand_in(delta: np.ndarray, pred: np.ndarray, side: str) -> dict
     }
 
 
-def box_evidence(base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarray, unit_disc):
+def box_evidence(
+    base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarray, unit_disc, sigma_m
+) -> list[dict[str, Any]]:
     """Per specimen, whether it lies beyond the disc's reach or presses against the box.
 
     Parameters
@@ -264,6 +266,8 @@ def box_evidence(base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarra
         The disc-alone fit's curves.
     unit_disc : ndarray, shape (n, 13)
         The disc-alone fit in the box's unit coordinates.
+    sigma_m : ndarray, shape (m,)
+        The sd of a point of weight 1 at each moment (distances to the envelope in it).
 
     Returns
     -------
@@ -273,10 +277,8 @@ def box_evidence(base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarra
         ``softer`` above), ``side`` (where most points lie beyond, else the sign of the disc
         alone's residuals) and ``on_bounds`` (parameter -> ``lower`` or ``upper``).
     """
-    sigma_m = np.nanmin(np.where(np.isfinite(measured), sigma, np.nan), axis=(0, 1))
-    sigma_m = np.where(np.isfinite(sigma_m), sigma_m, np.nanmin(sigma))
     env = build_envelope(base, sigma_model=np.zeros(len(sigma_m)))
-    d = _distances(measured, env, sigma_m)
+    d = _distances(measured, env, np.asarray(sigma_m, dtype=float))
     names = list(base.space.names)
     out = []
     for i in range(len(measured)):
@@ -397,10 +399,12 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
         ``remedy`` and ``summary``; None elsewhere.
     """
     base, n = state.base, state.n
+    outside: list[dict[str, Any] | None] = [None] * n
+    if getattr(base, "surrogate", None) is None:  # no network to read the shapes with
+        return probabilities, outside
     pred0 = disc.pred.double().numpy()
     unit = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
-    evidence = box_evidence(base, state.measured, state.sigma, pred0, unit)
-    outside: list[dict[str, Any] | None] = [None] * n
+    evidence = box_evidence(base, state.measured, state.sigma, pred0, unit, state.sigma_m)
     if not any(e["looks"] for e in evidence):
         return probabilities, outside
     reader = ShapeReader(base, state.mask)
