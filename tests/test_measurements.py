@@ -375,8 +375,8 @@ def test_repeats_that_differ_beyond_the_noise_are_warned_about(
     (warned,) = [r for r in caplog.records if "differ by" in r.getMessage()]
     assert warned.levelno == logging.WARNING
     assert (
-        "the repeats of 1 point differ by more than 0.25 deg (5 sd of a 0.05 deg noise) and "
-        "were averaged: specimen 'S1' Flexion 2 Nm: 3.1, 4.1 deg (lines 2, 4)"
+        "the repeats of 1 point differ by more than 0.25 deg (no noise stated: 5 sd of a 0.05 "
+        "deg noise) and were averaged: specimen 'S1' Flexion 2 Nm: 3.1, 4.1 deg (lines 2, 4)"
         in warned.getMessage()
     )
     caplog.clear()
@@ -384,6 +384,11 @@ def test_repeats_that_differ_beyond_the_noise_are_warned_about(
     with caplog.at_level(logging.INFO, logger="femcal.measurements"):
         read_measurements(tmp_path / "close.csv")
     assert not [r for r in caplog.records if "differ by" in r.getMessage()]
+    # With a stated noise: 5 sd of it (0.1 deg apart is 10 sd of 0.01 deg).
+    with caplog.at_level(logging.INFO, logger="femcal.measurements"):
+        read_measurements(tmp_path / "close.csv", noise_deg=0.01)
+    (warned,) = [r for r in caplog.records if "differ by" in r.getMessage()]
+    assert "more than 0.05 deg (5 sd of the stated 0.01 deg noise)" in warned.getMessage()
 
 
 def test_a_copied_row_is_warned_about(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:

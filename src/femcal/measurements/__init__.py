@@ -60,6 +60,7 @@ from femcal.measurements.parse import (
     _Problems,
     _read_records,
     _specimen,
+    stated_noise,
 )
 from femcal.schema import LOAD_CASES, canonical_load_case
 
@@ -314,7 +315,7 @@ def _read_study(folder: Path) -> Measurements:
     )
 
 
-def read_measurements(path: str | Path) -> Measurements:
+def read_measurements(path: str | Path, *, noise_deg: float | None = None) -> Measurements:
     """Read and validate a measurement file (or a folder of the study's result files).
 
     Parameters
@@ -322,6 +323,10 @@ def read_measurements(path: str | Path) -> Measurements:
     path : str or Path
         A long or wide CSV file, or a folder holding ``ROM_Results_<LoadCase>*.csv`` files;
         see the module documentation for the layouts.
+    noise_deg : float, optional
+        The stated sd of one measurement: repeats of one point further apart than
+        :data:`~femcal.measurements.parse.REPEAT_CONFLICT_SIGMAS` of it are warned about
+        (without it, further apart than :data:`~femcal.measurements.parse.REPEAT_CONFLICT_DEG`).
 
     Returns
     -------
@@ -335,7 +340,22 @@ def read_measurements(path: str | Path) -> Measurements:
         The file is missing, empty, of an unknown layout or holds invalid values; the message
         names the file, line, column and the fix.
     """
-    path = Path(path)
+    with stated_noise(noise_deg):
+        meas, layout = _read(Path(path))
+    logger.info(
+        "Read %s (%s layout): %d specimens, %d measured points, moments %s Nm.",
+        path,
+        layout,
+        meas.n_specimens,
+        int(meas.mask().sum()),
+        ", ".join(f"{x:g}" for x in meas.moments),
+    )
+    _warn_missing(meas)
+    return meas
+
+
+def _read(path: Path) -> tuple[Measurements, str]:
+    """The measurements of ``path`` and the name of its layout."""
     if path.is_dir():
         meas = _read_study(path)
         layout = "study result files"
@@ -356,13 +376,4 @@ def read_measurements(path: str | Path) -> Measurements:
                 f"{path}, line {header_line}: unrecognised layout; the header is {header}. "
                 f"{_LAYOUTS_HELP}. Rename the columns to match one of them."
             )
-    logger.info(
-        "Read %s (%s layout): %d specimens, %d measured points, moments %s Nm.",
-        path,
-        layout,
-        meas.n_specimens,
-        int(meas.mask().sum()),
-        ", ".join(f"{x:g}" for x in meas.moments),
-    )
-    _warn_missing(meas)
-    return meas
+    return meas, layout

@@ -3,6 +3,8 @@ problems collected per file."""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import csv
 import io
 import logging
@@ -40,9 +42,27 @@ WIDE_COLUMNS: tuple[str, ...] = ("specimen", "load_case")
 ZERO_MOMENT_ATOL = 1e-6
 
 
-#: Repeats of one point whose RoM values span more than this (degrees; 5 sd of a 0.05 deg
-#: measurement noise) conflict: they are still averaged, with a warning naming them.
+#: Repeats of one point whose RoM values span more than this many sd of the stated
+#: measurement noise conflict: they are still averaged, with a warning naming them.
+REPEAT_CONFLICT_SIGMAS = 5.0
+
+
+#: The same where no noise is stated (degrees: 5 sd of a 0.05 deg noise).
 REPEAT_CONFLICT_DEG = 0.25
+
+
+#: The stated sd of one measurement while a file is read (:func:`stated_noise`).
+_NOISE: contextvars.ContextVar[float | None] = contextvars.ContextVar("noise_deg", default=None)
+
+
+@contextlib.contextmanager
+def stated_noise(noise_deg: float | None) -> Iterator[None]:
+    """Within the block, the files read state ``noise_deg`` as the sd of one measurement."""
+    token = _NOISE.set(noise_deg)
+    try:
+        yield
+    finally:
+        _NOISE.reset(token)
 
 
 _MISSING_TOKENS = frozenset({"", "nan", "na", "n/a", "null", "none", "-nan"})
@@ -409,12 +429,20 @@ def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
 
 
 def _warn_conflicts(source: str, repeats: list[list[_Point]]) -> None:
-    """Warn where the repeats of one point span more than :data:`REPEAT_CONFLICT_DEG`, naming
-    each point (specimen, load case, moment), its values and lines."""
+    """Warn where the repeats of one point span more than :data:`REPEAT_CONFLICT_SIGMAS` sd
+    of the stated noise (:func:`stated_noise`; none stated: :data:`REPEAT_CONFLICT_DEG`),
+    naming each point (specimen, load case, moment), its values and lines."""
+    noise = _NOISE.get()
+    if noise:
+        limit = REPEAT_CONFLICT_SIGMAS * noise
+        why = f"{REPEAT_CONFLICT_SIGMAS:g} sd of the stated {noise:g} deg noise"
+    else:
+        limit = REPEAT_CONFLICT_DEG
+        why = f"no noise stated: {REPEAT_CONFLICT_SIGMAS:g} sd of a 0.05 deg noise"
     conflicts: list[str] = []
     for g in repeats:
         rom = [p.rom for p in g]
-        if max(rom) - min(rom) > REPEAT_CONFLICT_DEG:
+        if max(rom) - min(rom) > limit:
             conflicts.append(
                 f"specimen {g[0].specimen!r} {LOAD_CASES[g[0].load_case]} {g[0].moment:g} Nm: "
                 f"{', '.join(f'{r:g}' for r in rom)} deg (lines "
@@ -422,14 +450,15 @@ def _warn_conflicts(source: str, repeats: list[list[_Point]]) -> None:
             )
     if conflicts:
         logger.warning(
-            "%s: the repeats of %d point%s differ by more than %g deg (5 sd of a 0.05 deg noise) "
-            "and were averaged: %s. Repeats of one point should agree within the noise: check "
+            "%s: the repeats of %d point%s differ by more than %.3g deg (%s) and were averaged: "
+            "%s. Repeats of one point should agree within the noise: check "
             "those rows for a typo, another specimen or another load case, and correct or "
             "delete the wrong one.",
             source,
             len(conflicts),
             "s" if len(conflicts) > 1 else "",
-            REPEAT_CONFLICT_DEG,
+            limit,
+            why,
             "; ".join(conflicts[:_MAX_LISTED]) + _more(len(conflicts)),
         )
 

@@ -312,7 +312,7 @@ def run_calibrate(
     from femcal.tracking import is_local_model, load_surrogate, open_model
 
     plots = plot_mode(s.plots)  # a wrong value before the calibration
-    meas = read_measurements(measurements)
+    meas = read_measurements(measurements, noise_deg=noise_deg)  # repeats checked against it
     if not all(is_local_model(uri) for uri in (model_uri, holdout_uri) if uri):
         tracker.use_store_here()  # models:/ URIs are resolved in the tracking store
     source = open_model(model_uri)

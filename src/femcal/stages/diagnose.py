@@ -192,7 +192,7 @@ def run_diagnose(settings: DiagnoseSettings):
     from femcal.tracking import load_surrogate, open_model
 
     options = DiagnoseOptions(**s.options)
-    meas = read_measurements(measurements)
+    meas = read_measurements(measurements, noise_deg=noise_deg)  # repeats checked against it
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(
