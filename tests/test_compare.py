@@ -26,3 +26,16 @@ def test_write_comparison_writes_markdown_and_json(tmp_path):
     assert [p.name for p in paths] == ["comparison.md", "comparison.json"]
     assert "| mae_deg | 0.1000 | 0.0500 | -0.0500 | 0.50 |" in paths[0].read_text()
     assert json.loads(paths[1].read_text())["before"]["effects"] == "none"
+
+
+def test_a_comparison_without_a_shared_metric_says_so(tmp_path):
+    frame = comparison_frame({"sigma_deg": 0.06}, {"mae_deg": 0.05})
+    (md, _) = write_comparison(
+        frame,
+        tmp_path,
+        before={"source": "folder d (femcal diagnose)", "chosen": "given by --compare-to"},
+        after={"run_id": "b"},
+    )
+    text = md.read_text()
+    assert "Compared with folder d (femcal diagnose), given by --compare-to." in text
+    assert "No metric in common: the earlier output holds none of mae_deg" in text

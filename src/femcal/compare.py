@@ -268,7 +268,8 @@ def write_comparison(
 
     ``before`` and ``after`` describe the two runs (run id, effects, model version);
     ``before`` also says what was compared with (``source``: a run or a folder) and how it was
-    chosen (``chosen``), both written on the page's first lines.
+    chosen (``chosen``), both written on the page's first lines. With no metric in common
+    (e.g. a diagnosis folder), the page says so.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -291,6 +292,12 @@ def write_comparison(
             f"| {row.metric} | {row.before:.4f} | {row.after:.4f} | {row.change:+.4f} | "
             f"{row.ratio:.2f} |"
         )
+    if frame.empty:
+        lines += [
+            "",
+            f"No metric in common: the earlier output holds none of {', '.join(COMPARED)}. "
+            "Compare with the output folder or run of an earlier calibration.",
+        ]
     md = out_dir / "comparison.md"
     md.write_text("\n".join(lines) + "\n")
     js = out_dir / "comparison.json"
