@@ -177,7 +177,7 @@ def test_the_study_test_set_is_within_reach_without_a_warning(test_meas, envelop
     with caplog.at_level(logging.INFO, logger="femcal.reachability"):
         report.enforce()
     assert [r.levelno for r in caplog.records] == [logging.INFO]
-    assert "every measured point lies within the model's envelope" in caplog.text
+    assert "every measured point lies within the envelope of the disc alone" in caplog.text
 
 
 def test_radians_are_refused_with_the_hint(test_meas, envelope):
@@ -251,7 +251,11 @@ def test_flexion_extension_swapped_get_the_convention_hint_where_the_model_tells
     report = check_reachability(swapped, env)
     assert report.outside == names
     assert set(report.cause_key) == {"load_cases:Extension,Flexion,LateralBending,AxialRotation"}
-    hint = "a different load case convention? the curves fit with Flexion and Extension swapped"
+    hint = (
+        "physics the disc alone lacks (run `femcal diagnose`: it fits the disc with each effect "
+        "and names the one missing; --effects adds it); else a different load case convention: "
+        "the curves fit with Flexion and Extension swapped"
+    )
     assert hint in report.message()
 
 
@@ -388,7 +392,7 @@ def test_calibrate_marks_the_specimen_out_of_reach(registry, test_meas, caplog):
     assert re.search(r"soft\.csv: 1 of 4 specimens .*: '53'", caplog.text)
     assert figures["n_outside_envelope"] == 1
     metrics = pd.read_csv(registry / "out" / "metrics.csv", keep_default_na=False)
-    assert metrics["reachability"].str.match(r"\d+/20 points outside the model.s envelope")[0]
+    assert metrics["reachability"].str.match(r"\d+/20 points outside the envelope of the disc")[0]
     assert metrics["reachability"].tolist()[1:] == ["", "", ""]
     assert "outside envelope" in metrics["flag"][0]
     assert "specimens have measured points outside every curve" in (

@@ -116,8 +116,25 @@ def _permutation_name(perm: Sequence[int]) -> str:
     )
 
 
-def _candidates() -> list[tuple[str, Callable[[np.ndarray], np.ndarray], str]]:
-    """(name, transform of rom (n, 4, m), hint) of the likely causes, in order of preference."""
+def _physics(effects: Sequence[str]) -> str:
+    """The cause "physics the model lacks", naming the model (the disc alone or with
+    ``effects``) and the command that names the physics."""
+    model = f"the disc with {'+'.join(effects)}" if effects else "the disc alone"
+    return (
+        f"physics {model} lacks (run `femcal diagnose`: it fits the disc with each effect and "
+        "names the one missing; --effects adds it)"
+    )
+
+
+def _candidates(
+    effects: Sequence[str] = (),
+) -> list[tuple[str, Callable[[np.ndarray], np.ndarray], str]]:
+    """(name, transform of rom (n, 4, m), hint) of the likely causes, in order of preference.
+
+    A unit change that brings the values within reach is named alone. A load-case order that
+    does is named second, after physics the model (the disc alone, or with ``effects``) lacks:
+    a missing element shifts the balance between load cases as a swap does, and is the more
+    common of the two."""
     out: list[tuple[str, Callable[[np.ndarray], np.ndarray], str]] = [
         (
             "radians",
@@ -141,10 +158,9 @@ def _candidates() -> list[tuple[str, Callable[[np.ndarray], np.ndarray], str]]:
             (
                 "load_cases:" + ",".join(LOAD_CASES[k] for k in perm),
                 lambda r, perm=perm: r[:, list(perm)],
-                f"a different load case convention? the curves fit with {name}: check which "
-                "direction each column holds (flexion is forward bending; femcal reads "
-                f"{', '.join(LOAD_CASES)}); if the columns are right, physics the model lacks "
-                "(`femcal diagnose` names it, --effects adds it)",
+                f"{_physics(effects)}; else a different load case convention: the curves fit "
+                f"with {name}; check which direction each column holds (flexion is forward "
+                f"bending; femcal reads {', '.join(LOAD_CASES)})",
             )
         )
     return out
@@ -275,7 +291,7 @@ def check_reachability(
     if bad.size:
         sub = rom[bad]
         open_ = np.ones(bad.size, dtype=bool)
-        for name, transform, hint in _candidates():
+        for name, transform, hint in _candidates(envelope.effects):
             if not open_.any():
                 break
             nz = _distances(transform(sub[open_]), envelope, sigma).z
@@ -291,10 +307,10 @@ def check_reachability(
             key[i], cause[i] = _plain_cause(
                 d, i, z_outside=z_outside, single=bool(n_out[i] == 1 and worst[i] <= z_far)
             )
-            if not envelope.effects and key[i] in ("above", "below", "balance"):
-                cause[i] += (
-                    "; or physics the disc lacks: `femcal diagnose` names it, --effects adds it"
-                )
+            if key[i] == "balance":  # as a load-case order: the likelier cause first
+                cause[i] = f"{_physics(envelope.effects)}; else {cause[i]}"
+            elif not envelope.effects and key[i] in ("above", "below"):
+                cause[i] += f"; or {_physics(())}"
     return ReachabilityReport(
         source=meas.source,
         specimens=tuple(meas.specimens),

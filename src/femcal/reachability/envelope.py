@@ -74,11 +74,21 @@ class Envelope:
         """``sqrt(noise_deg^2 + sigma_model^2)`` (deg), shape (m,)."""
         return np.hypot(float(noise_deg), self.sigma_model)
 
+    @property
+    def model(self) -> str:
+        """Which model's envelope this is, for messages: ``"the disc alone"`` or ``"the disc
+        with neutral_zone+facet_contact"``."""
+        return f"the disc with {'+'.join(self.effects)}" if self.effects else "the disc alone"
+
+    def basis(self) -> str:
+        """What the envelope is sampled from: ``"its whole parameter box (1024 surrogate
+        curves and 192 FE training curves)"``."""
+        ref = f" and {self.n_reference} FE training curves" if self.n_reference else ""
+        return f"its whole parameter box ({self.n_evaluated} surrogate curves{ref})"
+
     def describe(self) -> str:
         """What the envelope is made of, for messages."""
-        what = "the disc model" + (f" with {'+'.join(self.effects)}" if self.effects else "")
-        ref = f" and {self.n_reference} FE training curves" if self.n_reference else ""
-        return f"{what} over its whole parameter box ({self.n_evaluated} surrogate curves{ref})"
+        return f"{self.model} over {self.basis()}"
 
 
 def _features(y: Any, xp: Any) -> tuple[Any, Any]:

@@ -117,7 +117,8 @@ class ReachabilityReport:
                 out.append("")
                 continue
             out.append(
-                f"{self.n_outside[i]}/{self.n_points[i]} points outside the model's envelope, "
+                f"{self.n_outside[i]}/{self.n_points[i]} points outside the envelope of "
+                f"{self.envelope.model}, "
                 f"worst {self.worst_sigma[i]:.1f} sigma ({self.worst_where[i]}); likely cause: "
                 f"{self.cause[i]}"
             )
@@ -180,8 +181,9 @@ class ReachabilityReport:
                 else ""
             )
             return (
-                f"{self.source}: the measurements lie outside every curve the model can produce "
-                f"({self.envelope.describe()}): {len(bad)} of {n} specimens have points outside "
+                f"{self.source}: the measurements lie outside every curve {self.envelope.model} "
+                f"can produce over {self.envelope.basis()}: {len(bad)} of {n} specimens have "
+                "points outside "
                 f"({len(self.far)} with most points outside), by up to "
                 f"{max(self.worst_sigma):.0f} sigma ({sigma_text}); specimens {names}; load "
                 f"cases {self._load_cases(bad)}. E.g. {self._example(bad)}. Likely cause: "
@@ -191,8 +193,8 @@ class ReachabilityReport:
             )
         return (
             f"{self.source}: {len(bad)} of {n} specimens have measured points outside every "
-            f"curve the model can produce ({self.envelope.describe()}; more than "
-            f"{self.z_outside:g} sigma, {sigma_text}): {names}; load cases "
+            f"curve {self.envelope.model} can produce over {self.envelope.basis()} (by more "
+            f"than {self.z_outside:g} sigma, {sigma_text}): {names}; load cases "
             f"{self._load_cases(bad)}. E.g. {self._example(bad)}; likely cause: {cause}. A fit "
             "cannot reach those points: check these specimens before trusting their results."
         )
@@ -214,8 +216,10 @@ class ReachabilityReport:
         text = self.message()
         if not text:
             logger.info(
-                "%s: every measured point lies within the model's envelope (checked in %.2f s).",
+                "%s: every measured point lies within the envelope of %s (every curve it can "
+                "produce over its parameter box; checked in %.2f s).",
                 self.source,
+                self.envelope.model,
                 self.seconds + self.envelope.seconds,
             )
             return

@@ -229,9 +229,15 @@ def fit_warnings(figures: dict, out: str) -> str:
             f"(R² < 0): see {out}/metrics.csv (column flag)"
         )
     if figures.get("n_outside_envelope"):
+        model = figures.get("envelope_model", "the model")
         parts.append(
             f"WARNING: {figures['n_outside_envelope']} of {n} specimens have points outside "
-            f"every curve the model can produce: see {out}/metrics.csv (column reachability)"
+            f"every curve {model} can produce: see {out}/metrics.csv (column reachability)"
+            + (
+                "; `femcal diagnose` checks them against the disc with effects"
+                if model == "the disc alone"
+                else ""
+            )
         )
     if figures.get("n_beyond_noise"):
         parts.append(
@@ -476,6 +482,7 @@ def _write_and_log(
             raise
         tracker.call(end_calibration_run, status="FINISHED")
     _log_comparison(compared, s.out_dir)
+    figures["envelope_model"] = reach.envelope.model  # whose envelope was checked (describe)
     return figures
 
 
