@@ -112,7 +112,7 @@ SOURCES: dict[str, dict[str, Source]] = {
         "mae_deg": ("fe_predictive_mae_deg", "clean.predict_mae_deg"),
         "n": ("n_specimens",),
     },
-    "sigma": {"coverage": _worst_band, "mae_deg": ("mae_deg.all",)},
+    "sigma": {"coverage": _worst_band},
 }
 
 
