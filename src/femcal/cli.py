@@ -86,6 +86,16 @@ def _add_metrics_file(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_compare_to(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--compare-to",
+        metavar="RUN_OR_FOLDER",
+        help="write comparison.md against this earlier calibration: its output folder or its "
+        "MLflow run id (default: the latest earlier run of the same file with the disc alone; "
+        "comparison.md and the log say which)",
+    )
+
+
 def _add_effects_module(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--effects-module",
@@ -201,13 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
         "curves.csv and summary.md/json are always written (default: calibrate.plots, "
         "true = all, false = none)",
     )
-    p.add_argument(
-        "--compare-to",
-        metavar="RUN_OR_FOLDER",
-        help="write comparison.md against this earlier calibration: its output folder or its "
-        "MLflow run id (default: the latest earlier run of the same file with the disc alone; "
-        "comparison.md and the log say which)",
-    )
+    _add_compare_to(p)
     _add_metrics_file(p)
     _add_effects_module(p)
     command("plant", help="a cohort with hidden effects from FE curves")
