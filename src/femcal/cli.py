@@ -192,7 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="sd of one measurement in degrees: each point weighs 1 / (noise² / weight + the "
         "surrogate's error²), as in diagnose, and each specimen is tested against it "
         "(metrics.csv: rms_z, p_value, flag 'beyond noise') (default: "
-        "calibrate.datasets.<name>.noise_deg; none: only the surrogate's error is counted)",
+        "calibrate.datasets.<name>.noise_deg, not for --measurements; none: only the "
+        "surrogate's error is counted; the output names the source)",
     )
     p.add_argument(
         "--method", choices=CALIBRATOR_NAMES, help="calibration method (default: calibrate.method)"
@@ -218,7 +219,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("diagnose", help="where the model fails; which effect is missing")
     p.add_argument("--measurements", help="measurement file (default: diagnose.measurements)")
     p.add_argument("--out", help="output folder (default: diagnose.out_dir)")
-    p.add_argument("--noise-deg", type=float, help="measurement noise sd (default: estimated)")
+    p.add_argument(
+        "--noise-deg",
+        type=float,
+        help="sd of one measurement in degrees (default: diagnose.noise_deg in params.yaml when "
+        "set, else estimated with its uncertainty from the residuals of the disc alone, which "
+        "count physics the disc lacks too; the output names the source)",
+    )
     p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
     _add_metrics_file(p)
     _add_effects_module(p)

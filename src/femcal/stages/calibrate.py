@@ -29,6 +29,7 @@ from femcal.stages.common import (
     check_measurements,
     dropped_note,
     moment_policy,
+    noise_setting,
     output_folder,
     typed,
     write_metrics,
@@ -71,6 +72,7 @@ class CalibrateSettings(StageSettings):
     effects: Sequence[str] = ()
     effect_modules: Sequence[Path] = ()
     noise_deg: float | None = None
+    noise_source: str = ""
     compare_to: str | None = None
 
     @classmethod
@@ -120,10 +122,12 @@ class CalibrateSettings(StageSettings):
         else:  # another file than the dataset's: not the dataset's effects nor noise
             effects = [] if given or entry is None else list(entry.effects)
         measurements = Path(given) if given else setting_path(params, entry.measurements)
-        if args.get("noise_deg") is not None:
-            noise = _cli_noise(args["noise_deg"])
-        else:
-            noise = None if given or entry is None else entry.noise_deg
+        noise, noise_source = noise_setting(  # another file than the dataset's: not its noise
+            params,
+            args.get("noise_deg"),
+            None if given or entry is None else entry.noise_deg,
+            f"calibrate.datasets.{name}.noise_deg",
+        )
         # before anything heavy is imported
         out = output_folder(params, args, "calibrate", subfolder=name or "custom")
         check_measurements(measurements)
@@ -145,21 +149,11 @@ class CalibrateSettings(StageSettings):
             effects=tuple(effects),
             effect_modules=effect_modules(params, args.get("effects_module")),
             noise_deg=noise,
+            noise_source=noise_source,
             compare_to=compare_to,
             metrics_file=args.get("metrics_file"),
             params=params,
         )
-
-
-def _cli_noise(value: float) -> float:
-    """``--noise-deg``, checked: a finite number > 0."""
-    if not (np.isfinite(value) and value > 0):
-        raise ConfigError(
-            "--noise-deg: the measurement noise sd must be a number > 0 in degrees; got "
-            f"{value!r}. Give the sd of one measurement (e.g. 0.05), or leave it out to count "
-            "only the surrogate's error."
-        )
-    return float(value)
 
 
 def run(settings: CalibrateSettings) -> dict[str, Any]:
@@ -185,6 +179,7 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
         user_effects=names,
         user_effect_paths=[str(p) for p in settings.effect_modules],
         noise_deg=settings.noise_deg,
+        noise_source=settings.noise_source,
     )
 
 
@@ -203,6 +198,7 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         f"mean R² {figures['r2_mean']:.4f}, {figures['n_outside_bounds']} outside the bounds"
         f"{held}" + fit_warnings(figures, out)
     )
+    lines += noise_line(figures)
     if figures["n_plotted"] < figures["n_specimens"]:
         lines.append(
             f"plotted {figures['n_plotted']} of {figures['n_specimens']} specimens (max_plots)"
@@ -217,6 +213,13 @@ def _noise_note(figures: Mapping[str, Any]) -> str:
     """`` (measurement noise 0.05 deg counted)`` when the calibration counted one."""
     noise = figures.get("noise_deg")
     return "" if noise is None else f" (measurement noise {noise:g} deg counted)"
+
+
+def noise_line(figures: Mapping[str, Any]) -> list[str]:
+    """The line naming where the measurement noise comes from (none when none is counted)."""
+    if figures.get("noise_deg") is None:
+        return []
+    return [f"measurement noise {figures['noise_deg']:g} deg: {figures['noise_source']}"]
 
 
 def fit_warnings(figures: dict, out: str) -> str:
@@ -412,6 +415,7 @@ def _run_record(
         "chunk_size": s.chunk_size or 0,
         **policy.as_params(),
         "noise_deg": "none" if s.noise_deg is None else s.noise_deg,
+        "noise_source": s.noise_source or "none",
     }
     for key, value in opts.items():
         if key != "start_bank" and not hasattr(value, "predict"):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -225,3 +226,49 @@ def dropped_note(n_dropped: int, out: str) -> str:
         f"WARNING: {n_dropped} measured points lie beyond the moments the surrogate is used at "
         f"and were left out: see {out}/dropped_points.csv (moments.max_log_ratio)"
     )
+
+
+#: How ``describe`` names an estimated noise's source (``femcal diagnose`` without a value).
+ESTIMATED_NOISE = "estimated from the disc-alone residuals"
+
+
+def noise_setting(
+    params: Mapping[str, Any], given: float | None, setting: float | None, key: str
+) -> tuple[float | None, str]:
+    """The measurement noise sd (deg) and where it comes from, for the log and the summary.
+
+    Parameters
+    ----------
+    params : mapping
+        The parsed params.yaml (its ``_path`` names the file).
+    given : float or None
+        ``--noise-deg``: it wins; checked to be a finite number > 0.
+    setting : float or None
+        The value params.yaml gives for this file (None: none).
+    key : str
+        The dotted key of ``setting`` (``diagnose.noise_deg``, ``calibrate.datasets.<name>.
+        noise_deg``).
+
+    Returns
+    -------
+    noise : float or None
+        None where neither gives one.
+    source : str
+        ``"--noise-deg"``, ``"<key> in <absolute path of params.yaml>"`` or ``""``.
+
+    Raises
+    ------
+    ConfigError
+        ``given`` is not a finite number > 0.
+    """
+    if given is not None:
+        if not (math.isfinite(given) and given > 0):
+            raise ConfigError(
+                "--noise-deg: the measurement noise sd must be a number > 0 in degrees; got "
+                f"{given!r}. Give the sd of one measurement (e.g. 0.05), or leave it out."
+            )
+        return float(given), "--noise-deg"
+    if setting is not None:
+        where = Path(params.get("_path", "params.yaml")).resolve()
+        return float(setting), f"{key} in {where}"
+    return None, ""

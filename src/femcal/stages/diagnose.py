@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,10 +11,12 @@ from typing import Any
 from femcal.datasets import training_configurations
 from femcal.paths import setting_path, setting_uri
 from femcal.stages.common import (
+    ESTIMATED_NOISE,
     StageSettings,
     check_measurements,
     dropped_note,
     moment_policy,
+    noise_setting,
     output_folder,
     path_setting,
     typed,
@@ -21,6 +24,8 @@ from femcal.stages.common import (
 )
 from femcal.stages.store import tracking
 from femcal.stages.user_effects import describe_user_effects, effect_modules, load_user_effects
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -45,11 +50,14 @@ class DiagnoseSettings(StageSettings):
     plots: bool = True
     max_plots: int | None = None
     effect_modules: Sequence[Path] = ()
+    noise_source: str = ESTIMATED_NOISE
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> DiagnoseSettings:
         cfg = typed(params, "diagnose")
-        noise = args["noise_deg"] if args.get("noise_deg") is not None else cfg.noise_deg
+        noise, source = noise_setting(
+            params, args.get("noise_deg"), cfg.noise_deg, "diagnose.noise_deg"
+        )
         out = output_folder(params, args, "diagnose")  # before anything heavy is imported
         measurements = (
             Path(args["measurements"])
@@ -57,13 +65,15 @@ class DiagnoseSettings(StageSettings):
             else path_setting(params, "diagnose", "measurements")
         )
         check_measurements(measurements)
+        _warn_foreign_noise(params, measurements, noise, source)
         calibrate = typed(params, "calibrate")
         bank = calibrate.start_bank
         return cls(
             measurements=measurements,
             out_dir=out,
             model_uri=args.get("model_uri") or setting_uri(params, calibrate.model_uri),
-            noise_deg=None if noise is None else float(noise),
+            noise_deg=noise,
+            noise_source=source or ESTIMATED_NOISE,
             candidates=cfg.candidates,
             start_bank=setting_path(params, bank) if bank else None,
             **moment_policy(params),
@@ -76,6 +86,39 @@ class DiagnoseSettings(StageSettings):
         )
 
 
+def _warn_foreign_noise(
+    params: Mapping[str, Any], measurements: Path, noise: float | None, source: str
+) -> None:
+    """Warn where params.yaml's ``diagnose.noise_deg`` is applied to another file than
+    ``diagnose.measurements``, the file it was stated for."""
+    if noise is None or source == "--noise-deg":
+        return
+    own = path_setting(params, "diagnose", "measurements")
+    if own.resolve() == measurements.resolve():
+        return
+    logger.warning(
+        "The measurement noise %g deg is %s, stated for %s, not for %s: give --noise-deg SD, "
+        "the sd of one measurement of this file, or set diagnose.noise_deg: null to estimate "
+        "it from the disc-alone residuals.",
+        noise,
+        source,
+        own,
+        measurements,
+    )
+
+
+def noise_line(diag: Any, source: str) -> str:
+    """Where the diagnosis' measurement noise comes from: the value (with its uncertainty
+    when estimated) and the source."""
+    if source == ESTIMATED_NOISE:
+        return (
+            f"measurement noise {diag.noise_deg:.4f} ± {diag.noise_sd_deg:.4f} deg, {source} "
+            "(pooled, the surrogate's share taken out; physics the disc lacks counts in it: "
+            "give --noise-deg where the noise is known)"
+        )
+    return f"measurement noise {diag.noise_deg:g} deg: {source}"
+
+
 def run(settings: DiagnoseSettings) -> dict[str, Any]:
     """Load the user's effects, diagnose, write the outputs and the DVC metrics (when asked).
 
@@ -84,6 +127,12 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
     from femcal.headlines import diagnosis_headline
 
     names = load_user_effects(settings.effect_modules)
+    if settings.noise_deg is None:
+        logger.info(
+            "measurement noise: %s (--noise-deg or diagnose.noise_deg gives it)", ESTIMATED_NOISE
+        )
+    else:
+        logger.info("measurement noise %g deg: %s", settings.noise_deg, settings.noise_source)
     tracking(settings.params)
     diag, summary = run_diagnose(settings)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
@@ -94,6 +143,7 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
         diagnosis=diag,
         user_effects=names,
         user_effect_paths=[str(p) for p in settings.effect_modules],
+        noise_source=settings.noise_source,
     )
 
 
@@ -112,6 +162,7 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         f"{diag.sigma_deg:.4f} deg): verdicts {diag.verdicts()}; cohort verdict "
         f"{diag.cohort_verdict()}"
     )
+    lines.append(noise_line(diag, figures.get("noise_source", ESTIMATED_NOISE)))
     counts = diag.effect_counts()
     found = diag.found_effects()
     forms = diag.found_forms()
@@ -239,6 +290,7 @@ def run_diagnose(settings: DiagnoseSettings):
                 "measurements": str(measurements),
                 "model_uri": model_uri,
                 "noise_deg": "estimated" if noise_deg is None else noise_deg,
+                "noise_source": s.noise_source,
                 "candidates": ",".join(candidates or []) or "all",
                 "min_delta": options.min_delta,
                 "alpha": options.alpha,
