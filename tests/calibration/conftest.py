@@ -19,7 +19,11 @@ def small_surrogate() -> NeuralSurrogate:
     model = NeuralSurrogate(
         study_space(), hidden=(32, 32), max_epochs=40, patience=40, batch_size=16, seed=0
     )
-    return model.fit(table, table["rom_deg"].to_numpy())
+    model.fit(table, table["rom_deg"].to_numpy())
+    # one stated error at every moment: the weighting tests' arithmetic (the error by moment
+    # and relative to the RoM: tests/test_moments.py and test_stage.py's own surrogate)
+    model.val_error_profile_ = None
+    return model
 
 
 @pytest.fixture

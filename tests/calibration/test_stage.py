@@ -136,7 +136,7 @@ def test_cli_calibrate_with_version_and_errors(registry, truth, capsys, monkeypa
     assert main([*args, "--dataset", "mine", "--model-version", "1", *stage]) == 0
     out = capsys.readouterr().out
     assert "calibrated 2 specimens with pgd against models:/ivd-rom-surrogate/1" in out
-    assert json.loads((tmp / "reports/calibrate-mine.json").read_text())["n_specimens"] == 2
+    assert json.loads((tmp / "reports/calibrate-mine.json").read_text())["n"] == 2
     assert (tmp / "cal/mine/parameters.csv").exists() and not (tmp / "cal/mine/plots").exists()
     # A version that does not exist: exit code 2 and a message naming the URI.
     assert main([*args, "--model-version", "7"]) == 2
