@@ -121,3 +121,22 @@ def curve_model_free():
     model = SurrogateCurveModel(surrogate, (1.0, 2.0, 3.0, 4.0, 5.0))
     x = model.space.sample_uniform(6, np.random.default_rng(1))
     return model, model.predict(x)
+
+
+def test_a_bar_opens_only_after_its_delay(monkeypatch, capsys):
+    from femcal.calibration import progress
+
+    with progress.specimen_bar(4, "calibrate (pgd)", enabled=True) as bar:
+        progress.report_step("Gauss-Newton iteration 1/12", settled=1, of=4)
+        bar.update(4)
+        assert bar.bar is None  # done within the delay: no bar at all
+    monkeypatch.setattr(progress, "BAR_DELAY", 0.0)
+    with progress.specimen_bar(4, "calibrate (pgd)", enabled=True) as bar:
+        progress.report_step("Gauss-Newton iteration 1/12", settled=1, of=4)
+        assert bar.bar is not None
+        assert bar.bar.postfix == "Gauss-Newton iteration 1/12: 1/4 specimens settled"
+        bar.update(4)
+        assert bar.bar.n == 4
+    with progress.specimen_bar(4, "calibrate (pgd)", enabled=False) as bar:
+        assert bar is None
+        progress.report_step("Gauss-Newton iteration 1/12", settled=1, of=4)  # to nobody

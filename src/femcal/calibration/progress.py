@@ -9,6 +9,7 @@ calibrator called outside a bar reports to nobody.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -20,19 +21,46 @@ BAR_DELAY = 2.0
 _BAR: ContextVar[Any] = ContextVar("femcal_calibration_bar", default=None)
 
 
-@contextmanager
-def specimen_bar(total: int, desc: str, *, enabled: bool) -> Iterator[Any]:
-    """A tqdm bar over ``total`` specimens (stderr) where ``enabled``, else None.
+class SpecimenBar:
+    """A tqdm bar over ``total`` specimens (stderr), opened on the first update or step from
+    :data:`BAR_DELAY` seconds on (none before)."""
 
-    The bar shows from :data:`BAR_DELAY` seconds on; :func:`report_step` writes to it
-    meanwhile.
-    """
+    def __init__(self, total: int, desc: str) -> None:
+        self.total, self.desc, self.n = total, desc, 0
+        self.start = time.monotonic()
+        self.bar: Any = None
+
+    def _shown(self) -> Any:
+        if self.bar is None and time.monotonic() - self.start >= BAR_DELAY:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=self.total, desc=self.desc, unit="specimen", initial=self.n)
+        return self.bar
+
+    def update(self, k: int) -> None:
+        """``k`` more specimens done."""
+        self.n += k
+        if self._shown() is not None:
+            self.bar.update(k)
+
+    def step(self, text: str) -> None:
+        """Show ``text`` beside the bar (where the running chunk is)."""
+        if self._shown() is not None:
+            self.bar.set_postfix_str(text)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+@contextmanager
+def specimen_bar(total: int, desc: str, *, enabled: bool) -> Iterator[SpecimenBar | None]:
+    """A :class:`SpecimenBar` where ``enabled``, else None; :func:`report_step` writes to it
+    meanwhile."""
     if not enabled:
         yield None
         return
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=total, desc=desc, unit="specimen", delay=BAR_DELAY)
+    bar = SpecimenBar(total, desc)
     token = _BAR.set(bar)
     try:
         yield bar
@@ -46,4 +74,4 @@ def report_step(step: str, *, settled: int, of: int) -> None:
     settled"``; nothing when no bar is open."""
     bar = _BAR.get()
     if bar is not None:
-        bar.set_postfix_str(f"{step}: {settled}/{of} specimens settled", refresh=True)
+        bar.step(f"{step}: {settled}/{of} specimens settled")
