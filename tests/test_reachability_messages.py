@@ -125,3 +125,16 @@ def test_calibrates_summary_line_names_the_envelope(model, tail):
         f"\nWARNING: 7 of 48 specimens have points outside every curve {model} can produce: "
         f"see out/metrics.csv (column reachability){tail}"
     )
+
+
+def test_more_rotation_than_any_disc_names_missing_physics_first(disc, curves):
+    env = build_envelope(disc, sigma_model=0.02)
+    rom = curves.copy()
+    rom[0] *= 3  # softer than the softest disc of the box, in every load case
+    report = check_reachability(from_arrays(NAMES, MOMENTS, rom, source="soft.csv"), env)
+    assert report.outside == ["S0"] and report.cause_key[0] == "above"
+    assert report.cause[0].startswith(
+        "physics the disc alone lacks (run `femcal diagnose`: it fits the disc with each effect "
+        "and names the one missing; --effects adds it); else more rotation than any disc in the "
+        "parameter box"
+    )

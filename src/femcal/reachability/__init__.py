@@ -307,10 +307,9 @@ def check_reachability(
             key[i], cause[i] = _plain_cause(
                 d, i, z_outside=z_outside, single=bool(n_out[i] == 1 and worst[i] <= z_far)
             )
-            if key[i] == "balance":  # as a load-case order: the likelier cause first
+            if key[i] == "balance" or (not envelope.effects and key[i] in ("above", "below")):
+                # no unit change explains it: missing physics is the likelier cause
                 cause[i] = f"{_physics(envelope.effects)}; else {cause[i]}"
-            elif not envelope.effects and key[i] in ("above", "below"):
-                cause[i] += f"; or {_physics(())}"
     return ReachabilityReport(
         source=meas.source,
         specimens=tuple(meas.specimens),
