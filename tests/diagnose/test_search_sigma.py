@@ -32,3 +32,28 @@ def test_a_negative_or_missing_error_is_refused_before_any_fit() -> None:
         diagnose(
             None, rom, specimens=["a", "b"], noise_deg=0.05, surrogate_error_deg=bad, candidates=[]
         )
+
+
+def test_the_parts_of_a_specimens_sigma() -> None:
+    from femcal.diagnose.result import SpecimenDiagnosis
+
+    sigma = np.full((4, 3), np.hypot(0.05, 0.12))
+    sur = np.full((4, 3), 0.12)
+    sigma[2], sur[2] = np.hypot(0.05, 0.02), 0.02  # a load case with a smaller surrogate error
+    sigma[3], sur[3] = np.nan, np.nan  # not measured
+    spec = SpecimenDiagnosis(
+        specimen="S",
+        verdict="none",
+        baseline_mae_deg=0.1,
+        ranking=[],
+        residuals=np.zeros((4, 3)),
+        sigma=sigma,
+        surrogate_sd=sur,
+    )
+    parts = spec.to_dict()["sigma_parts"]
+    assert parts["noise_deg"] == pytest.approx(0.05)
+    assert parts["surrogate_deg"] == pytest.approx((0.12 * 2 + 0.02) / 3)
+    assert parts["surrogate_by_load_case_deg"] == pytest.approx(
+        {"Flexion": 0.12, "Extension": 0.12, "LateralBending": 0.02}
+    )
+    assert "AxialRotation" not in parts["sigma_by_load_case_deg"]

@@ -145,6 +145,7 @@ def _assemble(
                 next_measurement=nxt,
                 probabilities=probabilities[i],
                 sigma=np.where(mask[i], sigma[i], np.nan),
+                surrogate_sd=np.where(mask[i], state.surrogate_sd[i], np.nan),
                 outside_box=outside[i],
             )
         )

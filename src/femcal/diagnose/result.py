@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from femcal.effects.split import base_name
+from femcal.schema import LOAD_CASES
 
 NONE = "none"
 
@@ -67,6 +68,9 @@ class SpecimenDiagnosis:
     sigma : ndarray, shape (4, m), or None
         Each point's sigma (deg): the noise over the square root of the point's weight (the
         mean of ``k`` repeated measurements weighs ``k``) with the surrogate's error.
+    surrogate_sd : ndarray, shape (4, m), or None
+        The surrogate's part of each point's sigma (deg), NaN where not measured:
+        ``diagnosis.json`` shows both parts (``sigma_parts``).
     curves : dict
         ``moments`` (q,) over the specimen's own measured range and the continuous curves
         (4, q) of the disc alone (``none``) and of the final model (its label).
@@ -114,6 +118,7 @@ class SpecimenDiagnosis:
     next_measurement: dict[str, Any] | None = None
     probabilities: dict[str, Any] = field(default_factory=dict)
     sigma: np.ndarray | None = None
+    surrogate_sd: np.ndarray | None = None
     outside_box: dict[str, Any] | None = None
 
     @property
@@ -147,7 +152,24 @@ class SpecimenDiagnosis:
             "probabilities": self.probabilities,
             "failures": self.failures,
             "outside_box": self.outside_box,
+            "sigma_parts": self.sigma_parts(),
         }
+
+    def sigma_parts(self) -> dict[str, Any] | None:
+        """The parts of the specimen's sigma (deg), averaged over its measured points and per
+        load case: the total, the measurement noise's and the surrogate's."""
+        if self.sigma is None or self.surrogate_sd is None:
+            return None
+        total, sur = np.asarray(self.sigma, dtype=float), np.asarray(self.surrogate_sd, float)
+        noise = np.sqrt(np.clip(total**2 - sur**2, 0.0, None))
+        out: dict[str, Any] = {}
+        for key, part in (("sigma_deg", total), ("noise_deg", noise), ("surrogate_deg", sur)):
+            ok = np.isfinite(part)
+            out[key] = float(part[ok].mean()) if ok.any() else None
+            out[f"{key[:-4]}_by_load_case_deg"] = {
+                lc: float(part[j][ok[j]].mean()) for j, lc in enumerate(LOAD_CASES) if ok[j].any()
+            }
+        return out
 
 
 @dataclass

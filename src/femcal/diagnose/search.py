@@ -156,6 +156,7 @@ def diagnose(
         weight=np.ones(measured.shape),
         sigma=np.ones(measured.shape),
         sigma_m=np.ones(m),
+        surrogate_sd=np.broadcast_to(sur, measured.shape).copy(),
         options=options,
         candidates=candidates,
         start_bank=start_bank,

@@ -35,6 +35,8 @@ class DiagnosisState:
         Each point's sd: the noise over the root of its weight and the surrogate's error.
     sigma_m : ndarray, shape (m,)
         The sd of a point of weight 1.
+    surrogate_sd : ndarray, shape (n, 4, m)
+        The surrogate's own part of each point's sd (deg).
     options : DiagnoseOptions
     candidates : list of str
         The effects the search may add.
@@ -53,6 +55,7 @@ class DiagnosisState:
     weight: np.ndarray
     sigma: np.ndarray
     sigma_m: np.ndarray
+    surrogate_sd: np.ndarray
     options: DiagnoseOptions
     candidates: list[str]
     start_bank: np.ndarray | None
@@ -105,6 +108,7 @@ class DiagnosisState:
             weight=self.weight[rows],
             sigma=self.sigma[rows],
             sigma_m=self.sigma_m,
+            surrogate_sd=self.surrogate_sd[rows],
             options=self.options,
             candidates=self.candidates,
             start_bank=self.start_bank,
