@@ -10,13 +10,12 @@ import pytest
 from scipy.stats import chi2 as chi2_dist
 
 from femcal.calibration import SurrogateCurveModel, calibrate
+from femcal.calibration.plots import FigureCurves, plot_specimen, plot_specimens
 from femcal.calibration.report import (
     coverage,
     holdout_scores,
     identifiability,
     plot_mode,
-    plot_specimen,
-    plot_specimens,
     write_outputs,
 )
 from femcal.schema import LOAD_CASES
@@ -149,12 +148,13 @@ def test_one_redrawn_figure_writes_what_a_figure_per_specimen_writes(
     res = calibrate(curve_model, targets, method="pgd", options={"n_bank_uniform": 64})
     held = holdout_scores(res, SurrogateCurveModel(small_surrogate, curve_model.moments.numpy()))
     batch = [tmp_path / f"batch{i}.png" for i in range(3)]
-    plot_specimens(res, batch, held["prediction"])
+    curves = FigureCurves.at_measured(res, held["prediction"])
+    plot_specimens(res, batch, curves)
     images = [imread(p) for p in batch]
     assert all(img.shape == images[0].shape for img in images)
     assert not np.array_equal(images[0], images[1]) and not np.array_equal(images[1], images[2])
     for i in (0, 2):  # alone: the same picture up to the layout of the first specimen
-        plot_specimen(res, i, tmp_path / f"alone{i}.png", held["prediction"][i])
+        plot_specimen(res, i, tmp_path / f"alone{i}.png", curves)
         alone = imread(tmp_path / f"alone{i}.png")
         assert alone.shape == images[i].shape
         assert np.mean(np.abs(alone - images[i])) < 0.02

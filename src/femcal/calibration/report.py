@@ -11,9 +11,9 @@
   envelope"; "" for a plain fit);
 * ``ranges.csv``: the identifiability range of every parameter of every specimen;
 * ``curves.csv``: measured and calibrated RoM of every point (long format);
-* ``plots/<specimen>.png``: measured vs calibrated RoM per load case (the study's figure 4);
-  one figure redrawn per specimen (:func:`plot_specimens`); ``plots="summary"`` or ``"none"``
-  leaves them out;
+* ``plots/<specimen>.png``: measured vs calibrated RoM per load case (the study's figure 4),
+  with the noise band when the noise is known (:mod:`femcal.calibration.plots`);
+  ``plots="summary"`` or ``"none"`` leaves them out;
 * ``summary.png`` (not with ``plots="none"``) and ``summary.md``, ``summary.json`` (aggregate
   figures, DVC metrics).
 """
@@ -32,6 +32,7 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.model import CurveModel
+from femcal.calibration.plots import FigureCurves, plot_specimens, plot_summary
 from femcal.calibration.result import CalibrationResult
 from femcal.metrics import curve_metrics
 from femcal.schema import LOAD_CASES
@@ -209,160 +210,6 @@ def plot_mode(plots: bool | str) -> str:
     return str(plots)
 
 
-class _SpecimenFigure:
-    """The per-specimen figure, built once and redrawn for every specimen.
-
-    Building a figure (four axes, their ticks) and laying it out cost more than drawing it;
-    one figure whose lines, titles and limits change per specimen writes the same PNG (the
-    layout of the first specimen is kept) several times faster.
-    """
-
-    def __init__(self, result: CalibrationResult, *, holdout: bool) -> None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        from matplotlib.figure import Figure
-
-        self.result = result
-        self.fig = Figure(figsize=(12, 3.0), dpi=80)
-        # Not sharex: the limits are set alike, and shared axes lay out their siblings' labels.
-        self.axes = self.fig.subplots(1, len(LOAD_CASES))
-        fine = np.linspace(result.moments.min(), result.moments.max(), 50)
-        self.lines = []
-        for ax in self.axes:
-            measured = ax.plot([], [], "o", color="black", label="measured")[0]
-            model = ax.plot([], [], "-", color="C0", label=result.method)[0]
-            held = ax.plot([], [], ":", color="C3", label="held-out model")[0] if holdout else None
-            note = ax.text(
-                0.5, 0.5, "not measured", ha="center", va="center", transform=ax.transAxes
-            )
-            self.lines.append((measured, model, held, note))
-            ax.set_xlabel("moment (Nm)")
-            ax.set_xlim(0, max(fine.max(), 1) * 1.05)
-        self.axes[0].set_ylabel("RoM (deg)")
-        self.axes[0].legend(fontsize=7, loc="upper left")
-        self.laid_out = False
-
-    def draw(self, i: int, path: Path, holdout_pred: np.ndarray | None = None) -> None:
-        result = self.result
-        for j, (ax, lc) in enumerate(zip(self.axes, LOAD_CASES)):
-            measured, model, held, note = self.lines[j]
-            y = result.measured[i, j]
-            ok = np.isfinite(y)
-            measured.set_data(result.moments[ok], y[ok])
-            note.set_visible(not ok.any())
-            model.set_data(result.moments, result.prediction[i, j])
-            if held is not None and holdout_pred is not None:
-                held.set_data(result.moments, holdout_pred[j])
-            r2 = result.r2_per_load_case[i, j]
-            mae = result.mae_per_load_case[i, j]
-            # y given: a title placed by hand skips the search for overlapping tick labels
-            ax.set_title(
-                lc if not np.isfinite(mae) else f"{lc}\nMAE {mae:.3f}°, R² {r2:.3f}",
-                fontsize=9,
-                y=1.0,
-            )
-            ax.relim()
-            ax.autoscale_view(scalex=False)
-        self.fig.suptitle(
-            f"specimen {result.specimens[i]}: MAE {result.mae_deg[i]:.3f}°, "
-            f"mean R² {result.r2_mean[i]:.4f}",
-            fontsize=10,
-        )
-        if not self.laid_out:
-            self.fig.tight_layout()
-            # Keep this layout: a figure with a layout engine is drawn twice per savefig.
-            self.fig.set_layout_engine(None)
-            self.laid_out = True
-        self.fig.savefig(path)
-
-
-def plot_specimen(result: CalibrationResult, i: int, path: Path, holdout_pred=None) -> None:
-    """Measured vs calibrated RoM per load case of specimen ``i`` (one PNG)."""
-    _SpecimenFigure(result, holdout=holdout_pred is not None).draw(i, path, holdout_pred)
-
-
-def plot_specimens(
-    result: CalibrationResult,
-    paths: Sequence[Path],
-    holdout_pred: np.ndarray | None = None,
-    *,
-    progress: bool = False,
-) -> None:
-    """:func:`plot_specimen` of specimens ``0 .. len(paths) - 1``, one figure redrawn.
-
-    ``holdout_pred`` (n, 4, m): the held-out surrogate's curves at the calibrated parameters.
-    ``progress`` shows a bar (stderr) over the specimens.
-    """
-    if not len(paths):
-        return
-    figure = _SpecimenFigure(result, holdout=holdout_pred is not None)
-    indices: Any = range(len(paths))
-    if progress and len(paths) > 1:
-        from tqdm.auto import tqdm
-
-        indices = tqdm(indices, desc="plots", unit="specimen")
-    for i in indices:
-        figure.draw(i, paths[i], None if holdout_pred is None else holdout_pred[i])
-
-
-def plot_summary(result: CalibrationResult, path: Path, holdout=None) -> None:
-    """One page: MAE and R² histograms, measured vs calibrated, per-parameter ranges."""
-    from matplotlib.figure import Figure  # no pyplot: nothing to close, no backend state
-
-    fig = Figure(figsize=(11, 8))
-    axes = fig.subplots(2, 2)
-    ax = axes[0, 0]
-    ax.hist(
-        result.mae_deg[np.isfinite(result.mae_deg)],
-        bins=30,
-        color="C0",
-        alpha=0.8,
-        label=result.method,
-    )
-    if holdout is not None:
-        ax.hist(
-            holdout["mae"][np.isfinite(holdout["mae"])],
-            bins=30,
-            color="C3",
-            alpha=0.5,
-            label="held-out model",
-        )
-    ax.set_xlabel("MAE per specimen (deg)")
-    ax.set_ylabel("specimens")
-    ax.legend(fontsize=8)
-    ax = axes[0, 1]
-    ax.hist(result.r2_mean[np.isfinite(result.r2_mean)], bins=30, color="C1")
-    ax.set_xlabel("mean R² over load cases")
-    ax = axes[1, 0]
-    for j, lc in enumerate(LOAD_CASES):
-        y = result.measured[:, j].reshape(-1)
-        ok = np.isfinite(y)
-        ax.plot(y[ok], result.prediction[:, j].reshape(-1)[ok], ".", ms=3, label=lc)
-    lim = np.nanmax(result.measured) * 1.05
-    ax.plot([0, lim], [0, lim], "k-", lw=0.5)
-    ax.set_xlabel("measured RoM (deg)")
-    ax.set_ylabel("calibrated RoM (deg)")
-    ax.legend(fontsize=8)
-    ax = axes[1, 1]
-    ident = identifiability(result)
-    if ident is not None:
-        ax.barh(ident["parameter"], ident["mean_width"], color="C2")
-        ax.axvline(DETERMINED_WIDTH, color="k", lw=0.5)
-        ax.set_xlabel("mean identifiability range (fraction of the bounds)")
-        ax.set_xlim(0, 1)
-    else:
-        ax.text(0.5, 0.5, f"{result.method} gives no ranges", ha="center", va="center")
-        ax.set_axis_off()
-    fig.suptitle(
-        f"{result.method}: {len(result.specimens)} specimens in {result.seconds:.2f} s, "
-        f"MAE {np.nanmean(result.mae_deg):.4f}°, mean R² {np.nanmean(result.r2_mean):.4f}, "
-        f"max exceedance {np.max(result.exceedance):g}"
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-
-
 def _markdown(result: CalibrationResult, figures: dict, ident: pd.DataFrame | None) -> str:
     lines = [
         f"# Calibration: {result.method}",
@@ -442,6 +289,7 @@ def write_outputs(
     max_plots: int | None = None,
     reachability: Sequence[str] | None = None,
     progress: bool = False,
+    curves: FigureCurves | None = None,
 ) -> dict:
     """Write the tables, figures and summary of a calibration; returns the summary figures.
 
@@ -466,6 +314,10 @@ def write_outputs(
         metrics.csv, flagged in ``flag`` and counted as ``n_outside_envelope``.
     progress : bool
         Show a progress bar (stderr) over the per-specimen plots.
+    curves : FigureCurves, optional
+        What the per-specimen figures draw: continuous curves of the calibrated (and held-out)
+        model and the sd of one measurement (:func:`femcal.calibration.plots.dense_curves`);
+        default: the curves at the measured moments, with the result's error scale.
     """
     mode = plot_mode(plots)  # a wrong value before any file is written
     out_dir = Path(out_dir)
@@ -510,16 +362,18 @@ def write_outputs(
             used.add(name)
             paths.append(plot_dir / f"{name}.png")
         start = time.perf_counter()
-        plot_specimens(
-            result, paths, None if held is None else held["prediction"], progress=progress
-        )
+        if curves is None:
+            curves = FigureCurves.at_measured(result, None if held is None else held["prediction"])
+        plot_specimens(result, paths, curves, progress=progress)
         logger.debug("%d specimen plots in %.2f s", n_plot, time.perf_counter() - start)
         if n_plot < n:
             logger.warning(
                 "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
             )
     if mode != "none":
-        plot_summary(result, out_dir / "summary.png", held)
+        plot_summary(
+            result, out_dir / "summary.png", held, identifiability(result), DETERMINED_WIDTH
+        )
     (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
     (out_dir / "summary.md").write_text(_markdown(result, figures, identifiability(result)))
     return figures

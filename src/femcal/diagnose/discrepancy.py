@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from femcal.figures import dense_grid as dense_grid  # the diagnosis' curves
 from femcal.schema import LOAD_CASES
 
 #: Correlation length of the discrepancy in ln(moment): smooth over a factor e^0.5 = 1.6.
@@ -526,10 +527,3 @@ def runs_p_value(residuals: np.ndarray) -> float:
         return 1.0
     zval = (runs - expected) / math.sqrt(var)
     return 0.5 * math.erfc(-zval / math.sqrt(2))
-
-
-def dense_grid(moments: Sequence[float], q: int = 48) -> np.ndarray:
-    """``q`` log-spaced moments spanning the measured grid (and every grid moment itself)."""
-    m = np.asarray(moments, dtype=float)
-    grid = np.geomspace(m.min(), m.max(), q)
-    return np.unique(np.concatenate([grid, m]))

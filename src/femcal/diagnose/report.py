@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import os
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -16,15 +15,11 @@ import pandas as pd
 from femcal.calibration.report import safe_file_name
 from femcal.diagnose.outside import REPORTED
 from femcal.diagnose.result import NONE, Diagnosis, SpecimenDiagnosis
+from femcal.figures import LOAD_CASE_LABELS, free_cores
 from femcal.schema import LOAD_CASES
 
-#: Load-case names in plots.
-LABELS = {
-    "Flexion": "flexion",
-    "Extension": "extension",
-    "LateralBending": "lateral bending",
-    "AxialRotation": "axial rotation",
-}
+#: Load-case names in plots (the calibration's figures name them alike).
+LABELS = LOAD_CASE_LABELS
 #: ``summary.md`` calls a suggested measurement practical when this many repeats there (or
 #: fewer) settle the question (``next_measurement.repeats_to_settle``).
 PRACTICAL_REPEATS = 10
@@ -381,13 +376,13 @@ def _plot_one(i: int) -> None:
 
 
 def _plot_specimens(diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int) -> None:
-    """The first ``n`` specimens' plots, in one worker process per core where the platform
-    forks (the figures are independent; matplotlib takes most of a diagnosis' time)."""
+    """The first ``n`` specimens' plots, in one worker process per free core where the
+    platform forks (the figures are independent; matplotlib takes most of a diagnosis' time)."""
     global _PLOTTING
     _PLOTTING = (diag, measured, pdir)
     _plt()  # imported once here, not in each worker
     try:
-        workers = min(os.cpu_count() or 1, n)
+        workers = min(free_cores(), n)
         if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
             ctx = multiprocessing.get_context("fork")
             with ProcessPoolExecutor(workers, mp_context=ctx) as pool:

@@ -363,13 +363,11 @@ def run_calibrate(
         weight_sd=None if noise_deg is None else policy.unit_sd(noise_deg),
     )
     lap("calibration")
-    label = "+".join([method, *effects])
     logged, tags = _run_record(s, meas, policy, opts, source, holdout_source)
     # Outputs staged beside out_dir (a kill leaves nothing at out_dir); the MLflow run covers
     # writing them, gets exactly the staged files, and the move into place happens inside it.
-    figures = _write_and_log(
-        s, result, tracker, (logged, tags), label, outputs=(holdout, plots, reach, screened, lap)
-    )
+    outputs = (holdout, plots, reach, screened, lap, (surrogate, policy))
+    figures = _write_and_log(s, result, tracker, (logged, tags), outputs=outputs)
     lap("MLflow logging")
     logger.debug("calibrate timings: %s", lap)
     return result, figures
@@ -397,6 +395,28 @@ def _curve_model(surrogate: Any, moments: Any, effects: Sequence[str]) -> Any:
 
     model = SurrogateCurveModel(surrogate, moments)
     return EffectModel(model, list(effects)) if effects else model
+
+
+def _figure_curves(
+    s: CalibrateSettings, result: Any, plots: str, holdout: Any, models: tuple
+) -> Any:
+    """The per-specimen figures' continuous curves (calibrated and held-out model) and the sd
+    of one measurement (the noise and the surrogate's error), when those figures are drawn.
+    ``models``: the surrogate and the moment policy."""
+    if plots != "all":
+        return None
+    from femcal.calibration.plots import dense_curves
+
+    (surrogate, policy), noise = models, s.noise_deg
+    # the held-out surrogate of the held-out curve model (with effects or without)
+    held = getattr(getattr(holdout, "base", holdout), "surrogate", None)
+    return dense_curves(
+        result,
+        lambda m: _curve_model(surrogate, m, s.effects),
+        holdout_at=None if held is None else (lambda m: _curve_model(held, m, s.effects)),
+        sigma_at=None if noise is None else (lambda m: np.hypot(noise, policy.sigma_surrogate(m))),
+        n=s.max_plots,
+    )
 
 
 def _run_record(
@@ -439,16 +459,18 @@ def _write_and_log(
     result: Any,
     tracker: LocalTracking | TrackingProcess,
     record: tuple[dict[str, Any], dict[str, str]],
-    label: str,
     outputs: tuple,
 ) -> dict[str, Any]:
     """Write the outputs into a staging folder inside one MLflow run, log them, move them
     into place; ``outputs``: the held-out model, the plot mode, the reachability, the
-    screened measurements and the timer. Returns the summary figures."""
+    screened measurements, the timer, the surrogate and the moment policy (the figures'
+    curves). Returns the summary figures."""
     from femcal.calibration.report import write_outputs
     from femcal.outputs import staged_output
 
-    (logged, tags), (holdout, plots, reach, screened, lap) = record, outputs
+    (logged, tags), (holdout, plots, reach, screened, lap, models) = record, outputs
+    curves = _figure_curves(s, result, plots, holdout, models)
+    label = "+".join([s.method, *s.effects])
     with staged_output(s.out_dir, command="calibrate") as stage:
         tracker.submit(start_calibration_run, run_name=f"calibrate-{label}")
         try:
@@ -460,6 +482,7 @@ def _write_and_log(
                 max_plots=s.max_plots,
                 reachability=reach.notes(),
                 progress=s.progress,
+                curves=curves,
             )
             screened.write(stage.path)
             figures["n_dropped_points"] = len(screened.dropped)

@@ -1,0 +1,142 @@
+"""Calibration figures fit for a paper: size, labels, noise band, histograms, workers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from femcal.calibration import SurrogateCurveModel, calibrate
+from femcal.calibration.plots import (
+    BAND,
+    CALIBRATED,
+    DPI,
+    HELD_OUT,
+    MEASURED,
+    FigureCurves,
+    dense_curves,
+    plot_specimen,
+    plot_specimens,
+    plot_summary,
+)
+from femcal.calibration.report import holdout_scores, identifiability, write_outputs
+from femcal.figures import chunks, free_cores, plot_workers
+
+
+@pytest.fixture
+def result(curve_model, truth):
+    return calibrate(
+        curve_model,
+        truth[1][:3],
+        specimens=["S0", "S1", "S2"],
+        method="pgd",
+        options={"n_bank_uniform": 64},
+    )
+
+
+@pytest.fixture
+def noisy(curve_model, truth):
+    """A calibration that knows the noise: each point's sd is 0.05 deg."""
+    rng = np.random.default_rng(1)
+    targets = truth[1][:3] + rng.normal(0.0, 0.05, truth[1][:3].shape)
+    return calibrate(
+        curve_model, targets, method="pgd", weight_sd=0.05, options={"n_bank_uniform": 64}
+    )
+
+
+def _legend(fig) -> list[str]:
+    return [t.get_text() for legend in fig.legends for t in legend.get_texts()]
+
+
+def test_a_specimen_figure_has_the_diagnosis_width_and_resolution(tmp_path, result):
+    write_outputs(result, tmp_path / "out", max_plots=1)
+    with Image.open(tmp_path / "out" / "plots" / "S0.png") as image:
+        assert image.size == (1500, 420)
+        assert image.info["dpi"] == pytest.approx((DPI, DPI), abs=0.01)
+
+
+def test_the_legend_names_what_each_line_is_not_the_method(tmp_path, result, curve_model):
+    held = holdout_scores(result, curve_model)["prediction"]
+    fig = plot_specimen(result, 0, tmp_path / "S0.png", FigureCurves.at_measured(result, held))
+    labels = _legend(fig)
+    assert labels == [MEASURED, CALIBRATED, HELD_OUT]
+    assert result.method not in labels
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "moment (Nm)" and ax.get_ylabel() == "RoM (deg)"
+    # the legend sits above the axes: it covers no data
+    fig.canvas.draw()
+    legend_box = fig.legends[0].get_window_extent()
+    for ax in fig.axes:
+        assert legend_box.y0 >= ax.get_window_extent().y1
+
+
+def test_the_noise_band_is_drawn_when_the_noise_is_known(tmp_path, result, noisy):
+    fig = plot_specimen(noisy, 0, tmp_path / "noisy.png")
+    assert BAND in _legend(fig)
+    for j, ax in enumerate(fig.axes):
+        (band,) = ax.collections
+        top = band.get_paths()[0].vertices[:, 1].max()
+        expected = noisy.prediction[0, j].max() + 2 * noisy.error_scale_deg[0]
+        assert top == pytest.approx(expected, abs=1e-6)
+    plain = plot_specimen(result, 0, tmp_path / "plain.png")
+    assert BAND not in _legend(plain)
+    assert all(not ax.collections for ax in plain.axes)
+
+
+def test_the_curves_are_continuous_with_the_noise_by_moment(tmp_path, result, small_surrogate):
+    curves = dense_curves(
+        result,
+        lambda m: SurrogateCurveModel(small_surrogate, m),
+        holdout_at=lambda m: SurrogateCurveModel(small_surrogate, m),
+        sigma_at=lambda m: 0.02 * m,
+    )
+    assert len(curves.moments) > 4 * len(result.moments)
+    assert curves.calibrated.shape == (3, 4, len(curves.moments))
+    # at the measured moments the continuous curve is the calibrated prediction
+    at = np.searchsorted(curves.moments, result.moments)
+    np.testing.assert_allclose(curves.calibrated[:, :, at], result.prediction, atol=1e-5)
+    fig = plot_specimen(result, 1, tmp_path / "S1.png", curves)
+    model = next(line for line in fig.axes[0].lines if line.get_label() == CALIBRATED)
+    assert len(model.get_xdata()) == len(curves.moments)
+    band = fig.axes[0].collections[0].get_paths()[0].vertices
+    width = band[:, 1].max() - band[:, 1].min()
+    assert width > curves.calibrated[1, 0].max() - curves.calibrated[1, 0].min()
+
+
+def test_the_summary_shows_both_histograms_and_labels_every_axis(tmp_path, result, curve_model):
+    held = holdout_scores(result, curve_model)
+    fig = plot_summary(result, tmp_path / "summary.png", held, identifiability(result))
+    mae, r2 = fig.axes[0], fig.axes[1]
+    assert r2.get_ylabel() == "specimens" and r2.get_xlabel()
+    assert mae.get_ylabel() == "specimens"
+    for ax in (mae, r2):
+        assert [t.get_text() for t in ax.get_legend().get_texts()] == [CALIBRATED, HELD_OUT]
+        # no histogram hides another: each is an outline, or filled with transparency
+        bars = [p for p in ax.patches if p.get_visible()]
+        assert len(bars) >= 2
+        for bar in bars:
+            face_alpha = bar.get_facecolor()[3] if bar.get_fill() else 0.0
+            assert face_alpha < 0.6
+            assert bar.get_linewidth() > 0 and bar.get_edgecolor()[3] > 0
+
+
+def test_figures_drawn_in_worker_processes_are_those_drawn_in_one(tmp_path, result, noisy):
+    paths = [tmp_path / f"one{i}.png" for i in range(3)]
+    plot_specimens(noisy, paths, workers=1)
+    forked = [tmp_path / f"forked{i}.png" for i in range(3)]
+    plot_specimens(noisy, forked, workers=2)
+    for a, b in zip(paths, forked):
+        assert np.array_equal(np.asarray(Image.open(a)), np.asarray(Image.open(b)))
+    alone = tmp_path / "alone.png"
+    plot_specimen(noisy, 2, alone)
+    assert np.array_equal(np.asarray(Image.open(alone)), np.asarray(Image.open(paths[2])))
+
+
+def test_the_workers_never_outnumber_the_free_cores(monkeypatch):
+    assert plot_workers(64, cores=1) == 1
+    assert plot_workers(64, cores=2) == 2
+    assert plot_workers(64, cores=16) == 8  # at least 8 figures each
+    assert plot_workers(4, cores=2) == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # the command's thread count, or the user's
+    assert free_cores() == 1 and plot_workers(64) == 1
+    assert [list(c) for c in chunks(5, 1)] == [[0, 1], [2, 3], [4]]
