@@ -57,3 +57,14 @@ def test_out_chooses_the_folder_and_docs_figures_is_the_default(script, tmp_path
     written = {p.name for p in (tmp_path / "figs").iterdir()}
     assert {"tutorial-cohort.png", "tutorial-verdicts.md", "tutorial-before-after.md"} <= written
     assert script.parse_args([]).out == ROOT / "docs" / "figures"
+
+
+def test_the_calibration_figure_of_the_diagnosed_specimen_is_copied(script, tmp_path):
+    """The docs show the recalibration's own figure of the specimen whose diagnosis they show."""
+    (script.DIAGNOSIS / "plots" / "s1.png").write_bytes(b"diagnosis of s1")
+    (script.CALIBRATION / "plots").mkdir()
+    (script.CALIBRATION / "plots" / "s1.png").write_bytes(b"calibration of s1")
+    (script.CALIBRATION / "plots" / "s0.png").write_bytes(b"calibration of s0")
+    assert script.main(["--out", str(tmp_path / "figs")]) == 0
+    assert (tmp_path / "figs" / "tutorial-specimen.png").read_bytes() == b"diagnosis of s1"
+    assert (tmp_path / "figs" / "tutorial-calibration.png").read_bytes() == b"calibration of s1"

@@ -4,7 +4,7 @@ Reads what ``dvc repro`` (or ``dvc pull``) leaves in the project:
 
 * ``data/planted/measurements.csv`` and ``truth.csv`` (stage ``plant``);
 * ``reports/diagnosis/diagnosis.json``, ``residuals.csv`` and ``plots/`` (stage ``diagnose``);
-* ``reports/calibration/planted/metrics.csv`` (stage ``calibrate@planted``);
+* ``reports/calibration/planted/metrics.csv`` and ``plots/`` (stage ``calibrate@planted``);
 
 and writes into ``docs/figures/`` (``--out FOLDER`` elsewhere; not committed: they derive
 from the study's data):
@@ -12,6 +12,7 @@ from the study's data):
 * ``tutorial-cohort.png``: one specimen of each planted class, four load cases;
 * ``tutorial-residuals.png``: the disc model's RMS residual / sigma per specimen and load case;
 * ``tutorial-specimen.png``: the diagnosis' own figure of one specimen with an effect;
+* ``tutorial-calibration.png``: the recalibration's own figure of that specimen (``plots/``);
 * ``tutorial-before-after.png``: each specimen's MAE, disc alone and with the found effects;
 * ``tutorial-verdicts.md`` and ``tutorial-before-after.md``: the tables the page includes.
 
@@ -173,13 +174,17 @@ def before_after_table(both) -> str:
 
 
 def specimen_figure(diagnosis, out: Path) -> None:
-    """Copy the diagnosis' figure of the first specimen given a single registered effect."""
+    """Copy the diagnosis' figure of the first specimen given a single registered effect, and
+    the recalibration's figure of the same specimen (when calibrate@planted drew it)."""
     plots = DIAGNOSIS / "plots"
     for effect in CLASSES[1:]:
         for d in diagnosis:
             path = plots / f"{d['specimen']}.png"
             if d["verdict"] == effect and path.is_file():
                 shutil.copyfile(path, out / "tutorial-specimen.png")
+                calibrated = CALIBRATION / "plots" / path.name
+                if calibrated.is_file():
+                    shutil.copyfile(calibrated, out / "tutorial-calibration.png")
                 return
 
 
