@@ -17,7 +17,10 @@ strong posterior elements also leaves the disc alone's reach, and the shapes dec
 **The side**: ``stiffer`` where the points beyond the envelope lie below it (``softer``
 above), else from the sign of the disc alone's residuals. Only an effect that moves the curves
 that way can stand in for the disc: a parallel element stiffens, a series element adds
-rotation.
+rotation. A laxity saturates by its nature, so its share of the rotation falls over the
+moments as a softer disc's stand-in's does: a series effect stands in for a softer disc only in
+a model that leaves something unexplained beside it (a softer disc beyond the box leaves more
+than any laxity takes up; a laxity inside the box is explained by it).
 
 **What separates them** (:class:`ShapeReader`): an element engages, a stiffer or softer disc
 does not. Each fitted effect's share of the load is followed over the moments, from
@@ -196,21 +199,27 @@ class ShapeReader:
                 out.append((_SIDE_OF_KIND[e.kind], share.numpy()))
         return out
 
-    def effect_stand_ins(self, effects: Model, v: np.ndarray, i: int, side: str) -> dict:
+    def effect_stand_ins(
+        self, effects: Model, v: np.ndarray, i: int, side: str, missing: bool
+    ) -> dict:
         """Per effect of model ``effects`` fitted to specimen ``i`` (unit coordinates ``v``,
         shape (dim,)): its flatness in each load case it acts in and its stand-in
         probability, the mean of its load cases' (a law acting from about 0 Nm in a load case
         is the disc's there; one engaging in every load case is an element); 0 for an effect
-        that cannot stand in for a disc on ``side``."""
+        that cannot stand in for a disc on ``side``, and for a series effect where nothing
+        is ``missing`` beside the model (a laxity's share falls as it saturates, as a softer
+        disc's stand-in's does: a softer disc beyond the box leaves more than any laxity
+        takes up)."""
         out = {}
         for name, (kind_side, share) in zip(effects, self.shares(effects, v[None, :])):
             flat = flatness(share[0], self.window[i])
             acts = np.flatnonzero(np.isfinite(flat))
             ramp = _ramp(flat[acts])
+            can = kind_side == side and (missing or kind_side == STIFFER)
             out[name] = {
                 "flatness": {LOAD_CASES[j]: round(float(flat[j]), 3) for j in acts},
                 "stand_in_load_cases": [LOAD_CASES[j] for j, r in zip(acts, ramp) if r >= 0.5],
-                "stand_in": float(ramp.mean()) if ramp.size and kind_side == side else 0.0,
+                "stand_in": float(ramp.mean()) if ramp.size and can else 0.0,
             }
         return out
 
@@ -426,9 +435,10 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
             st = {}
             if m:
                 fit, pos = state.per_spec[i][m]
-                st = reader.effect_stand_ins(m, fit.v[pos].double().numpy(), i, ev["side"])
+                v = fit.v[pos].double().numpy()
+                st = reader.effect_stand_ins(m, v, i, ev["side"], discrepancy)
             parts[label] = [(e, st[e]["stand_in"]) for e in m]
-            if m == chosen:
+            if m == chosen and (discrepancy or not shapes):
                 shapes = st
             if discrepancy:
                 gap = _gap_stand_in(i, st, delta[i], final_pred[i], pred0[i], state, ev["side"])
