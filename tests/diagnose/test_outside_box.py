@@ -132,7 +132,9 @@ def test_an_element_that_engages_on_a_disc_at_the_edge_is_still_named(box_world)
 
 def test_the_outputs_carry_the_verdict_like_unexplained(box_world, tmp_path):
     rom, _, diag = box_world
-    summary = write_diagnosis(diag, rom, tmp_path, plots=False)
+    # the stiffer four: one keeps an effect and drops a stand-in (only the disc alone drawn)
+    summary = write_diagnosis(diag, rom, tmp_path, plots=True, max_plots=4)
+    assert len(list((tmp_path / "plots").glob("*.png"))) == 4
     assert summary["effects"].get(OUTSIDE_BOX, 0) >= 7
     assert OUTSIDE_BOX not in summary["found_effects"]
     saved = json.loads((tmp_path / "diagnosis.json").read_text())

@@ -129,7 +129,9 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     # Fixed margins, no layout engine and no tight box: each would lay the eight axes out
     # again (drawing is most of a diagnosis' wall time). The notes get their own band below.
     fig, axes = _specimen_figure()
-    final_label = s.final_label
+    # The final model's curve, where the verdict is the model as fitted (with an out-of-box
+    # verdict that drops stand-ins, only the disc alone is drawn).
+    final_label = s.final_label if dense is None or s.final_label in curves else NONE
     sig_dense = None if dense is None else np.interp(np.log(dense), np.log(diag.moments), sig)
     for j, lc in enumerate(LOAD_CASES):
         ax, rx = axes[0, j], axes[1, j]
