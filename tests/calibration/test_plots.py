@@ -111,6 +111,8 @@ def test_the_summary_shows_both_histograms_and_labels_every_axis(tmp_path, resul
     assert mae.get_ylabel() == "specimens"
     for ax in (mae, r2):
         assert [t.get_text() for t in ax.get_legend().get_texts()] == [CALIBRATED, HELD_OUT]
+        fig.canvas.draw()  # the legend above the axes: it covers no bar
+        assert ax.get_legend().get_window_extent().y0 >= ax.get_window_extent().y1 - 1
         # no histogram hides another: each is an outline, or filled with transparency
         bars = [p for p in ax.patches if p.get_visible()]
         assert len(bars) >= 2

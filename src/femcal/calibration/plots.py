@@ -305,16 +305,20 @@ def plot_specimens(
 
 
 def _histograms(ax: Any, samples: Sequence[tuple[str, np.ndarray, str]], xlabel: str) -> None:
-    """Outlined (step) histograms on shared bins, each seen through the others."""
+    """Outlined (step) histograms on shared bins, each seen through the others (the second
+    dashed: equal counts still show both); the legend above the axes, off the data."""
     data = [(label, v[np.isfinite(v)], colour) for label, v, colour in samples]
     pooled = np.concatenate([v for _, v, _ in data]) if data else np.zeros(0)
     bins = np.histogram_bin_edges(pooled, bins=min(30, max(5, pooled.size // 3 or 5)))
-    for label, values, colour in data:
-        ax.hist(values, bins=bins, histtype="step", lw=1.8, color=colour, label=label)
+    for k, (label, values, colour) in enumerate(data):
+        style = "-" if k == 0 else "--"
+        ax.hist(values, bins=bins, histtype="step", lw=1.8, ls=style, color=colour, label=label)
     ax.set_xlabel(xlabel, fontsize=10)
     ax.set_ylabel("specimens", fontsize=10)
     if len(data) > 1:
-        ax.legend(fontsize=9, loc="upper right", frameon=False)
+        ax.legend(
+            fontsize=9, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=len(data), frameon=False
+        )
 
 
 def plot_summary(
