@@ -95,7 +95,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     campaign = json.loads((fe / "data/dataset/campaign.json").read_text())
     assert campaign["n_jobs"] == 44 and campaign["n_configurations"] == 11
     assert len(read_split(fe / "data/dataset", "large")) == 8 * 20
-    assert json.loads((fe / "reports/simulate.json").read_text())["n_jobs"] == 44
+    assert json.loads((fe / "reports/simulate.json").read_text())["n"] == 11  # the DVC metrics
+    assert json.loads((fe / "reports/simulate.details.json").read_text())["n_jobs"] == 44
     calibrated = pd.read_csv(fe / "reports/calibration/fe-test/parameters.csv")
     assert len(calibrated) == 2
     validation = pd.read_csv(fe / "reports/validation/validation.csv")
