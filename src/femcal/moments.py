@@ -359,12 +359,9 @@ class MomentPolicy:
             ``noise_deg`` is not a finite number > 0.
         """
         w = np.asarray(weight, dtype=float)
+        if noise_deg is None:  # curves without noise: the same weight inside the range
+            return w / self.error_factor(moments) ** 2
         sd2 = self.sigma_surrogate(moments, rom_deg) ** 2
-        if noise_deg is None:
-            rel2 = (
-                sd2 / self.error_deg**2 if self.error_deg > 0 else self.error_factor(moments) ** 2
-            )
-            return w / rel2
         try:
             noise = math.nan if isinstance(noise_deg, bool) else float(noise_deg)
         except (TypeError, ValueError):
