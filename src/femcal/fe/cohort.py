@@ -339,7 +339,12 @@ def build_cohort(
             config_id=kept["config_id"],
         )
         answers.to_csv(stage.path / "answers.csv", index=False)
-        (stage.path / "cohort.json").write_text(json.dumps(info, indent=2) + "\n")
+        # the folder holds what the store determines; this run's own job counts stay out of it
+        # (a rebuild from the store hashes as the run that made it)
+        this_run = ("jobs_run_now", "jobs_from_store")
+        saved = {k: v for k, v in info.items() if k not in this_run}
+        (stage.path / "cohort.json").write_text(json.dumps(saved, indent=2) + "\n")
+    logger.info("cohort: %s", {k: info[k] for k in ("rounds", *this_run) if k in info})
     return info
 
 
