@@ -377,8 +377,8 @@ def _summary(
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Build the cohort of ``params.yaml``'s ``cohort`` section (run from ``fe/``)."""
     from femcal.config import load_params
+    from femcal.fe.runtime import fe_runtime, fe_space
     from femcal.settings import validate_params
-    from femcal.stages.simulate import fe_runtime, fe_space
 
     parser = argparse.ArgumentParser(prog="python -m femcal.fe.cohort")
     parser.add_argument("--params", type=Path, default=Path("params.yaml"))

@@ -251,9 +251,8 @@ def _cli_calibrate(model_uri: str, out_dir: Path, noise_deg: float) -> Calibrate
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command line of :func:`run_predictive`, run from ``fe/`` (module docstring)."""
     from femcal.config import load_params
-    from femcal.fe.runtime import SHARED_MACHINE_TIMEOUT_S
+    from femcal.fe.runtime import SHARED_MACHINE_TIMEOUT_S, fe_runtime
     from femcal.measurements import read_measurements
-    from femcal.stages.simulate import fe_runtime
 
     parser = argparse.ArgumentParser(prog="python -m femcal.fe.predictive")
     parser.add_argument("--measurements", type=Path, default=Path("data/dataset/Test"))

@@ -1,7 +1,7 @@
 """Where and how FE jobs run: the solver, its settings, the campaign store and the Dask cluster.
 
 The FE stages (``simulate``, ``adapt``, ``validate``) read these from params.yaml once, at the
-edge (:func:`femcal.stages.simulate.fe_runtime`), and run every campaign through one
+edge (:func:`fe_runtime`), and run every campaign through one
 :class:`FeRuntime`. Nothing here imports pandas, Dask or torch at module level, so that a
 stage's settings are read within a second.
 """
@@ -19,6 +19,7 @@ if TYPE_CHECKING:
     from femcal.fe.campaign import CampaignResult
     from femcal.fe.options import CampaignOptions
     from femcal.fe.refine import FECurves
+    from femcal.space import ParameterSpace
 
 
 #: Wall-clock limit of one attempt of a job, s, for the campaigns that run niced on a shared
@@ -141,3 +142,69 @@ class FeRuntime:
             n_workers=self.n_workers,
             progress=self.progress,
         )
+
+
+def fe_space(bounds: Any) -> ParameterSpace:
+    """The sampling box of an FE campaign from ``fe.bounds``.
+
+    Parameters
+    ----------
+    bounds : str, Path or mapping
+        A ParameterBounds.csv file (the study's layout), or a mapping ``name -> [lower,
+        upper]`` in physical units (the study's 13 parameters, in the study's order).
+    """
+    from femcal.errors import ConfigError
+    from femcal.space import ParameterSpace
+
+    if isinstance(bounds, (str, Path)):
+        return ParameterSpace.from_bounds_csv(Path(bounds))
+    if not isinstance(bounds, Mapping) or not bounds:
+        raise ConfigError(
+            "fe.bounds must be a ParameterBounds.csv path or a mapping name -> [lower, upper]; "
+            f"got {bounds!r}."
+        )
+    try:
+        lower = [float(v[0]) for v in bounds.values()]
+        upper = [float(v[1]) for v in bounds.values()]
+    except (TypeError, ValueError, IndexError, KeyError):
+        raise ConfigError(
+            "fe.bounds: every entry must be [lower, upper] (two numbers); fix the bounds."
+        ) from None
+    return ParameterSpace(list(bounds), lower, upper)
+
+
+def fe_runtime(params: Mapping[str, Any], args: Mapping[str, Any], store_section: str) -> FeRuntime:
+    """The FE runtime of a stage, read once from fe/params.yaml and the command line.
+
+    Parameters
+    ----------
+    params : mapping
+        The parsed fe/params.yaml: ``fe.solver``, ``fe.settings``, ``fe.scheduler_address``
+        (else ``FEMCAL_DASK_ADDRESS``), ``fe.n_workers`` (default 2).
+    args : mapping
+        The command line's settings: ``store`` (``--store``) and ``progress``.
+    store_section : str
+        The section whose ``store`` is the default campaign store (relative to the
+        repository's root, :func:`femcal.paths.store_path`).
+
+    Returns
+    -------
+    FeRuntime
+    """
+    from femcal.config import settings_of
+    from femcal.fe.campaign import scheduler_address_from_env
+    from femcal.paths import store_path
+
+    settings = settings_of(params)
+    cfg = settings.require("fe", "solver")  # the runtime's keys: the campaign's need not be set
+    given = args.get("store")
+    return FeRuntime(
+        solver=cfg.solver,
+        settings=dict(cfg.settings),
+        store=Path(given)
+        if given
+        else store_path(params, settings.require(store_section, "store").store),
+        scheduler_address=cfg.scheduler_address or scheduler_address_from_env(),
+        n_workers=cfg.n_workers,
+        progress=bool(args.get("progress")),
+    )

@@ -7,15 +7,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from femcal.fe.runtime import FeRuntime
-from femcal.paths import setting_path, store_path
-from femcal.space import ParameterSpace
+from femcal.fe.runtime import FeRuntime, fe_runtime, fe_space
+from femcal.paths import setting_path
 from femcal.stages.common import (
     StageSettings,
     output_folder,
     typed,
     write_metrics,
 )
+
+__all__ = ["SimulateSettings", "describe", "fe_runtime", "fe_space", "run", "run_simulate"]
 
 #: Failed jobs listed one by one in the stage's report (all of them are in runs.csv).
 MAX_FAILURES_LISTED = 10
@@ -110,34 +111,6 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def fe_space(bounds: Any) -> ParameterSpace:
-    """The sampling box of an FE campaign from ``fe.bounds``.
-
-    Parameters
-    ----------
-    bounds : str, Path or mapping
-        A ParameterBounds.csv file (the study's layout), or a mapping ``name -> [lower,
-        upper]`` in physical units (the study's 13 parameters, in the study's order).
-    """
-    from femcal.errors import ConfigError
-
-    if isinstance(bounds, (str, Path)):
-        return ParameterSpace.from_bounds_csv(Path(bounds))
-    if not isinstance(bounds, Mapping) or not bounds:
-        raise ConfigError(
-            "fe.bounds must be a ParameterBounds.csv path or a mapping name -> [lower, upper]; "
-            f"got {bounds!r}."
-        )
-    try:
-        lower = [float(v[0]) for v in bounds.values()]
-        upper = [float(v[1]) for v in bounds.values()]
-    except (TypeError, ValueError, IndexError, KeyError):
-        raise ConfigError(
-            "fe.bounds: every entry must be [lower, upper] (two numbers); fix the bounds."
-        ) from None
-    return ParameterSpace(list(bounds), lower, upper)
-
-
 def run_simulate(
     *,
     fe: FeRuntime,
@@ -209,37 +182,3 @@ def run_simulate(
         },
     )
     return result, summary
-
-
-def fe_runtime(params: Mapping[str, Any], args: Mapping[str, Any], store_section: str) -> FeRuntime:
-    """The FE runtime of a stage, read once from fe/params.yaml and the command line.
-
-    Parameters
-    ----------
-    params : mapping
-        The parsed fe/params.yaml: ``fe.solver``, ``fe.settings``, ``fe.scheduler_address``
-        (else ``FEMCAL_DASK_ADDRESS``), ``fe.n_workers`` (default 2).
-    args : mapping
-        The command line's settings: ``store`` (``--store``) and ``progress``.
-    store_section : str
-        The section whose ``store`` is the default campaign store (relative to the
-        repository's root, :func:`femcal.paths.store_path`).
-
-    Returns
-    -------
-    FeRuntime
-    """
-    from femcal.fe.campaign import scheduler_address_from_env
-
-    cfg = typed(params, "fe", "solver")  # the runtime's keys: the campaign's need not be set
-    given = args.get("store")
-    return FeRuntime(
-        solver=cfg.solver,
-        settings=dict(cfg.settings),
-        store=Path(given)
-        if given
-        else store_path(params, typed(params, store_section, "store").store),
-        scheduler_address=cfg.scheduler_address or scheduler_address_from_env(),
-        n_workers=cfg.n_workers,
-        progress=bool(args.get("progress")),
-    )
