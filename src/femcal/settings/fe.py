@@ -348,7 +348,11 @@ class FeSettings(Section):
         Doc("a ParameterBounds.csv path or a mapping name -> [lower, upper]"),
     ] = setting("the sampling box: name -> [lower, upper], or a ParameterBounds.csv path")
     splits: plain(Splits, typed=True) = setting("configurations per split (large, small, test)")
-    batches: ListOf(Int(1)) = setting("further LHS batches of the large split (appended)", [])
+    batches: ListOf(Int(1)) = setting(
+        "further Latin-hypercube batches of the large split, numbered after the splits: a "
+        "campaign grows without rerunning a stored job",
+        [],
+    )
     seed: Int(0) = setting("seed of the designs")
     load_cases: ListOf(Literal[LOAD_CASES], unique=True) = setting(
         "load cases simulated (all four)"
