@@ -29,10 +29,11 @@ lint: install
 	ruff format --check src tests experiments
 
 # The docs site (mkdocs.yml, docs/): the tutorial's figures from the pipeline's outputs (absent
-# on a fresh clone: the script says so and the pages build without them), then the strict build
-# into site/. `mkdocs serve` previews it at http://127.0.0.1:8000.
+# on a fresh clone: the script says so and the pages build without them; FIGURES_ARGS=--require
+# makes their absence an error), then the strict build into site/. `mkdocs serve` previews it at
+# http://127.0.0.1:8000.
 docs: install
-	python docs/scripts/tutorial_figures.py
+	python docs/scripts/tutorial_figures.py $(FIGURES_ARGS)
 	NO_MKDOCS_2_WARNING=1 mkdocs build --strict
 
 # constraints.txt: every package of the working venv at its exact version (femcal itself left

@@ -68,3 +68,12 @@ def test_the_calibration_figure_of_the_diagnosed_specimen_is_copied(script, tmp_
     assert script.main(["--out", str(tmp_path / "figs")]) == 0
     assert (tmp_path / "figs" / "tutorial-specimen.png").read_bytes() == b"diagnosis of s1"
     assert (tmp_path / "figs" / "tutorial-calibration.png").read_bytes() == b"calibration of s1"
+
+
+def test_absent_outputs_exit_0_unless_required(script, tmp_path, monkeypatch, capsys):
+    """A fresh clone builds the docs without the figures; CI (after ``make repro``) requires
+    them, so a pipeline that stops writing them fails CI."""
+    monkeypatch.setattr(script, "NEEDED", {"plant": [ROOT / "data" / "planted" / "absent.csv"]})
+    assert script.main(["--out", str(tmp_path / "figs")]) == 0
+    assert script.main(["--out", str(tmp_path / "figs"), "--require"]) == 1
+    assert "absent.csv" in capsys.readouterr().out

@@ -18,8 +18,9 @@ from the study's data):
 
 Run it from anywhere: ``.venv/bin/python docs/scripts/tutorial_figures.py [--out FOLDER]``
 (a relative ``FOLDER`` starts at the current folder). Where the
-pipeline's outputs are absent (a fresh clone, as in CI), it says which and exits 0: the page
-then shows how to make the figures instead.
+pipeline's outputs are absent (a fresh clone), it says which and exits 0: the page then shows
+how to make the figures instead; with ``--require`` it exits 1 (CI runs ``make repro`` first
+and regenerates the figures with ``--require``).
 """
 
 from __future__ import annotations
@@ -196,18 +197,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=OUT,
         help=f"folder of the figures and tables (default: {OUT.relative_to(ROOT)})",
     )
+    parser.add_argument(
+        "--require",
+        action="store_true",
+        help="exit 1 when the pipeline's outputs are absent (default: say so and exit 0)",
+    )
     return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
-    out = parse_args(argv).out
+    args = parse_args(argv)
+    out = args.out
     missing = missing_outputs()
     if missing:
         print("tutorial_figures: the pipeline's outputs are not here, so no figures were made:")
         for line in missing:
             print(f"  - {line}")
         print("Run `dvc repro` (or `dvc pull`) first; docs/tutorial.md builds without them.")
-        return 0
+        return 1 if args.require else 0
     import pandas as pd
 
     out.mkdir(parents=True, exist_ok=True)
