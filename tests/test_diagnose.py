@@ -328,11 +328,11 @@ def test_bad_settings_are_refused(world):
         diagnose(base, rom[:1], specimens=["a"], noise_deg=-1.0)
     with pytest.raises(ConfigError, match="elimination_cap must be >= 1 or 0"):
         DiagnoseOptions(elimination_cap=0.5)
-    with pytest.raises(ConfigError, match="shape_starts must be >= 0"):
+    with pytest.raises(ConfigError, match="shape_starts must be an integer >= 0"):
         DiagnoseOptions(shape_starts=-1)
-    with pytest.raises(ConfigError, match=r"workers must be >= 1 or None \(one per CPU\)"):
+    with pytest.raises(ConfigError, match=r"workers must be an integer >= 1 or None; got 0"):
         DiagnoseOptions(workers=0)
-    with pytest.raises(ConfigError, match="max_effects and max_iter must be >= 1"):
+    with pytest.raises(ConfigError, match="max_effects must be an integer >= 1"):
         DiagnoseOptions(max_effects=0)
     with pytest.raises(ConfigError, match=r"backward_delta must be in \[0, min_delta=10.0\]"):
         DiagnoseOptions(backward_delta=11.0)

@@ -114,7 +114,7 @@ def test_bad_targets_and_options(curve_model, truth):
         calibrate(curve_model, empty, method="pgd")
     with pytest.raises(ConfigError, match="pgd: unknown optimizer 'sgd'; choose one of"):
         calibrate(curve_model, truth[1], method="pgd", options={"optimizer": "sgd"})
-    with pytest.raises(ConfigError, match=r"pgd: effect_max_iter must be >= 1 \(or None"):
+    with pytest.raises(ConfigError, match=r"pgd: effect_max_iter must be an integer >= 1 or None"):
         calibrate(curve_model, truth[1], method="pgd", options={"effect_max_iter": 0})
     with pytest.raises(ConfigError, match="pgd-study: unknown projection 'x'"):
         calibrate(curve_model, truth[1], method="pgd-study", options={"projection": "x"})

@@ -29,25 +29,15 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import logging
-from dataclasses import dataclass
-from numbers import Integral, Real
 from typing import Any
 
 import numpy as np
 import torch
 
 from femcal.calibration.base import CalibrationProblem, Solution, register_calibrator
-from femcal.errors import ConfigError
+from femcal.calibration.ga_options import GaOptions
 
 logger = logging.getLogger(__name__)
-
-FITNESS = ("r2", "mae")
-
-
-def _check_int(name: str, value: object, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
-        raise ConfigError(f"ga: {name} must be an integer >= {minimum}; got {value!r}.")
-    return int(value)
 
 
 def _evaluate(
@@ -102,94 +92,6 @@ def _breed(
     if n_immigrants:
         parts.append(rng.random((k, n_immigrants, d)))
     return np.concatenate(parts, axis=1)
-
-
-@dataclass(frozen=True)
-class GaOptions:
-    """The settings of :func:`ga`, with the study's values as defaults.
-
-    Attributes
-    ----------
-    population : int
-        Individuals per specimen and generation (study: 20).
-    n_selected : int
-        Best individuals kept unchanged and used as parents (study: 6).
-    n_crossover : int
-        Children of uniform crossover of random pairs of distinct selected individuals per
-        generation (study: 4; needs ``n_selected >= 2`` when > 0).
-    n_mutation : int
-        Copies of random selected individuals with one random parameter redrawn uniformly in
-        [0, 1] per generation (study: 4).
-    n_immigrants : int
-        Uniform random individuals per generation (study: 6). ``n_selected + n_crossover +
-        n_mutation + n_immigrants`` must equal ``population``.
-    restart_every : int
-        Every this many generations the population is replaced by its best individual plus
-        ``population - 1`` uniform random ones (study: 10).
-    max_generations : int
-        Generations at most, counting the initial population as the first (study: 120).
-    target_r2 : float
-        A specimen stops once its best individual's mean R² over load cases reaches this value.
-        The study's value 1 is practically never reached in floating point, so with the
-        default every specimen runs ``max_generations`` generations and ``success`` is False.
-    fitness : {"r2", "mae"}
-        Ranking of the individuals: the study's mean R² over load cases (higher is better) or
-        the weighted MAE in degrees (lower is better). The stopping test is on R² either way.
-
-    Raises
-    ------
-    ConfigError
-        On a count that is not an integer of its minimum, counts that do not add up to
-        ``population``, crossover with fewer than 2 selected, a ``target_r2`` that is not a
-        finite number, or an unknown ``fitness``. The counts are stored as ``int`` and
-        ``target_r2`` as ``float``.
-    """
-
-    population: int = 20
-    n_selected: int = 6
-    n_crossover: int = 4
-    n_mutation: int = 4
-    n_immigrants: int = 6
-    restart_every: int = 10
-    max_generations: int = 120
-    target_r2: float = 1.0
-    fitness: str = "r2"
-
-    def __post_init__(self) -> None:
-        for name, minimum in (
-            ("population", 1),
-            ("n_selected", 1),
-            ("n_crossover", 0),
-            ("n_mutation", 0),
-            ("n_immigrants", 0),
-            ("restart_every", 1),
-            ("max_generations", 1),
-        ):
-            object.__setattr__(self, name, _check_int(name, getattr(self, name), minimum))
-        total = self.n_selected + self.n_crossover + self.n_mutation + self.n_immigrants
-        if total != self.population:
-            raise ConfigError(
-                f"ga: n_selected + n_crossover + n_mutation + n_immigrants = {self.n_selected} + "
-                f"{self.n_crossover} + {self.n_mutation} + {self.n_immigrants} = {total} must "
-                f"equal population = {self.population}."
-            )
-        if self.n_crossover and self.n_selected < 2:
-            raise ConfigError(
-                "ga: crossover needs n_selected >= 2 (pairs of distinct parents); got "
-                f"{self.n_selected}."
-            )
-        target_r2 = self.target_r2
-        if (
-            isinstance(target_r2, bool)
-            or not isinstance(target_r2, Real)
-            or not np.isfinite(float(target_r2))
-        ):
-            raise ConfigError(f"ga: target_r2 must be a finite number; got {target_r2!r}.")
-        object.__setattr__(self, "target_r2", float(target_r2))
-        if self.fitness not in FITNESS:
-            raise ConfigError(
-                f"ga: unknown fitness '{self.fitness}'; choose one of {', '.join(FITNESS)}."
-            )
 
 
 def ga(

@@ -13,50 +13,30 @@ spaces), :mod:`~femcal.settings.root` and :mod:`~femcal.settings.fe` (the sectio
 environment variables). Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
 """
 
-from femcal.settings.env import ENVIRONMENT, Environment, check_environment
-from femcal.settings.keywords import (
-    BASELINE_MODELS,
-    BUILTIN_EFFECTS,
-    CALIBRATOR_OPTIONS,
-    CALIBRATORS,
-    MESH_PRESETS,
-    SOLVER_SETTINGS,
-    SOLVERS,
-    SPLITS,
-    GeometryKeywords,
-    InverseKeywords,
-    SurrogateKeywords,
-)
-from femcal.settings.params import (
-    SCHEMAS,
-    SECTIONS,
-    Settings,
-    describe_setting,
-    detect_schema,
-    load_settings,
-    validate_params,
-)
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "BASELINE_MODELS",
-    "BUILTIN_EFFECTS",
-    "CALIBRATORS",
-    "CALIBRATOR_OPTIONS",
-    "ENVIRONMENT",
-    "MESH_PRESETS",
-    "SCHEMAS",
-    "SECTIONS",
-    "SOLVERS",
-    "SOLVER_SETTINGS",
-    "SPLITS",
-    "Environment",
-    "GeometryKeywords",
-    "InverseKeywords",
-    "Settings",
-    "SurrogateKeywords",
-    "check_environment",
-    "describe_setting",
-    "detect_schema",
-    "load_settings",
-    "validate_params",
-]
+#: Where each public name lives; imported on first use (PEP 562), so that the options
+#: dataclasses can import :mod:`femcal.settings.values` without loading the sections.
+_HOMES = {
+    "env": ("ENVIRONMENT", "Environment", "check_environment"),
+    "keywords": (
+        *("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS", "CALIBRATORS"),
+        *("MESH_PRESETS", "SOLVER_SETTINGS", "SOLVERS", "SPLITS", "GeometryKeywords"),
+        *("InverseKeywords", "SurrogateKeywords"),
+    ),
+    "params": (
+        *("SCHEMAS", "SECTIONS", "Settings", "describe_setting", "detect_schema"),
+        *("load_settings", "validate_params"),
+    ),
+}
+_HOME = {name: module for module, names in _HOMES.items() for name in names}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOME:
+        raise AttributeError(f"module 'femcal.settings' has no attribute {name!r}")
+    return getattr(import_module(f"femcal.settings.{_HOME[name]}"), name)
+
+
+__all__ = sorted(_HOME)

@@ -134,7 +134,8 @@ def _members(tp: Any) -> tuple:
     return get_args(tp) if get_origin(tp) in (Union, types.UnionType) else ()
 
 
-def _bounds(meta: list) -> str:
+def bounds_words(meta: list) -> str:
+    """`` in [0, 1)``, `` >= 1`` or ``""``: the bounds of a number's metadata."""
     lo = next(((m.ge, "[", ">=") for m in meta if isinstance(m, at.Ge)), None)
     lo = lo or next(((m.gt, "(", ">") for m in meta if isinstance(m, at.Gt)), None)
     hi = next(((m.le, "]", "<=") for m in meta if isinstance(m, at.Le)), None)
@@ -171,7 +172,7 @@ def describe(tp: Any, meta: Iterable = ()) -> str:
         return "one of " + ", ".join(yaml_repr(c) for c in get_args(tp))
     simple = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
     if tp in simple:
-        return simple[tp] + _bounds(meta)
+        return simple[tp] + bounds_words(meta)
     if get_origin(tp) in (tuple, list):
         size = next((m.min_length for m in meta if isinstance(m, at.MinLen)), 0)
         text = {0: "a list", 1: "a non-empty list"}.get(size, f"a list of at least {size} items")

@@ -35,8 +35,10 @@ from femcal.settings.values import (
     Int,
     Keywords,
     ListOf,
+    OptionKeywords,
     Section,
     keyword,
+    keywords_of,
     light_class,
     plain,
     setting,
@@ -186,69 +188,18 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
-_PGD = light_class("calibration.pgd_options", "PgdOptions")  # pgd's defaults
-
-
-class PgdKeywords(Keywords):
-    """The pgd calibrator's options (``calibrate.options.pgd``)."""
-
+class _Pgd(OptionKeywords):
     _owner: ClassVar[str] = "pgd calibrator"
+    _options: ClassVar[type] = light_class("calibration.pgd_options", "PgdOptions")
     _reasons: ClassVar[dict[str, str]] = {
         "start_bank": "set calibrate.start_bank (a prepared table whose configurations are the "
         "starts)",
         **_RNG,
     }
 
-    optimizer: Literal["gauss-newton", "adam", "lbfgsb"] = keyword("the local optimiser")
-    n_starts: Int(0) = keyword("starts per specimen from the nearest bank entries")
-    n_random_starts: Int(0) = keyword("additional uniform random starts per specimen")
-    n_bank_uniform: Int(0) = keyword("uniform draws added to the start bank")
-    max_iter: Int(1) = keyword("Gauss-Newton iterations (L-BFGS-B's iteration cap)")
-    keep_after: Int(0) = keyword("successive halving: iterations before keeping the best")
-    keep: Int(0) = keyword("starts per specimen kept after keep_after (0 = all)")
-    jacobian_members: Int(0) = keyword("ensemble members of the early Jacobian (0 = exact)")
-    exact_final: Int(0) = keyword("last iterations with the exact Jacobian")
-    tol: Float(gt=0) = keyword("relative loss decrease that counts as converged")
-    loss: Literal["l2", "l1"] = keyword("weighted squared or absolute error")
-    select: Literal["mae", "r2"] = keyword("how the best start of a specimen is chosen")
-    steps: Int(0) = keyword("Adam's steps")
-    lr: Float(gt=0) = keyword("Adam's learning rate (unit coordinates)")
-    noise_deg: Float(gt=0) = keyword(
-        "error scale of one RoM value in degrees (default: the surrogate's error)"
-    )
-    fit_tolerance: Float(0) = keyword("stop a start below fit_tolerance * noise_deg RMS")
-    range_z: Float(gt=0) = keyword("half-width of the ranges in sd")
-    ranges: Bool = keyword("compute the identifiability ranges")
-    effect_levels: ListOf(Float(0, 1), min_len=1) = keyword(
-        "unit-box levels of the start grid over each effect's parameters"
-    )
-    effect_bank_starts: Int(0) = keyword(
-        "effect models: starts from the nearest disc-and-effect combinations"
-    )
-    effect_bank_samples: Int(1) = keyword("disc-and-effect combinations drawn for those")
-    effect_shape_starts: Int(0) = keyword(
-        "effect models: Sobol starts over each effect's parameters, shape included"
-    )
-    effect_rounds: Int(1) = keyword(
-        "effect models: rounds of starts (the second adds effects to the first's best)"
-    )
-    effect_keep: Int(0) = keyword(
-        "effect models: starts per specimen kept after keep_after iterations (0: all)"
-    )
-    effect_max_iter: Int(1) = keyword(
-        "effect models: Gauss-Newton iterations once effects join (max_iter: the disc)"
-    )
-    retry_alpha: Float(0, lt=1) = keyword(
-        "with a noise_deg: fit again from 4x the starts every specimen left beyond the noise "
-        "(chi-square p below this; 0: off)"
-    )
 
-    @model_validator(mode="after")
-    def _some_starts(self) -> Any:
-        n_starts = _PGD.n_starts if self.n_starts is None else self.n_starts
-        if n_starts + (self.n_random_starts or 0) < 1:
-            raise fail("n_starts + n_random_starts must be >= 1 (starts per specimen)", "n_starts")
-        return self
+#: The pgd calibrator's options: those of :class:`femcal.calibration.PgdOptions`.
+PgdKeywords = keywords_of(_Pgd, "The pgd calibrator's options (``calibrate.options.pgd``).")
 
 
 class PgdStudyKeywords(Keywords):
@@ -267,41 +218,18 @@ class PgdStudyKeywords(Keywords):
     select: Literal["r2", "mae"] = keyword("best start by mean R² or by MAE")
 
 
-#: The ga calibrator's defaults that the population check relies on.
-GA_DEFAULTS = {"population": 20, "n_selected": 6, "n_crossover": 4, "n_mutation": 4}
-
-
-class GaKeywords(Keywords):
-    """The ga calibrator's options (``calibrate.options.ga``)."""
-
+class _Ga(OptionKeywords):
     _owner: ClassVar[str] = "ga calibrator"
+    _options: ClassVar[type] = light_class("calibration.ga_options", "GaOptions")
     _reasons: ClassVar[dict[str, str]] = _RNG
 
-    population: Int(1) = keyword("individuals per specimen and generation (study: 20)")
-    n_selected: Int(1) = keyword("best individuals kept as parents (study: 6)")
-    n_crossover: Int(0) = keyword("crossover children per generation (study: 4)")
-    n_mutation: Int(0) = keyword("mutated copies per generation (study: 4)")
-    n_immigrants: Int(0) = keyword("uniform random individuals per generation (study: 6)")
-    restart_every: Int(1) = keyword("generations between restarts (study: 10)")
-    max_generations: Int(1) = keyword("generations at most (study: 120)")
-    target_r2: Float(le=1) = keyword("stop a specimen once its best mean R² reaches this")
-    fitness: Literal["r2", "mae"] = keyword("ranking of the individuals")
 
-    @model_validator(mode="after")
-    def _population(self) -> Any:
-        v = {**GA_DEFAULTS, "n_immigrants": 6}
-        v.update({k: getattr(self, k) for k in self.model_fields_set})
-        total = v["n_selected"] + v["n_crossover"] + v["n_mutation"] + v["n_immigrants"]
-        if total != v["population"]:
-            raise fail(
-                f"n_selected + n_crossover + n_mutation + n_immigrants = {v['n_selected']} + "
-                f"{v['n_crossover']} + {v['n_mutation']} + {v['n_immigrants']} = {total} must "
-                f"equal population = {v['population']} (defaults 6 + 4 + 4 + 6 = 20)",
-                "population",
-            )
-        if v["n_crossover"] > 0 and v["n_selected"] < 2:
-            raise fail("crossover needs n_selected >= 2 (or n_crossover: 0)", "n_selected")
-        return self
+#: The ga calibrator's options: those of :class:`femcal.calibration.ga.GaOptions`.
+GaKeywords = keywords_of(_Ga, "The ga calibrator's options (``calibrate.options.ga``).")
+#: The ga calibrator's population defaults.
+GA_DEFAULTS = {
+    k: getattr(_Ga._options, k) for k in ("population", "n_selected", "n_crossover", "n_mutation")
+}
 
 
 class InverseCalibratorKeywords(Keywords):

@@ -7,7 +7,13 @@ default; a field without a default is required. The diagnosis' defaults are thos
 
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import ValidationError, ValidationInfo, WrapValidator, model_validator
+from pydantic import (
+    ValidationError,
+    ValidationInfo,
+    WrapValidator,
+    create_model,
+    model_validator,
+)
 
 from femcal.schema import TARGETS
 from femcal.settings._format import fail, got, keys_of
@@ -32,8 +38,11 @@ from femcal.settings.values import (
     Float,
     Int,
     ListOf,
+    OptionError,
     Section,
     light_class,
+    option_fields,
+    option_settings,
     plain,
     setting,
 )
@@ -308,9 +317,7 @@ class PlantSettings(Section):
 _OPTIONS = light_class("diagnose.options", "DiagnoseOptions")
 
 
-class DiagnoseSettings(Section):
-    """``diagnose``: where the model fails and which effect is missing."""
-
+class _DiagnoseStage(Section):
     measurements: PATH = setting("measurement file diagnosed")
     out_dir: PATH = setting("output folder")
     metrics_file: PATH | None = setting("summary figures (DVC metrics)", None)
@@ -318,15 +325,27 @@ class DiagnoseSettings(Section):
     candidates: ListOf(NAME, unique=True) | None = setting(
         "effects tried (null: every registered one)", None
     )
-    min_delta: Float(0) = setting("BIC gain an effect needs", _OPTIONS.min_delta)
-    alpha: Float(gt=0, lt=1) = setting("level of the adequacy tests", _OPTIONS.alpha)
-    max_effects: Int(1) = setting(
-        "effects forward selection may add per specimen", _OPTIONS.max_effects
-    )
-    seed: Int(0) = setting("seed of the diagnosis", _OPTIONS.seed)
     plots: Bool = setting("write plots", True)
     max_plots: Int(0) | None = setting(_MAX_PLOTS, None)
 
     def options(self) -> dict[str, Any]:
-        """The keywords of :class:`femcal.diagnose.DiagnoseOptions` this section sets."""
-        return {k: getattr(self, k) for k in ("min_delta", "alpha", "max_effects", "seed")}
+        """The keywords of :class:`femcal.diagnose.DiagnoseOptions`, as this section sets them."""
+        return {k: getattr(self, k) for k in option_fields(_OPTIONS)}
+
+    @model_validator(mode="after")
+    def _together(self) -> Any:
+        try:
+            _OPTIONS(**self.options())
+        except OptionError as exc:
+            raise fail(exc.text, exc.key) from None
+        return self
+
+
+#: ``diagnose``: the stage's files, and every option of :class:`femcal.diagnose.DiagnoseOptions`.
+DiagnoseSettings = create_model(
+    "DiagnoseSettings",
+    __base__=_DiagnoseStage,
+    __doc__="``diagnose``: where the model fails and which effect is missing.",
+    __module__=__name__,
+    **option_settings(_OPTIONS),
+)

@@ -9,15 +9,22 @@ keyword arguments of a function that a mapping sets (:func:`plain` keeps them as
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import importlib
 import importlib.util
+import math
+import numbers
 import re
 import sys
+import types
+import typing
 import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
+import annotated_types as at
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -29,10 +36,22 @@ from pydantic import (
     StrictBool,
     TypeAdapter,
     WrapValidator,
+    create_model,
+    model_validator,
 )
 from pydantic_core import PydanticCustomError
 
-from femcal.settings._format import Doc, PlainOf, closest, fail, keys_of, yaml_repr
+from femcal.errors import ConfigError
+from femcal.settings._format import (
+    Doc,
+    PlainOf,
+    bounds_words,
+    closest,
+    fail,
+    keys_of,
+    unwrap,
+    yaml_repr,
+)
 
 #: SQLAlchemy dialects (their common spellings), for suggestions.
 _SQL_DIALECTS = ("sqlite", "postgresql", "mysql", "mariadb", "oracle", "mssql", "cockroachdb")
@@ -313,3 +332,123 @@ def plain(model: type, *, typed: bool = False) -> Any:
         }
 
     return Annotated[dict[str, Any], WrapValidator(keep), PlainOf(model)]
+
+
+# ------------------------------------------------------------------ options dataclasses
+def option(default: Any, doc: str) -> Any:
+    """An option of an options dataclass (``DiagnoseOptions``, ``PgdOptions``, ...): its
+    default and one-line doc. The field's annotation (:func:`Int`, :func:`Float`,
+    :func:`ListOf`, ``Literal``) bounds it; the settings sections, the command line and the
+    dataclass' own check (:func:`check_options`) all read these three."""
+    return dataclasses.field(default=default, metadata={"doc": doc})
+
+
+class OptionError(ConfigError):
+    """A value an options dataclass refuses: ``owner: text.``; ``key`` names the option."""
+
+    def __init__(self, owner: str, key: str, text: str) -> None:
+        super().__init__(f"{owner}: {text}.")
+        self.key, self.text = key, text
+
+
+@functools.cache
+def option_fields(cls: type) -> dict[str, tuple[Any, Any, str]]:
+    """Option -> (annotation, default, doc) of an options dataclass, in declaration order."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    return {
+        f.name: (hints[f.name], f.default, f.metadata.get("doc", ""))
+        for f in dataclasses.fields(cls)
+        if f.init
+    }
+
+
+def _conform(annotation: Any, value: Any) -> tuple[bool, str, Any]:
+    """Whether ``value`` fits ``annotation``, what it allows in words, and the value stored
+    (an integer as int, a number as float, a list as a tuple)."""
+    tp, meta = unwrap(annotation)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        inner = next(m for m in typing.get_args(tp) if m is not type(None))
+        ok, words, fixed = _conform(inner, value) if value is not None else (True, "", None)
+        return ok, f"{_conform(inner, None)[1] if value is None else words} or None", fixed
+    number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if typing.get_origin(tp) is typing.Literal:
+        choices = typing.get_args(tp)
+        return value in choices, "one of " + ", ".join(map(str, choices)), value
+    if tp is int:
+        ok = number and isinstance(value, numbers.Integral) and _within(value, meta)
+        return ok, "an integer" + bounds_words(meta), int(value) if ok else value
+    if tp is float:
+        ok = number and math.isfinite(value) and _within(value, meta)
+        return ok, bounds_words(meta).strip() or "a finite number", float(value) if ok else value
+    if tp is bool:
+        return isinstance(value, bool), "true or false", value
+    if typing.get_origin(tp) is tuple:
+        item = typing.get_args(tp)[0]
+        least = next((m.min_length for m in meta if isinstance(m, at.MinLen)), 0)
+        words = f"a list of at least {least} items, each {_conform(item, None)[1]}"
+        if not isinstance(value, list | tuple) or len(value) < least:
+            return False, words, value
+        items = [_conform(item, v) for v in value]
+        return all(ok for ok, _, _ in items), words, tuple(v for _, _, v in items)
+    return True, "a value", value
+
+
+def _within(value: float, meta: list) -> bool:
+    return all(
+        (not isinstance(m, at.Ge) or value >= m.ge)
+        and (not isinstance(m, at.Gt) or value > m.gt)
+        and (not isinstance(m, at.Le) or value <= m.le)
+        and (not isinstance(m, at.Lt) or value < m.lt)
+        for m in meta
+    )
+
+
+def check_options(options: Any, owner: str) -> None:
+    """Check each option of an options dataclass against its annotation (type, bounds,
+    choices) and store it conformed (int, float, tuple); ``owner`` names it in messages.
+
+    Raises
+    ------
+    OptionError
+        ``owner: alpha must be in (0, 1); got 1.5 (alpha: level of the adequacy tests).``
+    """
+    for name, (annotation, _, doc) in option_fields(type(options)).items():
+        value = getattr(options, name)
+        ok, words, fixed = _conform(annotation, value)
+        if not ok and words.startswith("one of "):
+            raise OptionError(owner, name, f"unknown {name} {value!r}; choose {words}")
+        if not ok:
+            raise OptionError(owner, name, f"{name} must be {words}; got {value!r}. {name}: {doc}")
+        if fixed is not value:
+            object.__setattr__(options, name, fixed)
+
+
+def option_settings(options: type, *, unset: bool = False) -> dict[str, tuple[Any, Any]]:
+    """The fields of a section (or keyword table, ``unset``: the default None leaves the
+    function's own) holding the options of an options dataclass, for ``create_model``."""
+    return {
+        name: (tp, Field(None if unset else default, description=doc))
+        for name, (tp, default, doc) in option_fields(options).items()
+    }
+
+
+class OptionKeywords(Keywords):
+    """Keywords that are the options of an options dataclass (``_options``): each checked as
+    declared there, and those given together by the dataclass' own cross-checks."""
+
+    _options: ClassVar[type]
+
+    @model_validator(mode="after")
+    def _together(self) -> Any:
+        try:
+            self._options(**{k: getattr(self, k) for k in self.model_fields_set})
+        except OptionError as exc:
+            raise fail(exc.text, exc.key) from None
+        return self
+
+
+def keywords_of(base: type[OptionKeywords], doc: str) -> Any:
+    """The keyword table of ``base._options``' options: ``base`` with one field each."""
+    name = base._options.__name__.replace("Options", "Keywords")
+    fields = option_settings(base._options, unset=True)
+    return create_model(name, __base__=base, __doc__=doc, __module__=base.__module__, **fields)
