@@ -21,9 +21,12 @@ import os
 import sys
 import warnings
 from importlib import metadata
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin
 
 from femcal.config import load_params
 from femcal.errors import FemcalError, FemcalWarning
+from femcal.settings._format import unwrap
 from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATOR_NAMES, PLOT_CHOICES, SPLITS
 from femcal.stages import settings_class, stage_module
 from femcal.threads import limit_threads
@@ -129,6 +132,122 @@ def _add_verbosity(p: argparse.ArgumentParser, *, default: object) -> None:
     )
 
 
+#: The params.yaml section each command takes on its command line: one option per setting,
+#: ``--<key>`` (``_`` as ``-``), its help the setting's doc (:func:`_add_settings`).
+SETTINGS_OF = {"calibrate": "calibrate", "diagnose": "diagnose"}
+#: Options whose choices argparse lists (a plugin calibrator is a choice too).
+_CHOICES = {("calibrate", "method"): CALIBRATOR_NAMES}
+_SET = "set:"  # destination of a setting's option: set:<section>.<key>
+
+
+def _reader(annotation: Any, path_like: bool) -> Any:
+    """Reads an option's text as YAML (``3``, ``0.05``, ``null``, ``{pgd: {n_starts: 16}}``);
+    for a list, ``a,b`` too; a relative path starts at the current folder."""
+    tp = unwrap(annotation)[0]
+    listy = tuple in {get_origin(unwrap(a)[0]) for a in (tp, *get_args(tp))}
+
+    def read(text: str) -> Any:
+        import yaml
+
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            value = text
+        if listy and isinstance(value, str):
+            value = [item.strip() for item in value.split(",") if item.strip()]
+        if path_like and isinstance(value, str):
+            value = str(Path(value).absolute())
+        return value
+
+    return read
+
+
+def _add_settings(p: argparse.ArgumentParser, section: str) -> None:
+    """One option per setting of ``section`` that ``p`` has no option for yet, declared by the
+    section's field (and so by the options dataclass it reads): same name, same doc."""
+    from femcal.settings import SECTIONS
+    from femcal.settings._format import describe, fields_of, keys_of
+    from femcal.settings.values import PATH
+
+    model = SECTIONS[section][0]
+    for key, name in keys_of(model).items():
+        flag = "--" + key.replace("_", "-")
+        if flag in p._option_string_actions:  # the command's own option stands for it
+            continue
+        field = fields_of(model)[name]
+        tp = field.rebuild_annotation()
+        choices = _CHOICES.get((section, key))
+        words = describe(tp)
+        p.add_argument(
+            flag,
+            dest=f"{_SET}{section}.{key}",
+            default=argparse.SUPPRESS,
+            choices=choices,
+            type=str if choices else _reader(tp, PATH in (tp, *get_args(tp))),
+            metavar=None if choices else "PATH" if PATH in (tp, *get_args(tp)) else _metavar(tp),
+            help=f"{field.description}; {words} (default: {section}.{key} in params.yaml)".replace(
+                "%", "%%"
+            ),
+        )
+
+
+def _metavar(annotation: Any) -> str:
+    """``N``, ``X``, ``{true,false}``, ``A,B,...``, ``PATH``, ``TEXT`` or ``YAML``."""
+    tp = unwrap(annotation)[0]
+    inner = [unwrap(a)[0] for a in get_args(tp) if a is not type(None)] or [tp]
+    tp = tp if get_origin(tp) in (tuple, dict, Literal) else inner[0]
+    names = {int: "N", float: "X", bool: "{true,false}", str: "TEXT"}
+    if get_origin(tp) is Literal:
+        return "{" + ",".join(map(str, get_args(tp))) + "}"
+    return "A,B,..." if get_origin(tp) is tuple else names.get(tp, "YAML")
+
+
+def setting_overrides(args: argparse.Namespace) -> dict[tuple[str, ...], tuple[str, Any]]:
+    """The settings given on the command line: (section, key) -> (option, value)."""
+    return {
+        tuple(dest[len(_SET) :].split(".")): ("--" + dest.split(".")[-1].replace("_", "-"), value)
+        for dest, value in vars(args).items()
+        if dest.startswith(_SET)
+    }
+
+
+def _add_shared(p: argparse.ArgumentParser, section: str) -> None:
+    """The options ``calibrate`` and ``diagnose`` share: the file, the output folder, the
+    noise, the surrogate, the metrics file and the user's effects."""
+    p.add_argument(
+        "--measurements",
+        help=f"measurement file: a long or wide CSV, or a folder of the study's "
+        f"files (default: {'calibrate.datasets.<name>' if section == 'calibrate' else section}"
+        ".measurements)",
+    )
+    p.add_argument(
+        "--out",
+        help=f"output folder (default: {section}.out_dir"
+        + ("/<dataset>)" if section == "calibrate" else ")"),
+    )
+    p.add_argument("--model-uri", help="MLflow model URI or folder (default: calibrate.model_uri)")
+    _add_metrics_file(p)
+    _add_effects_module(p)
+
+
+_EPILOG = {
+    "calibrate": (
+        "example:\n  femcal calibrate --measurements data/my.csv --effects facet_contact "
+        "--out reports/my\n\n"
+        "writes to the output folder: parameters.csv, metrics.csv, ranges.csv, curves.csv, "
+        "summary.md,\nsummary.json, summary.png, plots/<specimen>.png, comparison.md/.json, "
+        "dropped_points.csv\n(docs/reference/outputs.md); --metrics-file: the DVC metrics"
+    ),
+    "diagnose": (
+        "example:\n  femcal diagnose --measurements data/my.csv --candidates "
+        "facet_contact,neutral_zone --alpha 0.05\n\n"
+        "writes to the output folder: diagnosis.json, residuals.csv, summary.md, summary.json,\n"
+        "heatmap.png, plots/<specimen>.png, dropped_points.csv (docs/reference/outputs.md); "
+        "--metrics-file: the DVC metrics"
+    ),
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="femcal", description=__doc__.splitlines()[0].replace("``", "")
@@ -175,7 +294,13 @@ def build_parser() -> argparse.ArgumentParser:
     command(
         "train-inverse", help="the study's inverse network on surrogate samples (Optuna, MLflow)"
     )
-    p = command("calibrate", help="calibrate measured specimens (registered surrogate)")
+    p = command(
+        "calibrate",
+        help="calibrate measured specimens (registered surrogate)",
+        epilog=_EPILOG["calibrate"],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_shared(p, "calibrate")
     p.add_argument("--dataset", help="a name under calibrate.datasets (default: the first)")
     p.add_argument(
         "--effects",
@@ -184,8 +309,6 @@ def build_parser() -> argparse.ArgumentParser:
         "effects in params.yaml; none for --measurements); '' = the disc alone. Built in: "
         f"{', '.join(BUILTIN_EFFECTS)}; installed plugins and --effects-module files add more",
     )
-    p.add_argument("--measurements", help="long or wide CSV, or a folder of the study's files")
-    p.add_argument("--out", help="output folder (default: calibrate.out_dir/<dataset>)")
     p.add_argument(
         "--noise-deg",
         type=float,
@@ -195,15 +318,10 @@ def build_parser() -> argparse.ArgumentParser:
         "calibrate.datasets.<name>.noise_deg, not for --measurements; none: only the "
         "surrogate's error is counted; the output names the source)",
     )
-    p.add_argument(
-        "--method", choices=CALIBRATOR_NAMES, help="calibration method (default: calibrate.method)"
-    )
-    p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
     p.add_argument("--model-version", help="version of the registered surrogate")
     p.add_argument("--model-alias", help="alias of the registered surrogate")
     p.add_argument("--holdout-uri", help="held-out surrogate URI (default: calibrate.holdout_uri)")
     p.add_argument("--no-holdout", action="store_true", help="skip the held-out re-evaluation")
-    p.add_argument("--seed", type=int, help="seed (default: calibrate.seed)")
     p.add_argument(
         "--plots",
         choices=PLOT_CHOICES,
@@ -213,12 +331,15 @@ def build_parser() -> argparse.ArgumentParser:
         "true = all, false = none)",
     )
     _add_compare_to(p)
-    _add_metrics_file(p)
-    _add_effects_module(p)
+    _add_settings(p, "calibrate")
     command("plant", help="a cohort with hidden effects from FE curves")
-    p = command("diagnose", help="where the model fails; which effect is missing")
-    p.add_argument("--measurements", help="measurement file (default: diagnose.measurements)")
-    p.add_argument("--out", help="output folder (default: diagnose.out_dir)")
+    p = command(
+        "diagnose",
+        help="where the model fails; which effect is missing",
+        epilog=_EPILOG["diagnose"],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    _add_shared(p, "diagnose")
     p.add_argument(
         "--noise-deg",
         type=float,
@@ -226,9 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
         "set, else estimated with its uncertainty from the residuals of the disc alone, which "
         "count physics the disc lacks too; the output names the source)",
     )
-    p.add_argument("--model-uri", help="MLflow model URI (default: calibrate.model_uri)")
-    _add_metrics_file(p)
-    _add_effects_module(p)
+    _add_settings(p, "diagnose")
     p = command("simulate", help="FE campaign on Dask -> dataset in the study's layout")
     p.add_argument("--out", help="dataset folder (default: fe.out_dir)")
     p.add_argument("--store", help="campaign store, .jsonl or .jsonl.gz (default: fe.store)")
@@ -264,7 +383,8 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(args.log_level)
     configure_mlflow_progress(_progress(args))
     try:
-        params = load_params(args.params)  # validated against femcal.settings' schema
+        # the command line's settings merged in, then validated against femcal.settings' schema
+        params = load_params(args.params, overrides=setting_overrides(args))
         from femcal.settings import check_environment
 
         check_environment(args.command)  # the variables this command reads

@@ -59,7 +59,11 @@ def read_yaml_mapping(path: str | Path) -> tuple[dict[str, Any], str]:
 
 
 def load_params(
-    path: str | Path = "params.yaml", *, schema: str | None = None, validate: bool = True
+    path: str | Path = "params.yaml",
+    *,
+    schema: str | None = None,
+    validate: bool = True,
+    overrides: Mapping[tuple[str, ...], tuple[str, Any]] | None = None,
 ) -> Params:
     """Load and validate a params file; return it as loaded, with its typed settings.
 
@@ -76,6 +80,10 @@ def load_params(
         its section (:meth:`femcal.settings.Settings.require`);
         :func:`femcal.settings.load_settings` requires them all. Without it, ``settings``
         is None.
+    overrides : mapping, optional
+        Path of a setting (``("diagnose", "alpha")``) -> (the command-line option that gives
+        it, its value), merged into the file's settings before they are validated (a mapping
+        value into the file's mapping there); messages name the option.
 
     Returns
     -------
@@ -89,13 +97,30 @@ def load_params(
         The file is missing, not YAML, not a mapping, or holds invalid settings.
     """
     data, text = read_yaml_mapping(path)
+    for keys, (_, value) in (overrides or {}).items():
+        _merge(data, keys, value)
     params = Params(data, _path=str(path))
     params.settings = None
     if validate:
         from femcal.settings import validate_params
 
-        params.settings = validate_params(data, path=path, schema=schema, text=text)
+        given = {keys: flag for keys, (flag, _) in (overrides or {}).items()}
+        params.settings = validate_params(data, path=path, schema=schema, text=text, given=given)
     return params
+
+
+def _merge(data: dict[str, Any], keys: tuple[str, ...], value: Any) -> None:
+    """Set ``data[k1][k2]... = value``; a mapping is merged into the mapping there."""
+    *parents, last = keys
+    for key in parents:
+        if not isinstance(data.get(key), dict):  # absent or empty: the option gives it
+            data[key] = {}
+        data = data[key]
+    if isinstance(value, dict) and isinstance(data.get(last), dict):
+        for key, item in value.items():
+            _merge(data[last], (key,), item)
+    else:
+        data[last] = value
 
 
 def settings_of(params: Mapping[str, Any]) -> Settings:

@@ -375,12 +375,24 @@ def line_numbers(text: str | None) -> Callable[[tuple], int | None]:
     return line
 
 
-def raise_problems(found: list[tuple[tuple, str]], where: str, text: str | None) -> None:
-    """One ConfigError for every problem, each with its line in the file, in line order."""
+def raise_problems(
+    found: list[tuple[tuple, str]],
+    where: str,
+    text: str | None,
+    given: Mapping[tuple, str] | None = None,
+) -> None:
+    """One ConfigError for every problem, each with its line in the file, in line order; a
+    problem under a path of ``given`` (path -> command-line option) names that option."""
     if not found:
         return
-    line_of = line_numbers(text)
-    lines = [(line_of(path), m if m.endswith((".", "?", "!")) else m + ".") for path, m in found]
+    line_of, given = line_numbers(text), given or {}
+    lines = []
+    for path, message in found:
+        flag = next((f for p, f in given.items() if tuple(path[: len(p)]) == p), None)
+        message = message if message.endswith((".", "?", "!")) else message + "."
+        lines.append(
+            (None, f"{flag} (command line): {message}") if flag else (line_of(path), message)
+        )
     lines.sort(key=lambda lm: (lm[0] is None, lm[0] or 0))
     if len(lines) == 1:
         line, message = lines[0]

@@ -174,6 +174,7 @@ def validate_params(
     schema: str | None = None,
     complete: bool = False,
     text: str | None = None,
+    given: Mapping[tuple, str] | None = None,
 ) -> Settings:
     """Validate a loaded params mapping; raise one ConfigError listing every problem.
 
@@ -191,6 +192,8 @@ def validate_params(
         names them when a command needs it).
     text : str, optional
         The file's text, for line numbers in messages.
+    given : mapping, optional
+        Path -> the command-line option whose value ``data`` holds there (messages name it).
 
     Returns
     -------
@@ -205,7 +208,7 @@ def validate_params(
     if schema not in SCHEMAS:
         raise ConfigError(f"schema must be one of {', '.join(SCHEMAS)}; got {schema!r}.")
     sections, incomplete, found = _sections(data, schema, complete, path)
-    raise_problems(found, str(path), text)
+    raise_problems(found, str(path), text, given)
     partial = {k.split(":")[1]: sections.pop(k) for k in list(sections) if ":" in k}
     given = {k: tuple(v) for k, v in data.items() if isinstance(v, Mapping)}
     return Settings(

@@ -79,7 +79,7 @@ class CalibrateSettings(StageSettings):
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> CalibrateSettings:
         where = args.get("params") or params.get("_path", "params.yaml")
         cfg = typed(params, "calibrate")
-        method = args.get("method") or cfg.method
+        method = cfg.method  # --method and the other settings: merged in params
         model_uri = args.get("model_uri") or setting_uri(params, cfg.model_uri)
         if args.get("model_version") or args.get("model_alias"):
             name = typed(params, "mlflow").model_name
@@ -140,7 +140,7 @@ class CalibrateSettings(StageSettings):
             holdout_uri=holdout_uri,
             start_bank=bank,
             options=options,
-            seed=int(args["seed"] if args.get("seed") is not None else cfg.seed),
+            seed=cfg.seed,
             **moment_policy(params),
             chunk_size=cfg.chunk_size,
             plots=args.get("plots") or ("all" if cfg.plots else "none"),
