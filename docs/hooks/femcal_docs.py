@@ -87,7 +87,11 @@ def _default(info: object, model: type) -> str:
     if info.is_required():
         return "required"
     value = info.get_default(call_default_factory=True)
-    if value is None and issubclass(model, Keywords):
+    options = getattr(model, "_options", None)  # keywords declared by an options dataclass
+    name = next((n for n, i in model.model_fields.items() if i is info), None)
+    if value is None and options is not None and name in options.__dataclass_fields__:
+        value = options.__dataclass_fields__[name].default
+    elif value is None and issubclass(model, Keywords):
         return "the function's" if model._owner != "function" else "not set"
     return f"`{json.dumps(value, default=str)}`"
 
