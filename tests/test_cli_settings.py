@@ -130,3 +130,24 @@ def test_the_help_gives_an_example_and_the_files_written(capsys):
             build_parser().parse_args([command, "--help"])
         text = capsys.readouterr().out
         assert f"example:\n  femcal {command} " in text and files in text
+
+
+def test_plugin_solvers_and_baselines_are_settings_choices():
+    """The FE solvers and the baselines are open registries: a name registered there (as an
+    installed plugin's entry point registers it) is a valid setting; its settings pass."""
+    from femcal.fe.base import solver_registry
+    from femcal.settings import validate_params
+    from femcal.surrogates.base import surrogate_registry
+
+    state = (solver_registry.snapshot(), surrogate_registry.snapshot())
+    try:
+        solver_registry.register("toy-solver", object)
+        surrogate_registry.register("toy-baseline", type("Toy", (), {}))
+        fe = {"solver": "toy-solver", "settings": {"mesh_size": 2}}
+        settings = validate_params({"fe": fe, "baselines": {"models": ["toy-baseline"]}})
+        assert settings.baselines is None  # partial (seed, n_jobs missing): checked, not typed
+        with pytest.raises(ConfigError, match=r"baselines\.models\[0\]: expected one of .*'nn'"):
+            validate_params({"baselines": {"models": ["nn"]}})
+    finally:
+        solver_registry.restore(state[0])
+        surrogate_registry.restore(state[1])

@@ -9,6 +9,7 @@ from pydantic import (
     PlainValidator,
     TypeAdapter,
     ValidationError,
+    ValidationInfo,
     WrapValidator,
     create_model,
     model_validator,
@@ -20,6 +21,7 @@ from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.settings._format import Doc, fail, got, problems, yaml_repr
 from femcal.settings.keywords import (
+    SOLVER,
     SOLVER_SETTINGS,
     SOLVERS,
     CalculixKeywords,
@@ -338,10 +340,25 @@ def posterior_settings(
 
 
 # ----------------------------------------------------------------------------- the sections
+def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
+    """``fe.settings``: checked against a built-in solver's keywords; a plugin solver's pass
+    as given (its adapter's signature checks them where it is built)."""
+    if info.data is None:  # a partial section's keys, each again alone: checked with it
+        try:
+            return handler(value)
+        except ValidationError:
+            return dict(value or {})
+    if info.data.get("solver", SOLVERS[0]) in SOLVER_SETTINGS:
+        return handler(value)
+    if value is not None and not isinstance(value, dict):
+        raise fail(f"expected a mapping of the solver's keyword arguments, got {got(value)}")
+    return dict(value or {})
+
+
 class FeSettings(Section):
     """``fe``: the FE campaign (fe/params.yaml)."""
 
-    solver: Literal[SOLVERS] = setting("FE solver adapter (femcal.fe registry)")
+    solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
     bounds: Annotated[
         plain(Bounds, typed=True),
         WrapValidator(_path_or_bounds),
@@ -360,8 +377,8 @@ class FeSettings(Section):
     moments: MOMENTS = setting("moments simulated, Nm")
     out_dir: PATH = setting("dataset folder in the study's layout")
     store: PATH = setting("durable store of finished jobs (JSON lines; .jsonl.gz to commit it)")
-    settings: plain(CalculixSettings) = setting(
-        "the adapter's keyword arguments (part of every job's hash)", {}
+    settings: Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)] = setting(
+        "the adapter's keyword arguments (part of every job's hash; a plugin's as given)", {}
     )
     scratch_dir: PATH | None = setting("per-job scratch (null: temp)", None)
     metrics_file: PATH | None = setting("campaign figures (DVC metrics)", None)

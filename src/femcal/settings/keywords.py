@@ -66,55 +66,91 @@ SOLVERS: tuple[str, ...] = ("calculix",)
 MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
 
 
-def plugin_calibrators() -> tuple[str, ...]:
-    """The calibrators beyond :data:`CALIBRATORS`, sorted: the names of the installed plugins'
-    entry points (group ``femcal.calibrators``; a plugin names its entry point after its
-    calibrator) and, once the registry is loaded, the names registered in this process.
+class Registered(tuple):
+    """The built-in names of an open registry (what help texts and messages list) that also
+    contains every plugin's name (``name in`` it, :meth:`plugins`).
 
-    Imports and loads nothing: the calibrate stage looks the name up in the registry itself
-    (:func:`femcal.calibration.get_calibrator`, which names the choices when it is unknown
-    and the plugin when it fails to load).
+    Parameters
+    ----------
+    builtins : tuple of str
+        The built-in names.
+    group : str
+        The entry-point group of the plugins (a plugin names its entry point after what it
+        registers).
+    registry : str
+        ``module:attribute`` of the :class:`femcal.registry.Registry`; once that module is
+        loaded, the names registered in this process count too.
+    exclude : tuple of str
+        Names of that registry that are not choices here (the network is no baseline).
     """
-    from importlib.metadata import entry_points
 
-    names = {ep.name for ep in entry_points(group="femcal.calibrators")}
-    loaded = sys.modules.get("femcal.calibration.base")
-    if loaded is not None:
-        names.update(name for name, _ in loaded.calibrator_registry.items(load=False))
-    return tuple(sorted(names - set(CALIBRATORS)))
+    def __new__(
+        cls, builtins: tuple[str, ...], group: str, registry: str, exclude: tuple[str, ...] = ()
+    ) -> "Registered":
+        names = super().__new__(cls, builtins)
+        names.group, names.registry, names.exclude = group, registry, exclude
+        return names
 
+    def plugins(self) -> tuple[str, ...]:
+        """The plugins' names beyond the built-ins, sorted. Imports and loads nothing: the
+        command looks the name up in the registry itself, which names the choices when it is
+        unknown and the plugin when it fails to load."""
+        from importlib.metadata import entry_points
 
-class Calibrators(tuple):
-    """The built-in calibrators (what help texts and messages list) that also contain every
-    registered plugin calibrator (``name in CALIBRATOR_NAMES``, :func:`plugin_calibrators`)."""
+        names = {ep.name for ep in entry_points(group=self.group)}
+        module, attribute = self.registry.split(":")
+        if module in sys.modules:
+            registry = getattr(sys.modules[module], attribute)
+            names.update(name for name, _ in registry.items(load=False))
+        return tuple(sorted(names - set(self) - set(self.exclude)))
 
     def __contains__(self, name: object) -> bool:
-        return tuple.__contains__(self, name) or name in plugin_calibrators()
+        return tuple.__contains__(self, name) or name in self.plugins()
+
+    def choice(self) -> Any:
+        """A setting naming one of them: a built-in (``Literal``, its messages) or a plugin."""
+
+        def or_plugin(value: Any, handler: Any) -> Any:
+            try:
+                return handler(value)
+            except ValidationError:
+                plugins = self.plugins()
+                if not plugins or not isinstance(value, str):
+                    raise
+                if value in plugins:
+                    return value
+                names = (*self, *plugins)
+                close = closest(value, names)
+                fix = f"; did you mean {close!r}?" if close else ""
+                message = f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
+                raise fail(message) from None
+
+        return Annotated[Literal[tuple(self)], WrapValidator(or_plugin)]
 
 
 #: ``name in CALIBRATOR_NAMES``: a built-in or a plugin calibrator; iterating: the built-ins.
-CALIBRATOR_NAMES = Calibrators(CALIBRATORS)
+CALIBRATOR_NAMES = Registered(
+    CALIBRATORS, "femcal.calibrators", "femcal.calibration.base:calibrator_registry"
+)
+#: The FE solver adapters: the built-ins and the plugins (``femcal.solvers``).
+SOLVER_NAMES = Registered(SOLVERS, "femcal.solvers", "femcal.fe.base:solver_registry")
+#: The baseline models: the built-ins and the plugin surrogates (``femcal.surrogates``).
+BASELINE_NAMES = Registered(
+    BASELINE_MODELS, "femcal.surrogates", "femcal.surrogates.base:surrogate_registry", ("nn",)
+)
 
 
-def _or_plugin(value: Any, handler: Any) -> Any:
-    try:
-        return handler(value)
-    except ValidationError:
-        plugins = plugin_calibrators()
-        if not plugins or not isinstance(value, str):
-            raise
-        if value in plugins:
-            return value
-        names = (*CALIBRATORS, *plugins)
-        close = closest(value, names)
-        fix = f"; did you mean {close!r}?" if close else ""
-        raise fail(
-            f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
-        ) from None
+def plugin_calibrators() -> tuple[str, ...]:
+    """The calibrators beyond :data:`CALIBRATORS` (:meth:`Registered.plugins`)."""
+    return CALIBRATOR_NAMES.plugins()
 
 
 #: A calibration method: a built-in (``Literal``, its messages) or a plugin's name.
-METHOD = Annotated[Literal[CALIBRATORS], WrapValidator(_or_plugin)]
+METHOD = CALIBRATOR_NAMES.choice()
+#: An FE solver adapter: a built-in or a plugin's name.
+SOLVER = SOLVER_NAMES.choice()
+#: A baseline model: a built-in or a plugin surrogate's name.
+BASELINE = BASELINE_NAMES.choice()
 
 
 # ------------------------------------------------------------------ network hyper-parameters

@@ -18,7 +18,7 @@ from pydantic import (
 from femcal.schema import TARGETS
 from femcal.settings._format import fail, got, keys_of
 from femcal.settings.keywords import (
-    BASELINE_MODELS,
+    BASELINE,
     METHOD,
     SPLITS,
     CalibratorOptions,
@@ -47,7 +47,7 @@ from femcal.settings.values import (
     setting,
 )
 
-_BASELINES = ListOf(Literal[BASELINE_MODELS], unique=True)
+_BASELINES = ListOf(BASELINE, unique=True)
 _MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
 _SPACE = "Optuna search space over the hyper-parameters"
 
