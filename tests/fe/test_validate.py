@@ -253,5 +253,5 @@ def test_refinement_needs_its_surrogate(tmp_path):
             literature={},
             store=tmp_path / "runs.jsonl",
             out_dir=tmp_path / "out",
-            max_fe_runs=3,
+            refine={"max_fe_runs": 3},
         )

@@ -2,19 +2,20 @@
 
 :class:`CampaignOptions` (how :func:`femcal.fe.campaign.run_campaign` runs its jobs),
 :class:`AdaptOptions` (:func:`femcal.fe.adaptive.adapt_surrogate`) and
-:class:`ValidateOptions` (:func:`femcal.fe.validate.validate_calibration`). The settings of
-params.yaml take their defaults from here (:func:`femcal.settings.values.light_class`), so this
-module imports nothing heavy.
+:class:`ValidateOptions` (:func:`femcal.fe.validate.validate_calibration`). The options that
+fe/params.yaml sets are declared here once (:func:`femcal.settings.values.option`: type with
+bounds, default, doc); its sections are built from them, so this module imports nothing
+heavy.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from femcal.errors import ConfigError
+from femcal.settings.values import DASK_ADDRESS, PATH, Float, Int, check_options, option
 
 if TYPE_CHECKING:
     import numpy as np
@@ -46,12 +47,17 @@ class CampaignOptions:
         Show a tqdm progress bar.
     """
 
-    scheduler_address: str | None = None
-    n_workers: int = 2
-    scratch_dir: str | Path | None = None
+    scheduler_address: DASK_ADDRESS | None = option(
+        None, "Dask scheduler, tcp://host:port (null: a local cluster, or FEMCAL_DASK_ADDRESS)"
+    )
+    n_workers: Int(1) = option(2, "workers of the local cluster")
+    scratch_dir: PATH | None = option(None, "per-job scratch (null: temp)")
     keep_failed: bool = True
     retry_failed: bool | Callable[[Mapping[str, Any]], bool] = False
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        check_options(self, "run_campaign")
 
 
 @dataclass(frozen=True)
@@ -84,9 +90,9 @@ class AdaptOptions:
         When ``rounds < 1``, ``n_explore < 0`` or ``n_candidates < max(1, n_explore)``.
     """
 
-    rounds: int = 3
-    n_explore: int = 16
-    n_candidates: int = 2048
+    rounds: Int(1) = option(3, "rounds of FE runs and fine-tuning")
+    n_explore: Int(0) = option(16, "configurations explored per round (ensemble spread)")
+    n_candidates: Int(1) = option(2048, "Latin-hypercube candidates ranked by spread")
     finetune: Mapping[str, Any] | None = None
     calibrate_options: Mapping[str, Any] | None = None
     seed: int | np.random.Generator = 0
@@ -99,6 +105,7 @@ class AdaptOptions:
                 f"adapt_surrogate needs rounds >= 1, n_explore >= 0 and n_candidates >= n_explore; "
                 f"got {rounds}, {n_explore}, {n_candidates}."
             )
+        check_options(self, "adapt_surrogate")
 
 
 @dataclass(frozen=True)
@@ -127,5 +134,10 @@ class ValidateOptions:
     forces: Sequence[float] = ()
     literature: Sequence[LiteratureRange] = ()
     published: Sequence[PublishedIdp] = ()
-    max_fe_runs: int = 1
-    tol_deg: float = 0.05
+    max_fe_runs: Int(1) = option(
+        1, "FE runs per specimen at most, the first included (1: validate only)"
+    )
+    tol_deg: Float(gt=0) = option(0.05, "FE-evaluated MAE at which a specimen is confirmed, deg")
+
+    def __post_init__(self) -> None:
+        check_options(self, "validate_calibration")

@@ -29,7 +29,6 @@ from femcal.settings.keywords import (
     SurrogateKeywords,
 )
 from femcal.settings.values import (
-    DASK_ADDRESS,
     MODEL_URI,
     MOMENTS,
     NAME,
@@ -40,11 +39,13 @@ from femcal.settings.values import (
     ListOf,
     Section,
     light_class,
+    option_fields,
+    option_settings,
     plain,
     setting,
 )
 
-#: The defaults of the FE workflows' options (femcal.fe.options), declared there once.
+#: The FE workflows' options (femcal.fe.options), declared there once.
 _CAMPAIGN = light_class("fe.options", "CampaignOptions")
 _ADAPT = light_class("fe.options", "AdaptOptions")
 _VALIDATE = light_class("fe.options", "ValidateOptions")
@@ -355,9 +356,7 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
     return dict(value or {})
 
 
-class FeSettings(Section):
-    """``fe``: the FE campaign (fe/params.yaml)."""
-
+class _Fe(Section):
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
     bounds: Annotated[
         plain(Bounds, typed=True),
@@ -380,12 +379,7 @@ class FeSettings(Section):
     settings: Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)] = setting(
         "the adapter's keyword arguments (part of every job's hash; a plugin's as given)", {}
     )
-    scratch_dir: PATH | None = setting("per-job scratch (null: temp)", None)
     metrics_file: PATH | None = setting("campaign figures (DVC metrics)", None)
-    scheduler_address: DASK_ADDRESS | None = setting(
-        "Dask scheduler, tcp://host:port (null: a local cluster, or FEMCAL_DASK_ADDRESS)", None
-    )
-    n_workers: Int(1) = setting("workers of the local cluster", _CAMPAIGN.n_workers)
 
     @model_validator(mode="after")
     def _all_load_cases(self) -> Any:
@@ -396,6 +390,16 @@ class FeSettings(Section):
                 "load_cases",
             )
         return self
+
+
+#: ``fe``: the campaign, and the options of :class:`femcal.fe.options.CampaignOptions`.
+FeSettings = create_model(
+    "FeSettings",
+    __base__=_Fe,
+    __doc__="``fe``: the FE campaign (fe/params.yaml).",
+    __module__=__name__,
+    **option_settings(_CAMPAIGN),
+)
 
 
 class IdpRange(Section):
@@ -428,9 +432,7 @@ class PublishedIdp(Section):
     level: NAME = setting("disc level, e.g. L4-L5")
 
 
-class AdaptSettings(Section):
-    """``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion."""
-
+class _Adapt(Section):
     _complete: ClassVar[bool] = True
 
     model_uri: MODEL_URI = setting("the surrogate to adapt (a model folder or models:/ URI)")
@@ -440,13 +442,6 @@ class AdaptSettings(Section):
     out_model: PATH = setting("folder of the champion's files (the winner)")
     out_dir: PATH = setting("folder of the rounds' tables")
     store: PATH = setting("campaign store of the new FE runs")
-    rounds: Int(1) = setting("rounds of FE runs and fine-tuning", _ADAPT.rounds)
-    n_explore: Int(0) = setting(
-        "configurations explored per round (ensemble spread)", _ADAPT.n_explore
-    )
-    n_candidates: Int(1) = setting(
-        "Latin-hypercube candidates ranked by spread", _ADAPT.n_candidates
-    )
     finetune: plain(SurrogateKeywords) = setting(
         "NeuralSurrogate settings of the fine-tuning (warm start)", {}
     )
@@ -456,30 +451,45 @@ class AdaptSettings(Section):
     def options(self) -> dict[str, Any]:
         """The keywords of :class:`femcal.fe.options.AdaptOptions` this section sets."""
         return {
-            "rounds": self.rounds,
-            "n_explore": self.n_explore,
-            "n_candidates": self.n_candidates,
+            **{k: getattr(self, k) for k in option_fields(_ADAPT)},
             "finetune": dict(self.finetune),
             "calibrate_options": dict(self.calibrate_options),
             "seed": self.seed,
         }
 
 
-class RefineSettings(Section):
-    """``validate.refine``: FE-in-the-loop refinement of the calibration before validating it."""
+#: ``adapt``: the stage's files, and the options of :class:`femcal.fe.options.AdaptOptions`.
+AdaptSettings = create_model(
+    "AdaptSettings",
+    __base__=_Adapt,
+    __doc__="``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion.",
+    __module__=__name__,
+    **option_settings(_ADAPT),
+)
 
+
+class _Refine(Section):
     _complete: ClassVar[bool] = True
 
     model_uri: MODEL_URI = setting(
         "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
     )
-    max_fe_runs: Int(1) = setting(
-        "FE runs per specimen at most, the first included (1: validate only)",
-        _VALIDATE.max_fe_runs,
-    )
-    tol_deg: Float(gt=0) = setting(
-        "FE-evaluated MAE at which a specimen is confirmed, deg", _VALIDATE.tol_deg
-    )
+
+    def options(self) -> dict[str, Any]:
+        """The keywords of :class:`femcal.fe.options.ValidateOptions` this section sets."""
+        return {k: getattr(self, k) for k in option_fields(_VALIDATE)}
+
+
+#: ``validate.refine``: the surrogate, and the refinement's options of
+#: :class:`femcal.fe.options.ValidateOptions`.
+RefineSettings = create_model(
+    "RefineSettings",
+    __base__=_Refine,
+    __doc__="``validate.refine``: FE-in-the-loop refinement of the calibration before "
+    "validating it.",
+    __module__=__name__,
+    **option_settings(_VALIDATE),
+)
 
 
 class ValidateSettings(Section):

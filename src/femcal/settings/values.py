@@ -353,12 +353,13 @@ class OptionError(ConfigError):
 
 @functools.cache
 def option_fields(cls: type) -> dict[str, tuple[Any, Any, str]]:
-    """Option -> (annotation, default, doc) of an options dataclass, in declaration order."""
-    hints = typing.get_type_hints(cls, include_extras=True)
+    """Option -> (annotation, default, doc) of the fields of an options dataclass declared
+    with :func:`option`, in declaration order (its other fields are the library's alone)."""
+    names = vars(sys.modules[cls.__module__])
     return {
-        f.name: (hints[f.name], f.default, f.metadata.get("doc", ""))
+        f.name: (eval(f.type, names) if isinstance(f.type, str) else f.type, f.default, doc)
         for f in dataclasses.fields(cls)
-        if f.init
+        if (doc := f.metadata.get("doc")) is not None
     }
 
 

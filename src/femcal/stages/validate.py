@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Unpack
 
@@ -65,8 +65,7 @@ class ValidateSettings(StageSettings):
     literature: Mapping[str, Any]
     out_dir: Path
     model_uri: str | None = None
-    max_fe_runs: int = ValidateOptions.max_fe_runs
-    tol_deg: float = ValidateOptions.tol_deg
+    refine: Mapping[str, Any] = field(default_factory=dict)
     published: Sequence[Mapping[str, Any]] = ()
     idp_model_uri: str | None = None
     target_noise_deg: float | None = None
@@ -97,8 +96,7 @@ class ValidateSettings(StageSettings):
             out_dir=out,
             metrics_file=args.get("metrics_file"),
             model_uri=refine.model_uri if refine else None,
-            max_fe_runs=refine.max_fe_runs if refine else ValidateOptions.max_fe_runs,
-            tol_deg=refine.tol_deg if refine else ValidateOptions.tol_deg,
+            refine=refine.options() if refine else {},
             published=[p.model_dump() for p in cfg.idp_published],
             idp_model_uri=cfg.idp_model_uri,
             target_noise_deg=cfg.target_noise_deg,
@@ -272,8 +270,7 @@ def run_validate(
     literature: Mapping[Any, Any],
     out_dir: Path,
     model_uri: str | None = None,
-    max_fe_runs: int = ValidateOptions.max_fe_runs,
-    tol_deg: float = ValidateOptions.tol_deg,
+    refine: Mapping[str, Any] | None = None,
     published: Sequence[Mapping[str, Any]] = (),
     idp_model_uri: str | None = None,
     **fe: Unpack[FeKeywords],
@@ -283,7 +280,8 @@ def run_validate(
     ``fe`` is the FE runtime's keywords (``solver``, ``settings``, ``store``,
     ``scheduler_address``, ``n_workers``, ``progress``; :meth:`FeRuntime.keywords`); the
     runtime they make and a :class:`~femcal.fe.options.ValidateOptions` of the forces, the
-    literature, the published pressures and the refinement's budget go to
+    literature, the published pressures and the refinement's budget ``refine``
+    (``max_fe_runs``, ``tol_deg``; None: the defaults) go to
     :func:`femcal.fe.validate.validate_calibration`. With ``max_fe_runs > 1`` the
     calibration is first refined with FE in the loop, steered by the surrogate at
     ``model_uri`` (a model folder or a models:/ URI). ``published`` are the published
@@ -306,6 +304,8 @@ def run_validate(
 
     ranges = literature_ranges(literature)
     values = published_values(published)
+    options = ValidateOptions(forces=forces, literature=ranges, published=values, **(refine or {}))
+    max_fe_runs = options.max_fe_runs
     idp_head = None
     if idp_model_uri:
         from femcal.tracking import load_surrogate, open_model
@@ -330,13 +330,7 @@ def run_validate(
             measurements,
             FeRuntime(**fe),
             stage.path,
-            ValidateOptions(
-                forces=forces,
-                literature=ranges,
-                published=values,
-                max_fe_runs=max_fe_runs,
-                tol_deg=tol_deg,
-            ),
+            options,
             surrogate=surrogate,
             idp_head=idp_head,
         )
