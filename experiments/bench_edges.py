@@ -7,11 +7,13 @@ and the command runs as a user runs it, timed by ``/usr/bin/time -v``::
 
 Its ``diagnosis.json`` is scored against ``truth.json``:
 
-* **visible**: a structure is visible where, in a load case it acts in, the RMS of what it adds
-  at the measured points (``contribution_rms_deg`` of the truth: the RoM with every structure
-  less the RoM without it) exceeds :data:`VISIBLE_FACTOR` x the specimen's true noise RMS; a
-  specimen is visible where every structure is. Discs outside the box: the diagnosis'
-  disc-alone MAE exceeds twice the true noise.
+* **visible**: the disc alone misses, i.e. the diagnosis' disc-alone MAE
+  (``baseline_mae_deg``) exceeds :data:`VISIBLE_FACTOR` x the specimen's true noise RMS (the
+  truth's, not the stated noise), and every structure of the specimen shows: in a load case it
+  acts in, the RMS of what it adds at the measured points (``contribution_rms_deg`` of the
+  truth: the RoM with every structure less the RoM without it) exceeds the same threshold. A
+  structure beyond the old assignment is visible there where the disc alone misses and its
+  contribution in that load case exceeds the threshold.
 * **outside the box**: the verdict names ``outside_box`` (or the reading's ``named``), or it
   says ``unexplained`` and its out-of-box reading has probability >= :data:`BOX_REPORTED` (the
   summary names the box beside it); and the specimens where a built-in effect has inclusion
@@ -157,10 +159,8 @@ def score_specimen(truth: dict, record: dict) -> dict[str, Any]:
     box_said = box_named or (flagged and float(box.get("probability") or 0.0) >= BOX_REPORTED)
     exact = named == expected and not flagged and not box_named
     baseline = float(record["baseline_mae_deg"])
-    if label == "outside_box":
-        visible = baseline > threshold
-    else:
-        visible = bool(seen) and all(seen.values())
+    missed = baseline > threshold  # the disc alone misses the data
+    visible = missed and (label == "outside_box" or (bool(seen) and all(seen.values())))
     return {
         "specimen": truth["specimen"],
         "truth": label,
@@ -185,8 +185,8 @@ def score_specimen(truth: dict, record: dict) -> dict[str, Any]:
         "confident_builtin": "+".join(
             sorted(e for e, p in inclusion.items() if p >= CONFIDENT and e in BUILTIN)
         ),
-        "facets_lb_visible": "LateralBending" in beyond.get("facets", []),
-        "ligaments_ext_visible": "Extension" in beyond.get("ligaments", []),
+        "facets_lb_visible": missed and "LateralBending" in beyond.get("facets", []),
+        "ligaments_ext_visible": missed and "Extension" in beyond.get("ligaments", []),
         "facet_named": "facet_contact" in named,
         "ligament_named": "ligament_tension" in named,
         "baseline_mae_deg": baseline,
@@ -294,6 +294,16 @@ def summarize(t: pd.DataFrame) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------ main
+def _timed_before(out: Path, seed: int) -> dict[str, Any]:
+    """The command and times of ``seed``'s run in ``out/bench_edges.json`` (empty if none)."""
+    path = out / "bench_edges.json"
+    if not path.exists():
+        return {}
+    before = [r for r in json.loads(path.read_text())["runs"] if r.get("seed") == seed]
+    keys = ("command", "wall_s", "user_s", "sys_s", "cpu_s", "time_wall_s", "max_rss_mb")
+    return {k: before[0][k] for k in keys if before and k in before[0]}
+
+
 def one_seed(seed: int, args: argparse.Namespace, discs: tuple) -> dict[str, Any]:
     """Write one cohort, diagnose it with the real command (or reuse its diagnosis), score it."""
     root = args.out / f"seed-{seed}"
@@ -303,7 +313,8 @@ def one_seed(seed: int, args: argparse.Namespace, discs: tuple) -> dict[str, Any
     diag = root / "diagnosis"
     cmd = femcal_command(measurements, diag, args.noise_deg)
     if args.reuse and (diag / "diagnosis.json").exists():
-        run: dict[str, Any] = {"command": shlex.join(cmd), "returncode": 0, "reused": True}
+        run: dict[str, Any] = {"command": shlex.join(cmd), "returncode": 0}
+        run.update(_timed_before(args.out, seed), reused=True)
     elif diag.exists():
         raise FileExistsError(f"{diag} exists: pass a fresh --out, or --reuse to score it again.")
     else:
@@ -323,13 +334,22 @@ def one_seed(seed: int, args: argparse.Namespace, discs: tuple) -> dict[str, Any
 
 
 def library_state() -> dict[str, str]:
-    """The commit the library ran at, and whether src/femcal differs from it."""
+    """Where ``femcal`` is imported from (a ``PYTHONPATH`` snapshot runs before the editable
+    install), the repository's commit and whether its src/femcal differs from it."""
 
     def git(*a: str) -> str:
         p = subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True)
         return p.stdout.strip()
 
+    probe = subprocess.run(
+        [sys.executable, "-c", "import femcal; print(femcal.__file__)"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
     return {
+        "femcal_imported_from": probe.stdout.strip(),
+        "pythonpath": os.environ.get("PYTHONPATH", ""),
         "commit": git("rev-parse", "HEAD"),
         "subject": git("log", "-1", "--format=%s"),
         "committed_at": git("log", "-1", "--format=%cI"),
@@ -364,6 +384,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         "library": library_state(),
         "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+    previous = args.out / "bench_edges.json"
+    if args.reuse and previous.exists():  # the diagnoses' run, scored again now
+        before = json.loads(previous.read_text())["meta"]
+        meta.update(started_at=before["started_at"], library=before["library"])
+        meta["rescored_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     runs = []
     for seed in seeds:  # one diagnosis at a time
         runs.append(one_seed(seed, args, discs))

@@ -57,9 +57,11 @@ instead of sharing them (`experiments/edge_cohorts.py`, numpy only, nothing from
 
 Eight classes of six specimens per cohort (48): `none`, facets, ligaments, neutral zone,
 facets + ligaments, facets + neutral zone, out-of-library softening (truth `unexplained`) and
-discs outside the box. Scoring (`experiments/bench_edges.py`): a structure is **visible** where
-what it adds (the RoM with every structure less the RoM without it) has an RMS above 2 x the
-specimen's true noise in a load case it acts in; a specimen where all of its structures are.
+discs outside the box. Scoring (`experiments/bench_edges.py`): a specimen is **visible** where
+the disc alone misses (the diagnosis' disc-alone MAE exceeds 2 x the specimen's true noise RMS)
+and each of its structures shows (what it adds, the RoM with every structure less the RoM
+without it, has an RMS above the same threshold in a load case it acts in); a structure beyond
+the old assignment where the disc alone misses and it shows in that load case.
 **Strict**: the exact effect set, neither `unexplained` nor `outside_box`. Inclusion
 probabilities are summed over an effect's forms (`x`, `x:split`).
 
@@ -152,7 +154,12 @@ def section(payload: dict) -> list[str]:
     meta, pooled = payload["meta"], payload["pooled"]
     runs = [r for r in payload["runs"] if r.get("summary")]
     lib = meta.get("library", {})
-    dirty = " (with uncommitted changes under src/femcal)" if lib.get("src_femcal_changes") else ""
+    if lib.get("pythonpath"):  # a snapshot of the library ran, not the working tree
+        dirty = f" (femcal imported from `{lib.get('femcal_imported_from', '?')}`)"
+    elif lib.get("src_femcal_changes"):
+        dirty = " (with uncommitted changes under src/femcal)"
+    else:
+        dirty = ""
     lines = [
         f"## {meta['label']}: seeds {', '.join(map(str, meta['seeds']))}",
         "",
@@ -177,7 +184,13 @@ def section(payload: dict) -> list[str]:
 
 def write_page(folders: Sequence[Path], out: Path) -> None:
     """Write the page from the results folders, in the order given."""
-    lines = [INTRO]
+    given = " ".join(str(f) for f in folders)
+    lines = [
+        INTRO,
+        f"This page is written by `python -m experiments.edges_report --results {given} --out "
+        f"{out}`, one section per results folder.",
+        "",
+    ]
     for folder in folders:
         payload = json.loads((Path(folder) / "bench_edges.json").read_text())
         lines += section(payload)
