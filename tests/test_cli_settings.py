@@ -93,10 +93,13 @@ def test_each_option_is_declared_once(options, model, home):
 def test_every_diagnose_and_calibrate_setting_is_an_option():
     parser = build_parser()
     commands = parser._subparsers._group_actions[0].choices
-    for command, section in SETTINGS_OF.items():
+    assert set(SETTINGS_OF["diagnose"]) >= {"diagnose", "moments"}
+    assert set(SETTINGS_OF["calibrate"]) >= {"calibrate", "moments"}
+    for command, sections in SETTINGS_OF.items():
         flags = commands[command]._option_string_actions
-        for key in keys_of(SECTIONS[section][0]):
-            assert "--" + key.replace("_", "-") in flags, f"femcal {command}: no --{key}"
+        for section, keys in sections.items():
+            for key in keys or keys_of(SECTIONS[section][0]):
+                assert "--" + key.replace("_", "-") in flags, f"femcal {command}: no --{key}"
 
 
 def test_diagnose_options_are_settings_and_options():
@@ -116,6 +119,9 @@ def test_a_setting_on_the_command_line_is_merged_before_validation():
     diagnose = params.settings.diagnose
     assert diagnose.alpha == 0.05 and diagnose.candidates == ("facet_contact", "neutral_zone")
     assert DiagnoseOptions(**diagnose.options()).alpha == 0.05
+    assert params.settings.moments.error_growth.below > 0  # the file's, untouched
+    moments = _params(["diagnose", "--max-log-ratio", "0.5"]).settings.moments
+    assert moments.max_log_ratio.pair() == (0.5, 0.5)
     calibrate = _params(["calibrate", "--seed", "3", "--options", "{pgd: {n_starts: 16}}"])
     pgd = calibrate.settings.calibrate.method_options("pgd")
     assert calibrate.settings.calibrate.seed == 3 and pgd["n_starts"] == 16

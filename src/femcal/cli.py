@@ -132,9 +132,13 @@ def _add_verbosity(p: argparse.ArgumentParser, *, default: object) -> None:
     )
 
 
-#: The params.yaml section each command takes on its command line: one option per setting,
-#: ``--<key>`` (``_`` as ``-``), its help the setting's doc (:func:`_add_settings`).
-SETTINGS_OF = {"calibrate": "calibrate", "diagnose": "diagnose"}
+#: The params.yaml settings each command reads, which it takes on its command line: section ->
+#: its keys (None: all), one option each, ``--<key>`` (``_`` as ``-``), its help the setting's
+#: doc (:func:`_add_settings`).
+SETTINGS_OF: dict[str, dict[str, tuple[str, ...] | None]] = {
+    "calibrate": {"calibrate": None, "moments": None},
+    "diagnose": {"diagnose": None, "moments": None, "calibrate": ("start_bank",)},
+}
 #: Options whose choices argparse lists (a plugin calibrator is a choice too).
 _CHOICES = {("calibrate", "method"): CALIBRATOR_NAMES}
 _SET = "set:"  # destination of a setting's option: set:<section>.<key>
@@ -162,9 +166,15 @@ def _reader(annotation: Any, path_like: bool) -> Any:
     return read
 
 
-def _add_settings(p: argparse.ArgumentParser, section: str) -> None:
-    """One option per setting of ``section`` that ``p`` has no option for yet, declared by the
-    section's field (and so by the options dataclass it reads): same name, same doc."""
+def _add_settings(p: argparse.ArgumentParser, command: str) -> None:
+    """One option per setting ``command`` reads (:data:`SETTINGS_OF`) that ``p`` has no option
+    for yet, declared by the section's field (and so by the options dataclass it reads): same
+    name, same doc."""
+    for section, keys in SETTINGS_OF[command].items():
+        _add_section(p, section, keys)
+
+
+def _add_section(p: argparse.ArgumentParser, section: str, keys: tuple[str, ...] | None) -> None:
     from femcal.settings import SECTIONS
     from femcal.settings._format import describe, fields_of, keys_of
     from femcal.settings.values import PATH
@@ -172,7 +182,7 @@ def _add_settings(p: argparse.ArgumentParser, section: str) -> None:
     model = SECTIONS[section][0]
     for key, name in keys_of(model).items():
         flag = "--" + key.replace("_", "-")
-        if flag in p._option_string_actions:  # the command's own option stands for it
+        if keys is not None and key not in keys or flag in p._option_string_actions:
             continue
         field = fields_of(model)[name]
         tp = field.rebuild_annotation()
