@@ -88,8 +88,8 @@ def _default(info: object, model: type) -> str:
         return "required"
     value = info.get_default(call_default_factory=True)
     options = getattr(model, "_options", None)  # keywords declared by an options dataclass
-    name = next((n for n, i in model.model_fields.items() if i is info), None)
-    if value is None and options is not None and name in options.__dataclass_fields__:
+    if value is None and options is not None:
+        name = next(n for n, i in model.model_fields.items() if i is info)
         value = options.__dataclass_fields__[name].default
     elif value is None and issubclass(model, Keywords):
         return "the function's" if model._owner != "function" else "not set"
