@@ -49,6 +49,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -304,8 +305,9 @@ def _timed_before(out: Path, seed: int) -> dict[str, Any]:
     return {k: before[0][k] for k in keys if before and k in before[0]}
 
 
-def one_seed(seed: int, args: argparse.Namespace, discs: tuple) -> dict[str, Any]:
-    """Write one cohort, diagnose it with the real command (or reuse its diagnosis), score it."""
+def diagnose_seed(seed: int, args: argparse.Namespace, discs: tuple) -> dict[str, Any]:
+    """Write one cohort and diagnose it with the real command (or reuse its diagnosis); the
+    run's record with the cohort (``cohort_obj``) kept for scoring."""
     root = args.out / f"seed-{seed}"
     opts = ec.CohortOptions(n_per_class=args.n_per_class, stated_noise_deg=args.noise_deg)
     cohort = ec.make_cohort(discs[0], discs[1], seed, opts)
@@ -320,15 +322,22 @@ def one_seed(seed: int, args: argparse.Namespace, discs: tuple) -> dict[str, Any
     else:
         run = run_command(cmd)
     n = cohort.meta["n_specimens"]
-    run.update(seed=seed, n_specimens=n, cohort=cohort.meta)
+    run.update(seed=seed, n_specimens=n, cohort=cohort.meta, cohort_obj=cohort)
     for key in ("time_wall_s", "cpu_s"):
         if key in run:
             run[key.replace("_s", "_s_per_50")] = run[key] * 50.0 / n
+    print(f"seed {seed}: exit {run['returncode']}, {run.get('time_wall_s', np.nan):.1f} s")
+    return run
+
+
+def score_run(run: dict[str, Any], out: Path) -> dict[str, Any]:
+    """Score a finished run against its cohort's truth (adds ``table`` and ``summary``)."""
+    cohort = run.pop("cohort_obj")
     if run["returncode"] != 0:
         return run
-    records = json.loads((diag / "diagnosis.json").read_text())
-    table = score_cohort(cohort.truth, records)
-    table.insert(0, "seed", seed)
+    diag = out / f"seed-{run['seed']}" / "diagnosis" / "diagnosis.json"
+    table = score_cohort(cohort.truth, json.loads(diag.read_text()))
+    table.insert(0, "seed", run["seed"])
     run.update(table=table, summary=summarize(table))
     return run
 
@@ -368,6 +377,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--n-per-class", type=int, default=ec.CohortOptions.n_per_class)
     ap.add_argument("--noise-deg", type=float, default=ec.STATED_NOISE_DEG)
     ap.add_argument("--reuse", action="store_true", help="score existing diagnoses again")
+    ap.add_argument(
+        "--jobs", type=int, default=1, help="diagnoses run at once (times: 1, one at a time)"
+    )
     args = ap.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",") if s]
     discs = (
@@ -375,27 +387,30 @@ def main(argv: Sequence[str] | None = None) -> None:
         ec.read_outside_store(args.store),
     )
     meta = {
-        "command": reproduce_command("bench_edges", argv),
+        "command": (
+            f"PYTHONPATH={os.environ['PYTHONPATH']} " if os.environ.get("PYTHONPATH") else ""
+        )
+        + reproduce_command("bench_edges", argv),
         "label": args.label,
         "note": args.note,
         "seeds": seeds,
         "n_per_class": args.n_per_class,
         "noise_deg": args.noise_deg,
+        "jobs": args.jobs,
         "library": library_state(),
         "started_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     previous = args.out / "bench_edges.json"
     if args.reuse and previous.exists():  # the diagnoses' run, scored again now
         before = json.loads(previous.read_text())["meta"]
-        meta.update(started_at=before["started_at"], library=before["library"])
-        meta["rescored_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-    runs = []
-    for seed in seeds:  # one diagnosis at a time
-        runs.append(one_seed(seed, args, discs))
-        r = runs[-1]
-        print(
-            f"seed {seed}: exit {r['returncode']}, {r.get('time_wall_s', np.nan):.1f} s", flush=True
+        meta["rescore_command"] = meta["command"]
+        meta.update(
+            {k: before[k] for k in ("command", "started_at", "library", "jobs") if k in before}
         )
+        meta["rescored_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:  # --jobs diagnoses at a time
+        done = list(pool.map(lambda seed: diagnose_seed(seed, args, discs), seeds))
+    runs = [score_run(r, args.out) for r in done]
     tables = [r.pop("table") for r in runs if "table" in r]
     pooled = summarize(pd.concat(tables, ignore_index=True)) if tables else None
     args.out.mkdir(parents=True, exist_ok=True)

@@ -93,7 +93,6 @@ import numpy as np
 
 from experiments.edge_discs import LOAD_CASES, STORE, Disc, read_outside_store, read_test_curves
 
-__all__ = ["Disc", "read_outside_store", "read_test_curves", "STORE"]
 F, E, LB, AR = LOAD_CASES
 HERE = Path(__file__).resolve().parent
 #: Truth classes and the structures each adds to its disc.
