@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from PIL import Image
 
 from femcal.calibration import SurrogateCurveModel, calibrate
@@ -20,7 +21,7 @@ from femcal.calibration.plots import (
     plot_summary,
 )
 from femcal.calibration.report import holdout_scores, identifiability, write_outputs
-from femcal.figures import chunks, free_cores, plot_workers
+from femcal.figures import chunks, free_cores, plot_workers, text_caching_canvas
 
 
 @pytest.fixture
@@ -142,3 +143,30 @@ def test_the_workers_never_outnumber_the_free_cores(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "1")  # the command's thread count, or the user's
     assert free_cores() == 1 and plot_workers(64) == 1
     assert [list(c) for c in chunks(5, 1)] == [[0, 1], [2, 3], [4]]
+
+
+def test_a_text_drawn_again_is_copied_with_the_same_pixels(tmp_path, noisy):
+    fig = plot_specimen(noisy, 0, tmp_path / "S0.png")
+    canvas = text_caching_canvas(fig)
+    canvas.draw()
+    first = np.asarray(canvas.buffer_rgba()).copy()
+    rendered = canvas.get_renderer().texts_rendered
+    assert rendered > 10  # tick labels, titles, legend, axis labels
+    canvas.draw()
+    assert canvas.get_renderer().texts_rendered == rendered  # nothing laid out again
+    assert np.array_equal(first, np.asarray(canvas.buffer_rgba()))
+    # the figure as plain Agg draws it: every text within half a pixel of the same place
+    plain_canvas = FigureCanvasAgg(fig)
+    plain_canvas.draw()
+    plain = np.asarray(plain_canvas.buffer_rgba())
+    differ = np.abs(plain[..., :3].astype(int) - first[..., :3]).max(-1) > 0
+    assert differ.mean() < 0.05
+
+
+def test_the_summary_page_is_drawn_beside_the_specimens(tmp_path, result):
+    drawn = []
+    paths = [tmp_path / f"S{i}.png" for i in range(3)]
+    plot_specimens(result, paths, workers=1, beside=lambda: drawn.append("summary"))
+    assert drawn == ["summary"] and all(p.exists() for p in paths)
+    plot_specimens(result, [], beside=lambda: drawn.append("alone"))
+    assert drawn == ["summary", "alone"]

@@ -29,6 +29,7 @@ from femcal.figures import (
     noise_band,
     plot_workers,
     progress_over,
+    text_caching_canvas,
 )
 from femcal.schema import LOAD_CASES
 
@@ -166,9 +167,7 @@ class _SpecimenFigure:
 
     def _static_background(self) -> Any:
         """Draw what never changes (axes, x axes, labels, legend) once; keep its pixels."""
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-        canvas = FigureCanvasAgg(self.fig)
+        canvas = text_caching_canvas(self.fig)
         for artist in self._changing():
             artist.set_animated(True)
         canvas.draw()
@@ -226,12 +225,13 @@ class _SpecimenFigure:
 
 
 def _write_png(canvas: Any, path: Path) -> None:
-    """The canvas' pixels as a PNG of :data:`DPI` (what ``savefig`` writes, without drawing)."""
+    """The canvas' pixels as an RGB PNG of :data:`DPI` (the figure is opaque: its alpha is
+    255 everywhere, so the colours are those ``savefig`` writes, without drawing)."""
     from PIL import Image
 
     width, height = canvas.get_width_height()
     image = Image.frombuffer("RGBA", (width, height), canvas.buffer_rgba(), "raw", "RGBA", 0, 1)
-    image.save(path, format="png", dpi=(DPI, DPI), compress_level=3)
+    image.convert("RGB").save(path, format="png", dpi=(DPI, DPI), compress_level=3)
 
 
 def _limits(ax: Any, values: np.ndarray) -> None:
@@ -260,15 +260,19 @@ def plot_specimen(
     return figure.fig
 
 
-#: What the drawing workers read: (result, curves, paths), set before they fork; and the
-#: figure of this process.
-_DRAWING: tuple[CalibrationResult, FigureCurves, Sequence[Path]] | None = None
+#: What the drawing workers read: (result, curves, paths, the other figure), set before they
+#: fork; and the figure of this process.
+_DRAWING: tuple[CalibrationResult, FigureCurves, Sequence[Path], Callable[[], Any] | None] | None
+_DRAWING = None
 _FIGURE: tuple[int, _SpecimenFigure] | None = None
 
 
-def _draw(piece: range) -> None:
+def _draw(piece: range | None) -> None:
     global _FIGURE
-    result, curves, paths = _DRAWING
+    result, curves, paths, other = _DRAWING
+    if piece is None:
+        other()
+        return
     if _FIGURE is None or _FIGURE[0] != id(_DRAWING):
         _FIGURE = id(_DRAWING), _SpecimenFigure(result, curves)
     for i in piece:
@@ -282,22 +286,27 @@ def plot_specimens(
     *,
     progress: bool = False,
     workers: int | None = None,
+    beside: Callable[[], Any] | None = None,
 ) -> None:
     """The figures of specimens ``0 .. len(paths) - 1`` into ``paths``.
 
     ``curves``: what to draw (default: the result's curves at the measured moments);
     ``progress`` shows a bar (stderr) over the specimens; ``workers``: the processes to draw
-    in (default: :func:`femcal.figures.plot_workers`, the free cores).
+    in (default: :func:`femcal.figures.plot_workers`, the free cores); ``beside``: one more
+    figure to draw (a function that writes it, e.g. the summary page), first, in a worker of
+    its own while the others draw the specimens.
     """
     global _DRAWING, _FIGURE
     if not len(paths):
+        if beside is not None:
+            beside()
         return
     curves = curves or FigureCurves.at_measured(result)
     workers = plot_workers(len(paths)) if workers is None else max(1, int(workers))
     _agg_figure()  # matplotlib imported once here, not in each worker
-    _DRAWING, _FIGURE = (result, curves, list(paths)), None
+    _DRAWING, _FIGURE = (result, curves, list(paths), beside), None
     try:
-        pieces = chunks(len(paths), workers)
+        pieces = ([None] if beside is not None else []) + chunks(len(paths), workers)
         for _ in progress_over(fork_map(_draw, pieces, workers), len(paths), "plots", progress):
             pass
     finally:

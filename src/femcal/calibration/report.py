@@ -25,6 +25,7 @@ import logging
 import re
 import time
 from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -350,6 +351,10 @@ def write_outputs(
     n = len(result.specimens)
     n_plot = n if max_plots is None else min(n, int(max_plots))
     figures["n_plotted"] = n_plot if mode == "all" else 0
+    ident = identifiability(result)
+    page = None
+    if mode != "none":
+        page = partial(plot_summary, result, out_dir / "summary.png", held, ident, DETERMINED_WIDTH)
     if mode == "all":
         plot_dir = out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
@@ -364,16 +369,15 @@ def write_outputs(
         start = time.perf_counter()
         if curves is None:
             curves = FigureCurves.at_measured(result, None if held is None else held["prediction"])
-        plot_specimens(result, paths, curves, progress=progress)
+        # the summary page drawn beside the specimens' figures
+        plot_specimens(result, paths, curves, progress=progress, beside=page)
         logger.debug("%d specimen plots in %.2f s", n_plot, time.perf_counter() - start)
         if n_plot < n:
             logger.warning(
                 "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
             )
-    if mode != "none":
-        plot_summary(
-            result, out_dir / "summary.png", held, identifiability(result), DETERMINED_WIDTH
-        )
+    elif page is not None:
+        page()
     (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
-    (out_dir / "summary.md").write_text(_markdown(result, figures, identifiability(result)))
+    (out_dir / "summary.md").write_text(_markdown(result, figures, ident))
     return figures
