@@ -141,7 +141,7 @@ SETTINGS_OF: dict[str, dict[str, tuple[str, ...] | None]] = {
 }
 #: Options whose choices argparse lists (a plugin calibrator is a choice too).
 _CHOICES = {("calibrate", "method"): CALIBRATOR_NAMES}
-_SET = "set:"  # destination of a setting's option: set:<section>.<key>
+_SETTINGS = "settings_given"  # a command's settings options: destination -> (section, key)
 
 
 def _reader(annotation: Any, path_like: bool) -> Any:
@@ -170,16 +170,22 @@ def _add_settings(p: argparse.ArgumentParser, command: str) -> None:
     """One option per setting ``command`` reads (:data:`SETTINGS_OF`) that ``p`` has no option
     for yet, declared by the section's field (and so by the options dataclass it reads): same
     name, same doc."""
+    given = {}
     for section, keys in SETTINGS_OF[command].items():
-        _add_section(p, section, keys)
+        given.update(_add_section(p, section, keys))
+    p.set_defaults(**{_SETTINGS: given})
 
 
-def _add_section(p: argparse.ArgumentParser, section: str, keys: tuple[str, ...] | None) -> None:
+def _add_section(
+    p: argparse.ArgumentParser, section: str, keys: tuple[str, ...] | None
+) -> dict[str, tuple[str, str]]:
+    """The options of ``section``'s settings ``keys`` (None: all): destination -> (section,
+    key)."""
     from femcal.settings import SECTIONS
     from femcal.settings._format import describe, fields_of, keys_of
     from femcal.settings.values import PATH
 
-    model = SECTIONS[section][0]
+    model, added = SECTIONS[section][0], {}
     for key, name in keys_of(model).items():
         flag = "--" + key.replace("_", "-")
         if keys is not None and key not in keys or flag in p._option_string_actions:
@@ -190,7 +196,7 @@ def _add_section(p: argparse.ArgumentParser, section: str, keys: tuple[str, ...]
         words = describe(tp)
         p.add_argument(
             flag,
-            dest=f"{_SET}{section}.{key}",
+            dest=key,
             default=argparse.SUPPRESS,
             choices=choices,
             type=str if choices else _reader(tp, PATH in (tp, *get_args(tp))),
@@ -199,6 +205,8 @@ def _add_section(p: argparse.ArgumentParser, section: str, keys: tuple[str, ...]
                 "%", "%%"
             ),
         )
+        added[key] = (section, key)
+    return added
 
 
 def _metavar(annotation: Any) -> str:
@@ -215,9 +223,9 @@ def _metavar(annotation: Any) -> str:
 def setting_overrides(args: argparse.Namespace) -> dict[tuple[str, ...], tuple[str, Any]]:
     """The settings given on the command line: (section, key) -> (option, value)."""
     return {
-        tuple(dest[len(_SET) :].split(".")): ("--" + dest.split(".")[-1].replace("_", "-"), value)
-        for dest, value in vars(args).items()
-        if dest.startswith(_SET)
+        path: ("--" + dest.replace("_", "-"), getattr(args, dest))
+        for dest, path in getattr(args, _SETTINGS, {}).items()
+        if hasattr(args, dest)
     }
 
 
@@ -296,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and its `split` setting the prepared table trained on (one of "
         f"{', '.join(SPLITS)}; default: the section's name)",
     )
+    _add_metrics_file(sub.choices["train"])
     sub.choices["baselines"].add_argument(
         "--split", required=True, choices=SPLITS, help="the prepared table to fit on"
     )

@@ -39,7 +39,9 @@ class PgdOptions:
     n_starts: Int(0) = option(8, "starts per specimen from the nearest bank entries")
     n_random_starts: Int(0) = option(0, "additional uniform random starts per specimen")
     n_bank_uniform: Int(0) = option(1024, "uniform draws added to the start bank")
-    max_iter: Int(1) = option(12, "Gauss-Newton iterations (L-BFGS-B's iteration cap)")
+    max_iter: Int(0) = option(
+        12, "Gauss-Newton iterations (L-BFGS-B's iteration cap; 0: the best start as is)"
+    )
     keep_after: Int(0) = option(
         2, "successive halving: iterations before only the keep best starts go on"
     )
@@ -144,6 +146,11 @@ class GaussNewtonOptions:
         Jacobian.
     keep_first : bool
         With successive halving, each specimen's first start goes on too.
+    settle_exact : bool
+        With ``jacobian_members > 0``: a row goes on with the exact Jacobian once it has
+        converged on the cheaper one or a kept step gained less than 1%, until it converges
+        again, so that it stops where the exact loss is stationary (the cheaper Jacobian only
+        shortens the way there).
     """
 
     max_iter: int
@@ -156,3 +163,4 @@ class GaussNewtonOptions:
     jacobian_members: int = 0
     exact_final: int = 2
     keep_first: bool = False
+    settle_exact: bool = False
