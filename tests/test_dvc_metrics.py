@@ -100,3 +100,9 @@ def test_headline_maps_each_kind_onto_the_vocabulary(tmp_path):
     assert details_path(path).name == "validate.details.json"
     with pytest.raises(MetricsFileError, match="No DVC metrics mapping for stage kind 'nope'"):
         headline("nope", figures)
+
+
+def test_a_metrics_folder_puts_the_details_at_the_report_name():
+    """The FE pipeline keeps its metrics in reports/metrics/ and each report by its name."""
+    assert details_path("reports/metrics/train-large.json") == Path("reports/train-large.json")
+    assert details_path("reports/sigma.json") == Path("reports/sigma.details.json")

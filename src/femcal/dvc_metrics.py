@@ -6,7 +6,9 @@ them holds. Each metrics file therefore holds keys of one shared vocabulary only
 (:data:`VOCABULARY`): the stage's figures mapped onto it (:data:`SOURCES`), flat and scalar, so
 that the table stays within :data:`MAX_WIDTH` characters. A stage's other figures (nested
 tables, lists, names, run ids, hyperparameters) go to a plain output beside the metrics file,
-``<name>.details.json`` (:func:`details_path`), or stay where the stage writes them whole
+``<name>.details.json`` (:func:`details_path`; the FE pipeline keeps its metrics files in
+``reports/metrics/`` and each stage's report at ``reports/<name>.json``), or stay where the
+stage writes them whole
 (``summary.json`` of calibrate and diagnose, ``reports/surrogates_table.json`` of evaluate).
 """
 
@@ -187,8 +189,13 @@ def headline(kind: str, figures: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def details_path(path: str | Path) -> Path:
-    """The plain output beside a metrics file: ``reports/x.json`` -> ``reports/x.details.json``."""
+    """The plain output of a metrics file's stage: ``reports/x.json`` ->
+    ``reports/x.details.json`` beside it; a metrics file in a folder named ``metrics``
+    (``reports/metrics/x.json``, the FE pipeline's layout) -> ``reports/x.json``, the stage's
+    report under its own name."""
     path = Path(path)
+    if path.parent.name == "metrics":
+        return path.parent.parent / path.name
     return path.with_name(f"{path.stem}.details.json")
 
 

@@ -71,7 +71,7 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     # The predict stage on one specimen, noise-free, with a short FE limit: the 5-epoch
     # surrogate calibrates to extreme parameters, whose runs fail slowly.
     dvc_yaml = root / "fe" / "dvc.yaml"
-    predict = "python -m femcal.fe.predictive --metrics-file reports/predictive.json"
+    predict = "python -m femcal.fe.predictive --metrics-file reports/metrics/predictive.json"
     assert predict in dvc_yaml.read_text()
     dvc_yaml.write_text(
         dvc_yaml.read_text().replace(
@@ -95,8 +95,8 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     campaign = json.loads((fe / "data/dataset/campaign.json").read_text())
     assert campaign["n_jobs"] == 44 and campaign["n_configurations"] == 11
     assert len(read_split(fe / "data/dataset", "large")) == 8 * 20
-    assert json.loads((fe / "reports/simulate.json").read_text())["n"] == 11  # the DVC metrics
-    assert json.loads((fe / "reports/simulate.details.json").read_text())["n_jobs"] == 44
+    assert json.loads((fe / "reports/metrics/simulate.json").read_text())["n"] == 11  # DVC metrics
+    assert json.loads((fe / "reports/simulate.json").read_text())["n_jobs"] == 44
     calibrated = pd.read_csv(fe / "reports/calibration/fe-test/parameters.csv")
     assert len(calibrated) == 2
     validation = pd.read_csv(fe / "reports/validation/validation.csv")
@@ -106,25 +106,29 @@ def test_fe_pipeline_runs_and_resumes(tmp_path):
     assert reached.any()
     idp = validation.loc[reached]
     assert (idp["idp_mpa_2000N"] > idp["idp_mpa_300N"]).all()
-    headline = json.loads((fe / "reports/validate.json").read_text())  # the DVC metrics
+    headline = json.loads((fe / "reports/metrics/validate.json").read_text())  # DVC metrics
     assert headline["failed"] >= int((~reached).sum()) and headline["n"] == 2
-    metrics = json.loads((fe / "reports/validate.details.json").read_text())  # every figure
+    metrics = json.loads((fe / "reports/validate.json").read_text())  # every figure
     assert metrics["n_specimens"] == 2
     # The IDP head against FE under the moments; the published in vivo values of params.yaml
     # against the discs' pressure-force curves.
-    assert json.loads((fe / "reports/train-idp.json").read_text())["mae_mpa"] >= 0
+    assert json.loads((fe / "reports/metrics/train-idp.json").read_text())["mae_mpa"] >= 0
+    # the training reports hold the held-out error (Test split) and the training size
+    large = json.loads((fe / "reports/train-large.json").read_text())
+    assert large["heldout_mae_deg_0_5"] > 0 and large["n_train_configurations"] == 8
+    assert json.loads((fe / "reports/train-idp.json").read_text())["heldout_mae_mpa_0_5"] > 0
     assert metrics["idp_head"]["n_points"] > 0
     published = pd.read_csv(fe / "reports/validation/idp_published.csv")
     assert "relaxed standing" in set(published["condition"])
     assert {row["condition"] for row in metrics["idp_published"]} == set(published["condition"])
     # 1-5 Nm curves: the calibration sees 1-3 Nm, FE predicts 4-5 Nm (both Test specimens).
-    predictive = json.loads((fe / "reports/predictive.details.json").read_text())
+    predictive = json.loads((fe / "reports/predictive.json").read_text())
     assert predictive["split_nm"] == 3.0 and predictive["n_specimens"] == 1
     assert "fe_predictive_mae_deg" in predictive and "noisy" not in predictive
-    assert json.loads((fe / "reports/cohort.json").read_text())["n"] == 4
-    sigma = json.loads((fe / "reports/sigma.details.json").read_text())
+    assert json.loads((fe / "reports/metrics/cohort.json").read_text())["n"] == 4
+    sigma = json.loads((fe / "reports/sigma.json").read_text())
     assert 0.0 <= sigma["coverage_2sigma"]["0.5-5"] <= 1.0  # 1..5 Nm here: one band
-    adapt = json.loads((fe / "reports/adapt.details.json").read_text())
+    adapt = json.loads((fe / "reports/adapt.json").read_text())
     assert adapt["n_rounds"] == 1 and adapt["n_new_configurations"] == 3  # 2 targets + 1
     assert (fe / "models/surrogate-champion/MLmodel").is_file()
     # FE runs aimed at a Test specimen: up to 2 in validate, plus the adapt round at the same

@@ -79,20 +79,24 @@ def closure(*starts: str) -> set[Path]:
 
 
 def stages() -> list[tuple[str, str, list[str], Path]]:
-    """(pipeline, stage, deps, module) for every stage of both pipelines."""
+    """(pipeline, stage, deps, module) for every command of every stage of both pipelines."""
     out = []
     for pipeline in PIPELINES:
         for stage, spec in yaml.safe_load(pipeline.read_text())["stages"].items():
             body = spec.get("do", spec)
-            words = body["cmd"].split()
-            # ``femcal <command>``, or ``python -m femcal.<module>`` (a library module's main)
-            command = words[2] if words[:2] == ["python", "-m"] else words[1]
-            out.append((pipeline.relative_to(ROOT).as_posix(), stage, body["deps"], command))
+            cmds = body["cmd"] if isinstance(body["cmd"], list) else [body["cmd"]]
+            for cmd in cmds:  # a stage may run several commands, each checked
+                words = cmd.split()
+                # ``femcal <command>``, or ``python -m femcal.<module>`` (a library module's main)
+                command = words[2] if words[:2] == ["python", "-m"] else words[1]
+                out.append((pipeline.relative_to(ROOT).as_posix(), stage, body["deps"], command))
     return out
 
 
 @pytest.mark.parametrize(
-    ("pipeline", "stage", "deps", "command"), stages(), ids=[f"{p}:{s}" for p, s, *_ in stages()]
+    ("pipeline", "stage", "deps", "command"),
+    stages(),
+    ids=[f"{p}:{s}:{c}" for p, s, _, c in stages()],
 )
 def test_every_module_a_stage_runs_is_a_dep(pipeline, stage, deps, command):
     folder = (ROOT / pipeline).parent

@@ -273,7 +273,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         default=SHARED_MACHINE_TIMEOUT_S,
         help="wall-clock limit of one attempt of an FE job, s (part of the job's hash)",
     )
-    parser.add_argument("--metrics-file", type=Path, default=Path("reports/predictive.json"))
+    parser.add_argument(
+        "--metrics-file", type=Path, default=Path("reports/metrics/predictive.json")
+    )
     args = parser.parse_args(argv)
     params = load_params("params.yaml")
     fe = fe_runtime(params, {"store": args.store}, "fe")

@@ -9,7 +9,7 @@ physics in the surrogate's error, much more that it hides effects in an inflated
 
 Command line (from ``fe/``, the FE pipeline's ``sigma`` stage)::
 
-    python -m femcal.fe.sigma --metrics-file reports/sigma.json
+    python -m femcal.fe.sigma --metrics-file reports/metrics/sigma.json
 """
 
 from __future__ import annotations
@@ -128,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         default=Path("data/prepared/test.csv"),
         help="tidy FE rows of configurations the surrogate never saw",
     )
-    parser.add_argument("--metrics-file", type=Path, default=Path("reports/sigma.json"))
+    parser.add_argument("--metrics-file", type=Path, default=Path("reports/metrics/sigma.json"))
     args = parser.parse_args(argv)
     params = load_params("params.yaml")
     moments = settings_of(params).require("moments")

@@ -65,7 +65,7 @@ def run(settings: AdaptSettings) -> dict[str, Any]:
     """Adapt, register the challenger, promote it if it wins; returns the figures."""
     tracking(settings.params)
     figures = run_adapt(settings)
-    # the headline; every figure beside it (adapt.details.json, which validate reads)
+    # the headline; every figure in its details file (details_path), which validate reads
     write_metrics(settings.metrics_file, figures, "adapt", details=True)
     return figures
 

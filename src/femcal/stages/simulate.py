@@ -77,7 +77,7 @@ def run(settings: SimulateSettings) -> dict[str, Any]:
     """Run the campaign and write the dataset; returns the campaign's result and summary."""
     result, summary = run_simulate(**settings.call_args())
     # only when asked (the DVC stage)
-    # the headline; every figure of METRICS_KEYS in simulate.details.json beside it
+    # the headline; every figure of METRICS_KEYS in its details file (details_path)
     write_metrics(
         settings.metrics_file, {k: summary[k] for k in METRICS_KEYS}, "simulate", details=True
     )

@@ -1,7 +1,8 @@
 """Stage ``train@<split>``: the surrogate's Optuna search and final ensemble, logged to MLflow.
 
 The model folder (``models/surrogate-<split>``) is the logged MLflow model, file for file; the
-summary goes to ``reports/train-<split>.json``.
+summary goes to ``reports/train-<split>.json`` (``--metrics-file`` elsewhere), every figure
+to its details file (:func:`femcal.dvc_metrics.details_path`).
 """
 
 from __future__ import annotations
@@ -43,7 +44,9 @@ class TrainSettings(StageSettings):
             prepared_dir=path_setting(params, "data", "prepared_dir"),
             split=split,
             out_dir=setting_path(params, f"models/surrogate-{split}"),
-            metrics_path=setting_path(params, f"reports/train-{split}.json"),
+            metrics_path=setting_path(
+                params, args.get("metrics_file") or f"reports/train-{split}.json"
+            ),
             study=study_search(
                 params,
                 args,

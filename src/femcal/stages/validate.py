@@ -200,7 +200,7 @@ def run(settings: ValidateSettings) -> dict[str, Any]:
     result = run_validate(**settings.call_args())
     s = {**result.summary, **honest_figures(result.summary, settings, predictive, adapt)}
     # only when asked (the DVC stage)
-    # the headline; every figure of METRICS_KEYS in validate.details.json beside it
+    # the headline; every figure of METRICS_KEYS in its details file (details_path)
     figures = json_safe({k: s[k] for k in METRICS_KEYS})
     write_metrics(settings.metrics_file, figures, "validate", details=True)
     return {"summary": s, "out": str(settings.out_dir)}
