@@ -37,12 +37,12 @@ from femcal.settings.values import (
     Int,
     Keywords,
     ListOf,
+    OptionSection,
     Section,
     light_class,
-    option_fields,
-    option_settings,
     plain,
     setting,
+    with_options,
 )
 
 #: The FE workflows' options (femcal.fe.options), declared there once.
@@ -356,7 +356,9 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
     return dict(value or {})
 
 
-class _Fe(Section):
+class _Fe(OptionSection):
+    _options: ClassVar[type] = _CAMPAIGN
+
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
     bounds: Annotated[
         plain(Bounds, typed=True),
@@ -393,13 +395,7 @@ class _Fe(Section):
 
 
 #: ``fe``: the campaign, and the options of :class:`femcal.fe.options.CampaignOptions`.
-FeSettings = create_model(
-    "FeSettings",
-    __base__=_Fe,
-    __doc__="``fe``: the FE campaign (fe/params.yaml).",
-    __module__=__name__,
-    **option_settings(_CAMPAIGN),
-)
+FeSettings = with_options("FeSettings", _Fe, "``fe``: the FE campaign (fe/params.yaml).")
 
 
 class IdpRange(Section):
@@ -432,8 +428,9 @@ class PublishedIdp(Section):
     level: NAME = setting("disc level, e.g. L4-L5")
 
 
-class _Adapt(Section):
+class _Adapt(OptionSection):
     _complete: ClassVar[bool] = True
+    _options: ClassVar[type] = _ADAPT
 
     model_uri: MODEL_URI = setting("the surrogate to adapt (a model folder or models:/ URI)")
     targets: PATH = setting("measurements whose calibrations steer the runs")
@@ -451,7 +448,7 @@ class _Adapt(Section):
     def options(self) -> dict[str, Any]:
         """The keywords of :class:`femcal.fe.options.AdaptOptions` this section sets."""
         return {
-            **{k: getattr(self, k) for k in option_fields(_ADAPT)},
+            **super().options(),
             "finetune": dict(self.finetune),
             "calibrate_options": dict(self.calibrate_options),
             "seed": self.seed,
@@ -459,36 +456,28 @@ class _Adapt(Section):
 
 
 #: ``adapt``: the stage's files, and the options of :class:`femcal.fe.options.AdaptOptions`.
-AdaptSettings = create_model(
+AdaptSettings = with_options(
     "AdaptSettings",
-    __base__=_Adapt,
-    __doc__="``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion.",
-    __module__=__name__,
-    **option_settings(_ADAPT),
+    _Adapt,
+    "``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion.",
 )
 
 
-class _Refine(Section):
+class _Refine(OptionSection):
     _complete: ClassVar[bool] = True
+    _options: ClassVar[type] = _VALIDATE
 
     model_uri: MODEL_URI = setting(
         "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
     )
 
-    def options(self) -> dict[str, Any]:
-        """The keywords of :class:`femcal.fe.options.ValidateOptions` this section sets."""
-        return {k: getattr(self, k) for k in option_fields(_VALIDATE)}
-
 
 #: ``validate.refine``: the surrogate, and the refinement's options of
 #: :class:`femcal.fe.options.ValidateOptions`.
-RefineSettings = create_model(
+RefineSettings = with_options(
     "RefineSettings",
-    __base__=_Refine,
-    __doc__="``validate.refine``: FE-in-the-loop refinement of the calibration before "
-    "validating it.",
-    __module__=__name__,
-    **option_settings(_VALIDATE),
+    _Refine,
+    "``validate.refine``: FE-in-the-loop refinement of the calibration before validating it.",
 )
 
 

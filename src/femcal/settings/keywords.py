@@ -35,13 +35,13 @@ from femcal.settings.values import (
     Int,
     Keywords,
     ListOf,
-    OptionKeywords,
+    OptionSection,
     Section,
     keyword,
-    keywords_of,
     light_class,
     plain,
     setting,
+    with_options,
 )
 
 # ------------------------------------------------------------------ registries' names
@@ -140,11 +140,6 @@ BASELINE_NAMES = Registered(
 )
 
 
-def plugin_calibrators() -> tuple[str, ...]:
-    """The calibrators beyond :data:`CALIBRATORS` (:meth:`Registered.plugins`)."""
-    return CALIBRATOR_NAMES.plugins()
-
-
 #: A calibration method: a built-in (``Literal``, its messages) or a plugin's name.
 METHOD = CALIBRATOR_NAMES.choice()
 #: An FE solver adapter: a built-in or a plugin's name.
@@ -224,7 +219,7 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
-class _Pgd(OptionKeywords):
+class _Pgd(OptionSection, Keywords):
     _owner: ClassVar[str] = "pgd calibrator"
     _options: ClassVar[type] = light_class("calibration.pgd_options", "PgdOptions")
     _reasons: ClassVar[dict[str, str]] = {
@@ -235,7 +230,9 @@ class _Pgd(OptionKeywords):
 
 
 #: The pgd calibrator's options: those of :class:`femcal.calibration.PgdOptions`.
-PgdKeywords = keywords_of(_Pgd, "The pgd calibrator's options (``calibrate.options.pgd``).")
+PgdKeywords = with_options(
+    "PgdKeywords", _Pgd, "The pgd calibrator's options (``calibrate.options.pgd``)."
+)
 
 
 class PgdStudyKeywords(Keywords):
@@ -254,14 +251,16 @@ class PgdStudyKeywords(Keywords):
     select: Literal["r2", "mae"] = keyword("best start by mean R² or by MAE")
 
 
-class _Ga(OptionKeywords):
+class _Ga(OptionSection, Keywords):
     _owner: ClassVar[str] = "ga calibrator"
     _options: ClassVar[type] = light_class("calibration.ga_options", "GaOptions")
     _reasons: ClassVar[dict[str, str]] = _RNG
 
 
 #: The ga calibrator's options: those of :class:`femcal.calibration.ga.GaOptions`.
-GaKeywords = keywords_of(_Ga, "The ga calibrator's options (``calibrate.options.ga``).")
+GaKeywords = with_options(
+    "GaKeywords", _Ga, "The ga calibrator's options (``calibrate.options.ga``)."
+)
 #: The ga calibrator's population defaults.
 GA_DEFAULTS = {
     k: getattr(_Ga._options, k) for k in ("population", "n_selected", "n_crossover", "n_mutation")
@@ -297,7 +296,8 @@ class _Options(Section):
         called (:func:`femcal.stages.calibrate.plugin_options`)."""
         if not isinstance(value, dict) or set(value) <= set(CALIBRATOR_OPTIONS):
             return value
-        plugins = [k for k in value if k not in CALIBRATOR_OPTIONS and k in plugin_calibrators()]
+        found = CALIBRATOR_NAMES.plugins()
+        plugins = [k for k in value if k not in CALIBRATOR_OPTIONS and k in found]
         for name in plugins:
             if value[name] is not None and not isinstance(value[name], dict):
                 message = f"expected a mapping of the {name} calibrator's keyword options"

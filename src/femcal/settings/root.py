@@ -11,7 +11,6 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     WrapValidator,
-    create_model,
     model_validator,
 )
 
@@ -38,13 +37,12 @@ from femcal.settings.values import (
     Float,
     Int,
     ListOf,
-    OptionError,
+    OptionSection,
     Section,
     light_class,
-    option_fields,
-    option_settings,
     plain,
     setting,
+    with_options,
 )
 
 _BASELINES = ListOf(BASELINE, unique=True)
@@ -317,7 +315,9 @@ class PlantSettings(Section):
 _OPTIONS = light_class("diagnose.options", "DiagnoseOptions")
 
 
-class _DiagnoseStage(Section):
+class _DiagnoseStage(OptionSection):
+    _options: ClassVar[type] = _OPTIONS
+
     measurements: PATH = setting("measurement file diagnosed")
     out_dir: PATH = setting("output folder")
     metrics_file: PATH | None = setting("summary figures (DVC metrics)", None)
@@ -328,24 +328,10 @@ class _DiagnoseStage(Section):
     plots: Bool = setting("write plots", True)
     max_plots: Int(0) | None = setting(_MAX_PLOTS, None)
 
-    def options(self) -> dict[str, Any]:
-        """The keywords of :class:`femcal.diagnose.DiagnoseOptions`, as this section sets them."""
-        return {k: getattr(self, k) for k in option_fields(_OPTIONS)}
-
-    @model_validator(mode="after")
-    def _together(self) -> Any:
-        try:
-            _OPTIONS(**self.options())
-        except OptionError as exc:
-            raise fail(exc.text, exc.key) from None
-        return self
-
 
 #: ``diagnose``: the stage's files, and every option of :class:`femcal.diagnose.DiagnoseOptions`.
-DiagnoseSettings = create_model(
+DiagnoseSettings = with_options(
     "DiagnoseSettings",
-    __base__=_DiagnoseStage,
-    __doc__="``diagnose``: where the model fails and which effect is missing.",
-    __module__=__name__,
-    **option_settings(_OPTIONS),
+    _DiagnoseStage,
+    "``diagnose``: where the model fails and which effect is missing.",
 )

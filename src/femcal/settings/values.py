@@ -424,32 +424,34 @@ def check_options(options: Any, owner: str) -> None:
             object.__setattr__(options, name, fixed)
 
 
-def option_settings(options: type, *, unset: bool = False) -> dict[str, tuple[Any, Any]]:
-    """The fields of a section (or keyword table, ``unset``: the default None leaves the
-    function's own) holding the options of an options dataclass, for ``create_model``."""
-    return {
-        name: (tp, Field(None if unset else default, description=doc))
-        for name, (tp, default, doc) in option_fields(options).items()
-    }
-
-
-class OptionKeywords(Keywords):
-    """Keywords that are the options of an options dataclass (``_options``): each checked as
-    declared there, and those given together by the dataclass' own cross-checks."""
+class OptionSection(Section):
+    """A section (or keyword table) holding the options of an options dataclass
+    (``_options``): each checked as declared there, those given together by the dataclass'
+    own cross-checks (:func:`with_options` adds the fields)."""
 
     _options: ClassVar[type]
+
+    def options(self) -> dict[str, Any]:
+        """The dataclass' keywords this section sets (a keyword table: those given)."""
+        names = option_fields(self._options)
+        given = self.model_fields_set if isinstance(self, Keywords) else names
+        return {k: getattr(self, k) for k in names if k in given}
 
     @model_validator(mode="after")
     def _together(self) -> Any:
         try:
-            self._options(**{k: getattr(self, k) for k in self.model_fields_set})
+            self._options(**OptionSection.options(self))
         except OptionError as exc:
             raise fail(exc.text, exc.key) from None
         return self
 
 
-def keywords_of(base: type[OptionKeywords], doc: str) -> Any:
-    """The keyword table of ``base._options``' options: ``base`` with one field each."""
-    name = base._options.__name__.replace("Options", "Keywords")
-    fields = option_settings(base._options, unset=True)
+def with_options(name: str, base: type[OptionSection], doc: str) -> Any:
+    """``base`` with one field per option of ``base._options``: its annotation, doc and
+    default (a keyword table: None, the function's own default)."""
+    unset = issubclass(base, Keywords)
+    fields = {
+        key: (tp, Field(None if unset else default, description=what))
+        for key, (tp, default, what) in option_fields(base._options).items()
+    }
     return create_model(name, __base__=base, __doc__=doc, __module__=base.__module__, **fields)
