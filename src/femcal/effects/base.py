@@ -22,7 +22,10 @@ parameters. A new effect is a new module::
         def rotation(self, moment_nm, p):
             return p["friction_deg"] * torch.tanh(moment_nm)
 
-and listing ``capsule_friction`` under ``effects`` in params.yaml. A parameter declared
+and listing ``capsule_friction`` under ``effects`` in params.yaml. ``load_cases`` says where
+it acts; ``load_case_prior = {"AxialRotation": 0.9, "LateralBending": 0.3}`` instead says
+where it may act, and the diagnosis chooses among those load cases by the data, each set
+priced by the prior (:mod:`femcal.effects.terms`). A parameter declared
 ``EffectParameter(..., per_load_case=True)`` may differ per load case: the effect's split form
 ``capsule_friction:split`` (:mod:`femcal.effects.split`) has one copy of it per load case, and
 the diagnosis tries it wherever the effect is found.
@@ -54,6 +57,7 @@ import numpy as np
 import torch
 import torch.autograd.forward_ad as fwad
 
+from femcal.effects.terms import LIKELY, acting_in, parse_term
 from femcal.errors import ConfigError
 from femcal.registry import Registry
 from femcal.schema import LOAD_CASES
@@ -110,8 +114,16 @@ class Effect:
     name : str
         Registry name (used in params.yaml and in verdicts).
     kind : {"parallel", "series"}
+    load_case_prior : dict of str to float
+        Where it may act: the prior probability that it acts in each load case (a load case
+        left out cannot hold it). Declare this or ``load_cases``, not both: declared alone,
+        ``load_cases`` gives each of its load cases the prior 1 (the effect acts there and
+        nowhere else).
     load_cases : tuple of str
-        The load cases it acts on (others are the disc alone).
+        The load cases it acts on in its registered form (others are the disc alone): those
+        of prior >= 0.5 (:data:`femcal.effects.terms.LIKELY`) where ``load_case_prior`` is
+        declared. The diagnosis also fits it in the other load cases its prior allows and
+        prices each set by the prior (:mod:`femcal.effects.terms`).
     parameters : tuple of EffectParameter
         Those with ``per_load_case=True`` may differ per load case: the effect's split form,
         ``<name>:split`` (:mod:`femcal.effects.split`), has one copy per load case.
@@ -120,7 +132,19 @@ class Effect:
     name: ClassVar[str] = ""
     kind: ClassVar[str] = "parallel"
     load_cases: ClassVar[tuple[str, ...]] = ()
+    load_case_prior: ClassVar[dict[str, float]] = {}
     parameters: ClassVar[tuple[EffectParameter, ...]] = ()
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        """Derive ``load_cases`` from a declared ``load_case_prior``, or the prior 1 in each
+        of the declared ``load_cases``."""
+        super().__init_subclass__(**kwargs)
+        own_prior, own_cases = "load_case_prior" in cls.__dict__, "load_cases" in cls.__dict__
+        if own_prior and not own_cases:
+            prior = cls.load_case_prior
+            cls.load_cases = tuple(lc for lc in LOAD_CASES if prior.get(lc, 0.0) >= LIKELY)
+        elif own_cases and not own_prior:
+            cls.load_case_prior = {lc: 1.0 for lc in cls.load_cases}
 
     def moment(self, rotation_deg: torch.Tensor, p: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """Moment (Nm) a parallel element carries at a rotation (deg); >= 0, non-decreasing.
@@ -221,11 +245,11 @@ def _check_effect(name: str, cls: type[Effect]) -> None:
             f"Effect {cls.__name__} needs a name and kind 'parallel' or 'series'; got "
             f"name={cls.name!r}, kind={cls.kind!r}."
         )
-    if any(c in cls.name for c in ":+[] "):
+    if any(c in cls.name for c in ":+[]@, "):
         raise ConfigError(
-            f"Effect {cls.__name__}: its name {cls.name!r} holds one of ':', '+', '[', ']' or a "
-            "space, which femcal uses in verdicts (a+b) and split forms (a:split); name it with "
-            "letters, digits and underscores."
+            f"Effect {cls.__name__}: its name {cls.name!r} holds one of ':', '+', '[', ']', '@', "
+            "',' or a space, which femcal uses in verdicts (a+b), split forms (a:split) and "
+            "load-case sets (a@Flexion,Extension); name it with letters, digits and underscores."
         )
     if name != cls.name:
         raise ConfigError(
@@ -236,14 +260,40 @@ def _check_effect(name: str, cls: type[Effect]) -> None:
     if unknown or not cls.load_cases:
         raise ConfigError(
             f"Effect '{cls.name}': load_cases must be a non-empty subset of {list(LOAD_CASES)}; "
-            f"got {list(cls.load_cases)}."
+            f"got {list(cls.load_cases)}"
+            + (
+                " (the load cases of load_case_prior >= 0.5); give one load case a prior >= 0.5."
+                if "load_case_prior" in cls.__dict__
+                else "."
+            )
         )
+    _check_prior(cls)
     for q in cls.parameters:
         if not q.lower < q.upper or (q.log and q.lower <= 0):
             raise ConfigError(
                 f"Effect '{cls.name}' parameter '{q.name}': need lower < upper (and lower > 0 "
                 f"on a log scale); got [{q.lower}, {q.upper}]."
             )
+
+
+def _check_prior(cls: type[Effect]) -> None:
+    """Refuse a ``load_case_prior`` over unknown load cases, outside [0, 1], or declared
+    beside ``load_cases`` that are not its likely load cases."""
+    prior = cls.load_case_prior
+    bad = {lc: p for lc, p in prior.items() if lc not in LOAD_CASES or not 0.0 <= p <= 1.0}
+    if bad:
+        raise ConfigError(
+            f"Effect '{cls.name}': load_case_prior maps load cases of {list(LOAD_CASES)} to "
+            f"probabilities in [0, 1]; got {bad}."
+        )
+    likely = tuple(lc for lc in LOAD_CASES if prior.get(lc, 0.0) >= LIKELY)
+    if tuple(cls.load_cases) != likely:
+        raise ConfigError(
+            f"Effect '{cls.name}' declares load_cases {list(cls.load_cases)} and a "
+            f"load_case_prior whose likely load cases (prior >= {LIKELY}) are {list(likely)}. "
+            "Declare one of them: load_case_prior alone (load_cases follow from it), or "
+            "load_cases alone (prior 1 in each)."
+        )
 
 
 #: The effect registry: built-in modules (every module of this package), installed plugins
@@ -282,11 +332,16 @@ def available_effects() -> list[str]:
 
 def get_effect(name: str) -> type[Effect]:
     """The effect class registered under ``name`` (ConfigError listing the names otherwise);
-    ``<name>:split`` is its split form (:func:`femcal.effects.split.split_effect`)."""
-    from femcal.effects.split import base_name, is_split, split_effect
+    ``<name>:split`` is its split form (:func:`femcal.effects.split.split_effect`) and
+    ``<name>@<load case>,...`` the effect acting in those load cases
+    (:func:`femcal.effects.terms.acting_in`)."""
+    from femcal.effects.split import split_effect
 
-    cls = effect_registry.get(base_name(name))
-    return split_effect(cls) if is_split(name) else cls
+    term = parse_term(name)
+    cls = effect_registry.get(term.effect)
+    if term.cases is not None:
+        cls = acting_in(cls, term.cases)
+    return split_effect(cls) if term.split else cls
 
 
 def load_effect_modules(paths: Sequence[str | Path]) -> list[str]:

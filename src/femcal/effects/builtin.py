@@ -21,6 +21,24 @@ flavum ligaments resist flexion, the intertransverse ligaments lateral bending; 
 zone differs per plane. Their split forms (``facet_contact:split``, ...,
 :mod:`femcal.effects.split`) give gap, slack, stiffness and laxity one value per load case; the
 shape of the law stays shared.
+
+Where each may act is a prior per load case (``load_case_prior``); the registered form acts
+in the likely load cases (prior >= 0.5), and the diagnosis fits the other allowed load cases
+too, each priced by the prior (:mod:`femcal.effects.terms`):
+
+* facets: extension and axial rotation 0.9 (the articular surfaces are compressed in extension
+  and the contralateral facet impinges in axial rotation: Adams & Hutton 1980, Sharma et al.
+  1995), lateral bending 0.3 (the ipsilateral facet is loaded in lateral bending, less and not
+  in every specimen: Schendel et al. 1993, J Biomech 26:427, measured facet forces in lateral
+  bending; Inoue et al. 2020, Spine Surg Relat Res 4:1, review the facet's load in each
+  motion); flexion 0 (the facets separate);
+* ligaments: flexion and lateral bending 0.9 (supraspinous, interspinous and flavum ligaments
+  in flexion, intertransverse ligaments on the convex side in lateral bending: Heuer et al.
+  2007, Panjabi et al. 1992), extension 0.3 (the facet capsules are also strained in extension,
+  less than in flexion: Ianuzzi et al. 2004, Spine J 4:141); axial rotation 0 (the capsules'
+  share there is the facets' contact, which facet contact models);
+* neutral-zone laxity: 1 in every load case (every plane has a neutral zone, of its own size:
+  Panjabi 1992).
 """
 
 from __future__ import annotations
@@ -45,13 +63,14 @@ def _like(p: Mapping[str, torch.Tensor], name: str, ref: torch.Tensor) -> torch.
 
 @register_effect
 class FacetContact(Effect):
-    """Facet joints engage in extension and axial rotation: once the rotation closes a gap,
-    contact carries a moment ``M = k * (phi - gap)_+^n`` (n = 1 linear spring .. 3), the
-    corner at the gap rounded over ``onset`` degrees (``w softplus(x / w)``)."""
+    """Facet joints engage in extension and axial rotation (possibly in lateral bending): once
+    the rotation closes a gap, contact carries a moment ``M = k * (phi - gap)_+^n`` (n = 1
+    linear spring .. 3), the corner at the gap rounded over ``onset`` degrees
+    (``w softplus(x / w)``)."""
 
     name = "facet_contact"
     kind = "parallel"
-    load_cases = ("Extension", "AxialRotation")
+    load_case_prior = {"Extension": 0.9, "AxialRotation": 0.9, "LateralBending": 0.3}
     parameters = (
         EffectParameter("facet_gap_deg", "deg", 0.0, 6.0, start=1.0, per_load_case=True),
         EffectParameter(
@@ -85,13 +104,14 @@ class FacetContact(Effect):
 
 @register_effect
 class LigamentTension(Effect):
-    """Posterior ligaments tighten in flexion and lateral bending: beyond a slack angle they
+    """Posterior ligaments tighten in flexion and lateral bending (the facet capsules possibly
+    in extension): beyond a slack angle they
     carry ``M = k * (exp((phi - slack)_+ / s) - 1)``, a toe region of length ``s`` that stiffens
     exponentially."""
 
     name = "ligament_tension"
     kind = "parallel"
-    load_cases = ("Flexion", "LateralBending")
+    load_case_prior = {"Flexion": 0.9, "LateralBending": 0.9, "Extension": 0.3}
     parameters = (
         EffectParameter("ligament_slack_deg", "deg", 0.0, 12.0, start=1.0, per_load_case=True),
         EffectParameter(
@@ -117,7 +137,12 @@ class NeutralZone(Effect):
 
     name = "neutral_zone"
     kind = "series"
-    load_cases = ("Flexion", "Extension", "LateralBending", "AxialRotation")
+    load_case_prior = {
+        "Flexion": 1.0,
+        "Extension": 1.0,
+        "LateralBending": 1.0,
+        "AxialRotation": 1.0,
+    }
     parameters = (
         EffectParameter("nz_range_deg", "deg", 0.0, 3.0, start=0.0, per_load_case=True),
         EffectParameter("nz_moment_nm", "Nm", 0.1, 1.5, log=True, per_load_case=True),

@@ -24,23 +24,33 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from femcal.effects.base import Effect, EffectParameter
+from femcal.effects.terms import SPLIT_SUFFIX, parse_term
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
 
-#: The suffix of an effect's split form.
-SPLIT_SUFFIX = ":split"
+__all__ = [
+    "SPLIT_SUFFIX",
+    "base_name",
+    "case_parameter",
+    "has_split_form",
+    "is_split",
+    "split_effect",
+    "tied_parameter",
+]
 
 _SPLIT: dict[type[Effect], type[Effect]] = {}
 
 
 def is_split(name: str) -> bool:
-    """Whether an effect name names a split form (``<effect>:split``)."""
-    return name.endswith(SPLIT_SUFFIX)
+    """Whether an effect term names a split form (``<effect>:split``,
+    :mod:`femcal.effects.terms`)."""
+    return parse_term(name).split
 
 
 def base_name(name: str) -> str:
-    """The registered effect a name refers to: ``facet_contact:split`` -> ``facet_contact``."""
-    return name[: -len(SPLIT_SUFFIX)] if is_split(name) else name
+    """The registered effect a term refers to: ``facet_contact:split`` and
+    ``facet_contact@Extension,LateralBending`` -> ``facet_contact``."""
+    return parse_term(name).effect
 
 
 def has_split_form(name: str) -> bool:
@@ -59,6 +69,12 @@ def has_split_form(name: str) -> bool:
 def case_parameter(name: str, load_case: str) -> str:
     """The name of a split parameter's copy in one load case: ``gap[Extension]``."""
     return f"{name}[{load_case}]"
+
+
+def tied_parameter(name: str) -> str:
+    """The parameter a per-load-case copy is of: ``gap[Extension]`` -> ``gap`` (a tied
+    parameter's name is returned as is)."""
+    return name.split("[", 1)[0]
 
 
 def split_effect(cls: type[Effect]) -> type[Effect]:
@@ -102,6 +118,7 @@ def split_effect(cls: type[Effect]) -> type[Effect]:
             "name": cls.name + SPLIT_SUFFIX,
             "kind": cls.kind,
             "load_cases": cls.load_cases,
+            "load_case_prior": dict(cls.load_case_prior),
             "parameters": tuple(params),
             "tied": cls,
             "__doc__": f"{cls.name} with {', '.join(splittable)} per load case.",
