@@ -52,7 +52,7 @@ def test_mae_by_band_and_load_case(trained) -> None:
     assert out["n_train_configurations"] == 24
 
 
-def test_failed_levels_are_left_out_and_shared_or_empty_tables_refused(trained) -> None:
+def test_failed_levels_are_left_out_and_empty_tables_refused(trained) -> None:
     model, train = trained
     heldout = _heldout(2, seed=5)
     heldout.loc[heldout["moment_nm"] > 5, "rom_deg"] = np.nan  # a failed run's missing levels
@@ -60,8 +60,6 @@ def test_failed_levels_are_left_out_and_shared_or_empty_tables_refused(trained) 
     assert "heldout_mae_deg_5_10" not in out and "heldout_mae_deg_0_5" in out
     with pytest.raises(InputDataError, match="no finite rom_deg"):
         heldout_errors(model, heldout.assign(rom_deg=np.nan), train)
-    with pytest.raises(InputDataError, match="also in the training table"):
-        heldout_errors(model, train.head(40), train)
     with pytest.raises(InputDataError, match="target must be one of"):
         heldout_errors(model, heldout, train, target="rom")
     idp = heldout_errors(model, _heldout(2, seed=6), train, target="idp_mpa")
