@@ -46,11 +46,11 @@ from femcal.calibration.base import (
     chi2_p_value,
     register_calibrator,
 )
+from femcal.calibration.gauss_newton import _cost, _residual, gauss_newton
 from femcal.calibration.pgd_options import LOSSES as LOSSES
 from femcal.calibration.pgd_options import OPTIMIZERS as OPTIMIZERS
 from femcal.calibration.pgd_options import SELECT as SELECT
 from femcal.calibration.pgd_options import GaussNewtonOptions, PgdOptions
-from femcal.calibration.progress import report_step
 from femcal.calibration.starts import (
     _bank,
     _combination_starts,
@@ -72,121 +72,6 @@ def _effect_halving(keep_after: int, effect_keep: int, k: int, max_iter: int) ->
     if effect_keep <= 0 or effect_keep >= k:
         return max_iter, k
     return max(keep_after, 3), effect_keep
-
-
-def _residual(problem, rows, pred):
-    return ((pred - problem.target[rows]) * problem.mask[rows]).reshape(len(rows), -1)
-
-
-def _cost(r, w, loss):
-    return (w * r.abs()).sum(1) if loss == "l1" else (w * r**2).sum(1)
-
-
-def gauss_newton(
-    problem: CalibrationProblem,
-    v: torch.Tensor,
-    rows: torch.Tensor,
-    options: GaussNewtonOptions,
-) -> tuple[torch.Tensor, int, torch.Tensor]:
-    """Projected Levenberg-Marquardt from starts ``v`` (B, d) for specimens ``rows`` (B,).
-
-    A row has converged when a kept step lowers the loss by less than ``options.tol``
-    (relative), when its RMS residual falls below ``options.atol_deg``, when the step is below
-    1e-6 in unit coordinates, or when the damping has grown past 1e6 (no step lowers the loss).
-    Successive halving and the cheaper Jacobian of the first iterations follow ``options``
-    (:class:`~femcal.calibration.pgd_options.GaussNewtonOptions`).
-
-    Returns the final ``v`` (B, d), the number of iterations run and a bool (B,) "converged".
-    """
-    o = options
-    max_iter, loss, tol, atol_deg, l1_delta = o.max_iter, o.loss, o.tol, o.atol_deg, o.l1_delta
-    keep_after, keep, keep_first = o.keep_after, o.keep, o.keep_first
-    jacobian_members, exact_final = o.jacobian_members, o.exact_final
-    model = problem.model
-    v = v.clone()
-    b, d = v.shape
-    w = problem.weight[rows].reshape(b, -1)
-    lam = torch.full((b,), 1e-3)
-    converged = torch.zeros(b, dtype=torch.bool)
-    need_jac = torch.ones(b, dtype=torch.bool)
-    jac = torch.zeros((b, w.shape[1], d))
-    res = torch.zeros_like(w)
-    active = torch.arange(b)
-    eye = torch.eye(d)
-    nit = 0
-    n_specimens = int(torch.unique(rows).numel())
-    for nit in range(1, max_iter + 1):
-        if keep_after and keep and nit == keep_after + 1:
-            active = _keep_best(problem, v, rows, active, keep, w, loss, keep_first)
-        if active.numel() == 0:
-            nit -= 1
-            break
-        report_step(
-            f"Gauss-Newton iteration {nit}/{max_iter}",
-            settled=n_specimens - int(torch.unique(rows[active]).numel()),
-            of=n_specimens,
-        )
-        if jacobian_members and nit == max_iter - exact_final + 1:
-            need_jac[:] = True  # switch to the exact Jacobian for the final iterations
-        cheap = jacobian_members if nit <= max_iter - exact_final else None
-        fresh = active[need_jac[active]]
-        if fresh.numel():
-            f, jf = model.curves_jacobian(v[fresh], jacobian_members=cheap)
-            res[fresh] = _residual(problem, rows[fresh], f)
-            mask = problem.mask[rows[fresh]].reshape(fresh.numel(), -1, 1)
-            jac[fresh] = jf.reshape(fresh.numel(), -1, d) * mask
-            need_jac[fresh] = False
-        a_idx = active
-        r, jj, wa = res[a_idx], jac[a_idx], w[a_idx]
-        cost = _cost(r, wa, loss)
-        wk = wa / r.abs().clamp_min(l1_delta) if loss == "l1" else wa
-        jtw = jj.transpose(1, 2) * wk[:, None, :]
-        hess = jtw @ jj
-        grad = (jtw @ r[..., None])[..., 0]
-        va = v[a_idx]
-        # Variables at a bound whose gradient points outward are frozen (projected Newton).
-        blocked = ((va <= 0) & (grad > 0)) | ((va >= 1) & (grad < 0))
-        free = (~blocked).float()
-        hf = hess * free[:, :, None] * free[:, None, :]
-        diag = torch.diagonal(hf, dim1=1, dim2=2)
-        damp = lam[a_idx, None] * (diag + 1e-6) + 1e-9
-        system = hf + torch.diag_embed(damp) + eye * (1 - free)[:, None, :] * eye
-        step = torch.linalg.solve(system, -(grad * free)[..., None])[..., 0]
-        v_new = (va + step).clamp(0.0, 1.0)
-        with torch.no_grad():
-            r_new = _residual(problem, rows[a_idx], model.curves(v_new))
-        cost_new = _cost(r_new, wa, loss)
-        ok = cost_new < cost
-        gain = (cost - cost_new) / cost.clamp_min(1e-30)
-        v[a_idx[ok]] = v_new[ok]
-        need_jac[a_idx[ok]] = True
-        lam[a_idx] = torch.where(ok, lam[a_idx] / 3, lam[a_idx] * 4)
-        tiny_step = step.abs().amax(1) < 1e-6
-        rms2 = (wa * r_new**2).sum(1) / wa.sum(1)
-        atol = atol_deg[rows[a_idx]] if torch.is_tensor(atol_deg) else atol_deg
-        fitted = rms2 < atol**2  # RMS residual below atol_deg
-        done = (ok & ((gain < tol) | fitted)) | tiny_step | (lam[a_idx] > 1e6)
-        converged[a_idx[done]] = True
-        active = a_idx[~done]
-    return v, nit, converged
-
-
-def _keep_best(problem, v, rows, active, keep, w, loss, keep_first: bool = False) -> torch.Tensor:
-    """The active rows among the ``keep`` lowest-loss starts of each specimen (and its first
-    start with ``keep_first``)."""
-    with torch.no_grad():
-        cost = _cost(_residual(problem, rows, problem.model.curves(v)), w, loss)
-    cost = torch.nan_to_num(cost, nan=float("inf"))
-    n = problem.n_specimens
-    k = len(rows) // n
-    if k <= keep:
-        return active
-    ranked = cost.reshape(n, k).argsort(1)[:, :keep]
-    chosen = torch.zeros(len(rows), dtype=torch.bool)
-    chosen[(torch.arange(n)[:, None] * k + ranked).reshape(-1)] = True
-    if keep_first:
-        chosen[torch.arange(n) * k] = True
-    return active[chosen[active]]
 
 
 def adam(
