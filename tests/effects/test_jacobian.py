@@ -96,3 +96,40 @@ def test_the_jacobian_counts_one_evaluation_per_row_and_column(surrogate):
     v = torch.rand(3, model.dim, dtype=torch.float64, generator=torch.Generator().manual_seed(9))
     model.curves_jacobian(v)
     assert model.n_evaluations == 3 * (1 + model.dim)
+
+
+@pytest.fixture(scope="module")
+def ensemble() -> NeuralSurrogate:
+    table = tidy_table(40, seed=5)
+    model = NeuralSurrogate(
+        study_space(), hidden=(24, 24), max_epochs=5, batch_size=16, seed=0, n_members=2
+    )
+    return model.fit(table, table["rom_deg"].to_numpy())
+
+
+def test_a_cheaper_jacobian_differentiates_the_disc_through_its_first_members(ensemble):
+    # jacobian_members=1: the curves and the effects' columns stay exact (they do not pass
+    # through the disc network's tangents); the disc's columns are those the disc alone gets
+    # from its first member (SurrogateCurveModel's cheaper Jacobian), here without a parallel
+    # effect, where the disc carries the whole moment (at the trained moments: below them the
+    # composite continues the disc's curve as a power law).
+    model = _model(ensemble, ["facet_contact", "neutral_zone"])
+    assert len(model.net.members) == 2
+    v = torch.rand(3, model.dim, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    value, exact = model.curves_jacobian(v)
+    value_1, cheap = model.curves_jacobian(v, jacobian_members=1)
+    torch.testing.assert_close(value_1, value, rtol=1e-12, atol=1e-12)
+    nd = model.n_disc
+    torch.testing.assert_close(cheap[..., nd:], exact[..., nd:], rtol=1e-10, atol=1e-12)
+    assert not torch.allclose(cheap[..., :nd], exact[..., :nd])
+    alone = _model(ensemble, ["neutral_zone"])
+    base = SurrogateCurveModel(ensemble, MOMENTS)
+    base.net, base.moments = alone.net, alone.moments
+    v = v[:, : alone.dim]
+    trained = [i for i, m in enumerate(MOMENTS) if m >= alone.m_low]
+    torch.testing.assert_close(
+        alone.curves_jacobian(v, jacobian_members=1)[1][:, :, trained, :nd],
+        base.curves_jacobian(v[:, :nd], jacobian_members=1)[1][:, :, trained],
+        rtol=1e-10,
+        atol=1e-12,
+    )

@@ -37,6 +37,9 @@ logger = logging.getLogger(__name__)
 _BISECTIONS = 12
 _POLISH = 2
 _JAC_ROWS = 8192
+#: Shares of the rows solved so far that :meth:`EffectModel._share_of` keeps (then it starts
+#: afresh).
+_MAX_SHARES = 200_000
 _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
 #: Points evaluated at once by :func:`_bisect_levels` (rows x load cases x moments x midpoints):
 #: small batches are bisected several levels per evaluation, large ones one level at a time.
@@ -120,9 +123,9 @@ class EffectModel:
         #: The joint coordinates ``v``: the disc network's input space, then each effect's.
         self.unit_space = ParameterSpace.concat(base.unit_space, *effect_spaces)
         self.n_evaluations = 0
-        # The disc's share at the rows of the last :meth:`curves` call, by the rows' bytes (in
-        # their own dtype): a Gauss-Newton step evaluates the curves at the new point, then
-        # its Jacobian there.
+        # The disc's share at the rows solved so far, by the rows' bytes (in their own
+        # dtype): a Gauss-Newton step evaluates the curves at the new point, then its Jacobian
+        # there; the best of a fit's starts is evaluated again at its end.
         self._shares: dict[bytes, torch.Tensor] = {}
         #: Lowest trained moment: below it the disc curve is continued as a power law.
         self.m_low = float(getattr(base.surrogate, "moment_range_", (1.0, 5.0))[0])
@@ -334,17 +337,28 @@ class EffectModel:
         step = torch.where(torch.isfinite(step), step, md)
         return torch.minimum(torch.maximum(step, low), high)
 
+    def _remember(self, v: torch.Tensor, share: torch.Tensor) -> None:
+        """Keep the disc's share (n, 4, m) at the rows ``v`` (n, dim) for :meth:`_share_of`
+        (at most :data:`_MAX_SHARES` rows)."""
+        if len(self._shares) + len(v) > _MAX_SHARES:
+            self._shares = {}
+        rows = v.detach().cpu().numpy()
+        self._shares.update((r.tobytes(), share[i]) for i, r in enumerate(rows))
+
     def _share_of(self, v: torch.Tensor) -> torch.Tensor:
-        """:meth:`_disc_share` at ``v`` (n, dim); the rows that the last :meth:`curves` call
-        solved are taken from there (the solve is row by row: the same values up to float32
-        rounding)."""
+        """:meth:`_disc_share` at ``v`` (n, dim); the rows that :meth:`curves` or
+        :meth:`_share_of` solved before are taken from there (the solve is row by row: the
+        same values up to float32 rounding)."""
         keys = [r.tobytes() for r in v.detach().cpu().numpy()]
         known = [self._shares.get(k) for k in keys]
         missing = [i for i, s in enumerate(known) if s is None]
         if len(missing) == len(keys):
-            return self._disc_share(v)
+            share = self._disc_share(v)
+            self._remember(v, share)
+            return share
         if missing:
             solved = self._disc_share(v[missing])
+            self._remember(v[missing], solved)
             for j, i in enumerate(missing):
                 known[i] = solved[j]
         return torch.stack(known)
@@ -387,8 +401,7 @@ class EffectModel:
 
             if share is None:
                 md0 = self._disc_share(v, coef, params)
-                rows = v.detach().cpu().numpy()
-                self._shares = {r.tobytes(): md0[i] for i, r in enumerate(rows)}
+                self._remember(v, md0)
             else:
                 md0 = constant_like(share, v)
             # One Newton step with the graph: exact implicit gradient at the solution.
@@ -412,39 +425,53 @@ class EffectModel:
     def curves_jacobian(
         self, v: torch.Tensor, *, jacobian_members: int | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim), exact.
+        """Curves (n, 4, m) and their Jacobian (n, 4, m, dim).
 
         The curves are those of :meth:`curves`. The Jacobian follows from the implicit-function
         theorem at the disc's share of the moment (:mod:`femcal.effects.jacobian`): the disc
         network's coefficients and their derivatives once per distinct disc, the disc's terms
         in closed form, each effect's parameter derivatives by forward-mode AD over its own
-        parameters. (``jacobian_members`` is accepted and ignored.)
+        parameters. ``jacobian_members`` (k): the disc's curve moves along its parameters as
+        the mean of the first k ensemble members' does (about ``n_members / k`` times cheaper
+        to differentiate; approximate); the curves, the disc's share, its slope and the
+        effects' terms stay the ensemble's. Default: exact.
         """
         b, d = v.shape
         step = max(1, _JAC_ROWS // d)  # chunks bound the memory of the temporaries
+        members = len(self.net.members)
+        members = min(int(jacobian_members or members), members)
         values, jacs = [], []
         for start in range(0, b, step):
             vc = v[start : start + step].detach()
-            value, jac = self._jacobian_chunk(vc)
+            value, jac = self._jacobian_chunk(vc, members)
             self.n_evaluations += vc.shape[0] * d
             values.append(value)
             jacs.append(jac)
         return torch.cat(values), torch.cat(jacs)
 
-    def _jacobian_chunk(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`curves_jacobian` of the rows ``v`` (n, dim), without chunking."""
+    def _jacobian_chunk(self, v: torch.Tensor, members: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`curves_jacobian` of the rows ``v`` (n, dim), without chunking, the disc's
+        curve differentiated through its first ``members`` ensemble members."""
         net, nd = self.net, self.n_disc
         n, d = v.shape
         share = self._share_of(v)  # (n, 4, m): the applied moment where no parallel effect acts
         # Each distinct disc once: a fit's starts from one grid share the disc's parameters.
         disc, inverse = torch.unique(v[:, :nd], dim=0, return_inverse=True)
-        h, t = ensemble_tangents(net.members, disc)  # (K, u, out), (K, u, nd, out)
+        h, t = ensemble_tangents(net.members[:members], disc)  # (k, u, out), (k, u, nd, out)
+        if members < len(net.members):
+            rest = ensemble_forward(net.members[members:], disc)
+            h = torch.cat([h, rest])
         k, p = h.shape[0], net.moment_degree + 1
         coef = h[:, inverse].reshape(k, n, net.n_load_cases, p)
-        dcoef = t[:, inverse].reshape(k, n, nd, net.n_load_cases, p)
+        dcoef = t[:, inverse].reshape(members, n, nd, net.n_load_cases, p)
         with torch.no_grad():
             value = self.curves(v, share=share, coef=coef)
-        phi, slope, along = disc_partials(net, coef, dcoef, share, float(np.log(self.m_low)))
+        log_low = float(np.log(self.m_low))
+        if members < k:  # the share's slope from every member, its tangents from ``members``
+            phi, slope, _ = disc_partials(net, coef, dcoef[:, :, :0], share, log_low)
+            along = disc_partials(net, coef[:members], dcoef, share, log_low)[2]
+        else:
+            phi, slope, along = disc_partials(net, coef, dcoef, share, log_low)
         m = share.shape[-1]
         jac = v.new_zeros((n, d, 4, m))  # columns first, moved last at the end
         jac[:, :nd] = along
