@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from femcal.calibration.base import CalibrationProblem, hat_trace_and_cov
-from femcal.calibration.pgd import gauss_newton
+from femcal.calibration.gauss_newton import gauss_newton_residuals
 from femcal.calibration.pgd_options import GaussNewtonOptions
 from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
@@ -26,6 +26,10 @@ _GN_TOL = 1e-6
 #: best two after three iterations.
 _KEEP = {"keep_after": 3, "keep": 2}
 _KEEP_SPLIT = {"keep_after": 5, "keep": 4}
+#: The disc network's members the Jacobian of a fit's first iterations comes from (of 5 in
+#: the study's surrogate; its cost is in proportion), and the last iterations on the exact one.
+_JACOBIAN_MEMBERS = 1
+_EXACT_FINAL = 2
 
 
 # ------------------------------------------------------------------------ fitting helpers
@@ -205,19 +209,33 @@ class _Fit:
 def _fit_from(
     model, measured, weight, sigma, rows: np.ndarray, v0: torch.Tensor, g: int, max_iter: int
 ):
-    """Gauss-Newton from ``g`` starts per specimen of ``rows``; the best start per specimen."""
+    """Gauss-Newton from ``g`` starts per specimen of ``rows``; the best start per specimen.
+
+    The Jacobian of the first iterations comes from :data:`_JACOBIAN_MEMBERS` of the disc
+    network's members, and each start settles on the exact one
+    (:class:`~femcal.calibration.pgd_options.GaussNewtonOptions`). The starts are ranked by
+    the chi-square of Gauss-Newton's own final residuals; only the best start's curves are
+    evaluated again (its chi-square from them)."""
     problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
     r = len(rows)
     idx = torch.arange(r).repeat_interleave(g)
     split = any(is_split(e) for e in getattr(model, "effect_names", ()))
     keep = _KEEP_SPLIT if split else _KEEP
     keep = keep if g > keep["keep"] else {}
-    options = GaussNewtonOptions(max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
-    v, _, _ = gauss_newton(problem, v0, idx, options)
+    options = GaussNewtonOptions(
+        max_iter=max_iter,
+        loss="l2",
+        tol=_GN_TOL,
+        jacobian_members=_JACOBIAN_MEMBERS,
+        exact_final=_EXACT_FINAL,
+        settle_exact=True,
+        **keep,
+    )
+    v, _, _, res = gauss_newton_residuals(problem, v0, idx, options)
+    z = res.double().numpy().reshape(r, g, *measured.shape[1:]) / sigma[rows][:, None]
+    chi2 = (np.where(np.isfinite(measured[rows])[:, None], z, 0.0) ** 2).sum(axis=(2, 3))
+    best = np.nan_to_num(chi2, nan=np.inf, posinf=np.inf).argmin(1)
+    v = v[torch.as_tensor(np.arange(r) * g + best)]
     with torch.no_grad():
         pred = model.curves(v)
-    chi2 = _chi2(pred, np.repeat(measured[rows], g, 0), np.repeat(sigma[rows], g, 0))
-    chi2 = np.nan_to_num(chi2, nan=np.inf, posinf=np.inf).reshape(r, g)
-    best = chi2.argmin(1)
-    flat = torch.as_tensor(np.arange(r) * g + best)
-    return v[flat], pred[flat], chi2[np.arange(r), best]
+    return v, pred, _chi2(pred, measured[rows], sigma[rows])
