@@ -106,72 +106,6 @@ class Splits(Keywords):
 # anterior, z cranial; the lower endplate at z = 0, the disc centre at x = y = 0. Sources:
 # docs/fe-posterior-elements.md.
 
-#: The ligaments the model knows, caudal-cranial tension-only springs.
-LIGAMENTS: tuple[str, ...] = (
-    "supraspinous",
-    "interspinous",
-    "flavum",
-    "capsular",
-    "intertransverse",
-)
-
-#: Default properties and attachment of each ligament (keys: the fields of
-#: :class:`LigamentSettings`). Stiffness of the linear region: Pintar et al. 1992 (supraspinous,
-#: interspinous, flavum, capsular), the tri-linear table quoted by Guo et al. 2021 (PMC8147546)
-#: for the intertransverse; toe strain: the first transition strain of that table; rest lengths:
-#: Naserkhaki et al. 2018 (L4-L5) but the capsule's, its vertical span across the joint (an
-#: estimate: a shorter vertical spring's nodes pass each other in extension and it pulls
-#: again). Positions: estimates for the 50 x 35 mm disc. Slack strain 0.45 of the four
-#: posterior ligaments (0 of the intertransverse): calibrated so that the segment-to-disc RoM
-#: ratios at 10 Nm fall near the published ones (docs/fe-posterior-elements.md).
-LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
-    "supraspinous": {
-        "stiffness_n_per_mm": 23.7,
-        "toe_strain": 0.20,
-        "slack_strain": 0.45,
-        "lateral_mm": 0.0,
-        "posterior_mm": 60.0,
-        "height_mm": 5.5,
-        "length_mm": 27.49,
-    },
-    "interspinous": {
-        "stiffness_n_per_mm": 11.6,
-        "toe_strain": 0.139,
-        "slack_strain": 0.45,
-        "lateral_mm": 0.0,
-        "posterior_mm": 45.0,
-        "height_mm": 5.5,
-        "length_mm": 8.85,
-    },
-    "flavum": {
-        "stiffness_n_per_mm": 27.2,
-        "toe_strain": 0.059,
-        "slack_strain": 0.45,
-        "lateral_mm": 0.0,
-        "posterior_mm": 35.0,
-        "height_mm": 5.5,
-        "length_mm": 15.89,
-    },
-    "capsular": {
-        "stiffness_n_per_mm": 33.9,
-        "toe_strain": 0.25,
-        "slack_strain": 0.45,
-        "lateral_mm": 18.0,
-        "posterior_mm": 30.0,
-        "height_mm": 5.5,
-        "length_mm": 10.0,
-    },
-    "intertransverse": {
-        "stiffness_n_per_mm": 10.7,
-        "toe_strain": 0.182,
-        "slack_strain": 0.0,
-        "lateral_mm": 35.0,
-        "posterior_mm": 22.0,
-        "height_mm": 5.5,
-        "length_mm": 18.69,
-    },
-}
-
 
 @_element
 class FacetSettings:
@@ -233,6 +167,30 @@ class LigamentSettings:
     posterior_mm: Float(0, 100) = setting("distance behind the disc centre, mm")
     height_mm: Float(-30, 40) = setting("centre above the lower endplate, mm")
     length_mm: Float(0.5, 60) = setting("rest length (upper to lower attachment), mm")
+
+
+#: Default properties and attachment of each ligament, a tension-only caudal-cranial spring
+#: (keys: the fields of :class:`LigamentSettings`). Stiffness of the linear region: Pintar et
+#: al. 1992 (supraspinous, interspinous, flavum, capsular), the tri-linear table quoted by Guo
+#: et al. 2021 (PMC8147546) for the intertransverse; toe strain: the first transition strain of
+#: that table; rest lengths: Naserkhaki et al. 2018 (L4-L5) but the capsule's, its vertical span
+#: across the joint (an estimate: a shorter vertical spring's nodes pass each other in extension
+#: and it pulls again). Positions: estimates for the 50 x 35 mm disc. Slack strain 0.45 of the
+#: four posterior ligaments (0 of the intertransverse): calibrated so that the segment-to-disc
+#: RoM ratios at 10 Nm fall near the published ones (docs/fe-posterior-elements.md).
+LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
+    name: dict(zip(LigamentSettings.__pydantic_fields__, row, strict=True))
+    for name, *row in (
+        # name, stiffness_n_per_mm, toe_strain, slack_strain, lateral, posterior, height, length
+        ("supraspinous", 23.7, 0.20, 0.45, 0.0, 60.0, 5.5, 27.49),
+        ("interspinous", 11.6, 0.139, 0.45, 0.0, 45.0, 5.5, 8.85),
+        ("flavum", 27.2, 0.059, 0.45, 0.0, 35.0, 5.5, 15.89),
+        ("capsular", 33.9, 0.25, 0.45, 18.0, 30.0, 5.5, 10.0),
+        ("intertransverse", 10.7, 0.182, 0.0, 35.0, 22.0, 5.5, 18.69),
+    )
+}
+#: The ligaments the model knows.
+LIGAMENTS: tuple[str, ...] = tuple(LIGAMENT_DEFAULTS)
 
 
 class _Ligaments(Keywords):
