@@ -13,18 +13,13 @@ import dataclasses
 import functools
 import importlib
 import importlib.util
-import math
-import numbers
 import re
 import sys
-import types
-import typing
 import urllib.parse
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
-import annotated_types as at
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -35,6 +30,7 @@ from pydantic import (
     Strict,
     StrictBool,
     TypeAdapter,
+    ValidationError,
     WrapValidator,
     create_model,
     model_validator,
@@ -45,11 +41,10 @@ from femcal.errors import ConfigError
 from femcal.settings._format import (
     Doc,
     PlainOf,
-    bounds_words,
     closest,
+    describe,
     fail,
     keys_of,
-    unwrap,
     yaml_repr,
 )
 
@@ -363,63 +358,37 @@ def option_fields(cls: type) -> dict[str, tuple[Any, Any, str]]:
     }
 
 
-def _conform(annotation: Any, value: Any) -> tuple[bool, str, Any]:
-    """Whether ``value`` fits ``annotation``, what it allows in words, and the value stored
-    (an integer as int, a number as float, a list as a tuple)."""
-    tp, meta = unwrap(annotation)
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        inner = next(m for m in typing.get_args(tp) if m is not type(None))
-        ok, words, fixed = _conform(inner, value) if value is not None else (True, "", None)
-        return ok, f"{_conform(inner, None)[1] if value is None else words} or None", fixed
-    number = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    if typing.get_origin(tp) is typing.Literal:
-        choices = typing.get_args(tp)
-        return value in choices, "one of " + ", ".join(map(str, choices)), value
-    if tp is int:
-        ok = number and isinstance(value, numbers.Integral) and _within(value, meta)
-        return ok, "an integer" + bounds_words(meta), int(value) if ok else value
-    if tp is float:
-        ok = number and math.isfinite(value) and _within(value, meta)
-        return ok, bounds_words(meta).strip() or "a finite number", float(value) if ok else value
-    if tp is bool:
-        return isinstance(value, bool), "true or false", value
-    if typing.get_origin(tp) is tuple:
-        item = typing.get_args(tp)[0]
-        least = next((m.min_length for m in meta if isinstance(m, at.MinLen)), 0)
-        words = f"a list of at least {least} items, each {_conform(item, None)[1]}"
-        if not isinstance(value, list | tuple) or len(value) < least:
-            return False, words, value
-        items = [_conform(item, v) for v in value]
-        return all(ok for ok, _, _ in items), words, tuple(v for _, _, v in items)
-    return True, "a value", value
-
-
-def _within(value: float, meta: list) -> bool:
-    return all(
-        (not isinstance(m, at.Ge) or value >= m.ge)
-        and (not isinstance(m, at.Gt) or value > m.gt)
-        and (not isinstance(m, at.Le) or value <= m.le)
-        and (not isinstance(m, at.Lt) or value < m.lt)
-        for m in meta
-    )
+@functools.cache
+def _adapter(annotation: Any) -> TypeAdapter:
+    return TypeAdapter(annotation)
 
 
 def check_options(options: Any, owner: str) -> None:
     """Check each option of an options dataclass against its annotation (type, bounds,
-    choices) and store it conformed (int, float, tuple); ``owner`` names it in messages.
+    choices; pydantic validates) and store it conformed (int, float, tuple); ``owner`` names
+    it in messages. NumPy scalars count as the Python numbers they hold.
 
     Raises
     ------
     OptionError
-        ``owner: alpha must be in (0, 1); got 1.5 (alpha: level of the adequacy tests).``
+        ``owner: alpha must be in (0, 1); got 1.5. alpha: level of the adequacy tests.``
     """
     for name, (annotation, _, doc) in option_fields(type(options)).items():
         value = getattr(options, name)
-        ok, words, fixed = _conform(annotation, value)
-        if not ok and words.startswith("one of "):
-            raise OptionError(owner, name, f"unknown {name} {value!r}; choose {words}")
-        if not ok:
-            raise OptionError(owner, name, f"{name} must be {words}; got {value!r}. {name}: {doc}")
+        given = value.item() if hasattr(value, "dtype") and hasattr(value, "item") else value
+        try:
+            fixed = _adapter(annotation).validate_python(given)
+        except ValidationError as exc:
+            error = exc.errors(include_url=False)[0]
+            words = describe(annotation).replace(" or null", " or None")
+            words = re.sub(r"^a number (?=[<>i])", "", words)
+            if error["type"] == "femcal":  # a check of the type's own (e.g. no repeats)
+                raise OptionError(owner, name, f"{name}: {error['msg']}") from None
+            if words.startswith("one of "):
+                text = f"unknown {name} {value!r}; choose {words}"
+                raise OptionError(owner, name, text) from None
+            text = f"{name} must be {words}; got {value!r}. {name}: {doc}"
+            raise OptionError(owner, name, text) from None
         if fixed is not value:
             object.__setattr__(options, name, fixed)
 
