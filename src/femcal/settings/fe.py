@@ -120,25 +120,21 @@ class FacetSettings:
 
     _complete: ClassVar[bool] = True
 
-    gap_mm: Float(0, 3) = setting("facet joint clearance, mm, in [0, 3]", 0.5)
+    gap_mm: Float(0, 3) = setting("facet joint clearance, mm", 0.5)
     stiffness_n_per_mm: Float(1, 1e5) = setting(
-        "contact stiffness of each closed facet, N/mm, in [1, 1e5]", 50.0
+        "contact stiffness of each closed facet, N/mm", 50.0
     )
     lateral_mm: Float(5, 40) = setting(
-        "distance of each facet from the mid-sagittal plane, mm, in [5, 40]", 16.0
+        "distance of each facet from the mid-sagittal plane, mm", 16.0
     )
-    posterior_mm: Float(18, 60) = setting(
-        "distance of the facets behind the disc centre, mm, in [18, 60]", 30.0
-    )
+    posterior_mm: Float(18, 60) = setting("distance of the facets behind the disc centre, mm", 30.0)
     height_mm: Float(-20, 30) = setting(
         "height of the facet centres above the lower endplate, mm", 5.5
     )
     axial_angle_deg: Float(0, 90) = setting(
-        "joint plane to the sagittal plane (transverse view), deg, in [0, 90]", 45.0
+        "joint plane to the sagittal plane (transverse view), deg", 45.0
     )
-    inclination_deg: Float(0, 80) = setting(
-        "downward tilt of the contact normal, deg, in [0, 80]", 30.0
-    )
+    inclination_deg: Float(0, 80) = setting("downward tilt of the contact normal, deg", 30.0)
 
 
 @_element
@@ -155,12 +151,10 @@ class LigamentSettings:
     _complete: ClassVar[bool] = True
 
     stiffness_n_per_mm: Float(0.1, 1000) = setting(
-        "stiffness of the linear region (each side), N/mm, in [0.1, 1000]"
+        "stiffness of the linear region (each side), N/mm"
     )
-    toe_strain: Float(0, 1) = setting("strain span of the toe region, in [0, 1]")
-    slack_strain: Float(-0.3, 0.5) = setting(
-        "strain at which force starts (< 0: pre-strained), in [-0.3, 0.5]"
-    )
+    toe_strain: Float(0, 1) = setting("strain span of the toe region")
+    slack_strain: Float(-0.3, 0.5) = setting("strain at which force starts (< 0: pre-strained)")
     lateral_mm: Float(0, 60) = setting(
         "distance from the mid-sagittal plane (0: one midline spring), mm"
     )
