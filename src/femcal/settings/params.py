@@ -52,8 +52,6 @@ class Settings:
     schema : {"root", "fe"}
         The pipeline it drives: the root ``params.yaml`` or the FE pipeline's
         ``fe/params.yaml`` (which also has ``fe`` and ``validate``).
-    incomplete : dict
-        Section -> the required keys it misses (a partial check).
     given : dict
         Section -> the keys the file gives it.
     partial : dict
@@ -62,7 +60,6 @@ class Settings:
 
     path: Path
     schema: str
-    incomplete: dict[str, tuple[str, ...]] = field(default_factory=dict)
     given: dict[str, tuple[str, ...]] = field(default_factory=dict)
     partial: dict[str, Any] = field(default_factory=dict, repr=False)
     data: _root.DataSettings | None = _section(_BOTH)
@@ -132,11 +129,11 @@ def detect_schema(data: Mapping[str, Any]) -> str:
 def _sections(
     data: Mapping[str, Any], schema: str, complete: bool, path: str | Path
 ) -> tuple[dict, dict, list]:
-    """The typed sections, the missing keys of partial ones, and every problem."""
+    """The typed sections, the partial ones (which only miss keys), and every problem."""
     allowed = [name for name, (_, files) in SECTIONS.items() if schema in files]
     required = [name for name in allowed if SECTIONS[name][1][schema]]
     found: list[tuple[tuple, str]] = []
-    out, incomplete = {}, {}
+    out, partial = {}, {}
     for key, value in data.items():
         if key == "_path":
             continue
@@ -156,15 +153,14 @@ def _sections(
             except ValidationError as exc:
                 found += problems(exc, model, prefix=(key,), complete=complete)
                 missing = [e["loc"] for e in exc.errors() if e["type"] == "missing"]
-                incomplete[key] = tuple(str(loc[0]) for loc in missing)
                 if len(missing) == len(exc.errors()) and all(len(loc) == 1 for loc in missing):
-                    out[f"partial:{key}"] = _partial(model, value, f"{path}:{key}")
+                    partial[key] = _partial(model, value, f"{path}:{key}")
     unknown = {closest(str(k), allowed) for k in data if k not in allowed}
     for name in required if complete else ():
         if name not in data and name not in unknown:
             file = "fe/params.yaml" if schema == "fe" else "params.yaml"
             found.append(((name,), f"{name}: missing section; add it (see the project's {file})"))
-    return out, incomplete, found
+    return out, partial, found
 
 
 def validate_params(
@@ -207,18 +203,10 @@ def validate_params(
     schema = schema or detect_schema(data)
     if schema not in SCHEMAS:
         raise ConfigError(f"schema must be one of {', '.join(SCHEMAS)}; got {schema!r}.")
-    sections, incomplete, found = _sections(data, schema, complete, path)
+    sections, partial, found = _sections(data, schema, complete, path)
     raise_problems(found, str(path), text, given)
-    partial = {k.split(":")[1]: sections.pop(k) for k in list(sections) if ":" in k}
     given = {k: tuple(v) for k, v in data.items() if isinstance(v, Mapping)}
-    return Settings(
-        path=Path(path),
-        schema=schema,
-        incomplete=incomplete,
-        given=given,
-        partial=partial,
-        **sections,
-    )
+    return Settings(Path(path), schema, given=given, partial=partial, **sections)
 
 
 def load_settings(path: str | Path = "params.yaml", *, schema: str | None = None) -> Settings:
