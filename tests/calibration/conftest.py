@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -38,10 +41,11 @@ def truth(curve_model: CurveModel) -> tuple[np.ndarray, np.ndarray]:
     return x, curve_model.predict(x)
 
 
-@pytest.fixture
-def registry(tmp_path, monkeypatch, small_surrogate):
-    """A temporary MLflow store in ``tmp_path`` where ``small_surrogate`` is the champion of
-    ``ivd-rom-surrogate`` and of ``ivd-rom-surrogate-holdout``; yields ``tmp_path``."""
+@pytest.fixture(scope="package")
+def registry_store(tmp_path_factory, small_surrogate) -> Path:
+    """An MLflow store (its folder) where ``small_surrogate`` is the champion of
+    ``ivd-rom-surrogate`` and of ``ivd-rom-surrogate-holdout``, built once: :func:`registry`
+    gives each test a copy of it."""
     import mlflow
 
     from femcal.tracking import (
@@ -51,12 +55,32 @@ def registry(tmp_path, monkeypatch, small_surrogate):
         register_and_promote,
     )
 
+    store = tmp_path_factory.mktemp("registry") / "mlruns"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delenv("MLFLOW_TRACKING_URI", raising=False)
+        configure_tracking(store_dir=store)
+        ensure_experiment("test", store_dir=store)
+        for name in ("ivd-rom-surrogate", "ivd-rom-surrogate-holdout"):
+            with mlflow.start_run():
+                info = log_surrogate(small_surrogate, small_surrogate.space)
+            register_and_promote(info.model_uri, name=name, val_metric=0.1)
+        mlflow.set_tracking_uri(None)
+    return store
+
+
+@pytest.fixture
+def registry(tmp_path, monkeypatch, registry_store):
+    """A temporary MLflow store in ``tmp_path`` where ``small_surrogate`` is the champion of
+    ``ivd-rom-surrogate`` and of ``ivd-rom-surrogate-holdout``: a copy of
+    :func:`registry_store`, its artifact locations resolved to the copy by
+    :func:`femcal.tracking.configure_tracking`; yields ``tmp_path``."""
+    import mlflow
+
+    from femcal.tracking import configure_tracking, ensure_experiment
+
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    shutil.copytree(registry_store, tmp_path / "mlruns")
     configure_tracking(store_dir=tmp_path / "mlruns")
     ensure_experiment("test", store_dir=tmp_path / "mlruns")
-    for name in ("ivd-rom-surrogate", "ivd-rom-surrogate-holdout"):
-        with mlflow.start_run():
-            info = log_surrogate(small_surrogate, small_surrogate.space)
-        register_and_promote(info.model_uri, name=name, val_metric=0.1)
     yield tmp_path
     mlflow.set_tracking_uri(None)
