@@ -8,6 +8,7 @@ writes the pipeline's ``reports/diagnose.json``; the DVC stages pass their metri
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -22,8 +23,6 @@ from femcal.outputs import read_marker
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
-    log_surrogate,
-    register_and_promote,
 )
 
 from synth import long_csv
@@ -78,13 +77,12 @@ def settings(tmp_path, monkeypatch):
 
 
 @pytest.fixture
-def project(settings, small_surrogate, truth):
-    """``settings`` with the registered surrogate and two specimens in meas.csv."""
+def project(settings, registry_store, truth):
+    """``settings`` with the registered surrogate (a copy of the package's registry) and two
+    specimens in meas.csv."""
+    shutil.copytree(registry_store, settings / "mlruns")
     configure_tracking(store_dir=settings / "mlruns")
     ensure_experiment("test", store_dir=settings / "mlruns")
-    with mlflow.start_run():
-        info = log_surrogate(small_surrogate, small_surrogate.space)
-    register_and_promote(info.model_uri, name="ivd-rom-surrogate", val_metric=0.1)
     long_csv(settings / "meas.csv", truth[1][:2])
     yield settings
     mlflow.set_tracking_uri(None)
