@@ -13,6 +13,8 @@ The per-specimen figures are drawn by one figure per process, redrawn for each s
 
 from __future__ import annotations
 
+import struct
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -224,14 +226,28 @@ class _SpecimenFigure:
         _write_png(canvas, path)
 
 
-def _write_png(canvas: Any, path: Path) -> None:
-    """The canvas' pixels as an RGB PNG of :data:`DPI` (the figure is opaque: its alpha is
-    255 everywhere, so the colours are those ``savefig`` writes, without drawing)."""
-    from PIL import Image
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
-    width, height = canvas.get_width_height()
-    image = Image.frombuffer("RGBA", (width, height), canvas.buffer_rgba(), "raw", "RGBA", 0, 1)
-    image.convert("RGB").save(path, format="png", dpi=(DPI, DPI), compress_level=3)
+
+def _write_png(canvas: Any, path: Path) -> None:
+    """The canvas' pixels as an 8-bit RGB PNG of :data:`DPI` (the figure is opaque: its alpha is
+    255 everywhere, so the colours are those ``savefig`` writes, without drawing). Rows
+    unfiltered, deflated at level 3: the figures' flat colours compress as well as with PNG's
+    adaptive filters, in a third of the time."""
+    rgba = np.asarray(canvas.buffer_rgba())  # (height, width, 4), uint8
+    height, width = rgba.shape[:2]
+    rows = np.empty((height, 1 + 3 * width), dtype=np.uint8)
+    rows[:, 0] = 0  # filter type None
+    rows[:, 1:] = rgba[:, :, :3].reshape(height, 3 * width)
+    per_metre = round(DPI / 0.0254)
+    Path(path).write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+        + _png_chunk(b"pHYs", struct.pack(">IIB", per_metre, per_metre, 1))
+        + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), 3))
+        + _png_chunk(b"IEND", b"")
+    )
 
 
 def _limits(ax: Any, values: np.ndarray) -> None:
