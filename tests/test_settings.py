@@ -947,7 +947,7 @@ def test_hyperparameter_tables_match_the_estimators():
 def test_calibrator_tables_match_the_calibrators():
     from femcal.calibration import available_calibrators, get_calibrator
     from femcal.calibration import pgd as pgd_module
-    from femcal.calibration import pgd_study as study_module
+    from femcal.calibration import pgd_study_options as study_module
     from femcal.settings import CALIBRATORS
     from femcal.settings.keywords import GA_DEFAULTS
 

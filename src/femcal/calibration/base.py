@@ -75,18 +75,6 @@ def get_calibrator(name: str) -> Callable[..., Solution]:
     return calibrator_registry.get(name)
 
 
-def check_choices(method: str, **options: tuple[str, tuple[str, ...]]) -> None:
-    """Raise ConfigError naming the method, the option and the choices for an unknown value.
-
-    ``options`` maps an option name to ``(value, choices)``.
-    """
-    for name, (value, choices) in options.items():
-        if value not in choices:
-            raise ConfigError(
-                f"{method}: unknown {name} '{value}'; choose one of {', '.join(choices)}."
-            )
-
-
 @dataclass
 class CalibrationProblem:
     """Targets of a batch of specimens on one moment grid, and the model to fit.

@@ -21,24 +21,19 @@ projection": the parameters may leave the box); ``bounds_penalty > 0`` adds
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import logging
+from typing import Any
 
 import numpy as np
 import torch
 
-from femcal.calibration.base import (
-    CalibrationProblem,
-    Solution,
-    check_choices,
-    register_calibrator,
-)
-from femcal.errors import ConfigError
+from femcal.calibration.base import CalibrationProblem, Solution, register_calibrator
+from femcal.calibration.pgd_study_options import PgdStudyOptions
 
 logger = logging.getLogger(__name__)
 
-PROJECTIONS = ("clip", "average")
-LOSSES = ("l1", "l2")
-OPTIMIZERS = ("adam", "lbfgs")
 _BETA1, _BETA2, _EPS = 0.9, 0.999, 1e-8
 
 
@@ -58,19 +53,12 @@ def _penalty_grad(u: torch.Tensor) -> torch.Tensor:
     return (u > 1).float() - (u < 0).float()
 
 
-@register_calibrator("pgd-study")
 def pgd_study(
     problem: CalibrationProblem,
+    options: PgdStudyOptions | None = None,
     *,
     rng: np.random.Generator,
-    n_starts: int = 500,
-    steps: int = 2250,
-    lr: float = 0.0971,
-    loss: str = "l1",
-    projection: str = "clip",
-    bounds_penalty: float = 0.0,
-    optimizer: str = "adam",
-    select: str = "r2",
+    **overrides: Any,
 ) -> Solution:
     """The study's projected Adam calibration (see the module docstring).
 
@@ -78,43 +66,21 @@ def pgd_study(
     ----------
     problem : CalibrationProblem
         Targets of n specimens and the surrogate.
+    options : PgdStudyOptions, optional
+        Starts, steps, learning rate, loss, projection, penalty, optimiser and selection
+        (default: the study's settings).
     rng : numpy.random.Generator
         Source of the uniform starts.
-    n_starts : int
-        Random starts per specimen (the study's M = 500).
-    steps : int
-        Optimisation steps (the study's T = 2250).
-    lr : float
-        Learning rate in the unit box (the study's 0.0971).
-    loss : {"l1", "l2"}
-        Row loss (the study: L1).
-    projection : {"clip", "average"}
-        The study's projection (average rows, clip to the bounds), or averaging only
-        (the "no projection" ablation).
-    bounds_penalty : float
-        Weight of the bounds penalty (the "L1+bounds loss" ablation; 0 = off).
-    optimizer : {"adam", "lbfgs"}
-        The study's Adam, or torch's L-BFGS (ablation).
-    select : {"r2", "mae"}
-        Best start by the study's mean R² or by MAE.
+    **overrides
+        Fields of :class:`PgdStudyOptions` replacing those of ``options``.
 
     Returns
     -------
     Solution
         ``x`` in physical units, outside the box only for the unprojected ablations.
     """
-    check_choices(
-        "pgd-study",
-        loss=(loss, LOSSES),
-        projection=(projection, PROJECTIONS),
-        optimizer=(optimizer, OPTIMIZERS),
-        select=(select, ("r2", "mae")),
-    )
-    if n_starts < 1 or steps < 0 or lr <= 0 or bounds_penalty < 0:
-        raise ConfigError(
-            "pgd-study needs n_starts >= 1, steps >= 0, lr > 0 and bounds_penalty >= 0; got "
-            f"{n_starts}, {steps}, {lr}, {bounds_penalty}."
-        )
+    o = dataclasses.replace(options or PgdStudyOptions(), **overrides)
+    n_starts, steps = o.n_starts, o.steps
     n, d = problem.n_specimens, problem.dim
     rows = torch.arange(n).repeat_interleave(n_starts)
     u = torch.tensor(rng.random((n * n_starts, d)), dtype=torch.float32)
@@ -122,12 +88,12 @@ def pgd_study(
     w = problem.weight[rows].reshape(len(rows), -1)
     k = mask.sum(1, keepdim=True).float()  # measured rows per start
     y = problem.target[rows].reshape(len(rows), -1)
-    clip = projection == "clip"
-    run = _adam if optimizer == "adam" else _lbfgs
-    u = run(problem, u, (y, mask, w, k), steps, lr, loss, bounds_penalty, clip)
+    clip = o.projection == "clip"
+    run = _adam if o.optimizer == "adam" else _lbfgs
+    u = run(problem, u, (y, mask, w, k), steps, o.lr, o.loss, o.bounds_penalty, clip)
     with torch.no_grad():
         scores = problem.scores(problem.model.curves(problem.model.from_linear_unit(u)), rows)
-    key = -scores["r2"] if select == "r2" else scores["mae"]
+    key = -scores["r2"] if o.select == "r2" else scores["mae"]
     key = torch.nan_to_num(key, nan=float("inf")).reshape(n, n_starts)
     best = key.argmin(1)
     u_best = u.reshape(n, n_starts, d)[torch.arange(n), best].double().numpy()
@@ -139,19 +105,33 @@ def pgd_study(
         nit=steps,
         success=np.ones(n, dtype=bool),
         message=(
-            f"pgd-study ({optimizer}, {loss}, projection={projection}, "
-            f"penalty={bounds_penalty}): {n_starts} starts x {steps} steps, lr {lr}"
+            f"pgd-study ({o.optimizer}, {o.loss}, projection={o.projection}, "
+            f"penalty={o.bounds_penalty}): {n_starts} starts x {steps} steps, lr {o.lr}"
         ),
-        info={
-            "n_starts": n_starts,
-            "steps": steps,
-            "lr": lr,
-            "loss": loss,
-            "projection": projection,
-            "bounds_penalty": bounds_penalty,
-            "optimizer": optimizer,
-        },
+        info={k: v for k, v in dataclasses.asdict(o).items() if k != "select"},
     )
+
+
+@register_calibrator("pgd-study")
+def calibrate_pgd_study(
+    problem: CalibrationProblem, *, rng: np.random.Generator, **options: Any
+) -> Solution:
+    """The registered ``pgd-study`` calibrator: :func:`pgd_study` with the keywords of
+    :class:`PgdStudyOptions`."""
+    return pgd_study(problem, PgdStudyOptions(**options), rng=rng)
+
+
+calibrate_pgd_study.__signature__ = inspect.Signature(
+    [
+        *list(inspect.signature(pgd_study).parameters.values())[:1],
+        list(inspect.signature(pgd_study).parameters.values())[2],
+        *(
+            inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default)
+            for f in dataclasses.fields(PgdStudyOptions)
+        ),
+    ],
+    return_annotation=Solution,
+)
 
 
 def _adam(

@@ -235,20 +235,19 @@ PgdKeywords = with_options(
 )
 
 
-class PgdStudyKeywords(Keywords):
-    """The pgd-study calibrator's options (``calibrate.options.pgd-study``)."""
-
+class _PgdStudy(OptionSection, Keywords):
     _owner: ClassVar[str] = "pgd-study calibrator"
+    _options: ClassVar[type] = light_class("calibration.pgd_study_options", "PgdStudyOptions")
     _reasons: ClassVar[dict[str, str]] = _RNG
 
-    n_starts: Int(1) = keyword("random starts per specimen (the study's 500)")
-    steps: Int(0) = keyword("optimisation steps (the study's 2250)")
-    lr: Float(gt=0) = keyword("learning rate in the unit box (the study's 0.0971)")
-    loss: Literal["l1", "l2"] = keyword("row loss (the study: l1)")
-    projection: Literal["clip", "average"] = keyword("the study's projection or averaging")
-    bounds_penalty: Float(0) = keyword("weight of the bounds penalty (0 = off)")
-    optimizer: Literal["adam", "lbfgs"] = keyword("Adam (the study) or torch's L-BFGS")
-    select: Literal["r2", "mae"] = keyword("best start by mean R² or by MAE")
+
+#: The pgd-study calibrator's options: those of
+#: :class:`femcal.calibration.pgd_study_options.PgdStudyOptions`.
+PgdStudyKeywords = with_options(
+    "PgdStudyKeywords",
+    _PgdStudy,
+    "The pgd-study calibrator's options (``calibrate.options.pgd-study``).",
+)
 
 
 class _Ga(OptionSection, Keywords):
