@@ -1,6 +1,6 @@
 """Each option is declared once, and the command line is built from the same declarations.
 
-The options dataclasses (``DiagnoseOptions``, ``PgdOptions``, ``GaOptions``) declare each
+The options dataclasses (``DiagnoseOptions``, ``PgdOptions``, ``GaOptions``, ...) declare each
 option's type, bounds, default and doc; the settings sections and keyword tables are built
 from them, and ``femcal diagnose`` / ``femcal calibrate`` take every setting of their section
 as ``--<key>``, merged into params.yaml before it is validated.
@@ -15,6 +15,7 @@ import pytest
 
 from femcal.calibration.ga_options import GaOptions
 from femcal.calibration.pgd_options import PgdOptions
+from femcal.calibration.pgd_study_options import PgdStudyOptions
 from femcal.cli import SETTINGS_OF, build_parser, setting_overrides
 from femcal.config import load_params
 from femcal.diagnose.options import DiagnoseOptions
@@ -23,7 +24,7 @@ from femcal.fe.options import AdaptOptions, CampaignOptions, ValidateOptions
 from femcal.settings import SECTIONS
 from femcal.settings._format import keys_of
 from femcal.settings.fe import AdaptSettings, FeSettings, RefineSettings
-from femcal.settings.keywords import GaKeywords, PgdKeywords
+from femcal.settings.keywords import GaKeywords, PgdKeywords, PgdStudyKeywords
 from femcal.settings.root import DiagnoseSettings
 from femcal.settings.values import option_fields
 
@@ -35,6 +36,7 @@ DECLARING = [
     *sorted((SRC / "stages").glob("*.py")),
     SRC / "diagnose" / "options.py",
     SRC / "calibration" / "pgd_options.py",
+    SRC / "calibration" / "pgd_study_options.py",
     SRC / "calibration" / "ga_options.py",
     SRC / "fe" / "options.py",
 ]
@@ -42,6 +44,7 @@ DECLARING = [
 OPTIONS = [
     (DiagnoseOptions, DiagnoseSettings, "diagnose/options.py"),
     (PgdOptions, PgdKeywords, "calibration/pgd_options.py"),
+    (PgdStudyOptions, PgdStudyKeywords, "calibration/pgd_study_options.py"),
     (GaOptions, GaKeywords, "calibration/ga_options.py"),
     (CampaignOptions, FeSettings, "fe/options.py"),
     (AdaptOptions, AdaptSettings, "fe/options.py"),
