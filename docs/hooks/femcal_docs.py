@@ -88,8 +88,8 @@ def _default(info: object, model: type) -> str:
         return "required"
     value = info.get_default(call_default_factory=True)
     options = getattr(model, "_options", None)  # keywords declared by an options dataclass
-    if value is None and options is not None:
-        name = next(n for n, i in model.model_fields.items() if i is info)
+    name = next(n for n, i in model.__pydantic_fields__.items() if i is info)
+    if value is None and name in getattr(options, "__dataclass_fields__", {}):
         value = options.__dataclass_fields__[name].default
     elif value is None and issubclass(model, Keywords):
         return "the function's" if model._owner != "function" else "not set"
