@@ -107,11 +107,13 @@ def test_models_logged_before_the_move_still_load(store, surrogate, inverse) -> 
             name="s",
             python_model=str(store / "legacy_surrogate.py"),
             artifacts={"surrogate": str(store / "surrogate")},
+            pip_requirements=[],  # loading is tested here, not MLflow's inferred requirements
         )
         i_info = mlflow.pyfunc.log_model(
             name="i",
             python_model=str(store / "inverse_pyfunc_model.py"),
             artifacts={"inverse": str(store / "inverse")},
+            pip_requirements=[],
         )
     frame = input_example(study_space())
     np.testing.assert_allclose(
