@@ -9,6 +9,9 @@ the fix.
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import mlflow
 import numpy as np
 import pandas as pd
@@ -54,16 +57,30 @@ def surrogate() -> NeuralSurrogate:
     return model
 
 
+@pytest.fixture(scope="module")
+def registry_store(tmp_path_factory, surrogate) -> Path:
+    """An MLflow store with ``surrogate`` the champion of ivd-rom-surrogate, built once; each
+    test's project gets a copy (its locations resolved by configure_tracking)."""
+    store = tmp_path_factory.mktemp("moments-registry") / "mlruns"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delenv("MLFLOW_TRACKING_URI", raising=False)
+        configure_tracking(store_dir=store)
+        ensure_experiment("moments", store_dir=store)
+        with mlflow.start_run():
+            info = log_surrogate(surrogate, surrogate.space)
+        register_and_promote(info.model_uri, name="ivd-rom-surrogate", val_metric=0.1)
+        mlflow.set_tracking_uri(None)
+    return store
+
+
 @pytest.fixture
-def project(tmp_path, monkeypatch, surrogate):
+def project(tmp_path, monkeypatch, surrogate, registry_store):
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     monkeypatch.chdir(tmp_path)
     assert tuple(surrogate.moment_range_) == (1.0, 5.0)
+    shutil.copytree(registry_store, tmp_path / "mlruns")
     configure_tracking(store_dir=tmp_path / "mlruns")
     ensure_experiment("moments", store_dir=tmp_path / "mlruns")
-    with mlflow.start_run():
-        info = log_surrogate(surrogate, surrogate.space)
-    register_and_promote(info.model_uri, name="ivd-rom-surrogate", val_metric=0.1)
     rng = np.random.default_rng(5)
     x = study_space().sample_uniform(3, rng)
     rom = SurrogateCurveModel(surrogate, MOMENTS).predict(x) + rng.normal(0, NOISE, (3, 4, 7))
