@@ -133,19 +133,3 @@ def test_a_cheaper_jacobian_differentiates_the_disc_through_its_first_members(en
         rtol=1e-10,
         atol=1e-12,
     )
-
-
-def test_the_jacobian_at_rows_just_evaluated_equals_the_one_computed_afresh(ensemble):
-    # Gauss-Newton evaluates the curves at a trial point, then its Jacobian there: the
-    # members' coefficients and the curves are taken from that evaluation.
-    fresh, again = (_model(ensemble, ["facet_contact:split", "neutral_zone"]) for _ in range(2))
-    v = torch.rand(3, fresh.dim, dtype=torch.float64, generator=torch.Generator().manual_seed(8))
-    with torch.no_grad():
-        again.curves(v)
-    assert len(again._evaluated) == 3
-    for members in (None, 1):
-        value, jac = fresh.curves_jacobian(v, jacobian_members=members)
-        fresh._evaluated.clear()
-        value_again, jac_again = again.curves_jacobian(v, jacobian_members=members)
-        torch.testing.assert_close(value_again, value, rtol=1e-12, atol=1e-12)
-        torch.testing.assert_close(jac_again, jac, rtol=1e-10, atol=1e-12)

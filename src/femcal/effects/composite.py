@@ -37,9 +37,9 @@ logger = logging.getLogger(__name__)
 _BISECTIONS = 12
 _POLISH = 2
 _JAC_ROWS = 8192
-#: Rows whose share, coefficients and curves :class:`EffectModel` keeps from the evaluations so
-#: far (then it starts afresh).
-_MAX_SHARES = 50_000
+#: Shares of the rows solved so far that :meth:`EffectModel._share_of` keeps (then it starts
+#: afresh).
+_MAX_SHARES = 200_000
 _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
 #: Points evaluated at once by :func:`_bisect_levels` (rows x load cases x moments x midpoints):
 #: small batches are bisected several levels per evaluation, large ones one level at a time.
@@ -127,10 +127,6 @@ class EffectModel:
         # dtype): a Gauss-Newton step evaluates the curves at the new point, then its Jacobian
         # there; the best of a fit's starts is evaluated again at its end.
         self._shares: dict[bytes, torch.Tensor] = {}
-        # The disc members' coefficients (K, 4, p) and the curves (4, m) that :meth:`curves`
-        # computed without graph, by the rows' bytes: the Jacobian at a point just evaluated
-        # takes them from there.
-        self._evaluated: dict[bytes, tuple[torch.Tensor, torch.Tensor]] = {}
         #: Lowest trained moment: below it the disc curve is continued as a power law.
         self.m_low = float(getattr(base.surrogate, "moment_range_", (1.0, 5.0))[0])
 
@@ -424,11 +420,6 @@ class EffectModel:
             if e.kind == "series":
                 mask = constant_like(masks[e.name][None, :, None], v)
                 phi = phi + e.rotation_at(applied, p) * mask
-        if share is None and not (torch.is_grad_enabled() or has_tangent(v)):
-            if len(self._evaluated) + b > _MAX_SHARES:
-                self._evaluated = {}
-            rows = v.cpu().numpy()
-            self._evaluated.update((r.tobytes(), (coef[:, i], phi[i])) for i, r in enumerate(rows))
         return phi
 
     def curves_jacobian(
@@ -467,18 +458,14 @@ class EffectModel:
         # Each distinct disc once: a fit's starts from one grid share the disc's parameters.
         disc, inverse = torch.unique(v[:, :nd], dim=0, return_inverse=True)
         h, t = ensemble_tangents(net.members[:members], disc)  # (k, u, out), (k, u, nd, out)
-        k, p = len(net.members), net.moment_degree + 1
+        if members < len(net.members):
+            rest = ensemble_forward(net.members[members:], disc)
+            h = torch.cat([h, rest])
+        k, p = h.shape[0], net.moment_degree + 1
+        coef = h[:, inverse].reshape(k, n, net.n_load_cases, p)
         dcoef = t[:, inverse].reshape(members, n, nd, net.n_load_cases, p)
-        known = [self._evaluated.get(r.tobytes()) for r in v.cpu().numpy()]
-        if all(x is not None for x in known):  # the curves at these rows were just evaluated
-            coef = torch.stack([c for c, _ in known], dim=1)
-            value = torch.stack([x for _, x in known])
-        else:
-            if members < k:
-                h = torch.cat([h, ensemble_forward(net.members[members:], disc)])
-            coef = h[:, inverse].reshape(k, n, net.n_load_cases, p)
-            with torch.no_grad():
-                value = self.curves(v, share=share, coef=coef)
+        with torch.no_grad():
+            value = self.curves(v, share=share, coef=coef)
         log_low = float(np.log(self.m_low))
         if members < k:  # the share's slope from every member, its tangents from ``members``
             phi, slope, _ = disc_partials(net, coef, dcoef[:, :, :0], share, log_low)
