@@ -26,10 +26,6 @@ _GN_TOL = 1e-6
 #: best two after three iterations.
 _KEEP = {"keep_after": 3, "keep": 2}
 _KEEP_SPLIT = {"keep_after": 5, "keep": 4}
-#: The disc network's members the Jacobian of a fit's first iterations comes from (of 5 in
-#: the study's surrogate; its cost is in proportion), and the last iterations on the exact one.
-_JACOBIAN_MEMBERS = 1
-_EXACT_FINAL = 2
 
 
 # ------------------------------------------------------------------------ fitting helpers
@@ -211,26 +207,17 @@ def _fit_from(
 ):
     """Gauss-Newton from ``g`` starts per specimen of ``rows``; the best start per specimen.
 
-    The Jacobian of the first iterations comes from :data:`_JACOBIAN_MEMBERS` of the disc
-    network's members, and each start settles on the exact one
-    (:class:`~femcal.calibration.pgd_options.GaussNewtonOptions`). The starts are ranked by
-    the chi-square of Gauss-Newton's own final residuals; only the best start's curves are
-    evaluated again (its chi-square from them)."""
+    The starts are ranked by the chi-square of Gauss-Newton's own final residuals; only the
+    best start's curves are evaluated again (its chi-square from them). The Jacobian is exact
+    throughout: one from fewer ensemble members in the first iterations
+    (``GaussNewtonOptions.jacobian_members``) moves near-tied verdicts, outside the box most."""
     problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
     r = len(rows)
     idx = torch.arange(r).repeat_interleave(g)
     split = any(is_split(e) for e in getattr(model, "effect_names", ()))
     keep = _KEEP_SPLIT if split else _KEEP
     keep = keep if g > keep["keep"] else {}
-    options = GaussNewtonOptions(
-        max_iter=max_iter,
-        loss="l2",
-        tol=_GN_TOL,
-        jacobian_members=_JACOBIAN_MEMBERS,
-        exact_final=_EXACT_FINAL,
-        settle_exact=True,
-        **keep,
-    )
+    options = GaussNewtonOptions(max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
     v, _, _, res = gauss_newton_residuals(problem, v0, idx, options)
     z = res.double().numpy().reshape(r, g, *measured.shape[1:]) / sigma[rows][:, None]
     chi2 = (np.where(np.isfinite(measured[rows])[:, None], z, 0.0) ** 2).sum(axis=(2, 3))
