@@ -161,7 +161,7 @@ def test_outputs_carry_curves_over_each_specimens_own_range(world):
     assert np.isfinite(s.curves[NONE]).all()
     if s.effects:  # the curve of the model as fitted (each effect tied or split)
         assert np.isfinite(s.curves["+".join(s.model)]).all()
-        assert [e.split(":")[0] for e in s.model] == s.effects
+        assert [base_name(e) for e in s.model] == s.effects
     d = s.to_dict()
     assert d["effects"] == s.effects and "ranking" in d and isinstance(d["adequate"], bool)
 

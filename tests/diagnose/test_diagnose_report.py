@@ -220,3 +220,29 @@ def test_a_figure_drawn_again_for_another_specimen_matches_a_new_one(tmp_path, m
     png(noted, np.ones((4, 3)), "noted-first.png", new=True)
     assert np.array_equal(png(plain, rom, "plain-after.png", new=False), other)
     assert np.array_equal(png(noted, np.ones((4, 3)), "noted-after.png", new=False), first)
+
+
+def test_the_summary_says_where_each_effect_of_the_verdict_acts():
+    from femcal.diagnose.report import _probable
+
+    s = SpecimenDiagnosis(
+        specimen="S",
+        verdict="facet_contact",
+        baseline_mae_deg=0.1,
+        ranking=[],
+        residuals=np.zeros((4, 3)),
+        effects=["facet_contact"],
+        model=["facet_contact@Extension,LateralBending,AxialRotation"],
+        load_cases={"facet_contact": ["Extension", "LateralBending", "AxialRotation"]},
+        probabilities={
+            "models": {"facet_contact@Extension,LateralBending,AxialRotation": 0.8},
+            "inclusion": {"facet_contact": 1.0},
+            "acts_in": {
+                "facet_contact": {"Extension": 1.0, "LateralBending": 0.8, "AxialRotation": 1.0}
+            },
+        },
+    )
+    assert _probable(s).endswith(
+        "; facet_contact acts in Extension, LateralBending 0.80, AxialRotation"
+    )
+    assert s.to_dict()["load_cases"] == s.load_cases

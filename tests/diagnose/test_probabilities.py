@@ -94,3 +94,16 @@ def test_a_model_whose_further_effect_does_nothing_is_its_sub_model():
     assert not _idle_effect(state, both, 0)
     del state.per_spec[0][facet]  # no sub-model fitted: nothing to compare with
     assert not _idle_effect(state, both, 0)
+
+
+def test_where_an_effect_acts_is_the_share_of_its_models_acting_there():
+    wide = "facet_contact@Extension,LateralBending,AxialRotation"
+    lift = -2 * np.log(0.3 / 0.7)  # what acting in lateral bending costs: the prior's ratio
+    crit = {(): 200.0, ("facet_contact",): 50.0, (wide,): 50.0 - lift}
+    p = specimen_probabilities(crit, None, FIRST, FURTHER)
+    # equal scores once the prior's cost is counted: half the facet's probability acts there
+    assert p["models"]["facet_contact"] == pytest.approx(p["models"][wide], abs=1e-3)
+    where = p["acts_in"]["facet_contact"]
+    assert where["LateralBending"] == pytest.approx(0.5, abs=1e-3)
+    assert where["Extension"] == where["AxialRotation"] == 1.0
+    assert p["inclusion"]["facet_contact"] == pytest.approx(1.0, abs=1e-3)

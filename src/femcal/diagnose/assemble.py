@@ -40,7 +40,9 @@ from femcal.diagnose.result import (
     verdict_label,
 )
 from femcal.diagnose.state import DiagnosisState, Model
+from femcal.diagnose.where import not_engaged
 from femcal.effects.split import base_name
+from femcal.effects.terms import cases_of
 
 
 def _assemble(
@@ -136,6 +138,7 @@ def _assemble(
                 failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
                 effects=[base_name(e) for e in model],
                 model=model,
+                load_cases={base_name(e): list(cases_of(e)) for e in model},
                 adequate=adequate,
                 adequacy=adequacy[i],
                 final_mae_deg=float(np.nanmean(np.abs(final_res))),
@@ -215,14 +218,17 @@ def _gp_fit(state: DiagnosisState, effects: Model, rows: list[int]) -> Discrepan
 def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
     """Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities` of every
     fitted model and of its final model with its discrepancy (``gp``, per final model, fitted
-    to ``finals[model]`` in that order)."""
+    to ``finals[model]`` in that order). A model with an effect in a load case beyond its
+    likely ones where it does not engage is left out (:func:`femcal.diagnose.where.not_engaged`),
+    as the search leaves it out."""
     outside = _outside_criteria(state, finals, gp)
+    aside = not_engaged(state)
     return [
         specimen_probabilities(
             {
                 m: state.criterion(m, i)
                 for m in state.per_spec[i]
-                if m == state.chosen[i] or not _idle_effect(state, m, i)
+                if m == state.chosen[i] or not (_idle_effect(state, m, i) or (i, m) in aside)
             },
             (state.chosen[i], outside[i]),
             state.options.min_delta,

@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from femcal.diagnose.fits import _solutions, _split_starts
-from femcal.effects.split import SPLIT_SUFFIX, has_split_form
+from femcal.effects.split import has_split_form
+from femcal.effects.terms import as_split
 
 if TYPE_CHECKING:
     from femcal.diagnose.state import DiagnosisState
@@ -30,7 +31,7 @@ Model = tuple[str, ...]
 
 def split_one(effects: Model, name: str) -> Model:
     """``effects`` with ``name`` in its split form."""
-    return tuple(sorted(e + SPLIT_SUFFIX if e == name else e for e in effects))
+    return tuple(sorted(as_split(e) if e == name else e for e in effects))
 
 
 def choose_forms(state: DiagnosisState) -> None:

@@ -14,8 +14,10 @@ from femcal.calibration.starts import _combination_starts, effect_bank, nearest_
 from femcal.diagnose.fits import _Fit, _fit_from, _grid, _split_starts, _starts
 from femcal.diagnose.forms import split_one
 from femcal.diagnose.state import DiagnosisState, Model
+from femcal.diagnose.where import engaged, wide_terms
 from femcal.effects.base import get_effect
-from femcal.effects.split import SPLIT_SUFFIX, base_name, has_split_form, is_split
+from femcal.effects.split import base_name, has_split_form, is_split
+from femcal.effects.terms import as_split, model_case_cost
 
 logger = logging.getLogger(__name__)
 
@@ -49,6 +51,7 @@ def forward_selection(state: DiagnosisState) -> None:
             return
         children = _extend(state, active, frontier, banks)
         if _level == 0:
+            _fit_wide(state, [int(i) for i in active], children, banks)
             _fit_splits(state, [int(i) for i in active], children, banks)
             pairs = _fit_pairs(state, [int(i) for i in active], banks)
         elif _level == 1:  # the pairs compete with the models one effect larger
@@ -61,7 +64,7 @@ def forward_selection(state: DiagnosisState) -> None:
             crits = _costed(state, i, children[int(i)], current)
             if not crits:
                 continue
-            cur_crit = state.criterion(current, i) + _split_cost(state, current)
+            cur_crit = state.criterion(current, i) + _prior_costs(state, current)
             logger.debug(
                 "%s: forward from %s: criterion gains %s",
                 state.specimens[i],
@@ -128,12 +131,18 @@ def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[li
 
 def _costed(state: DiagnosisState, i: int, models: list[Model], current: Model) -> dict:
     """Specimen ``i``'s criterion of each of ``models`` plus the prior costs forward selection
-    counts against it from ``current``: a split form's (:func:`_split_cost`) and that of every
-    effect beyond the one a level adds (:func:`_extra_cost`)."""
+    counts against it from ``current``: a split form's and its load cases' (:func:`_prior_costs`)
+    and that of every effect beyond the one a level adds (:func:`_extra_cost`)."""
     return {
-        e: state.criterion(e, i) + _split_cost(state, e) + _extra_cost(state, e, current)
+        e: state.criterion(e, i) + _prior_costs(state, e) + _extra_cost(state, e, current)
         for e in models
     }
+
+
+def _prior_costs(state: DiagnosisState, model: Model) -> float:
+    """A model's split cost (:func:`_split_cost`) and what the load cases its effects act in
+    cost against their likely ones (:func:`femcal.effects.terms.model_case_cost`)."""
+    return _split_cost(state, model) + model_case_cost(model)
 
 
 def _extra_cost(state: DiagnosisState, model: Model, current: Model) -> float:
@@ -201,7 +210,7 @@ def _fit_pairs(
 
 def _split_forms(effects: Model) -> list[Model]:
     """The forms of ``effects`` with at least one effect split per load case."""
-    options = [[e, e + SPLIT_SUFFIX] if has_split_form(e) else [e] for e in effects]
+    options = [[e, as_split(e)] if has_split_form(e) else [e] for e in effects]
     forms = [tuple(sorted(f)) for f in itertools.product(*options)]
     return [f for f in forms if any(is_split(e) for e in f)]
 
@@ -242,7 +251,7 @@ def _fit_splits(
     rows_a = np.asarray(rows)
     for name in state.candidates:
         if has_split_form(name):
-            split = (name + SPLIT_SUFFIX,)
+            split = (as_split(name),)
             v = state.solutions(rows, (name,))
             v0, g = _split_starts(v, (name,), split, state.options.effect_levels)
             w0 = _new_effect_starts(state, rows_a, (), split[0], banks)
@@ -251,6 +260,34 @@ def _fit_splits(
             state.fit(split, rows_a, v0.reshape(len(rows) * g, -1), g)
             for i in rows:
                 children[i] = sorted({*children[i], split})
+
+
+def _fit_wide(
+    state: DiagnosisState,
+    rows: list[int],
+    children: dict[int, list[Model]],
+    banks: dict[Model, tuple[torch.Tensor, torch.Tensor]],
+) -> None:
+    """Every candidate effect acting in every load case its prior allows
+    (:func:`femcal.diagnose.where.wide_terms`), tied, for the specimens ``rows``, added to
+    their ``children``: an element that acts beyond its likely load cases (a facet impinging
+    in lateral bending) is otherwise fitted there by an effect that stands in for it. Each
+    starts from its tied fit in the likely load cases (the same parameters) and, like a new
+    effect, from the disc alone with its grid and the start bank (:func:`_new_effect_starts`);
+    it pays the prior cost of its further load cases (:func:`_prior_costs`) and competes only
+    where it engages in them (:func:`femcal.diagnose.where.engaged`)."""
+    if not rows:
+        return
+    rows_a = np.asarray(rows)
+    for name in state.candidates:
+        for wide in wide_terms([name]):
+            v = state.solutions(rows, (name,))[:, None]
+            v0 = torch.cat([v, _new_effect_starts(state, rows_a, (), wide, banks)], dim=1)
+            g = v0.shape[1]
+            state.fit((wide,), rows_a, v0.reshape(len(rows) * g, -1), g)
+            for i, ok in zip(rows, engaged(state, (wide,), rows)):
+                if ok:
+                    children[i] = sorted({*children[i], (wide,)})
 
 
 def _new_effect_starts(

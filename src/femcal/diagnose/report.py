@@ -356,7 +356,8 @@ def _missing(s: SpecimenDiagnosis) -> str:
 
 
 def _probable(s: SpecimenDiagnosis) -> str:
-    """The most probable models (p >= 0.05) and the effects' inclusion probabilities."""
+    """The most probable models (p >= 0.05), the effects' inclusion probabilities and where
+    the verdict's effects act (:func:`_where`)."""
     pr = s.probabilities
     if not pr:
         return ""
@@ -364,7 +365,22 @@ def _probable(s: SpecimenDiagnosis) -> str:
     inc = [f"{k} {v:.2f}" for k, v in pr.get("inclusion", {}).items() if v >= 0.05]
     if pr.get("outside_box", 0.0) >= 0.05:
         inc.append(f"outside the box {pr['outside_box']:.2f}")
-    return "; ".join(top) + (f" (inclusion: {', '.join(inc)})" if inc else "")
+    return "; ".join(top) + (f" (inclusion: {', '.join(inc)})" if inc else "") + _where(s)
+
+
+def _where(s: SpecimenDiagnosis) -> str:
+    """Where each effect of the verdict acts, with the probability of each load case where
+    it is below 1: ``; facet_contact acts in Extension, LateralBending 0.84, AxialRotation``."""
+    where = s.probabilities.get("acts_in", {})
+    parts = []
+    for e, cases in s.load_cases.items():
+        p = where.get(e, {})
+        named = [lc if p.get(lc, 1.0) >= 0.995 else f"{lc} {p[lc]:.2f}" for lc in cases]
+        doubt = [f"{lc} {q:.2f}" for lc, q in p.items() if lc not in cases and q >= 0.05]
+        parts.append(
+            f"{e} acts in {', '.join(named)}" + (f" (also {', '.join(doubt)})" if doubt else "")
+        )
+    return "; " + "; ".join(parts) if parts else ""
 
 
 #: What the plotting workers read: (diagnosis, measured, folder), set before they fork.

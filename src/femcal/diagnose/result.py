@@ -53,6 +53,10 @@ class SpecimenDiagnosis:
     model : list of str
         The chosen model's effects as fitted, each tied or in its split form
         (``facet_contact:split``): what ``femcal calibrate --effects`` takes.
+    load_cases : dict of str to list of str
+        Per effect of ``model`` (by registered name), the load cases it acts in as fitted:
+        its likely ones or others its ``load_case_prior`` allows (:mod:`femcal.effects.terms`);
+        ``probabilities["acts_in"]`` gives the probability of each.
     adequate : bool
         The final model explains the data within the noise.
     ranking : list of dict
@@ -87,7 +91,8 @@ class SpecimenDiagnosis:
     probabilities : dict
         ``models`` (label -> posterior probability of every model fitted, and of the chosen
         one with a discrepancy, ``<model>+unexplained``), ``inclusion`` (effect ->
-        probability), ``outside_library`` and ``most_probable``
+        probability), ``acts_in`` (effect -> load case -> the probability that it acts there
+        given that it is present), ``outside_library`` and ``most_probable``
         (:mod:`femcal.diagnose.probabilities`); where the specimen looks beyond the
         parameter box, also ``outside_box`` (the probability of a disc outside it) and the
         models' out-of-box alternatives (``facet_contact+outside_box``, ``outside_box``).
@@ -109,6 +114,7 @@ class SpecimenDiagnosis:
     failures: dict[str, Any] = field(default_factory=dict)
     effects: list[str] = field(default_factory=list)
     model: list[str] = field(default_factory=list)
+    load_cases: dict[str, list[str]] = field(default_factory=dict)
     adequate: bool = True
     adequacy: dict[str, Any] = field(default_factory=dict)
     final_mae_deg: float = float("nan")
@@ -142,6 +148,7 @@ class SpecimenDiagnosis:
             "verdict": self.verdict,
             "effects": list(self.effects),
             "model": list(self.model),
+            "load_cases": self.load_cases,
             "adequate": bool(self.adequate),
             "adequacy": self.adequacy,
             "baseline_mae_deg": self.baseline_mae_deg,

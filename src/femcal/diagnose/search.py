@@ -22,7 +22,11 @@ For every specimen, :func:`diagnose` runs these steps over one :class:`Diagnosis
 5. **open world** (:mod:`femcal.diagnose.elimination`): where the chosen effects leave the data
    unexplained, each must pay beyond a smooth discrepancy, unless it removes most of the
    disc-alone misfit;
-6. **probabilities, verdicts and description** (:mod:`femcal.diagnose.assemble`): the posterior
+6. **where each effect acts** (:mod:`femcal.diagnose.where`): one load case its prior leaves
+   open added to or left out of each chosen effect, where that pays with the prior's cost
+   (forward selection fitted each candidate in every load case its prior allows too); the
+   backward check again where that changed a model;
+7. **probabilities, verdicts and description** (:mod:`femcal.diagnose.assemble`): the posterior
    probability of every fitted model, of each effect and of something outside the library
    (:mod:`femcal.diagnose.probabilities`); the verdict says ``unexplained`` where a discrepancy
    on top of the model is more probable than the model alone, and then describes it (load
@@ -52,6 +56,7 @@ from femcal.diagnose.forward import forward_selection
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.diagnose.result import Diagnosis
 from femcal.diagnose.state import DiagnosisState
+from femcal.diagnose.where import choose_cases
 from femcal.diagnose.workers import in_workers
 from femcal.effects.base import available_effects, get_effect
 from femcal.errors import ConfigError
@@ -188,6 +193,8 @@ def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnos
     if state.options.backward:
         _backward(state)
     open_world_elimination(state)
+    if choose_cases(state) and state.options.backward:
+        _backward(state)
     return _assemble(state, disc=disc, **keywords)
 
 
