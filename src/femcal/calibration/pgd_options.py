@@ -1,5 +1,5 @@
 """The options of :func:`femcal.calibration.pgd.pgd` and of its solver
-:func:`femcal.calibration.pgd.gauss_newton`, each declared here once.
+:func:`femcal.calibration.gauss_newton.gauss_newton`, each declared here once.
 
 :class:`PgdOptions`' fields carry each option's type with its bounds, default and doc;
 ``calibrate.options.pgd`` in params.yaml and the settings reference read them from here.
@@ -119,7 +119,7 @@ class PgdOptions:
 
 @dataclass(frozen=True)
 class GaussNewtonOptions:
-    """How :func:`~femcal.calibration.pgd.gauss_newton` iterates and when a row stops.
+    """How :func:`~femcal.calibration.gauss_newton.gauss_newton` iterates and when a row stops.
 
     Attributes
     ----------
