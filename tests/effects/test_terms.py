@@ -161,3 +161,17 @@ def test_a_name_holding_the_terms_marks_is_refused(clean_registry):
 
     with pytest.raises(ConfigError, match="holds one of"):
         register_effect(Marked)
+
+
+def test_a_comma_list_keeps_each_terms_load_cases():
+    """``--effects`` takes a comma-separated list; a term's own load cases stay with it."""
+    from femcal.effects.terms import split_terms
+
+    assert split_terms("ligament_tension@Flexion,Extension:split, neutral_zone") == [
+        "ligament_tension@Flexion,Extension:split",
+        "neutral_zone",
+    ]
+    assert split_terms("facet_contact,ligament_tension,") == ["facet_contact", "ligament_tension"]
+    assert split_terms("facet_contact@Extension,LateralBending,AxialRotation") == [
+        "facet_contact@Extension,LateralBending,AxialRotation"
+    ]

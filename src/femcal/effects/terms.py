@@ -84,6 +84,22 @@ def parse_term(name: str) -> Term:
     return Term(effect, split, tuple(lc for lc in LOAD_CASES if lc in cases))
 
 
+def split_terms(text: str) -> list[str]:
+    """The terms of a comma-separated list, as ``--effects`` takes it: a load case after a term
+    with ``@`` belongs to that term (``ligament_tension@Flexion,Extension:split,neutral_zone``
+    -> ``["ligament_tension@Flexion,Extension:split", "neutral_zone"]``)."""
+    terms: list[str] = []
+    for item in (part.strip() for part in text.split(CASES_SEP)):
+        if not item:
+            continue
+        case = item[: -len(SPLIT_SUFFIX)] if item.endswith(SPLIT_SUFFIX) else item
+        if terms and case in LOAD_CASES and CASES_MARK in terms[-1]:
+            terms[-1] += CASES_SEP + item
+        else:
+            terms.append(item)
+    return terms
+
+
 def format_term(term: Term) -> str:
     """A term's string (see the module docstring): the load cases left out where they are
     the effect's likely ones (the effect is looked up only then)."""

@@ -194,8 +194,9 @@ def _calibrate_groups(
     names = [str(rec["specimen"]) for rec in diagnosis]
     disc = _calibrate(long, names, "", out_dir / "disc-alone", options)
     groups: dict[str, list[str]] = {}
-    for rec in diagnosis:
-        groups.setdefault(",".join(rec.get("effects") or []), []).append(str(rec["specimen"]))
+    for rec in diagnosis:  # the diagnosed model's terms: tied or split, where each acts
+        terms = rec.get("model") or rec.get("effects") or []
+        groups.setdefault(",".join(terms), []).append(str(rec["specimen"]))
     after: dict[str, float] = {}
     for i, (effects, members) in enumerate(sorted(groups.items())):
         if not effects:

@@ -118,7 +118,9 @@ class CalibrateSettings(StageSettings):
                 "folder, e.g. {measurements: data/planted/measurements.csv, effects: []}."
             )
         if args.get("effects") is not None:
-            effects = [e.strip() for e in args["effects"].split(",") if e.strip()]
+            from femcal.effects.terms import split_terms
+
+            effects = split_terms(args["effects"])
         else:  # another file than the dataset's: not the dataset's effects nor noise
             effects = [] if given or entry is None else list(entry.effects)
         measurements = Path(given) if given else setting_path(params, entry.measurements)
