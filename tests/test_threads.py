@@ -76,7 +76,7 @@ def test_the_command_line_chooses_before_the_stage_runs(monkeypatch):
         seen.update({k: os.environ.get(k) for k in THREAD_VARIABLES}, torch=torch.get_num_threads())
 
     monkeypatch.setattr(cli, "dispatch", dispatch)
-    monkeypatch.setattr(cli, "load_params", lambda path: {})
+    monkeypatch.setattr(cli, "load_params", lambda path, **_: {})
     before = torch.get_num_threads()
     try:
         assert cli.main(["prepare"]) == 0
@@ -97,7 +97,7 @@ def test_the_bar_shows_the_step_of_a_batch(curve_model_free, monkeypatch):
         steps.append((step, settled, of))
         real(step, settled=settled, of=of)
 
-    monkeypatch.setattr("femcal.calibration.pgd.report_step", spy)
+    monkeypatch.setattr("femcal.calibration.gauss_newton.report_step", spy)
     model, rom = curve_model_free
     calibrate(model, rom, method="pgd", progress=True, options={"n_bank_uniform": 64})
     assert steps and steps[0][0].startswith("Gauss-Newton iteration 1/")

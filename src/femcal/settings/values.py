@@ -13,6 +13,7 @@ import dataclasses
 import functools
 import importlib
 import importlib.util
+import os
 import re
 import sys
 import urllib.parse
@@ -366,7 +367,7 @@ def _adapter(annotation: Any) -> TypeAdapter:
 def check_options(options: Any, owner: str) -> None:
     """Check each option of an options dataclass against its annotation (type, bounds,
     choices; pydantic validates) and store it conformed (int, float, tuple); ``owner`` names
-    it in messages. NumPy scalars count as the Python numbers they hold.
+    it in messages. NumPy scalars count as the Python numbers they hold, a ``Path`` as its text.
 
     Raises
     ------
@@ -376,8 +377,9 @@ def check_options(options: Any, owner: str) -> None:
     for name, (annotation, _, doc) in option_fields(type(options)).items():
         value = getattr(options, name)
         given = value.item() if hasattr(value, "dtype") and hasattr(value, "item") else value
+        path = isinstance(given, os.PathLike)  # a Path is checked as its text and kept
         try:
-            fixed = _adapter(annotation).validate_python(given)
+            fixed = _adapter(annotation).validate_python(os.fspath(given) if path else given)
         except ValidationError as exc:
             error = exc.errors(include_url=False)[0]
             words = describe(annotation).replace(" or null", " or None")
@@ -389,7 +391,7 @@ def check_options(options: Any, owner: str) -> None:
                 raise OptionError(owner, name, text) from None
             text = f"{name} must be {words}; got {value!r}. {name}: {doc}"
             raise OptionError(owner, name, text) from None
-        if fixed is not value:
+        if fixed is not value and not path:
             object.__setattr__(options, name, fixed)
 
 
