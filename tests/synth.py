@@ -79,3 +79,21 @@ def long_csv(path, curves: np.ndarray, moments=(1, 2, 3, 4, 5)):
         path, index=False
     )
     return path
+
+
+def parallel_curves(fe_m, fe_rom, lcs, law, moments):
+    """Curves with a parallel element M_e(phi) on load cases ``lcs`` (bisection, numpy): the
+    disc's FE curves ``fe_rom`` (4, m) at ``fe_m`` sharing each applied moment with ``law``."""
+    from femcal.effects.planted import fe_rotation
+
+    applied = np.broadcast_to(moments, (4, len(moments)))
+    lo, hi = np.log(applied * 1e-3), np.log(applied).copy()
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        md = np.exp(mid)
+        g = md + law(fe_rotation(fe_m, fe_rom, md)) - applied
+        hi, lo = np.where(g > 0, mid, hi), np.where(g > 0, lo, mid)
+    out = fe_rotation(fe_m, fe_rom, applied).copy()
+    solved = fe_rotation(fe_m, fe_rom, np.exp(0.5 * (lo + hi)))
+    out[lcs] = solved[lcs]
+    return out

@@ -27,7 +27,7 @@ from femcal.moments import MomentPolicy
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
 
-from synth import study_space, tidy_table
+from synth import parallel_curves, study_space, tidy_table
 
 NOISE = 0.02
 MOMENTS = np.arange(1.0, 5.01, 0.5)
@@ -36,23 +36,10 @@ EXT, AR, FLEX, LB = (
 )
 
 
-def _parallel(fe_m, fe_rom, lcs, law, moments):
-    """Curves with a parallel element M_e(phi) on load cases ``lcs`` (bisection, numpy)."""
-    applied = np.broadcast_to(moments, (4, len(moments)))
-    lo, hi = np.log(applied * 1e-3), np.log(applied).copy()
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        md = np.exp(mid)
-        g = md + law(fe_rotation(fe_m, fe_rom, md)) - applied
-        hi, lo = np.where(g > 0, mid, hi), np.where(g > 0, lo, mid)
-    out = fe_rotation(fe_m, fe_rom, applied).copy()
-    solved = fe_rotation(fe_m, fe_rom, np.exp(0.5 * (lo + hi)))
-    out[lcs] = solved[lcs]
-    return out
-
-
 def _facet(fe_m, fe_rom, moments):  # a linear spring after a 1.5 deg gap (not quadratic)
-    return _parallel(fe_m, fe_rom, [EXT, AR], lambda p: 1.2 * np.clip(p - 1.5, 0, None), moments)
+    return parallel_curves(
+        fe_m, fe_rom, [EXT, AR], lambda p: 1.2 * np.clip(p - 1.5, 0, None), moments
+    )
 
 
 def _ligament(fe_m, fe_rom, moments):  # toe region (quadratic) then linear, slack 1.5 deg
@@ -60,7 +47,7 @@ def _ligament(fe_m, fe_rom, moments):  # toe region (quadratic) then linear, sla
         s = np.clip(p - 1.5, 0, None)
         return np.where(s < 1.0, 0.6 * s**2, 0.6 + 1.2 * (s - 1.0))
 
-    return _parallel(fe_m, fe_rom, [FLEX, LB], law, moments)
+    return parallel_curves(fe_m, fe_rom, [FLEX, LB], law, moments)
 
 
 @pytest.fixture(scope="module")

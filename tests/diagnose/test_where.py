@@ -17,11 +17,10 @@ from femcal.calibration import SurrogateCurveModel
 from femcal.diagnose import diagnose
 from femcal.diagnose.where import mapped_start, wide_terms
 from femcal.effects.base import get_effect
-from femcal.effects.planted import fe_rotation
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
 
-from synth import study_space, tidy_table
+from synth import parallel_curves, study_space, tidy_table
 
 NOISE = 0.02
 MOMENTS = np.arange(1.0, 5.01, 0.5)
@@ -31,23 +30,8 @@ FLEX, EXT, LB, AR = (
 KINDS = ("facet_lb", "ligament_ext", "facet")
 
 
-def _parallel(fe_m, fe_rom, lcs, law, moments):
-    """Curves with a parallel element M_e(phi) on load cases ``lcs`` (bisection, numpy)."""
-    applied = np.broadcast_to(moments, (4, len(moments)))
-    lo, hi = np.log(applied * 1e-3), np.log(applied).copy()
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        md = np.exp(mid)
-        g = md + law(fe_rotation(fe_m, fe_rom, md)) - applied
-        hi, lo = np.where(g > 0, mid, hi), np.where(g > 0, lo, mid)
-    out = fe_rotation(fe_m, fe_rom, applied).copy()
-    solved = fe_rotation(fe_m, fe_rom, np.exp(0.5 * (lo + hi)))
-    out[lcs] = solved[lcs]
-    return out
-
-
 def _facet(fe_rom, lcs):  # a linear spring after a 1.5 deg gap
-    return _parallel(MOMENTS, fe_rom, lcs, lambda p: 1.2 * np.clip(p - 1.5, 0, None), MOMENTS)
+    return parallel_curves(MOMENTS, fe_rom, lcs, lambda p: 1.2 * np.clip(p - 1.5, 0, None), MOMENTS)
 
 
 def _ligament(fe_rom, lcs):  # toe region (quadratic) then linear, slack 1.5 deg
@@ -55,7 +39,7 @@ def _ligament(fe_rom, lcs):  # toe region (quadratic) then linear, slack 1.5 deg
         s = np.clip(p - 1.5, 0, None)
         return np.where(s < 1.0, 0.6 * s**2, 0.6 + 1.2 * (s - 1.0))
 
-    return _parallel(MOMENTS, fe_rom, lcs, law, MOMENTS)
+    return parallel_curves(MOMENTS, fe_rom, lcs, law, MOMENTS)
 
 
 @pytest.fixture(scope="module")
