@@ -19,7 +19,7 @@ from typing import Any
 #: Where each public name lives; imported on first use (PEP 562), so that the options
 #: dataclasses can import :mod:`femcal.settings.values` without loading the sections.
 _HOMES = {
-    "env": ("ENVIRONMENT", "Environment", "check_environment"),
+    "env": ("ENVIRONMENT", "check_environment"),
     "keywords": (
         *("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS", "CALIBRATORS"),
         *("MESH_PRESETS", "SOLVER_SETTINGS", "SOLVERS", "SPLITS", "GeometryKeywords"),

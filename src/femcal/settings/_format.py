@@ -9,8 +9,9 @@ problem's line in the YAML file and raises one :class:`~femcal.errors.ConfigErro
 Models tune the messages with class variables: ``_unknown`` (what an unknown key is called),
 ``_retired`` and ``_refused`` (key -> what to do instead), ``_complete`` (missing keys are
 reported even when a file is checked partially), ``_missing`` (the message of a missing key),
-``_open`` (a field holding the model's other keys, e.g. the splits of ``train``) and ``_hint``
-(appended to every problem inside).
+``_open`` (a field holding the model's other keys, e.g. the splits of ``train``; ``_open_what``
+says what they are), ``_describe`` (the model in words) and ``_hint`` (appended to every
+problem inside).
 """
 
 from __future__ import annotations
@@ -54,43 +55,40 @@ def fail(message: str, key: Any = None) -> PydanticCustomError:
 
 
 def yaml_repr(value: Any) -> str:
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
+    """``value`` as YAML writes it (null, true, lists), cut to 60 characters."""
+    if value is None or isinstance(value, bool):
+        return {None: "null", True: "true", False: "false"}[value]
     text = repr(list(value) if isinstance(value, tuple) else value)
     return text if len(text) <= 60 else text[:57] + "..."
 
 
 def got(value: Any) -> str:
     """``'ten' (str)``: what was given, as the message shows it."""
-    kind = "null" if value is None else type(value).__name__
-    return f"{yaml_repr(value)} ({'mapping' if isinstance(value, Mapping) else kind})"
+    kind = "mapping" if isinstance(value, Mapping) else type(value).__name__
+    return f"{yaml_repr(value)} ({'null' if value is None else kind})"
 
 
 def dotted(path: Iterable) -> str:
+    """``calibrate.datasets.test``, ``plant.moments[0]``: a path as messages show it."""
     out = ""
     for key in path:
         out += f"[{int(key)}]" if isinstance(key, Index) else ("." if out else "") + str(key)
     return out
 
 
-def _similarity(a: str, b: str) -> float:
-    """difflib's ratio of two keys, also with their words sorted (``plot_max``/``max_plots``)."""
-    a, b = a.lower(), b.lower()
-
-    def words(s: str) -> str:
-        return "_".join(sorted(re.split(r"[_\-.]", s)))
-
-    plain = difflib.SequenceMatcher(None, a, b).ratio()
-    return max(plain, difflib.SequenceMatcher(None, words(a), words(b)).ratio())
-
-
 def closest(word: str, candidates: Iterable[str], cutoff: float = 0.6) -> str | None:
-    """The candidate closest to ``word`` (difflib, case-insensitive), or None."""
-    scored = [(_similarity(str(word), str(c)), str(c)) for c in candidates]
-    scored = [sc for sc in scored if sc[0] >= cutoff]
-    return max(scored, key=lambda sc: sc[0])[1] if scored else None
+    """The candidate closest to ``word`` (difflib's ratio, case-insensitive, also with the
+    words sorted: ``plot_max`` ~ ``max_plots``), or None below ``cutoff``."""
+
+    def score(a: str, b: str) -> float:
+        a, b = a.lower(), b.lower()
+        sort = lambda s: "_".join(sorted(re.split(r"[_\-.]", s)))  # noqa: E731
+        return max(
+            difflib.SequenceMatcher(None, x, y).ratio() for x, y in ((a, b), (sort(a), sort(b)))
+        )
+
+    scored = [(score(str(word), str(c)), str(c)) for c in candidates]
+    return max([sc for sc in scored if sc[0] >= cutoff], key=lambda sc: sc[0], default=(0, None))[1]
 
 
 def unknown_message(key: Any, path: tuple, known: Iterable[str], **how: Any) -> str:
@@ -100,8 +98,11 @@ def unknown_message(key: Any, path: tuple, known: Iterable[str], **how: Any) -> 
     ``what`` (default "unknown setting") and ``extra`` (appended to the first clause).
     """
     retired, refused = how.get("retired", {}), how.get("refused", {})
-    what, extra = how.get("what", "unknown setting"), how.get("extra", "")
-    here = dotted((*path, key))
+    what, extra, here = (
+        how.get("what", "unknown setting"),
+        how.get("extra", ""),
+        dotted((*path, key)),
+    )
     if key in refused:
         return f"{here}: {refused[key]}"
     if key in retired:
@@ -130,16 +131,22 @@ def unwrap(tp: Any, meta: Iterable = ()) -> tuple[Any, list]:
     return tp, meta
 
 
-def _members(tp: Any) -> tuple:
-    return get_args(tp) if get_origin(tp) in (Union, types.UnionType) else ()
+def _members(tp: Any) -> list:
+    """The members of a union but None (``[]``: not a union)."""
+    union = get_origin(tp) in (Union, types.UnionType)
+    return [m for m in get_args(tp) if m is not type(None)] if union else []
 
 
 def bounds_words(meta: list) -> str:
     """`` in [0, 1)``, `` >= 1`` or ``""``: the bounds of a number's metadata."""
-    lo = next(((m.ge, "[", ">=") for m in meta if isinstance(m, at.Ge)), None)
-    lo = lo or next(((m.gt, "(", ">") for m in meta if isinstance(m, at.Gt)), None)
-    hi = next(((m.le, "]", "<=") for m in meta if isinstance(m, at.Le)), None)
-    hi = hi or next(((m.lt, ")", "<") for m in meta if isinstance(m, at.Lt)), None)
+    b = {
+        k: getattr(m, k)
+        for m in meta
+        for k in ("ge", "gt", "le", "lt")
+        if isinstance(m, getattr(at, k.title()))
+    }
+    lo = ("ge" in b and (b["ge"], "[", ">=")) or ("gt" in b and (b["gt"], "(", ">"))
+    hi = ("le" in b and (b["le"], "]", "<=")) or ("lt" in b and (b["lt"], ")", "<"))
     if lo and hi:
         return f" in {lo[1]}{lo[0]:g}, {hi[0]:g}{hi[1]}"
     return f" {lo[2]} {lo[0]:g}" if lo else (f" {hi[2]} {hi[0]:g}" if hi else "")
@@ -155,19 +162,20 @@ def fields_of(model: type) -> dict[str, FieldInfo]:
     return model.__pydantic_fields__
 
 
+def keys_of(model: type) -> dict[str, str]:
+    """YAML key -> attribute of a model's settings."""
+    return {(f.alias or n): n for n, f in fields_of(model).items()}
+
+
 def describe(tp: Any, meta: Iterable = ()) -> str:
     """What ``tp`` allows, in words: ``an integer >= 0 or null``, ``one of 'pgd', 'ga'``."""
     tp, meta = unwrap(tp, meta)
-    doc = next((m.text for m in meta if isinstance(m, Doc)), None)
-    if doc is not None:
-        return doc
-    plain = next((m.model for m in meta if isinstance(m, PlainOf)), None)
-    if plain is not None:
-        return describe(plain)
-    members = _members(tp)
-    if type(None) in members:
-        inner = [m for m in members if m is not type(None)]
-        return f"{describe(inner[0], meta)} or null"
+    for kind in (Doc, PlainOf):
+        found = [m for m in meta if isinstance(m, kind)]
+        if found:
+            return found[0].text if kind is Doc else describe(found[0].model)
+    if type(None) in get_args(tp) and _members(tp):
+        return f"{describe(_members(tp)[0], meta)} or null"
     if get_origin(tp) is Literal:
         return "one of " + ", ".join(yaml_repr(c) for c in get_args(tp))
     simple = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
@@ -183,98 +191,123 @@ def describe(tp: Any, meta: Iterable = ()) -> str:
     return "a mapping" if get_origin(tp) is dict else str(tp)
 
 
-def keys_of(model: type) -> dict[str, str]:
-    """YAML key -> attribute of a model's settings."""
-    return {(f.alias or n): n for n, f in fields_of(model).items()}
-
-
 # ------------------------------------------------------------------------ errors in words
 @dataclass
 class _Node:
-    """Where an error's location leads: the YAML path, the type there, its model and doc."""
+    """Where an error's location leads: the YAML path, the type there (with its metadata),
+    the model holding the last key, that key's doc and the hints of the models passed."""
 
     path: tuple
     tp: Any
-    meta: list
-    model: type | None  # the model holding the last key
-    doc: str | None
-    hints: list
+    meta: Any = ()
+    model: type | None = None
+    doc: str | None = None
+    hints: tuple = ()
+
+
+def _tag(model: type) -> Any:
+    """The one value of a model's ``type`` field (the tag of a tagged union), or None."""
+    args = get_args(fields_of(model)["type"].annotation) if "type" in fields_of(model) else ()
+    return args[0] if len(args) == 1 else None
 
 
 def _step(node: _Node, key: Any) -> _Node:
+    """The node ``key`` leads to from ``node``."""
     tp, meta = unwrap(node.tp, node.meta)
-    plain = next((m.model for m in meta if isinstance(m, PlainOf)), None)
-    tp = plain or tp
-    members = [m for m in _members(tp) if m is not type(None)]
-    if members:  # Optional, or a union tagged by its ``type``: the member the key names
-        tagged = [m for m in members if is_model(unwrap(m)[0]) and _tag(unwrap(m)[0]) == key]
-        if tagged:
-            return _Node(node.path, tagged[0], [], node.model, node.doc, node.hints)
-        return _step(_Node(node.path, members[0], [], node.model, node.doc, node.hints), key)
-    hints = node.hints
+    tp = next((m.model for m in meta if isinstance(m, PlainOf)), tp)
+    if _members(tp):  # Optional, or a union tagged by its ``type``: the member the key names
+        tagged = [m for m in _members(tp) if is_model(unwrap(m)[0]) and _tag(unwrap(m)[0]) == key]
+        member = _Node(node.path, (tagged or _members(tp))[0], [], node.model, node.doc, node.hints)
+        return member if tagged else _step(member, key)
+    path, hints = (*node.path, key), node.hints
     if is_model(tp):
-        hints = [*hints, tp._hint] if getattr(tp, "_hint", None) else hints
+        hints += (tp._hint,) if getattr(tp, "_hint", None) else ()
         if key == getattr(tp, "_open", None):
             return _Node(node.path, fields_of(tp)[key].annotation, [], tp, None, hints)
         field = fields_of(tp).get(keys_of(tp).get(key, key))
         if field is None:
-            return _Node((*node.path, key), Any, [], tp, None, hints)
-        return _Node(
-            (*node.path, key), field.annotation, field.metadata, tp, field.description, hints
-        )
+            return _Node(path, Any, [], tp, None, hints)
+        return _Node(path, field.annotation, field.metadata, tp, field.description, hints)
     args = get_args(tp)
     if get_origin(tp) in (tuple, list) and isinstance(key, int):
-        return _Node((*node.path, Index(key)), args[0], [], None, None, hints)
-    if get_origin(tp) is dict and args:
-        return _Node((*node.path, key), args[1], [], None, None, hints)
-    return _Node((*node.path, key), Any, [], None, None, hints)
-
-
-def _tag(model: type) -> Any:
-    field = fields_of(model).get("type")
-    args = get_args(field.annotation) if field is not None else ()
-    return args[0] if len(args) == 1 else None
+        return _Node((*node.path, Index(key)), args[0], hints=hints)
+    return _Node(path, args[1] if get_origin(tp) is dict and args else Any, hints=hints)
 
 
 def _walk(root: type, prefix: tuple, loc: tuple) -> _Node:
-    hint = getattr(root, "_hint", None)
-    node = _Node(prefix, root, [], None, None, [hint] if hint else [])
+    """The node of an error's location ``loc`` in ``root``, at ``prefix`` in the file."""
+    node = _Node(prefix, root, [], hints=(root._hint,) if getattr(root, "_hint", None) else ())
     for i, key in enumerate(loc):
         if key == "[key]":
             continue
         if loc[i + 1 : i + 2] == ("[key]",):  # a mapping's key: its type, at its path
-            tp, meta = unwrap(node.tp, node.meta)
-            key_type = get_args(next((m for m in _members(tp) if m is not type(None)), tp))[0]
-            node = _Node((*node.path, key), key_type, [], None, None, node.hints)
+            tp = unwrap(node.tp, node.meta)[0]
+            key_type = get_args((_members(tp) or [tp])[0])[0]
+            node = _Node((*node.path, key), key_type, [], hints=node.hints)
         else:
             node = _step(node, key)
     return node
 
 
 def _value_message(err: dict, node: _Node) -> str:
+    """``key: expected <what is allowed>, got <value> (<type>)[; did you mean ...?]``."""
     value, kind = err.get("input"), err["type"]
     if kind == "union_tag_invalid":  # a tagged union's ``type`` names no variant
         node = _step(node, "type")
         value = value.get("type") if isinstance(value, Mapping) else value
         choices = [c.strip("'") for c in err["ctx"]["expected_tags"].split(", ")]
         message = f"expected one of {', '.join(map(repr, choices))}, got {got(value)}"
-        close = closest(value, choices) if isinstance(value, str) else None
-        return f"{dotted(node.path)}: {message}" + (f"; did you mean {close!r}?" if close else "")
     elif kind == "value_problem":
         message = f"expected {describe(node.tp, node.meta)}, got {yaml_repr(value)}: "
-        message += err["ctx"]["why"]
+        return f"{dotted(node.path)}: {message}{err['ctx']['why']}"
     else:
         message = f"expected {describe(node.tp, node.meta)}, got {got(value)}"
         choices = get_args(unwrap(node.tp)[0]) if kind == "literal_error" else ()
-        close = closest(value, map(str, choices)) if isinstance(value, str) else None
-        message += f"; did you mean {close!r}?" if close else ""
-    return f"{dotted(node.path)}: {message}"
+    close = closest(value, map(str, choices)) if isinstance(value, str) else None
+    return f"{dotted(node.path)}: {message}" + (f"; did you mean {close!r}?" if close else "")
 
 
 def _with_doc(message: str, node: _Node) -> str:
+    """The message, then the key's doc (``max_plots: per-specimen PNGs ...``)."""
     if not node.doc or not node.path or isinstance(node.path[-1], Index):
         return message
     return f"{message}{' ' if message.endswith('?') else '; '}{node.path[-1]}: {node.doc}"
+
+
+def _message(err: dict, node: _Node, missing: set, paired: set, complete: bool) -> str | None:
+    """The message of one error (None: not reported)."""
+    kind, model = err["type"], node.model
+    parent, key = node.path[:-1], node.path[-1] if node.path else None
+    if kind == "extra_forbidden":
+        extra = getattr(model, "_open_what", "")
+        return unknown_message(
+            key,
+            parent,
+            keys_of(model),
+            retired=getattr(model, "_retired", {}),
+            refused=getattr(model, "_refused", {}),
+            missing=[k for (p, k) in missing if p == parent],
+            what=getattr(model, "_unknown", "unknown setting"),
+            extra=f" (the other keys of {dotted(parent)} are {extra})" if extra else "",
+        )
+    if kind == "missing":
+        if not (complete or getattr(model, "_complete", False)) or (parent, key) in paired:
+            return None
+        field = fields_of(model)[keys_of(model)[key]]
+        return f"{dotted(node.path)}: " + getattr(
+            model,
+            "_missing",
+            f"missing setting; add it ({key}: {field.description}; expected "
+            f"{describe(field.annotation, field.metadata)})",
+        )
+    if kind == "femcal":
+        cross = err["ctx"].get("key")
+        if cross is not None:
+            node.path += cross if isinstance(cross, tuple) else (cross,)
+            return f"{dotted(node.path)}: {err['ctx']['message']}"
+        return _with_doc(f"{dotted(node.path)}: {err['ctx']['message']}", node)
+    message = _value_message(err, node)
+    return message if kind == "union_tag_invalid" else _with_doc(message, node)
 
 
 def problems(
@@ -295,53 +328,21 @@ def problems(
     same = {"unexpected_keyword_argument": "extra_forbidden", "missing_argument": "missing"}
     errors = [dict(e, type=same.get(e["type"], e["type"])) for e in exc.errors(include_url=False)]
     nodes = [_walk(root, prefix, err["loc"]) for err in errors]
-    missing = {
-        (node.path[:-1], node.path[-1]) for e, node in zip(errors, nodes) if e["type"] == "missing"
-    }
-    paired = set()
-    for err, node in zip(errors, nodes):
-        if err["type"] == "extra_forbidden" and node.model is not None:
-            close = closest(str(node.path[-1]), keys_of(node.model))
-            if (node.path[:-1], close) in missing:
-                paired.add((node.path[:-1], close))
+    missing = {(n.path[:-1], n.path[-1]) for e, n in zip(errors, nodes) if e["type"] == "missing"}
+    paired = (
+        {  # a misspelt required key: reported once, as the unknown key
+            (n.path[:-1], closest(str(n.path[-1]), keys_of(n.model)))
+            for e, n in zip(errors, nodes)
+            if e["type"] == "extra_forbidden" and n.model is not None
+        }
+        & missing
+    )
     out = []
     for err, node in zip(errors, nodes):
-        kind, parent, key = err["type"], node.path[:-1], node.path[-1] if node.path else None
-        model = node.model
-        if kind == "extra_forbidden":
-            extra = getattr(model, "_open_what", "")
-            message = unknown_message(
-                key,
-                parent,
-                keys_of(model),
-                retired=getattr(model, "_retired", {}),
-                refused=getattr(model, "_refused", {}),
-                missing=[k for (p, k) in missing if p == parent],
-                what=getattr(model, "_unknown", "unknown setting"),
-                extra=f" (the other keys of {dotted(parent)} are {extra})" if extra else "",
-            )
-        elif kind == "missing":
-            if not (complete or getattr(model, "_complete", False)) or (parent, key) in paired:
-                continue
-            field = fields_of(model)[keys_of(model)[key]]
-            template = getattr(model, "_missing", None)
-            message = f"{dotted(node.path)}: " + (
-                template
-                or f"missing setting; add it ({key}: {field.description}; expected "
-                f"{describe(field.annotation, field.metadata)})"
-            )
-        elif kind == "femcal":
-            cross = err["ctx"].get("key")
-            if cross is not None:
-                node.path += cross if isinstance(cross, tuple) else (cross,)
-            message = f"{dotted(node.path)}: {err['ctx']['message']}"
-            message = message if cross is not None else _with_doc(message, node)
-        elif kind == "union_tag_invalid":
-            message = _value_message(err, node)
-        else:
-            message = _with_doc(_value_message(err, node), node)
-        hints = [h for h in node.hints if h not in message]
-        out.append((node.path, f"{message}; {hints[0]}" if hints else message))
+        message = _message(err, node, missing, paired, complete)
+        if message is not None:
+            hints = [h for h in node.hints if h not in message]
+            out.append((node.path, f"{message}; {hints[0]}" if hints else message))
     return out
 
 
@@ -350,10 +351,7 @@ def line_numbers(text: str | None) -> Callable[[tuple], int | None]:
     """A function path -> 1-based line of that key in the YAML ``text`` (None if unknown)."""
     import yaml
 
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader) if text is not None else None
-    except yaml.YAMLError:  # pragma: no cover - the text was loaded before
-        root = None
+    root = yaml.compose(text, Loader=yaml.SafeLoader) if text is not None else None
 
     def line(path: tuple) -> int | None:
         node, found = root, None
@@ -385,10 +383,9 @@ def raise_problems(
     problem under a path of ``given`` (path -> command-line option) names that option."""
     if not found:
         return
-    line_of, given = line_numbers(text), given or {}
-    lines = []
+    line_of, lines = line_numbers(text), []
     for path, message in found:
-        flag = next((f for p, f in given.items() if tuple(path[: len(p)]) == p), None)
+        flag = next((f for p, f in (given or {}).items() if tuple(path[: len(p)]) == p), None)
         message = message if message.endswith((".", "?", "!")) else message + "."
         lines.append(
             (None, f"{flag} (command line): {message}") if flag else (line_of(path), message)
