@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from femcal.errors import ConfigError
+from femcal.settings.values import Float, Int, check_options, option
 
 logger = logging.getLogger(__name__)
 
@@ -87,71 +88,37 @@ MESH_PRESETS: dict[str, dict[str, int]] = {
 
 @dataclass(frozen=True)
 class DiscGeometry:
-    """Dimensions, regions and mesh density of the disc model.
+    """Dimensions, regions and mesh density of the disc model (x lateral, y anterior-posterior,
+    z the disc height); each field is an option (:func:`femcal.settings.values.option`): its
+    bounds, default and doc are those of ``fe.settings.geometry``.
 
-    Parameters
-    ----------
-    width_mm, depth_mm, height_mm : float
-        Lateral (x) and anterior-posterior (y) axes of the ellipse, and the disc height (z).
-    nucleus_fraction : float
-        Volume fraction of the nucleus pulposus, in (0, 1).
-    n_rings : int
-        Annulus rings from the outer to the inner boundary (material layers).
-    n_regions : int
-        Circumferential annulus regions per side, anterior to posterior (at least 3).
-    elements_per_region : int
-        Elements along the circumference in each region.
-    elements_per_ring : int
-        Elements across each annulus ring.
-    elements_core : int
-        Elements between the central nucleus block and the nucleus boundary.
-    elements_height : int
-        Elements through the disc height.
-    core_size : float
-        Corner radius of the central nucleus block relative to the nucleus radius, in (0, 1).
-    reference_height_mm : float
-        Height of the load reference point above the disc centre (study: 10 mm).
+    Raises
+    ------
+    ConfigError
+        A field out of its bounds: ``DiscGeometry: n_regions must be an integer >= 3; got 2.``
     """
 
-    width_mm: float = 50.0
-    depth_mm: float = 35.0
-    height_mm: float = 11.0
-    nucleus_fraction: float = 0.44
-    n_rings: int = 5
-    n_regions: int = 5
-    elements_per_region: int = 1
-    elements_per_ring: int = 1
-    elements_core: int = 1
-    elements_height: int = 2
-    core_size: float = 0.55
-    reference_height_mm: float = 10.0
+    width_mm: Float(gt=0) = option(50.0, "lateral axis of the ellipse, mm")
+    depth_mm: Float(gt=0) = option(35.0, "anterior-posterior axis of the ellipse, mm")
+    height_mm: Float(gt=0) = option(11.0, "disc height, mm")
+    nucleus_fraction: Float(gt=0, lt=1) = option(0.44, "nucleus volume fraction")
+    n_rings: Int(1) = option(
+        5, "annulus rings from the outer to the inner boundary (material layers)"
+    )
+    n_regions: Int(3) = option(5, "circumferential annulus regions per side, anterior to posterior")
+    elements_per_region: Int(1) = option(1, "elements along the circumference per region")
+    elements_per_ring: Int(1) = option(1, "elements across each annulus ring")
+    elements_core: Int(1) = option(1, "elements between the nucleus block and its boundary")
+    elements_height: Int(1) = option(2, "elements through the disc height")
+    core_size: Float(gt=0, lt=1) = option(
+        0.55, "corner radius of the nucleus block relative to the nucleus radius"
+    )
+    reference_height_mm: Float() = option(
+        10.0, "load reference point above the disc centre, mm (study: 10 mm)"
+    )
 
     def __post_init__(self) -> None:
-        for name in ("width_mm", "depth_mm", "height_mm"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"DiscGeometry.{name} must be a positive length, got {value!r}.")
-        if not 0.0 < self.nucleus_fraction < 1.0:
-            raise ConfigError(
-                f"DiscGeometry.nucleus_fraction must lie in (0, 1), got {self.nucleus_fraction!r}."
-            )
-        if not 0.0 < self.core_size < 1.0:
-            raise ConfigError(f"DiscGeometry.core_size must lie in (0, 1), got {self.core_size!r}.")
-        for name in (
-            "n_rings",
-            "elements_per_region",
-            "elements_per_ring",
-            "elements_core",
-            "elements_height",
-        ):
-            value = getattr(self, name)
-            if not (isinstance(value, int | np.integer) and value >= 1):
-                raise ConfigError(f"DiscGeometry.{name} must be an integer >= 1, got {value!r}.")
-        if not (isinstance(self.n_regions, int | np.integer) and self.n_regions >= 3):
-            raise ConfigError(
-                f"DiscGeometry.n_regions must be an integer >= 3 (regions per side), "
-                f"got {self.n_regions!r}."
-            )
+        check_options(self, "DiscGeometry")
 
     @classmethod
     def preset(cls, name: str, **overrides: float) -> DiscGeometry:

@@ -319,10 +319,9 @@ CalibratorOptions._describe = "calibrator options per method"
 
 
 # ------------------------------------------------------------------ FE adapter settings
-class GeometryKeywords(Keywords):
-    """The disc geometry (femcal.fe.geometry.DiscGeometry), from a mesh preset."""
-
+class _Geometry(OptionSection, Keywords):
     _owner: ClassVar[str] = "DiscGeometry"
+    _options: ClassVar[type] = light_class("fe.geometry", "DiscGeometry")
 
     @model_validator(mode="before")
     @classmethod
@@ -341,18 +340,13 @@ class GeometryKeywords(Keywords):
         return value
 
     preset: Literal[MESH_PRESETS] = keyword("mesh density the other fields start from")
-    width_mm: Float(gt=0) = keyword("lateral axis of the ellipse, mm")
-    depth_mm: Float(gt=0) = keyword("anterior-posterior axis of the ellipse, mm")
-    height_mm: Float(gt=0) = keyword("disc height, mm")
-    nucleus_fraction: Float(gt=0, lt=1) = keyword("nucleus volume fraction")
-    n_rings: Int(1) = keyword("annulus rings (material layers)")
-    n_regions: Int(3) = keyword("circumferential annulus regions per side")
-    elements_per_region: Int(1) = keyword("elements along the circumference per region")
-    elements_per_ring: Int(1) = keyword("elements across each annulus ring")
-    elements_core: Int(1) = keyword("elements between the nucleus block and its boundary")
-    elements_height: Int(1) = keyword("elements through the disc height")
-    core_size: Float(gt=0, lt=1) = keyword("nucleus block corner radius")
-    reference_height_mm: Float() = keyword("load reference point above the disc centre, mm")
+
+
+#: The disc geometry (``fe.settings.geometry``): a mesh preset, and the options of
+#: :class:`femcal.fe.geometry.DiscGeometry`.
+GeometryKeywords = with_options(
+    "GeometryKeywords", _Geometry, "The disc geometry (femcal.fe.geometry.DiscGeometry)."
+)
 
 
 class CalculixKeywords(Keywords):
