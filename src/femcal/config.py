@@ -141,15 +141,8 @@ def section(params: Mapping[str, Any], *keys: str) -> Any:
     for key in keys:
         trail.append(key)
         if not isinstance(node, Mapping) or key not in node:
-            message = (
-                f"{params.get('_path', 'params.yaml')}: missing setting '{'.'.join(trail)}'. "
-                "Add it (see the project's params.yaml for the defaults)."
-            )
-            from femcal.settings import describe_setting
+            from femcal.settings.params import missing_setting
 
-            doc = describe_setting(trail)
-            if doc:
-                message += f" {'.'.join(trail)}: {doc}."
-            raise ConfigError(message)
+            raise missing_setting(params.get("_path", "params.yaml"), ".".join(trail))
         node = node[key]
     return node
