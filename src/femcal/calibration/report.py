@@ -33,8 +33,9 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.model import CurveModel
-from femcal.calibration.plots import FigureCurves, plot_specimens, plot_summary
+from femcal.calibration.plots import FigureCurves, FigureData, plot_specimens, plot_summary
 from femcal.calibration.result import CalibrationResult
+from femcal.figures import FigureWorkers, drawn
 from femcal.metrics import curve_metrics
 from femcal.schema import LOAD_CASES
 from femcal.settings.keywords import PLOT_CHOICES  # all, summary, none
@@ -291,6 +292,7 @@ def write_outputs(
     reachability: Sequence[str] | None = None,
     progress: bool = False,
     curves: FigureCurves | None = None,
+    pool: FigureWorkers | None = None,
 ) -> dict:
     """Write the tables, figures and summary of a calibration; returns the summary figures.
 
@@ -319,6 +321,10 @@ def write_outputs(
         What the per-specimen figures draw: continuous curves of the calibrated (and held-out)
         model and the sd of one measurement (:func:`femcal.calibration.plots.dense_curves`);
         default: the curves at the measured moments, with the result's error scale.
+    pool : FigureWorkers, optional
+        Processes to draw the figures in, started before the calibration
+        (:func:`femcal.calibration.plots.figure_workers`); default: worker processes forked
+        here (:func:`femcal.calibration.plots.plot_specimens`).
     """
     mode = plot_mode(plots)  # a wrong value before any file is written
     out_dir = Path(out_dir)
@@ -353,8 +359,17 @@ def write_outputs(
     figures["n_plotted"] = n_plot if mode == "all" else 0
     ident = identifiability(result)
     page = None
-    if mode != "none":
+    if mode != "none" and pool is None:
         page = partial(plot_summary, result, out_dir / "summary.png", held, ident, DETERMINED_WIDTH)
+    elif mode != "none":  # what a worker unpickles without torch
+        page = partial(
+            plot_summary,
+            FigureData.of(result),
+            out_dir / "summary.png",
+            None if held is None else {k: held[k] for k in ("mae", "r2_mean")},
+            None if ident is None else {k: ident[k].to_numpy() for k in ident.columns},
+            DETERMINED_WIDTH,
+        )
     if mode == "all":
         plot_dir = out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
@@ -370,12 +385,15 @@ def write_outputs(
         if curves is None:
             curves = FigureCurves.at_measured(result, None if held is None else held["prediction"])
         # the summary page drawn beside the specimens' figures
-        plot_specimens(result, paths, curves, progress=progress, beside=page)
+        plot_specimens(result, paths, curves, progress=progress, beside=page, pool=pool)
         logger.debug("%d specimen plots in %.2f s", n_plot, time.perf_counter() - start)
         if n_plot < n:
             logger.warning(
                 "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
             )
+    elif page is not None and pool is not None:
+        for _ in pool.map([(drawn, page)]):
+            pass
     elif page is not None:
         page()
     (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
