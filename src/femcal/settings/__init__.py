@@ -22,9 +22,10 @@ _HOMES = {
     "env": ("ENVIRONMENT", "check_environment"),
     "keywords": (
         *("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS", "CALIBRATORS"),
-        *("MESH_PRESETS", "SOLVER_SETTINGS", "SOLVERS", "SPLITS", "GeometryKeywords"),
+        *("MESH_PRESETS", "SOLVERS", "SPLITS", "GeometryKeywords"),
         *("InverseKeywords", "SurrogateKeywords"),
     ),
+    "fe": ("SOLVER_SETTINGS",),
     "params": (
         *("SCHEMAS", "SECTIONS", "Settings", "describe_setting", "detect_schema"),
         *("load_settings", "validate_params"),

@@ -1,5 +1,6 @@
 """The sections only ``fe/params.yaml`` has: the FE campaign (``fe``), ``validate`` and
-``adapt``, and the posterior elements of the CalculiX model (``fe.settings.posterior``).
+``adapt``, the CalculiX adapter's keyword arguments (``fe.settings``) and the posterior
+elements of the CalculiX model (``fe.settings.posterior``).
 """
 
 from typing import Annotated, Any, ClassVar, Literal
@@ -22,9 +23,8 @@ from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.settings._format import Doc, fail, got, problems, yaml_repr
 from femcal.settings.keywords import (
     SOLVER,
-    SOLVER_SETTINGS,
     SOLVERS,
-    CalculixKeywords,
+    GeometryKeywords,
     PgdKeywords,
     SurrogateKeywords,
 )
@@ -39,6 +39,7 @@ from femcal.settings.values import (
     ListOf,
     OptionSection,
     Section,
+    keyword,
     light_class,
     plain,
     setting,
@@ -245,16 +246,31 @@ class PosteriorSettings:
         return self.facets is not None or bool(self.ligaments)
 
 
-class CalculixSettings(CalculixKeywords):
+class CalculixSettings(Keywords):
     """The CalculiX adapter's keyword arguments (``fe.settings``; part of every job's hash)."""
 
+    _owner: ClassVar[str] = "CalculixDisc"
+
+    geometry: plain(GeometryKeywords) = keyword(
+        "disc geometry: a mesh preset (coarse, default, fine) or DiscGeometry fields"
+    )
+    kappa: Literal["scale", "ignore"] = keyword("how the fibre dispersion Kappa enters")
+    executable: NAME = keyword("the CalculiX executable")
+    initial_increment: Float(gt=0, le=1) = keyword("first load increment")
+    max_attempts: Int(1) = keyword("attempts per job (retries of a fibre-routine abort)")
+    timeout_s: Float(gt=0) | None = keyword("seconds per attempt (null = none)")
+    max_increments: Int(1) = keyword("load increments at most")
+    retry_factor: Float(gt=0, le=1) = keyword("increment factor of a retry")
+    nucleus_d1: Float(gt=0) = keyword("compressibility of the nucleus")
+    annulus_d1: Float(gt=0) = keyword("compressibility of the annulus")
     posterior: plain(PosteriorSettings) | None = setting(
         "posterior elements joined to the disc: facets, ligaments (leave out for the disc alone)",
         None,
     )
 
 
-SOLVER_SETTINGS["calculix"] = CalculixSettings
+#: The keyword arguments of each FE solver adapter (``fe.settings``), by solver.
+SOLVER_SETTINGS: dict[str, type[Keywords]] = {"calculix": CalculixSettings}
 
 
 def posterior_settings(

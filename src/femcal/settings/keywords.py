@@ -1,7 +1,7 @@
 """What ``fixed``, ``search_space``, ``options`` and ``settings`` take: keyword arguments.
 
 The registries' names (surrogates, calibrators, splits, FE solvers, mesh presets) and the
-keyword arguments of the estimators, the calibrators and the FE adapter, each with its type
+keyword arguments of the estimators, the calibrators and the disc geometry, each with its type
 and a one-line doc. They are static so that validating needs no heavy import (no torch,
 Lightning, scikit-learn or MLflow); ``tests/test_settings.py`` checks them against the real
 signatures and registries.
@@ -29,7 +29,6 @@ from pydantic import (
 from femcal.settings._format import Index, closest, describe, fail, got, unwrap
 from femcal.settings.values import (
     MODEL_URI,
-    NAME,
     Bool,
     Float,
     Int,
@@ -318,7 +317,7 @@ CalibratorOptions._unknown = "unknown calibration method"
 CalibratorOptions._describe = "calibrator options per method"
 
 
-# ------------------------------------------------------------------ FE adapter settings
+# ------------------------------------------------------------------ the disc geometry
 class _Geometry(OptionSection, Keywords):
     _owner: ClassVar[str] = "DiscGeometry"
     _options: ClassVar[type] = light_class("fe.geometry", "DiscGeometry")
@@ -347,29 +346,6 @@ class _Geometry(OptionSection, Keywords):
 GeometryKeywords = with_options(
     "GeometryKeywords", _Geometry, "The disc geometry (femcal.fe.geometry.DiscGeometry)."
 )
-
-
-class CalculixKeywords(Keywords):
-    """The CalculiX adapter's keyword arguments (``fe.settings``; part of every job's hash)."""
-
-    _owner: ClassVar[str] = "CalculixDisc"
-
-    geometry: plain(GeometryKeywords) = keyword(
-        "disc geometry: a mesh preset (coarse, default, fine) or DiscGeometry fields"
-    )
-    kappa: Literal["scale", "ignore"] = keyword("how the fibre dispersion Kappa enters")
-    executable: NAME = keyword("the CalculiX executable")
-    initial_increment: Float(gt=0, le=1) = keyword("first load increment")
-    max_attempts: Int(1) = keyword("attempts per job (retries of a fibre-routine abort)")
-    timeout_s: Float(gt=0) | None = keyword("seconds per attempt (null = none)")
-    max_increments: Int(1) = keyword("load increments at most")
-    retry_factor: Float(gt=0, le=1) = keyword("increment factor of a retry")
-    nucleus_d1: Float(gt=0) = keyword("compressibility of the nucleus")
-    annulus_d1: Float(gt=0) = keyword("compressibility of the annulus")
-
-
-#: The keyword arguments of each FE solver adapter (``fe.settings``), by solver.
-SOLVER_SETTINGS: dict[str, type[Keywords]] = {"calculix": CalculixKeywords}
 
 
 # ------------------------------------------------------------------ search spaces
