@@ -948,8 +948,8 @@ def test_calibrator_tables_match_the_calibrators():
     from femcal.calibration import available_calibrators, get_calibrator
     from femcal.calibration import pgd as pgd_module
     from femcal.calibration import pgd_study_options as study_module
+    from femcal.calibration.ga_options import GaOptions
     from femcal.settings import CALIBRATORS
-    from femcal.settings.keywords import GA_DEFAULTS
 
     assert sorted(CALIBRATORS) == available_calibrators() == sorted(CALIBRATOR_OPTIONS)
     for method, keywords in CALIBRATOR_OPTIONS.items():
@@ -970,7 +970,9 @@ def test_calibrator_tables_match_the_calibrators():
     assert _choices(study, "projection") == study_module.PROJECTIONS
     assert _choices(study, "optimizer") == study_module.OPTIMIZERS
     ga = _keywords(get_calibrator("ga"))
-    assert {k: ga[k].default for k in GA_DEFAULTS} == GA_DEFAULTS
+    names = ("population", "n_selected", "n_crossover", "n_mutation")
+    population = {k: getattr(GaOptions, k) for k in names}
+    assert {k: ga[k].default for k in population} == population
 
 
 def test_registry_tables_match_the_registries():

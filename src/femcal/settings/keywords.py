@@ -259,10 +259,6 @@ class _Ga(OptionSection, Keywords):
 GaKeywords = with_options(
     "GaKeywords", _Ga, "The ga calibrator's options (``calibrate.options.ga``)."
 )
-#: The ga calibrator's population defaults.
-GA_DEFAULTS = {
-    k: getattr(_Ga._options, k) for k in ("population", "n_selected", "n_crossover", "n_mutation")
-}
 
 
 class InverseCalibratorKeywords(Keywords):
