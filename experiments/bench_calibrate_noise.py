@@ -49,9 +49,9 @@ from femcal.calibration.base import chi2_p_value
 from femcal.calibration.report import BEYOND_NOISE_P, coverage
 from femcal.config import load_params, section
 from femcal.datasets import load_split
+from femcal.jobs.calibrate import calibration_options
 from femcal.measurements import read_measurements
 from femcal.moments import MomentPolicy
-from femcal.stages.calibrate import calibration_options
 from femcal.stages.common import moment_settings
 from femcal.tracking import load_surrogate
 
@@ -82,7 +82,7 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
 
     def run(y, weight, noise, per_specimen=True):
-        # As the calibrate stage does (femcal.stages.calibrate.run_calibrate).
+        # As the calibrate stage does (femcal.jobs.calibrate.run_calibration).
         w = policy.point_weights(meas.moments, weight, noise)
         sd = None if noise is None else policy.average_sd(meas.moments, weight, noise)
         opts = calibration_options(

@@ -37,8 +37,8 @@ from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.report import coverage, holdout_scores, identifiability
 from femcal.config import load_params, section
 from femcal.datasets import load_split
+from femcal.jobs.calibrate import calibration_options
 from femcal.measurements import read_measurements
-from femcal.stages.calibrate import calibration_options
 from femcal.tracking import configure_tracking, load_surrogate, open_model
 
 #: The study's synthetic calibration (Table 4) and ablations (Table 6, Nicolini specimens).

@@ -56,10 +56,10 @@ PHASES = {
     "whole CLI (main)": [("femcal/cli.py", "main")],
     "tracking setup (mlflow import, store, killed runs)": [("femcal/stages/store.py", "tracking")],
     "start the MLflow process (the setup above in parallel)": [
-        ("femcal/stages/calibrate.py", "__init__")
+        ("femcal/stages/tracking_process.py", "__init__")
     ],
     "waiting for the MLflow process (setup, run, tables, artifacts)": [
-        ("femcal/stages/calibrate.py", "_receive")
+        ("femcal/stages/tracking_process.py", "_receive")
     ],
     "read measurements": [
         ("femcal/measurements.py", "read_measurements"),
@@ -74,9 +74,9 @@ PHASES = {
         ("femcal/calibration/report.py", "plot_specimens"),
     ],
     "summary plot": [("femcal/calibration/report.py", "plot_summary")],
-    "MLflow artifacts": [("femcal/stages/calibrate.py", "log_artifacts")],
+    "MLflow artifacts": [("femcal/jobs/mlflow_steps.py", "log_artifacts")],
     "MLflow tables": [("mlflow/tracking/fluent.py", "log_table")],
-    "compare with previous run": [("femcal/stages/calibrate.py", "compare_with_previous")],
+    "compare with previous run": [("femcal/jobs/mlflow_steps.py", "compare_with_previous")],
 }
 #: Packages whose import time is reported (cumulative, where first imported).
 PACKAGES = (

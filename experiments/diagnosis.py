@@ -33,7 +33,7 @@ from femcal.datasets import load_split, training_configurations
 from femcal.diagnose import DiagnoseOptions, Diagnosis, diagnose
 from femcal.diagnose.report import practical_next
 from femcal.effects.planted import NONE, make_cohort
-from femcal.stages.calibrate import calibration_options
+from femcal.jobs.calibrate import calibration_options
 from femcal.tidy import wide_rom
 from femcal.tracking import configure_tracking, load_surrogate, resolve_model_version
 

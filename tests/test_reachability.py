@@ -363,10 +363,10 @@ def _write_long(path: Path, meas: Measurements, rom: np.ndarray) -> Path:
 
 
 def _run(registry, measurements, out):
-    from femcal.stages.calibrate import CalibrateSettings, run_calibrate
+    from femcal.jobs.calibrate import CalibrationJob, run_calibration
 
-    return run_calibrate(
-        CalibrateSettings(
+    return run_calibration(
+        CalibrationJob(
             measurements=measurements,
             out_dir=registry / out,
             method="pgd",

@@ -91,7 +91,7 @@ def _require(figures: Mapping[str, Any], keys: Sequence[str], what: str) -> None
     if missing:
         raise HeadlineError(
             f"The {what} figures lack {missing}; got keys {sorted(figures)}. Pass the figures "
-            "the stage computed (e.g. run_calibrate's or run_diagnose's second result)."
+            "the stage computed (e.g. run_calibration's or run_diagnosis' second result)."
         )
 
 
@@ -102,7 +102,7 @@ def calibration_headline(figures: Mapping[str, Any]) -> dict[str, Any]:
     ----------
     figures : mapping
         The batch's figures (``femcal.calibration.report.summary_figures`` plus what
-        ``run_calibrate`` adds), as written whole to ``<out_dir>/summary.json``.
+        ``run_calibration`` adds), as written whole to ``<out_dir>/summary.json``.
 
     Returns
     -------
@@ -128,7 +128,7 @@ def diagnosis_headline(summary: Mapping[str, Any]) -> dict[str, Any]:
     Parameters
     ----------
     summary : mapping
-        ``run_diagnose``'s summary (as in ``<out_dir>/summary.json``): ``verdicts`` (count per
+        ``run_diagnosis``' summary (as in ``<out_dir>/summary.json``): ``verdicts`` (count per
         verdict), ``effects`` (count per effect and ``unexplained``), ``found_effects``...
 
     Returns

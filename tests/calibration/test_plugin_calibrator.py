@@ -18,8 +18,9 @@ from femcal.calibration import calibrate
 from femcal.calibration.base import calibrator_registry
 from femcal.cli import build_parser
 from femcal.errors import ConfigError
+from femcal.jobs.calibrate import CalibrationJob, run_calibration
 from femcal.settings import validate_params
-from femcal.stages.calibrate import CalibrateSettings, plugin_options, run_calibrate
+from femcal.stages.calibrate import plugin_options
 
 from synth import long_csv
 
@@ -115,7 +116,7 @@ def test_the_calibrate_stage_runs_a_plugin_calibrator(plugin, registry, truth, c
     result = calibrate(curve_model, truth[1], method=plugin, options={"shift": 0.0})
     centre = curve_model.space.clip(curve_model.linear_unit_to_physical(np.full((1, 13), 0.5)))
     np.testing.assert_allclose(result.x, np.repeat(centre, len(truth[1]), axis=0))
-    settings = CalibrateSettings(
+    settings = CalibrationJob(
         measurements=long_csv(registry / "meas.csv", truth[1][:3]),
         out_dir=registry / "out",
         method=plugin,
@@ -128,7 +129,7 @@ def test_the_calibrate_stage_runs_a_plugin_calibrator(plugin, registry, truth, c
         max_log_ratio=0.51,
         plots="none",
     )
-    _, figures = run_calibrate(settings)
+    _, figures = run_calibration(settings)
     assert figures["method"] == plugin and figures["n_specimens"] == 3
 
 

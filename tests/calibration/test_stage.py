@@ -13,7 +13,7 @@ import yaml
 
 from femcal.cli import main
 from femcal.errors import InputDataError, ModelRegistryError
-from femcal.stages.calibrate import CalibrateSettings, run_calibrate
+from femcal.jobs.calibrate import CalibrationJob, run_calibration
 
 from synth import long_csv
 
@@ -22,7 +22,7 @@ MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 
 
 def _calibrate(measurements, out_dir, **overrides):
-    """``run_calibrate`` with this file's defaults: pgd against the registered champion, no
+    """``run_calibration`` with this file's defaults: pgd against the registered champion, no
     held-out surrogate, no start bank, seed 0, the moment policy above."""
     kwargs = dict(
         method="pgd",
@@ -34,11 +34,11 @@ def _calibrate(measurements, out_dir, **overrides):
         **MOMENTS,
     )
     tracker = overrides.pop("tracker", None)
-    settings = CalibrateSettings(measurements=measurements, out_dir=out_dir, **(kwargs | overrides))
-    return run_calibrate(settings, tracker=tracker)
+    settings = CalibrationJob(measurements=measurements, out_dir=out_dir, **(kwargs | overrides))
+    return run_calibration(settings, tracker=tracker)
 
 
-def test_run_calibrate_logs_one_run_with_tables(registry, truth):
+def test_run_calibration_logs_one_run_with_tables(registry, truth):
     tmp = registry
     curves = truth[1].copy()
     curves[1, 0] = np.nan  # spec-1 has no flexion
@@ -66,7 +66,7 @@ def test_run_calibrate_logs_one_run_with_tables(registry, truth):
     assert len(table) == 6 and set(table["specimen"]) == set(result.specimens)
 
 
-def test_run_calibrate_shows_plotting_and_logging_progress(registry, truth, capsys):
+def test_run_calibration_shows_plotting_and_logging_progress(registry, truth, capsys):
     """On a terminal (progress=True): bars over the plots and the files logged to MLflow."""
     _calibrate(
         long_csv(registry / "meas.csv", truth[1][:3]),
@@ -300,11 +300,11 @@ def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, mon
     np.testing.assert_allclose(seen["weight"], np.broadcast_to(expected, (2, 4, 4)))
 
 
-def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
+def test_run_diagnosis_checks_moments_and_counts_the_error_per_moment(
     registry, small_surrogate, truth, monkeypatch
 ):
+    from femcal.jobs.diagnose import DiagnosisJob, run_diagnosis
     from femcal.moments import MomentPolicy
-    from femcal.stages.diagnose import DiagnoseSettings, run_diagnose
 
     common = dict(
         out_dir=registry / "diag",
@@ -319,8 +319,8 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     moments = (1, 2, 3, 4, 5, 6)
     curves = np.concatenate([truth[1][:1], truth[1][:1, :, -1:]], axis=2)
     with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"):
-        diag, summary = run_diagnose(
-            DiagnoseSettings(measurements=long_csv(registry / "d.csv", curves, moments), **common)
+        diag, summary = run_diagnosis(
+            DiagnosisJob(measurements=long_csv(registry / "d.csv", curves, moments), **common)
         )
     policy = MomentPolicy.for_surrogate(
         small_surrogate, growth=MOMENTS["error_growth"], max_log_ratio=MOMENTS["max_log_ratio"]
@@ -332,10 +332,10 @@ def test_run_diagnose_checks_moments_and_counts_the_error_per_moment(
     assert summary["n_specimens"] == 1 and (registry / "diag" / "diagnosis.json").exists()
     far = long_csv(registry / "far.csv", truth[1][:1], moments=(1, 2, 3, 4, 12))
     with pytest.warns(UserWarning, match=r"far\.csv: dropped 4 measured point\(s\) at moments 12"):
-        diag, summary = run_diagnose(DiagnoseSettings(measurements=far, **common))
+        diag, summary = run_diagnosis(DiagnosisJob(measurements=far, **common))
     assert diag.sigma_by_moment.shape == (4,) and summary["n_dropped_points"] == 4
     listed = pd.read_csv(registry / "diag" / "dropped_points.csv")
     assert set(listed["moment_nm"]) == {12.0} and len(listed) == 4
     only_far = long_csv(registry / "only.csv", truth[1][:1, :, :1], moments=(12,))
     with pytest.raises(InputDataError, match=r"only\.csv: no measured point is usable"):
-        run_diagnose(DiagnoseSettings(measurements=only_far, **common))
+        run_diagnosis(DiagnosisJob(measurements=only_far, **common))

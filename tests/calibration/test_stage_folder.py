@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from femcal.jobs.calibrate import CalibrationJob, run_calibration
 from femcal.schema import LOAD_CASES
-from femcal.stages.calibrate import CalibrateSettings, run_calibrate
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
@@ -64,8 +64,8 @@ def test_calibrate_on_the_folders_in_a_fresh_store_records_which_model_ran(
     configure_tracking(tracking_uri=f"sqlite:///{tmp_path / 'fresh' / 'mlflow.db'}")
     (tmp_path / "fresh").mkdir()
     ensure_experiment("teammate")
-    _, figures = run_calibrate(
-        CalibrateSettings(
+    _, figures = run_calibration(
+        CalibrationJob(
             measurements=meas,
             out_dir=tmp_path / "out",
             method="pgd",

@@ -16,12 +16,9 @@ import mlflow
 import pytest
 import yaml
 
-from femcal.stages.calibrate import CalibrateSettings, run_calibrate
-from femcal.stages.tracking_process import (
-    TrackingProcess,
-    log_calibration,
-    start_calibration_run,
-)
+from femcal.jobs.calibrate import CalibrationJob, run_calibration
+from femcal.jobs.mlflow_steps import log_calibration, start_calibration_run
+from femcal.stages.tracking_process import TrackingProcess
 from femcal.tracking import (
     configure_tracking,
     ensure_experiment,
@@ -126,8 +123,8 @@ def test_a_failure_while_writing_the_outputs_ends_the_run_failed(project, monkey
         pytest.raises(OSError, match=r"No space left on device \(the test's\)"),
         TrackingProcess(params) as tracker,
     ):
-        run_calibrate(
-            CalibrateSettings(
+        run_calibration(
+            CalibrationJob(
                 measurements=tmp / "meas.csv",
                 out_dir=tmp / "out",
                 method="pgd",

@@ -21,10 +21,10 @@ import yaml
 from femcal.calibration import SurrogateCurveModel
 from femcal.cli import main
 from femcal.errors import InputDataError
+from femcal.jobs.calibrate import CalibrationJob, run_calibration
+from femcal.jobs.diagnose import DiagnosisJob, run_diagnosis
 from femcal.moments import DROPPED_COLUMNS
 from femcal.schema import LOAD_CASES
-from femcal.stages.calibrate import CalibrateSettings, run_calibrate
-from femcal.stages.diagnose import DiagnoseSettings, run_diagnose
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.tracking import (
     configure_tracking,
@@ -206,14 +206,14 @@ def test_a_file_without_a_usable_point_is_refused_by_both(project, capsys):
         start_bank=None,
         **POLICY_ARGS,
     )
-    calibrate = CalibrateSettings(
+    calibrate = CalibrationJob(
         out_dir=project / "c", method="pgd", holdout_uri=None, options={}, seed=0, **common
     )
     with pytest.raises(InputDataError, match=match):
-        run_calibrate(calibrate)
-    diagnose = DiagnoseSettings(out_dir=project / "d", noise_deg=NOISE, candidates=None, **common)
+        run_calibration(calibrate)
+    diagnose = DiagnosisJob(out_dir=project / "d", noise_deg=NOISE, candidates=None, **common)
     with pytest.raises(InputDataError, match=match):
-        run_diagnose(diagnose)
+        run_diagnosis(diagnose)
     assert main(["calibrate", "--measurements", "tiny.csv", "--out", "c"]) == 2
     assert (
         "femcal calibrate: error: tiny.csv: no measured point is usable" in capsys.readouterr().err

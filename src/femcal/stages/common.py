@@ -32,7 +32,7 @@ STAGE_ONLY = ("params", "metrics_file", "effect_modules")
 class StageSettings:
     """Base of every stage's settings dataclass.
 
-    A stage's fields are the keywords of the library function it calls (``run_calibrate``,
+    A stage's fields are the keywords of the library function it calls (``run_calibration``,
     ``run_train``, ...), plus :data:`STAGE_ONLY`; :meth:`call_args` gives those keywords.
 
     Attributes

@@ -1,21 +1,21 @@
-"""Stage ``diagnose``: where the disc model fails on a cohort, and which effect is missing."""
+"""Stage ``diagnose``: where the disc model fails on a cohort, and which effect is missing.
+
+The work is the library's :func:`femcal.jobs.diagnose.run_diagnosis`.
+"""
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from femcal.datasets import training_configurations
-from femcal.paths import setting_path, setting_uri
+from femcal.jobs.diagnose import ESTIMATED_NOISE, DiagnosisJob, run_diagnosis
 from femcal.stages.common import (
-    ESTIMATED_NOISE,
     StageSettings,
     check_measurements,
     dropped_note,
-    moment_policy,
     noise_setting,
     output_folder,
     path_setting,
@@ -29,28 +29,17 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class DiagnoseSettings(StageSettings):
+class DiagnoseSettings(StageSettings, DiagnosisJob):
     """The ``diagnose`` and ``moments`` sections, and the command line's overrides.
 
-    Built by :meth:`from_params`, which also checks the output folder, the metrics file and
-    the measurement file before anything heavy is imported. ``options`` holds the keywords
-    of :class:`femcal.diagnose.DiagnoseOptions` that params.yaml sets (its defaults apply to
-    the others).
+    A :class:`~femcal.jobs.diagnose.DiagnosisJob` with the stage's own settings
+    (:data:`~femcal.stages.common.STAGE_ONLY`). Built by :meth:`from_params`, which also checks
+    the output folder, the metrics file and the measurement file before anything heavy is
+    imported. ``options`` holds the keywords of :class:`femcal.diagnose.DiagnoseOptions` that
+    params.yaml sets (its defaults apply to the others).
     """
 
-    measurements: Path
-    out_dir: Path
-    model_uri: str
-    noise_deg: float | None
-    candidates: Sequence[str] | None
-    start_bank: Path | None
-    error_growth: tuple[float, float]
-    max_log_ratio: tuple[float, float]
-    options: Mapping[str, Any] = field(default_factory=dict)
-    plots: bool = True
-    max_plots: int | None = None
     effect_modules: Sequence[Path] = ()
-    noise_source: str = ESTIMATED_NOISE
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> DiagnoseSettings:
@@ -66,20 +55,17 @@ class DiagnoseSettings(StageSettings):
         )
         check_measurements(measurements)
         _warn_foreign_noise(params, measurements, noise, source)
-        calibrate = typed(params, "calibrate")
-        bank = calibrate.start_bank
-        return cls(
+        given = {"model_uri": args["model_uri"]} if args.get("model_uri") else {}
+        job = DiagnosisJob.from_params(
+            params,
             measurements=measurements,
             out_dir=out,
-            model_uri=args.get("model_uri") or setting_uri(params, calibrate.model_uri),
             noise_deg=noise,
             noise_source=source or ESTIMATED_NOISE,
-            candidates=cfg.candidates,
-            start_bank=setting_path(params, bank) if bank else None,
-            **moment_policy(params),
-            options=cfg.options(),
-            plots=cfg.plots,
-            max_plots=cfg.max_plots,
+            **given,
+        )
+        return cls(
+            **{f.name: getattr(job, f.name) for f in fields(DiagnosisJob)},
             effect_modules=effect_modules(params, args.get("effects_module")),
             metrics_file=args.get("metrics_file"),
             params=params,
@@ -134,7 +120,7 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
     else:
         logger.info("measurement noise %g deg: %s", settings.noise_deg, settings.noise_source)
     tracking(settings.params)
-    diag, summary = run_diagnose(settings)
+    diag, summary = run_diagnosis(settings)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, diagnosis_headline(summary))
     return dict(
@@ -198,122 +184,3 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
     if box:
         lines.append(cohort_note(box))
     return lines
-
-
-def run_diagnose(settings: DiagnoseSettings):
-    """Diagnose every specimen of a measurement file; write DIR; log one MLflow run.
-
-    ``settings`` (:class:`DiagnoseSettings`) names the measurements, the output folder, the
-    surrogate, the noise, the candidate effects, the start bank, the moment policy and the
-    :class:`~femcal.diagnose.DiagnoseOptions` keywords.
-
-    The moments are screened with the moment policy (:class:`femcal.moments.MomentPolicy` of
-    ``error_growth`` and ``max_log_ratio``, ``(below, above)`` each, params.yaml ``moments``):
-    points beyond its limits are dropped with a warning and listed in
-    ``out_dir/dropped_points.csv`` (``n_dropped_points`` in the returned summary). The
-    surrogate's own error at each moment (shape (m,), larger beyond the trained range) is
-    part of the noise.
-
-    ``out_dir`` is all or nothing, as for :func:`run_calibrate` (:mod:`femcal.outputs`).
-    ``model_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI; the
-    run's tags ``femcal.model.*`` name it (URI, SHA-256 of its files, registered version).
-    """
-    from femcal.outputs import check_destination
-
-    s = settings
-    measurements, out_dir, model_uri, noise_deg = (
-        s.measurements,
-        s.out_dir,
-        s.model_uri,
-        s.noise_deg,
-    )
-    candidates, start_bank = s.candidates, s.start_bank
-    check_destination(out_dir)  # a bad output folder is the first error, not the last
-    import mlflow
-
-    from femcal.calibration import SurrogateCurveModel
-    from femcal.diagnose import DiagnoseOptions, diagnose
-    from femcal.diagnose.report import write_diagnosis
-    from femcal.effects import available_effects
-    from femcal.effects.composite import EffectModel
-    from femcal.measurements import read_measurements
-    from femcal.moments import MomentPolicy
-    from femcal.outputs import staged_output
-    from femcal.reachability import assess_reachability
-    from femcal.tracking import load_surrogate, open_model
-
-    options = DiagnoseOptions(**s.options)
-    meas = read_measurements(measurements, noise_deg=noise_deg)  # repeats checked against it
-    source = open_model(model_uri)
-    surrogate = load_surrogate(source)
-    policy = MomentPolicy.for_surrogate(
-        surrogate, growth=s.error_growth, max_log_ratio=s.max_log_ratio
-    )
-    screened = policy.screen(meas)  # points beyond the measured limits dropped, with a warning
-    meas = screened.measurements
-    # Before the fit: can the disc, with every candidate effect, produce these curves at all?
-    assess_reachability(
-        meas,
-        EffectModel(
-            SurrogateCurveModel(surrogate, meas.moments), list(candidates or available_effects())
-        ),
-        sigma_model=policy.sigma_surrogate(meas.moments),
-        reference=start_bank,
-        noise_deg=noise_deg,
-    )
-    diag = diagnose(
-        SurrogateCurveModel(surrogate, meas.moments),
-        meas.rom_deg,
-        specimens=meas.specimens,
-        noise_deg=noise_deg,
-        surrogate_error_deg=policy.sigma_surrogate(meas.moments, meas.rom_deg),  # each point's
-        point_weight=meas.weight,
-        candidates=candidates,
-        start_bank=training_configurations(start_bank) if start_bank else None,
-        moment_policy=policy,
-        options=options,
-    )
-    with (
-        staged_output(out_dir, command="diagnose") as stage,
-        mlflow.start_run(run_name="diagnose") as run,
-    ):
-        stage.note(mlflow_run_id=run.info.run_id)
-        mlflow.set_tag("femcal.stage", "diagnose")
-        mlflow.set_tags(source.tags("model"))
-        summary = write_diagnosis(
-            diag, meas.rom_deg, stage.path, plots=s.plots, max_plots=s.max_plots
-        )
-        screened.write(stage.path)
-        summary = dict(summary, n_dropped_points=len(screened.dropped))
-        mlflow.log_params(
-            {
-                "measurements": str(measurements),
-                "model_uri": model_uri,
-                "noise_deg": "estimated" if noise_deg is None else noise_deg,
-                "noise_source": s.noise_source,
-                "candidates": ",".join(candidates or []) or "all",
-                "min_delta": options.min_delta,
-                "alpha": options.alpha,
-                "max_effects": options.max_effects,
-                "cohort_verdict": diag.cohort_verdict(),
-                **policy.as_params(),
-            }
-        )
-        mlflow.log_metrics(
-            {
-                "sigma_deg": diag.sigma_deg,
-                "noise_deg": diag.noise_deg,
-                "seconds": diag.seconds,
-                # MLflow metric names take no "+": one count per effect (and "unexplained"),
-                # and one per verdict with "+" spelt "__".
-                **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
-                **{
-                    f"n_verdict_{k.replace('+', '__')}": float(v)
-                    for k, v in diag.verdicts().items()
-                },
-            }
-        )
-        stage.finalize()
-        mlflow.log_artifacts(str(stage.path), artifact_path="diagnosis")  # this run's files
-        stage.commit()
-    return diag, summary

@@ -292,7 +292,7 @@ def run_validate(
     -------
     ValidationResult
         See :func:`femcal.fe.validate.validate_calibration`. ``out_dir`` is all or nothing,
-        as for :func:`run_calibrate` (:mod:`femcal.outputs`).
+        as for :func:`femcal.jobs.calibrate.run_calibration` (:mod:`femcal.outputs`).
     """
     from femcal.outputs import check_destination, staged_output
 
