@@ -95,3 +95,17 @@ def test_the_data_sent_to_a_worker_are_the_rows_of_its_specimens(noisy):
 def test_a_worker_error_is_raised_in_the_caller():
     with FigureWorkers(1) as workers, pytest.raises(ZeroDivisionError):
         list(workers.map([(divmod, 1, 0)]))
+
+
+def test_before_figures_is_called_with_the_tables_written_and_no_figure_yet(tmp_path, noisy):
+    out, seen = tmp_path / "out", {}
+
+    def hook(figures):
+        seen["files"] = sorted(p.name for p in out.rglob("*") if p.is_file())
+        seen["figures"] = dict(figures)
+
+    figures = write_outputs(noisy, out, before_figures=hook)
+    assert {"parameters.csv", "metrics.csv", "curves.csv", "summary.json"} <= set(seen["files"])
+    assert not [name for name in seen["files"] if name.endswith(".png")]
+    assert seen["figures"] == figures
+    assert (out / "summary.png").exists() and len(list((out / "plots").glob("*.png"))) == 4

@@ -323,7 +323,7 @@ def _write_png(canvas: Any, path: Path) -> None:
     height, width = rgba.shape[:2]
     rows = np.empty((height, 1 + 3 * width), dtype=np.uint8)
     rows[:, 0] = 0  # filter type None
-    rows[:, 1:] = rgba[:, :, :3].reshape(height, 3 * width)
+    rows[:, 1:].reshape(height, width, 3)[...] = rgba[:, :, :3]  # a view: copied in place
     per_metre = round(DPI / 0.0254)
     Path(path).write_bytes(
         b"\x89PNG\r\n\x1a\n"

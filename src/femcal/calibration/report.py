@@ -24,7 +24,8 @@ import json
 import logging
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -293,6 +294,7 @@ def write_outputs(
     progress: bool = False,
     curves: FigureCurves | None = None,
     pool: FigureWorkers | None = None,
+    before_figures: Callable[[dict], Any] | None = None,
 ) -> dict:
     """Write the tables, figures and summary of a calibration; returns the summary figures.
 
@@ -325,6 +327,9 @@ def write_outputs(
         Processes to draw the figures in, started before the calibration
         (:func:`femcal.calibration.plots.figure_workers`); default: worker processes forked
         here (:func:`femcal.calibration.plots.plot_specimens`).
+    before_figures : callable, optional
+        Called with the summary figures once the tables, ``summary.json`` and ``summary.md``
+        are written, before the figures are drawn (e.g. to log them meanwhile).
     """
     mode = plot_mode(plots)  # a wrong value before any file is written
     out_dir = Path(out_dir)
@@ -358,20 +363,59 @@ def write_outputs(
     n_plot = n if max_plots is None else min(n, int(max_plots))
     figures["n_plotted"] = n_plot if mode == "all" else 0
     ident = identifiability(result)
-    page = None
-    if mode != "none" and pool is None:
-        page = partial(plot_summary, result, out_dir / "summary.png", held, ident, DETERMINED_WIDTH)
-    elif mode != "none":  # what a worker unpickles without torch
-        page = partial(
+    (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
+    (out_dir / "summary.md").write_text(_markdown(result, figures, ident))
+    if before_figures is not None:
+        before_figures(figures)
+    if mode != "none":
+        drawing = _Drawing(result, out_dir, held, ident, curves, pool)
+        drawing.draw(n_plot if mode == "all" else 0, progress=progress)
+    if mode == "all" and n_plot < n:
+        logger.warning(
+            "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
+        )
+    return figures
+
+
+@dataclass(frozen=True)
+class _Drawing:
+    """The figures of :func:`write_outputs`: the summary page and the per-specimen PNGs, in
+    ``pool`` when given (then with :class:`~femcal.calibration.plots.FigureData`, which a
+    worker unpickles without torch), else here and in worker processes forked here."""
+
+    result: CalibrationResult
+    out_dir: Path
+    held: dict[str, np.ndarray] | None
+    ident: pd.DataFrame | None
+    curves: FigureCurves | None
+    pool: FigureWorkers | None
+
+    def page(self) -> Any:
+        """The summary page: a function of no argument that writes ``summary.png``."""
+        path, held, ident = self.out_dir / "summary.png", self.held, self.ident
+        if self.pool is None:
+            return partial(plot_summary, self.result, path, held, ident, DETERMINED_WIDTH)
+        return partial(
             plot_summary,
-            FigureData.of(result),
-            out_dir / "summary.png",
+            FigureData.of(self.result),
+            path,
             None if held is None else {k: held[k] for k in ("mae", "r2_mean")},
             None if ident is None else {k: ident[k].to_numpy() for k in ident.columns},
             DETERMINED_WIDTH,
         )
-    if mode == "all":
-        plot_dir = out_dir / "plots"
+
+    def draw(self, n_plot: int, *, progress: bool) -> None:
+        """The summary page and the first ``n_plot`` specimens' figures (``plots/``)."""
+        result, pool = self.result, self.pool
+        if not n_plot:
+            page = self.page()
+            if pool is None:
+                page()
+            else:
+                for _ in pool.map([(drawn, page)]):
+                    pass
+            return
+        plot_dir = self.out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
         used: set[str] = set()
         paths = []
@@ -382,20 +426,10 @@ def write_outputs(
             used.add(name)
             paths.append(plot_dir / f"{name}.png")
         start = time.perf_counter()
+        curves = self.curves
         if curves is None:
+            held = self.held
             curves = FigureCurves.at_measured(result, None if held is None else held["prediction"])
         # the summary page drawn beside the specimens' figures
-        plot_specimens(result, paths, curves, progress=progress, beside=page, pool=pool)
+        plot_specimens(result, paths, curves, progress=progress, beside=self.page(), pool=pool)
         logger.debug("%d specimen plots in %.2f s", n_plot, time.perf_counter() - start)
-        if n_plot < n:
-            logger.warning(
-                "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
-            )
-    elif page is not None and pool is not None:
-        for _ in pool.map([(drawn, page)]):
-            pass
-    elif page is not None:
-        page()
-    (out_dir / "summary.json").write_text(json.dumps(figures, indent=2) + "\n")
-    (out_dir / "summary.md").write_text(_markdown(result, figures, ident))
-    return figures
