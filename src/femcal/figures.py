@@ -6,15 +6,12 @@
 * :func:`plot_workers` and :func:`fork_map`: drawing many independent figures in worker
   processes, as many as the cores free (never more: a worker beside a busy core slows every
   figure down), forked from the process that holds the data;
-* :class:`FigureWorkers`: such processes started before a command's heavy imports, which
-  import matplotlib meanwhile and then draw from picklable arguments;
 * :func:`text_caching_canvas`: an Agg canvas that renders each distinct text once (figures
   redrawn many times repeat their tick labels and titles).
 """
 
 from __future__ import annotations
 
-import importlib
 import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -201,82 +198,6 @@ def fork_map(
         futures = {pool.submit(fn, piece): piece for piece in pieces}
         for future in as_completed(futures):
             yield futures[future], future.result()
-
-
-def _warm(modules: tuple[str, ...]) -> None:
-    """A :class:`FigureWorkers` process's start: matplotlib's Agg and the text-caching canvas,
-    then ``modules``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    _caching_canvas_class()
-    for name in modules:
-        importlib.import_module(name)
-
-
-def drawn(draw: Callable[[], Any]) -> None:
-    """Call ``draw`` (a function that writes a figure) and return nothing: no figure is sent
-    back from a worker process."""
-    draw()
-
-
-class FigureWorkers:
-    """Processes that draw figures, started before a command's heavy imports.
-
-    They are forked at once, while the command has imported little (no torch): each imports
-    matplotlib (:func:`_warm`, and ``modules``) while the command reads its data, loads its
-    models and calibrates, so that no figure waits for matplotlib afterwards. :meth:`map`
-    then runs drawing calls in them; their functions and arguments are pickled (module-level
-    functions, arrays and plain containers: the workers hold no data of the command, and what
-    they unpickle must not import torch).
-
-    Parameters
-    ----------
-    workers : int, optional
-        The processes (default: :func:`free_cores`, the cores free when the command started).
-    modules : sequence of str
-        Modules each worker imports when it starts (the drawing code).
-
-    Where the platform does not fork, no process is started and :meth:`map` draws in this
-    process. Use as a context manager, or call :meth:`close`.
-    """
-
-    def __init__(self, workers: int | None = None, *, modules: Sequence[str] = ()) -> None:
-        self.workers = free_cores() if workers is None else max(1, int(workers))
-        self._pool: ProcessPoolExecutor | None = None
-        if "fork" in multiprocessing.get_all_start_methods():
-            ctx = multiprocessing.get_context("fork")
-            self._pool = ProcessPoolExecutor(
-                self.workers, mp_context=ctx, initializer=_warm, initargs=(tuple(modules),)
-            )
-            self._pool.submit(int)  # forks every worker now (fork: all at the first call)
-
-    def __enter__(self) -> FigureWorkers:
-        return self
-
-    def __exit__(self, *_: Any) -> None:
-        self.close()
-
-    def map(self, calls: Sequence[tuple]) -> Iterator[tuple[tuple, Any]]:
-        """``(call, fn(*args))`` for each ``call = (fn, *args)`` of ``calls``, as each
-        finishes (taken in order by the free workers); a worker's error is raised here."""
-        if self._pool is None:
-            for call in calls:
-                yield call, call[0](*call[1:])
-            return
-        futures = {self._pool.submit(*call): call for call in calls}
-        try:
-            for future in as_completed(futures):
-                yield futures[future], future.result()
-        finally:
-            for future in futures:
-                future.cancel()
-
-    def close(self) -> None:
-        """Stop the workers (calls not started are cancelled)."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
 
 
 def progress_over(pieces: Iterable[tuple[range, Any]], total: int, desc: str, show: bool):

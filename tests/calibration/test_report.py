@@ -209,3 +209,26 @@ def test_the_residuals_are_tested_against_the_noise(tmp_path, curve_model, truth
     assert plain.n_effective is None and plain.dof is None
     assert "rms_z" not in plain.metrics_frame()
     assert "n_beyond_noise" not in write_outputs(plain, tmp_path / "plain", plots="none")
+
+
+def test_before_figures_is_called_with_the_tables_written_and_no_figure_yet(
+    tmp_path, curve_model, truth
+):
+    result = calibrate(
+        curve_model,
+        truth[1][:2],
+        specimens=["S0", "S1"],
+        method="pgd",
+        options={"n_bank_uniform": 64},
+    )
+    out, seen = tmp_path / "out", {}
+
+    def hook(figures):
+        seen["files"] = sorted(p.name for p in out.rglob("*") if p.is_file())
+        seen["figures"] = dict(figures)
+
+    figures = write_outputs(result, out, before_figures=hook)
+    assert {"parameters.csv", "metrics.csv", "curves.csv", "summary.json"} <= set(seen["files"])
+    assert not [name for name in seen["files"] if name.endswith(".png")]
+    assert seen["figures"] == figures == json.loads((out / "summary.json").read_text())
+    assert (out / "summary.png").exists() and len(list((out / "plots").glob("*.png"))) == 2

@@ -8,28 +8,25 @@ width and resolution (:mod:`femcal.diagnose.report`).
 
 The per-specimen figures are drawn by one figure per process, redrawn for each specimen
 (building four axes costs more than drawing them), in worker processes on the free cores
-(:func:`femcal.figures.plot_workers`), or in :class:`~femcal.figures.FigureWorkers` started
-before the command's heavy imports (:func:`figure_workers`). This module imports neither torch
-nor matplotlib: matplotlib is imported where a figure is drawn.
+(:func:`femcal.figures.plot_workers`).
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from femcal.calibration.result import CalibrationResult
 from femcal.figures import (
     LOAD_CASE_LABELS,
-    FigureWorkers,
     chunks,
     dense_grid,
-    drawn,
     fork_map,
     noise_band,
     plot_workers,
@@ -37,9 +34,6 @@ from femcal.figures import (
     text_caching_canvas,
 )
 from femcal.schema import LOAD_CASES
-
-if TYPE_CHECKING:
-    from femcal.calibration.result import CalibrationResult
 
 #: The per-specimen figure: width and height (inches) and resolution, as the diagnosis'.
 WIDTH_IN, HEIGHT_IN, DPI = 15.0, 4.2, 100
@@ -77,84 +71,6 @@ class FigureCurves:
     ) -> FigureCurves:
         """The result's own curves, at the measured moments (no model at hand)."""
         return cls(np.asarray(result.moments, dtype=float), result.prediction, holdout)
-
-    def take(self, rows: range) -> FigureCurves:
-        """The curves of specimens ``rows`` (their figures' data, to send to a worker)."""
-        rows = slice(rows.start, rows.stop)
-        return replace(
-            self,
-            calibrated=self.calibrated[rows],
-            holdout=None if self.holdout is None else self.holdout[rows],
-        )
-
-
-@dataclass(frozen=True)
-class FigureData:
-    """What the figures read of a :class:`~femcal.calibration.result.CalibrationResult`:
-    plain arrays, sent to drawing processes that never import torch.
-
-    Attributes
-    ----------
-    specimens : tuple of str, length n
-    method : str
-    seconds : float
-    moments : ndarray, shape (m,)
-    measured, prediction : ndarray, shape (n, 4, m)
-    mae_deg, r2_mean, exceedance : ndarray, shape (n,)
-    mae_per_load_case, r2_per_load_case : ndarray, shape (n, 4)
-    error_scale_deg : ndarray, shape (n,), optional
-    """
-
-    specimens: tuple[str, ...]
-    method: str
-    seconds: float
-    moments: np.ndarray
-    measured: np.ndarray
-    prediction: np.ndarray
-    mae_deg: np.ndarray
-    r2_mean: np.ndarray
-    exceedance: np.ndarray
-    mae_per_load_case: np.ndarray
-    r2_per_load_case: np.ndarray
-    error_scale_deg: np.ndarray | None = None
-
-    @classmethod
-    def of(cls, result: CalibrationResult) -> FigureData:
-        """The figures' data of ``result``."""
-        scale = result.error_scale_deg
-        return cls(
-            specimens=tuple(result.specimens),
-            method=result.method,
-            seconds=float(result.seconds),
-            moments=np.asarray(result.moments, dtype=float),
-            measured=np.asarray(result.measured),
-            prediction=np.asarray(result.prediction),
-            mae_deg=np.asarray(result.mae_deg),
-            r2_mean=np.asarray(result.r2_mean),
-            exceedance=np.asarray(result.exceedance),
-            mae_per_load_case=np.asarray(result.mae_per_load_case),
-            r2_per_load_case=np.asarray(result.r2_per_load_case),
-            error_scale_deg=None if scale is None else np.asarray(scale),
-        )
-
-    def take(self, rows: range) -> FigureData:
-        """The data of specimens ``rows``."""
-        rows = slice(rows.start, rows.stop)
-        per_specimen = (
-            "measured",
-            "prediction",
-            "mae_deg",
-            "r2_mean",
-            "exceedance",
-            "mae_per_load_case",
-            "r2_per_load_case",
-        )
-        return replace(
-            self,
-            specimens=self.specimens[rows],
-            error_scale_deg=None if self.error_scale_deg is None else self.error_scale_deg[rows],
-            **{name: getattr(self, name)[rows] for name in per_specimen},
-        )
 
 
 def dense_curves(
@@ -379,60 +295,14 @@ def _draw(piece: range | None) -> None:
         _FIGURE[1].draw(i, paths[i])
 
 
-#: The figure of a :class:`FigureWorkers` process, by what its static pixels show (the
-#: moments, a held-out curve or not, a band or not).
-_WORKER_FIGURE: dict[tuple, _SpecimenFigure] = {}
-
-
-def _draw_rows(data: FigureData, curves: FigureCurves, paths: Sequence[Path]) -> None:
-    """In a :class:`FigureWorkers` process: the figures of the specimens of ``data`` (a
-    :meth:`FigureData.take`) into ``paths``, on this process's figure."""
-    banded = curves.sigma is not None or data.error_scale_deg is not None
-    key = (tuple(curves.moments), curves.holdout is None, banded)
-    figure = _WORKER_FIGURE.get(key)
-    if figure is None:
-        _WORKER_FIGURE.clear()
-        figure = _WORKER_FIGURE[key] = _SpecimenFigure(data, curves)
-    figure.result, figure.curves = data, curves
-    for i, path in enumerate(paths):
-        figure.draw(i, path)
-
-
-def figure_workers(workers: int | None = None) -> FigureWorkers:
-    """Processes for :func:`plot_specimens` (``pool``), started now: best before torch is
-    imported (e.g. first thing in ``femcal calibrate``), so that they import matplotlib and
-    this module while the command works. ``workers``: default the free cores."""
-    modules = ("matplotlib.figure", "matplotlib.patches", "matplotlib.ticker", __name__)
-    return FigureWorkers(workers, modules=modules)
-
-
-def _on_pool(
-    pool: FigureWorkers,
-    data: FigureData,
-    curves: FigureCurves,
-    paths: Sequence[Path],
-    beside: Callable[[], Any] | None,
-) -> Iterator[tuple[range | None, None]]:
-    """:func:`plot_specimens` in ``pool``: ``beside`` first, then the specimens in about four
-    pieces per worker, each sent with its own rows of the data; ``(piece, None)`` as each
-    piece is written (None for ``beside``)."""
-    calls: list[tuple] = [(drawn, beside)] if beside is not None else []
-    for piece in chunks(len(paths), pool.workers):
-        rows = list(paths[piece.start : piece.stop])
-        calls.append((_draw_rows, data.take(piece), curves.take(piece), rows))
-    for call, value in pool.map(calls):
-        yield (None if call[0] is drawn else range(len(call[3]))), value
-
-
 def plot_specimens(
-    result: CalibrationResult | FigureData,
+    result: CalibrationResult,
     paths: Sequence[Path],
     curves: FigureCurves | None = None,
     *,
     progress: bool = False,
     workers: int | None = None,
     beside: Callable[[], Any] | None = None,
-    pool: FigureWorkers | None = None,
 ) -> None:
     """The figures of specimens ``0 .. len(paths) - 1`` into ``paths``.
 
@@ -440,9 +310,7 @@ def plot_specimens(
     ``progress`` shows a bar (stderr) over the specimens; ``workers``: the processes to draw
     in (default: :func:`femcal.figures.plot_workers`, the free cores); ``beside``: one more
     figure to draw (a function that writes it, e.g. the summary page), first, in a worker of
-    its own while the others draw the specimens. ``pool``: processes started earlier
-    (:func:`figure_workers`) to draw in instead; ``beside`` is then pickled (e.g. a
-    ``functools.partial`` of :func:`plot_summary` with a :class:`FigureData`).
+    its own while the others draw the specimens.
     """
     global _DRAWING, _FIGURE
     if not len(paths):
@@ -450,12 +318,6 @@ def plot_specimens(
             beside()
         return
     curves = curves or FigureCurves.at_measured(result)
-    if pool is not None:
-        data = result if isinstance(result, FigureData) else FigureData.of(result)
-        drawing = _on_pool(pool, data, curves, paths, beside)
-        for _ in progress_over(drawing, len(paths), "plots", progress):
-            pass
-        return
     workers = plot_workers(len(paths)) if workers is None else max(1, int(workers))
     _agg_figure()  # matplotlib imported once here, not in each worker
     _DRAWING, _FIGURE = (result, curves, list(paths), beside), None
@@ -485,7 +347,7 @@ def _histograms(ax: Any, samples: Sequence[tuple[str, np.ndarray, str]], xlabel:
 
 
 def plot_summary(
-    result: CalibrationResult | FigureData,
+    result: CalibrationResult,
     path: Path,
     holdout: dict[str, np.ndarray] | None = None,
     ranges: Any = None,
@@ -495,8 +357,7 @@ def plot_summary(
 
     ``holdout``: the held-out surrogate's scores (``mae``, ``r2_mean``), drawn beside the
     calibrated model's; ``ranges``: the identifiability table (``parameter``,
-    ``mean_width``: a DataFrame or a dict of arrays), the parameters determined below
-    ``determined_width``.
+    ``mean_width``), the parameters determined below ``determined_width``.
 
     Returns
     -------

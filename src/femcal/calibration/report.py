@@ -25,7 +25,6 @@ import logging
 import re
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -34,9 +33,8 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.model import CurveModel
-from femcal.calibration.plots import FigureCurves, FigureData, plot_specimens, plot_summary
+from femcal.calibration.plots import FigureCurves, plot_specimens, plot_summary
 from femcal.calibration.result import CalibrationResult
-from femcal.figures import FigureWorkers, drawn
 from femcal.metrics import curve_metrics
 from femcal.schema import LOAD_CASES
 from femcal.settings.keywords import PLOT_CHOICES  # all, summary, none
@@ -293,7 +291,6 @@ def write_outputs(
     reachability: Sequence[str] | None = None,
     progress: bool = False,
     curves: FigureCurves | None = None,
-    pool: FigureWorkers | None = None,
     before_figures: Callable[[dict], Any] | None = None,
 ) -> dict:
     """Write the tables, figures and summary of a calibration; returns the summary figures.
@@ -323,10 +320,6 @@ def write_outputs(
         What the per-specimen figures draw: continuous curves of the calibrated (and held-out)
         model and the sd of one measurement (:func:`femcal.calibration.plots.dense_curves`);
         default: the curves at the measured moments, with the result's error scale.
-    pool : FigureWorkers, optional
-        Processes to draw the figures in, started before the calibration
-        (:func:`femcal.calibration.plots.figure_workers`); default: worker processes forked
-        here (:func:`femcal.calibration.plots.plot_specimens`).
     before_figures : callable, optional
         Called with the summary figures once the tables, ``summary.json`` and ``summary.md``
         are written, before the figures are drawn (e.g. to log them meanwhile).
@@ -367,55 +360,11 @@ def write_outputs(
     (out_dir / "summary.md").write_text(_markdown(result, figures, ident))
     if before_figures is not None:
         before_figures(figures)
+    page = None
     if mode != "none":
-        drawing = _Drawing(result, out_dir, held, ident, curves, pool)
-        drawing.draw(n_plot if mode == "all" else 0, progress=progress)
-    if mode == "all" and n_plot < n:
-        logger.warning(
-            "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
-        )
-    return figures
-
-
-@dataclass(frozen=True)
-class _Drawing:
-    """The figures of :func:`write_outputs`: the summary page and the per-specimen PNGs, in
-    ``pool`` when given (then with :class:`~femcal.calibration.plots.FigureData`, which a
-    worker unpickles without torch), else here and in worker processes forked here."""
-
-    result: CalibrationResult
-    out_dir: Path
-    held: dict[str, np.ndarray] | None
-    ident: pd.DataFrame | None
-    curves: FigureCurves | None
-    pool: FigureWorkers | None
-
-    def page(self) -> Any:
-        """The summary page: a function of no argument that writes ``summary.png``."""
-        path, held, ident = self.out_dir / "summary.png", self.held, self.ident
-        if self.pool is None:
-            return partial(plot_summary, self.result, path, held, ident, DETERMINED_WIDTH)
-        return partial(
-            plot_summary,
-            FigureData.of(self.result),
-            path,
-            None if held is None else {k: held[k] for k in ("mae", "r2_mean")},
-            None if ident is None else {k: ident[k].to_numpy() for k in ident.columns},
-            DETERMINED_WIDTH,
-        )
-
-    def draw(self, n_plot: int, *, progress: bool) -> None:
-        """The summary page and the first ``n_plot`` specimens' figures (``plots/``)."""
-        result, pool = self.result, self.pool
-        if not n_plot:
-            page = self.page()
-            if pool is None:
-                page()
-            else:
-                for _ in pool.map([(drawn, page)]):
-                    pass
-            return
-        plot_dir = self.out_dir / "plots"
+        page = partial(plot_summary, result, out_dir / "summary.png", held, ident, DETERMINED_WIDTH)
+    if mode == "all":
+        plot_dir = out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
         used: set[str] = set()
         paths = []
@@ -426,10 +375,15 @@ class _Drawing:
             used.add(name)
             paths.append(plot_dir / f"{name}.png")
         start = time.perf_counter()
-        curves = self.curves
         if curves is None:
-            held = self.held
             curves = FigureCurves.at_measured(result, None if held is None else held["prediction"])
         # the summary page drawn beside the specimens' figures
-        plot_specimens(result, paths, curves, progress=progress, beside=self.page(), pool=pool)
+        plot_specimens(result, paths, curves, progress=progress, beside=page)
         logger.debug("%d specimen plots in %.2f s", n_plot, time.perf_counter() - start)
+        if n_plot < n:
+            logger.warning(
+                "Plotted %d of %d specimens (max_plots); the tables hold all of them.", n_plot, n
+            )
+    elif page is not None:
+        page()
+    return figures
