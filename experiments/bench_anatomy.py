@@ -50,6 +50,7 @@ import numpy as np
 import pandas as pd
 
 from experiments import anatomy_cohorts as ac
+from femcal.effects.terms import parse_term
 from femcal.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -149,7 +150,7 @@ def score_specimens(
     rows = []
     for a in answers.itertuples(index=False):
         s = by_name[str(a.specimen)]
-        named = [str(e).split(":")[0] for e in s.get("effects") or []]  # a split form's effect
+        named = [parse_term(str(e)).effect for e in s.get("effects") or []]  # a term's effect
         expected = frozenset(e for e in str(a.expected_effects or "").split("+") if e)
         if a.expected_effects != a.expected_effects:  # NaN from an empty CSV cell
             expected = frozenset()

@@ -58,6 +58,7 @@ import pandas as pd
 
 from experiments import edge_cohorts as ec
 from experiments.common import REPO, reproduce_command
+from femcal.effects.terms import parse_term
 
 #: The femcal effect a structure should be named as (None: outside femcal's library).
 EFFECT_OF: dict[str, str | None] = {
@@ -130,11 +131,12 @@ def run_command(cmd: Sequence[str]) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------- judging
 def inclusion_by_effect(record: dict) -> dict[str, float]:
-    """Inclusion probability per registered effect, its forms (``x``, ``x:split``) summed."""
+    """Inclusion probability per registered effect, its terms (``x``, ``x:split``, ``x@cases``)
+    summed."""
     inc = (record.get("probabilities") or {}).get("inclusion") or {}
     out: dict[str, float] = {}
     for key, p in inc.items():
-        base = key.split(":")[0]
+        base = parse_term(key).effect
         out[base] = min(1.0, out.get(base, 0.0) + float(p))
     return out
 
@@ -152,7 +154,7 @@ def score_specimen(truth: dict, record: dict) -> dict[str, Any]:
         for s, v in contrib.items()
     }
     parts = str(record["verdict"]).split("+")
-    named = {str(e).split(":")[0] for e in record.get("effects") or []}
+    named = {parse_term(str(e)).effect for e in record.get("effects") or []}
     inclusion = inclusion_by_effect(record)
     box = record.get("outside_box") or {}
     box_named = OUTSIDE_BOX in parts or bool(box.get("named"))

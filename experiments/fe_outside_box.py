@@ -36,6 +36,7 @@ import pandas as pd
 import yaml
 
 from experiments.common import REPO
+from femcal.effects.terms import parse_term
 
 #: The stiffnesses moved beyond the box (the rest stay inside it).
 STIFFNESSES = ("C10Nucleus", "C01Nucleus", "C10Annulus", "K1Annulus", "K2Annulus")
@@ -103,7 +104,7 @@ def score(folder: Path) -> dict:
     for rec in diagnosis:
         inclusion = (rec.get("probabilities") or {}).get("inclusion") or {}
         confident = sorted(
-            e for e, p in inclusion.items() if e.split(":")[0] in BUILTIN and p >= 0.9
+            e for e, p in inclusion.items() if parse_term(e).effect in BUILTIN and p >= 0.9
         )
         box = rec.get("outside_box") or {}
         rows.append(

@@ -18,8 +18,8 @@ from femcal.cli import build_parser
 from femcal.config import load_params
 from femcal.diagnose.result import Diagnosis
 from femcal.errors import ConfigError
+from femcal.jobs.diagnose import ESTIMATED_NOISE
 from femcal.stages.calibrate import CalibrateSettings, noise_line
-from femcal.stages.common import ESTIMATED_NOISE
 from femcal.stages.diagnose import DiagnoseSettings, describe
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,11 +1,12 @@
 """The loop on the FE-made cohort: diagnose what the FE added, then calibrate with it.
 
-``python -m femcal.fe.hidden`` runs, from the project root, the commands a user runs:
+``python -m femcal.fe.hidden`` runs, with the project's ``params.yaml``, the jobs a user runs
+(:mod:`femcal.jobs`, in this process):
 
-1. ``femcal diagnose`` on the cohort's noisy curves (``measured/Test``) with the disc-only
-   surrogate: a verdict per specimen, without the answers;
-2. ``femcal calibrate --effects ''`` on every specimen (the disc alone), and ``femcal
-   calibrate --effects <found>`` on the specimens of each verdict;
+1. the diagnosis (``femcal diagnose``) of the cohort's noisy curves (``measured/Test``) with
+   the disc-only surrogate: a verdict per specimen, without the answers;
+2. the calibration (``femcal calibrate``) of every specimen with the disc alone, and of the
+   specimens of each verdict with its model's terms;
 3. the verdicts and errors against ``answers.csv``: ``hidden.json``.
 
 The figures (:func:`score`), each over all specimens and over the visible ones:
@@ -17,24 +18,23 @@ The figures (:func:`score`), each over all specimens and over the visible ones:
     element whose effect stays within the noise and the surrogate's error is not counted;
 ``right_fraction_visible``, ``right_fraction_all``
     the fraction whose verdict names exactly the class's elements (facets: ``facet_contact``;
-    ligaments: ``ligament_tension``; a per-load-case ``:split`` form counts as its effect);
+    ligaments: ``ligament_tension``; every term of an effect, split or acting in other load
+    cases, counts as its effect);
 ``none_given_element_fraction_visible``, ``none_given_element_fraction_all``
     among the specimens with an element, the fraction with the verdict ``none``;
 ``none_false_alarms``
     the specimens of the ``none`` class given an effect (of ``n_none``);
 ``error_ratio_max``
     the largest, over the classes, of the mean MAE after calibrating with the found effects
-    over the disc-only floor: the mean MAE of ``femcal calibrate --effects ''`` on the
-    ``none`` class (noise and surrogate error; every MAE against the noisy curves).
+    over the disc-only floor: the mean MAE of the disc alone's calibration on the ``none``
+    class (noise and surrogate error; every MAE against the noisy curves).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
-import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -42,28 +42,24 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from femcal.errors import SolverError
+from femcal.effects.terms import parse_term
 from femcal.fe.cohort import CLASS_EFFECTS, CLASSES
+from femcal.jobs.calibrate import CalibrationJob, run_calibration
+from femcal.jobs.diagnose import DiagnosisJob, run_diagnosis
 
 #: Misfit of the disc alone beyond which an element is visible: this many noise sds, plus the
 #: surrogate's own error sd.
 VISIBLE_NOISE_SDS = 2.0
 
 
-def _femcal(args: Sequence[str], cwd: Path) -> None:
-    """Run ``femcal <args>`` in ``cwd``; raise with its output's tail when it fails."""
-    cmd = [sys.executable, "-m", "femcal", *args]
-    done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=os.environ.copy())
-    if done.returncode:
-        raise SolverError(
-            f"`femcal {' '.join(args)}` failed (exit {done.returncode}) in {cwd}:\n"
-            f"{(done.stderr or done.stdout)[-3000:]}"
-        )
+#: Where the calibrations and the diagnosis of :func:`run_hidden` say their noise comes from.
+NOISE_SOURCE = "python -m femcal.fe.hidden --noise-deg"
 
 
 def found_effects(effects: Sequence[str]) -> tuple[str, ...]:
-    """The effects of a verdict without their ``:split`` suffix, sorted and unique."""
-    return tuple(sorted({str(e).split(":")[0] for e in effects}))
+    """The registered effects a verdict's terms name (:func:`femcal.effects.terms.parse_term`:
+    split or not, in whichever load cases), sorted and unique."""
+    return tuple(sorted({parse_term(str(e)).effect for e in effects}))
 
 
 def visible_threshold(summary: Mapping[str, Any], noise_deg: float) -> float:
@@ -102,8 +98,8 @@ def score(
     visible_deg : float
         The disc-alone MAE beyond which a specimen is visible (:func:`visible_threshold`), deg.
     mae_disc, mae_after : mapping of str to float
-        Specimen -> MAE of ``femcal calibrate`` with the disc alone, and with the found
-        effects (the disc alone where none is found), deg.
+        Specimen -> MAE of the calibration with the disc alone, and with the found effects
+        (the disc alone where none is found), deg.
 
     Returns
     -------
@@ -170,16 +166,30 @@ def score(
 
 
 def _calibrate(
-    long: pd.DataFrame, names: Sequence[str], effects: str, folder: Path, options: Mapping
+    long: pd.DataFrame,
+    names: Sequence[str],
+    effects: Sequence[str],
+    folder: Path,
+    options: Mapping,
 ) -> dict[str, float]:
-    """``femcal calibrate --effects <effects>`` on the specimens ``names``; specimen -> MAE."""
+    """The calibration with the terms ``effects`` of the specimens ``names`` (params.yaml's
+    ``calibrate`` settings, no held-out surrogate, no figures); specimen -> MAE."""
     folder.mkdir(parents=True, exist_ok=True)
     subset = folder / "measurements.csv"
     long[long["specimen"].astype(str).isin(names)].to_csv(subset, index=False)
     result = folder / "calibration"
-    args = ["calibrate", "--measurements", str(subset), "--effects", effects, "--out", str(result)]
-    args += ["--model-uri", options["model_uri"], "--noise-deg", str(options["noise_deg"])]
-    _femcal([*args, "--no-holdout", "--plots", "none"], options["root"])
+    job = CalibrationJob.from_params(
+        options["params"],
+        measurements=subset,
+        out_dir=result,
+        model_uri=options["model_uri"],
+        holdout_uri=None,
+        plots="none",
+        effects=tuple(effects),
+        noise_deg=float(options["noise_deg"]),
+        noise_source=NOISE_SOURCE,
+    )
+    run_calibration(job)
     metrics = pd.read_csv(result / "metrics.csv", dtype={"specimen": str})
     return dict(zip(metrics["specimen"], metrics["mae_deg"].astype(float)))
 
@@ -192,13 +202,15 @@ def _calibrate_groups(
 
     long = read_measurements(measured).to_long()
     names = [str(rec["specimen"]) for rec in diagnosis]
-    disc = _calibrate(long, names, "", out_dir / "disc-alone", options)
-    groups: dict[str, list[str]] = {}
+    disc = _calibrate(long, names, (), out_dir / "disc-alone", options)
+    groups: dict[tuple[str, ...], list[str]] = {}
     for rec in diagnosis:  # the diagnosed model's terms: tied or split, where each acts
         terms = rec.get("model") or rec.get("effects") or []
-        groups.setdefault(",".join(terms), []).append(str(rec["specimen"]))
+        groups.setdefault(tuple(terms), []).append(str(rec["specimen"]))
     after: dict[str, float] = {}
-    for i, (effects, members) in enumerate(sorted(groups.items())):
+    # the folders found-<i> numbered in the order of the terms' comma-separated lists
+    ordered = sorted(groups.items(), key=lambda item: ",".join(item[0]))
+    for i, (effects, members) in enumerate(ordered):
         if not effects:
             after.update({name: disc[name] for name in members})
             continue
@@ -216,41 +228,44 @@ def run_hidden(
     cohort_dir : Path
         The cohort folder (:mod:`femcal.fe.cohort`): ``measured/Test`` and ``answers.csv``.
     model_uri : str
-        The disc-only surrogate (a model folder or ``models:/`` URI).
+        The disc-only surrogate (a model folder, relative to the working directory, or a
+        ``models:/`` URI).
     out_dir : Path
         Folder of the diagnosis, the calibrations and ``hidden.json``.
     noise_deg : float
-        Measurement noise sd given to both commands, deg.
+        Measurement noise sd given to both jobs, deg.
     root : Path
-        The project root (the commands run there, with its ``params.yaml``).
+        The project root: its ``params.yaml`` gives both jobs' other settings, its MLflow
+        store and its user effects (:func:`femcal.jobs.common.use_project`), its git commit
+        is recorded.
 
     Returns
     -------
     dict
         ``hidden.json``.
     """
+    from femcal.config import load_params
+    from femcal.jobs.common import use_project
+
     cohort_dir, out_dir = Path(cohort_dir).resolve(), Path(out_dir).resolve()
     measured = cohort_dir / "measured" / "Test"
     diagnosis_dir = out_dir / "diagnosis"
-    _femcal(
-        [
-            "diagnose",
-            "--measurements",
-            str(measured),
-            "--model-uri",
-            model_uri,
-            "--noise-deg",
-            str(noise_deg),
-            "--out",
-            str(diagnosis_dir),
-        ],
-        root,
+    params = load_params(Path(root) / "params.yaml")
+    use_project(params)
+    job = DiagnosisJob.from_params(
+        params,
+        measurements=measured,
+        out_dir=diagnosis_dir,
+        model_uri=model_uri,
+        noise_deg=float(noise_deg),
+        noise_source=NOISE_SOURCE,
     )
+    run_diagnosis(job)
     diagnosis = json.loads((diagnosis_dir / "diagnosis.json").read_text())
     summary = json.loads((diagnosis_dir / "summary.json").read_text())
     threshold = visible_threshold(summary, noise_deg)
     answers = pd.read_csv(cohort_dir / "answers.csv", dtype={"specimen": str})
-    options = {"model_uri": model_uri, "noise_deg": noise_deg, "root": root}
+    options = {"model_uri": model_uri, "noise_deg": noise_deg, "params": params}
     disc, after = _calibrate_groups(measured, diagnosis, out_dir, options)
     figures = score(diagnosis, answers, threshold, disc, after)
     commit = subprocess.run(
@@ -268,6 +283,8 @@ def run_hidden(
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command line of :func:`run_hidden` (see the module docstring)."""
+    from femcal.threads import limit_threads
+
     parser = argparse.ArgumentParser(prog="python -m femcal.fe.hidden")
     parser.add_argument("--cohort", type=Path, default=Path("fe/data/cohort"))
     parser.add_argument("--model-uri", default=str(Path("fe/models/surrogate-large").resolve()))
@@ -276,6 +293,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--root", type=Path, default=Path("."))
     parser.add_argument("--metrics-file", type=Path, default=None)
     args = parser.parse_args(argv)
+    limit_threads()  # as femcal's command line: the cores free now, before torch starts
     figures = run_hidden(args.cohort, args.model_uri, args.out, args.noise_deg, args.root)
     if args.metrics_file:
         headline = {k: v for k, v in figures.items() if k != "specimens"}

@@ -14,15 +14,16 @@ it, else the grid's middle moment, so that a 1-5 Nm campaign fits 1-3 Nm and pre
 3. the FE curves are compared with the specimens' noise-free curves above the split, which
    the calibration never saw.
 
-``python -m femcal.fe.predictive`` (from ``fe/``) calibrates with ``femcal calibrate`` and
-the surrogate given, and writes ``predictive.json``.
+``python -m femcal.fe.predictive`` (from ``fe/``) calibrates with the surrogate given and
+``fe/params.yaml``'s ``calibrate`` settings (:func:`femcal.jobs.calibrate.run_calibration`, in
+this process), and writes ``predictive.json``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -230,19 +231,34 @@ def fe_outputs(fe: Any, moments: Sequence[float]) -> Curves:
     return outputs
 
 
-def _cli_calibrate(model_uri: str, out_dir: Path, noise_deg: float) -> Calibrate:
-    """A :data:`Calibrate` that runs ``femcal calibrate`` (disc alone) in the current folder."""
-    from femcal.fe.hidden import _femcal
+def job_calibrate(
+    params: Mapping[str, Any], model_uri: str, out_dir: Path, noise_deg: float
+) -> Calibrate:
+    """A :data:`Calibrate` that calibrates the disc alone with ``params``' ``calibrate``
+    settings and the surrogate ``model_uri`` (no held-out surrogate, no figures), into
+    ``out_dir/<variant>/calibration``; the ``noisy`` variant counts ``noise_deg``.
+
+    The MLflow run goes to the store MLflow is pointed at (:func:`main`:
+    :func:`femcal.jobs.common.use_project`).
+    """
+    from femcal.jobs.calibrate import CalibrationJob, run_calibration
 
     def calibrate(points: pd.DataFrame, variant: str) -> pd.DataFrame:
         folder = out_dir / variant
         folder.mkdir(parents=True, exist_ok=True)
         points.to_csv(folder / "points.csv", index=False)
-        args = ["calibrate", "--measurements", str(folder / "points.csv"), "--effects", ""]
-        args += ["--model-uri", model_uri, "--no-holdout", "--plots", "none"]
-        if variant == "noisy":
-            args += ["--noise-deg", str(noise_deg)]
-        _femcal([*args, "--out", str(folder / "calibration")], Path.cwd())
+        noisy = variant == "noisy"
+        job = CalibrationJob.from_params(
+            params,
+            measurements=folder / "points.csv",
+            out_dir=folder / "calibration",
+            model_uri=model_uri,
+            holdout_uri=None,
+            plots="none",
+            noise_deg=float(noise_deg) if noisy else None,
+            noise_source="python -m femcal.fe.predictive --noise-deg" if noisy else "",
+        )
+        run_calibration(job)
         return pd.read_csv(folder / "calibration" / "parameters.csv", dtype={"specimen": str})
 
     return calibrate
@@ -252,7 +268,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command line of :func:`run_predictive`, run from ``fe/`` (module docstring)."""
     from femcal.config import load_params
     from femcal.fe.runtime import SHARED_MACHINE_TIMEOUT_S, fe_runtime
+    from femcal.jobs.common import use_project
     from femcal.measurements import read_measurements
+    from femcal.threads import limit_threads
 
     parser = argparse.ArgumentParser(prog="python -m femcal.fe.predictive")
     parser.add_argument("--measurements", type=Path, default=Path("data/dataset/Test"))
@@ -277,14 +295,16 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "--metrics-file", type=Path, default=Path("reports/metrics/predictive.json")
     )
     args = parser.parse_args(argv)
+    limit_threads()  # as femcal's command line: the cores free now, before torch starts
     params = load_params("params.yaml")
+    use_project(params)
     fe = fe_runtime(params, {"store": args.store}, "fe")
     fe = replace(fe, settings={**fe.settings, "timeout_s": args.timeout_s})
     truth = read_measurements(args.measurements)
     if args.n_specimens:
         truth = truth.subset(truth.specimens[: args.n_specimens])
     curves = fe_outputs(fe, truth.moments)
-    calibrate = _cli_calibrate(args.model_uri, args.out, args.noise_deg)
+    calibrate = job_calibrate(params, args.model_uri, args.out, args.noise_deg)
     figures = run_predictive(truth, curves, calibrate, args.noise_deg, args.seed, args.variants)
     figures.update(model_uri=args.model_uri, measurements=str(args.measurements))
     write_dvc_metrics(args.metrics_file, "predictive", figures, details=True)

@@ -36,32 +36,39 @@ def moment_policy(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
     return {k: getattr(moments, k).pair() for k in ("error_growth", "max_log_ratio")}
 
 
-def use_project(params: Mapping[str, Any]) -> list[str]:
-    """Set this process up as ``femcal calibrate`` and ``femcal diagnose`` are: MLflow pointed
-    at params.yaml's store and experiment, the user's effect modules imported.
+def use_project_store(params: Mapping[str, Any]) -> None:
+    """Point MLflow at params.yaml's store and experiment, as femcal's commands do.
 
     The store is ``mlflow.store_dir`` (:func:`femcal.paths.store_path`;
-    ``MLFLOW_TRACKING_URI`` wins, :func:`femcal.tracking.configure_tracking`); runs started
-    from now on are tagged with this process, and runs of killed processes are closed. The
-    effect modules are ``effects.modules``, relative to params.yaml's folder.
+    ``MLFLOW_TRACKING_URI`` wins, :func:`femcal.tracking.configure_tracking`). Runs started
+    from now on are tagged with this process, and runs of killed processes are closed
+    (:mod:`femcal.tracking_runs`).
+    """
+    from femcal.paths import store_path
+    from femcal.tracking import configure_tracking, ensure_experiment
+    from femcal.tracking_runs import close_killed_runs, tag_runs_with_process
+
+    mlflow = settings_of(params).require("mlflow", "store_dir", "experiment")
+    store = store_path(params, mlflow.store_dir)
+    configure_tracking(store_dir=store)
+    experiment = ensure_experiment(mlflow.experiment, store_dir=store)
+    tag_runs_with_process()  # pid + host on every run this process starts
+    close_killed_runs([experiment])  # logs each run it closes as KILLED
+
+
+def use_project(params: Mapping[str, Any]) -> list[str]:
+    """Set this process up as ``femcal calibrate`` and ``femcal diagnose`` are: MLflow pointed
+    at params.yaml's store and experiment (:func:`use_project_store`), the user's effect
+    modules (``effects.modules``, relative to params.yaml's folder) imported.
 
     Returns
     -------
     list of str
         The effects the user's modules registered.
     """
-    from femcal.paths import store_path
-    from femcal.tracking import configure_tracking, ensure_experiment
-    from femcal.tracking_runs import close_killed_runs, tag_runs_with_process
-
-    settings = settings_of(params)
-    mlflow = settings.require("mlflow", "store_dir", "experiment")
-    store = store_path(params, mlflow.store_dir)
-    configure_tracking(store_dir=store)
-    experiment = ensure_experiment(mlflow.experiment, store_dir=store)
-    tag_runs_with_process()  # pid + host on every run this process starts
-    close_killed_runs([experiment])
-    modules = settings.effects.modules if settings.effects is not None else ()
+    use_project_store(params)
+    effects = settings_of(params).effects
+    modules = effects.modules if effects is not None else ()
     if not modules:
         return []
     from femcal.effects import load_effect_modules

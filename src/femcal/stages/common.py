@@ -183,13 +183,6 @@ def optuna_storage(params: Mapping[str, Any]) -> str:
     return storage
 
 
-def moment_policy(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
-    """The typed ``moments`` section as keywords: ``error_growth`` and ``max_log_ratio``,
-    ``(below, above)`` each."""
-    moments = typed(params, "moments")
-    return {k: getattr(moments, k).pair() for k in ("error_growth", "max_log_ratio")}
-
-
 def moment_settings(params: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
     """params.yaml's ``moments`` section (one moment policy for every command) as keywords.
 
@@ -226,10 +219,6 @@ def dropped_note(n_dropped: int, out: str) -> str:
         f"WARNING: {n_dropped} measured points lie beyond the moments the surrogate is used at "
         f"and were left out: see {out}/dropped_points.csv (moments.max_log_ratio)"
     )
-
-
-#: How ``describe`` names an estimated noise's source (``femcal diagnose`` without a value).
-ESTIMATED_NOISE = "estimated from the disc-alone residuals"
 
 
 def noise_setting(
