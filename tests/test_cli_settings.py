@@ -20,11 +20,11 @@ from femcal.cli import SETTINGS_OF, build_parser, setting_overrides
 from femcal.config import load_params
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.errors import ConfigError
-from femcal.fe.options import AdaptOptions, CampaignOptions, ValidateOptions
+from femcal.fe.options import AdaptOptions, CampaignOptions, GeometryOptions, ValidateOptions
 from femcal.settings import SECTIONS
 from femcal.settings._format import keys_of
 from femcal.settings.fe import AdaptSettings, FeSettings, RefineSettings
-from femcal.settings.keywords import GaKeywords, PgdKeywords, PgdStudyKeywords
+from femcal.settings.keywords import GaKeywords, GeometryKeywords, PgdKeywords, PgdStudyKeywords
 from femcal.settings.root import DiagnoseSettings
 from femcal.settings.values import option_fields
 
@@ -49,6 +49,7 @@ OPTIONS = [
     (CampaignOptions, FeSettings, "fe/options.py"),
     (AdaptOptions, AdaptSettings, "fe/options.py"),
     (ValidateOptions, RefineSettings, "fe/options.py"),
+    (GeometryOptions, GeometryKeywords, "fe/options.py"),
 ]
 #: The stage that passes each dataclass its options (calibrate passes the method's mapping,
 #: its noise_deg is the measurement's, not pgd's error scale; simulate resolves fe.scratch_dir
@@ -77,8 +78,9 @@ def _declared_fields() -> dict[tuple[str, str], list[str]]:
 
 @pytest.mark.parametrize(("options", "model", "home"), OPTIONS)
 def test_each_option_is_declared_once(options, model, home):
-    """An option of diagnose, pgd, ga or fe is declared in its dataclass and nowhere else: neither
-    the classes its settings model is built on nor its stage's settings declare it again."""
+    """An option of diagnose, pgd, ga, fe or the disc geometry is declared in its dataclass and
+    nowhere else: neither the classes its settings model is built on nor its stage's settings
+    declare it again."""
     names = set(option_fields(options))
     bases = {cls.__name__ for cls in model.__mro__}
     for (file, cls), declared in _declared_fields().items():

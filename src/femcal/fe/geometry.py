@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from femcal.errors import ConfigError
-from femcal.settings.values import Float, Int, check_options, option
+from femcal.fe.options import GeometryOptions
 
 logger = logging.getLogger(__name__)
 
@@ -87,38 +87,10 @@ MESH_PRESETS: dict[str, dict[str, int]] = {
 
 
 @dataclass(frozen=True)
-class DiscGeometry:
+class DiscGeometry(GeometryOptions):
     """Dimensions, regions and mesh density of the disc model (x lateral, y anterior-posterior,
-    z the disc height); each field is an option (:func:`femcal.settings.values.option`): its
-    bounds, default and doc are those of ``fe.settings.geometry``.
-
-    Raises
-    ------
-    ConfigError
-        A field out of its bounds: ``DiscGeometry: n_regions must be an integer >= 3; got 2.``
-    """
-
-    width_mm: Float(gt=0) = option(50.0, "lateral axis of the ellipse, mm")
-    depth_mm: Float(gt=0) = option(35.0, "anterior-posterior axis of the ellipse, mm")
-    height_mm: Float(gt=0) = option(11.0, "disc height, mm")
-    nucleus_fraction: Float(gt=0, lt=1) = option(0.44, "nucleus volume fraction")
-    n_rings: Int(1) = option(
-        5, "annulus rings from the outer to the inner boundary (material layers)"
-    )
-    n_regions: Int(3) = option(5, "circumferential annulus regions per side, anterior to posterior")
-    elements_per_region: Int(1) = option(1, "elements along the circumference per region")
-    elements_per_ring: Int(1) = option(1, "elements across each annulus ring")
-    elements_core: Int(1) = option(1, "elements between the nucleus block and its boundary")
-    elements_height: Int(1) = option(2, "elements through the disc height")
-    core_size: Float(gt=0, lt=1) = option(
-        0.55, "corner radius of the nucleus block relative to the nucleus radius"
-    )
-    reference_height_mm: Float() = option(
-        10.0, "load reference point above the disc centre, mm (study: 10 mm)"
-    )
-
-    def __post_init__(self) -> None:
-        check_options(self, "DiscGeometry")
+    z the disc height): the fields of :class:`femcal.fe.options.GeometryOptions`, each checked
+    against its bounds, and the mesh they make."""
 
     @classmethod
     def preset(cls, name: str, **overrides: float) -> DiscGeometry:

@@ -1,5 +1,6 @@
 """The options of the FE workflows, each default declared here once.
 
+:class:`GeometryOptions` (the disc of :class:`femcal.fe.geometry.DiscGeometry`),
 :class:`CampaignOptions` (how :func:`femcal.fe.campaign.run_campaign` runs its jobs),
 :class:`AdaptOptions` (:func:`femcal.fe.adaptive.adapt_surrogate`) and
 :class:`ValidateOptions` (:func:`femcal.fe.validate.validate_calibration`). The options that
@@ -22,6 +23,40 @@ if TYPE_CHECKING:
 
     from femcal.fe.idp import PublishedIdp
     from femcal.fe.validate import LiteratureRange
+
+
+@dataclass(frozen=True)
+class GeometryOptions:
+    """The disc's dimensions, regions and mesh density (:class:`femcal.fe.geometry.DiscGeometry`
+    adds its mesh), as ``fe.settings.geometry`` sets them.
+
+    Raises
+    ------
+    ConfigError
+        A field out of its bounds: ``DiscGeometry: n_regions must be an integer >= 3; got 2.``
+    """
+
+    width_mm: Float(gt=0) = option(50.0, "lateral axis of the ellipse, mm")
+    depth_mm: Float(gt=0) = option(35.0, "anterior-posterior axis of the ellipse, mm")
+    height_mm: Float(gt=0) = option(11.0, "disc height, mm")
+    nucleus_fraction: Float(gt=0, lt=1) = option(0.44, "nucleus volume fraction")
+    n_rings: Int(1) = option(
+        5, "annulus rings from the outer to the inner boundary (material layers)"
+    )
+    n_regions: Int(3) = option(5, "circumferential annulus regions per side, anterior to posterior")
+    elements_per_region: Int(1) = option(1, "elements along the circumference per region")
+    elements_per_ring: Int(1) = option(1, "elements across each annulus ring")
+    elements_core: Int(1) = option(1, "elements between the nucleus block and its boundary")
+    elements_height: Int(1) = option(2, "elements through the disc height")
+    core_size: Float(gt=0, lt=1) = option(
+        0.55, "corner radius of the nucleus block relative to the nucleus radius"
+    )
+    reference_height_mm: Float() = option(
+        10.0, "load reference point above the disc centre, mm (study: 10 mm)"
+    )
+
+    def __post_init__(self) -> None:
+        check_options(self, type(self).__name__)
 
 
 @dataclass(frozen=True)

@@ -316,7 +316,7 @@ CalibratorOptions._describe = "calibrator options per method"
 # ------------------------------------------------------------------ the disc geometry
 class _Geometry(OptionSection, Keywords):
     _owner: ClassVar[str] = "DiscGeometry"
-    _options: ClassVar[type] = light_class("fe.geometry", "DiscGeometry")
+    _options: ClassVar[type] = light_class("fe.options", "GeometryOptions")
 
     @model_validator(mode="before")
     @classmethod
@@ -338,7 +338,7 @@ class _Geometry(OptionSection, Keywords):
 
 
 #: The disc geometry (``fe.settings.geometry``): a mesh preset, and the options of
-#: :class:`femcal.fe.geometry.DiscGeometry`.
+#: :class:`femcal.fe.options.GeometryOptions` (those of :class:`femcal.fe.geometry.DiscGeometry`).
 GeometryKeywords = with_options(
     "GeometryKeywords", _Geometry, "The disc geometry (femcal.fe.geometry.DiscGeometry)."
 )

@@ -350,8 +350,11 @@ class OptionError(ConfigError):
 @functools.cache
 def option_fields(cls: type) -> dict[str, tuple[Any, Any, str]]:
     """Option -> (annotation, default, doc) of the fields of an options dataclass declared
-    with :func:`option`, in declaration order (its other fields are the library's alone)."""
-    names = vars(sys.modules[cls.__module__])
+    with :func:`option`, in declaration order (its other fields are the library's alone);
+    an annotation is read in the module of the class declaring it (a base's too)."""
+    names = {
+        k: v for c in reversed(cls.__mro__) for k, v in vars(sys.modules[c.__module__]).items()
+    }
     return {
         f.name: (eval(f.type, names) if isinstance(f.type, str) else f.type, f.default, doc)
         for f in dataclasses.fields(cls)
