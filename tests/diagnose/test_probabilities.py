@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from femcal.diagnose.elimination import _explains_most
-from femcal.diagnose.probabilities import prior_cost, specimen_probabilities
+from femcal.diagnose.probabilities import (
+    bootstrap_rng,
+    bootstrap_weights,
+    prior_cost,
+    specimen_probabilities,
+)
 
 FIRST, FURTHER = 10.0, 2.0
 
@@ -107,3 +112,60 @@ def test_where_an_effect_acts_is_the_share_of_its_models_acting_there():
     assert where["LateralBending"] == pytest.approx(0.5, abs=1e-3)
     assert where["Extension"] == where["AxialRotation"] == 1.0
     assert p["inclusion"]["facet_contact"] == pytest.approx(1.0, abs=1e-3)
+
+
+def _one_point_apart(p: int = 40, gap: float = 20.0) -> dict[str, np.ndarray]:
+    """Two models fitting ``p`` points alike but at one, where the second misses by ``gap``
+    chi-square units."""
+    a = np.ones(p)
+    b = a.copy()
+    b[0] += gap
+    return {"facet_contact": a, "ligament_tension": b}
+
+
+def test_evidence_every_point_gives_alike_keeps_the_point_posterior():
+    # each point says 0.5 chi-square units for the facet: a constant shift under every draw
+    p = 40
+    pointwise = {"facet_contact": np.ones(p), "ligament_tension": np.full(p, 1.5)}
+    scores = np.array([pointwise[k].sum() for k in pointwise])
+    w = bootstrap_weights(scores, np.stack(list(pointwise.values())), np.random.default_rng(0))
+    point = np.exp(-(scores - scores.min()) / 2)
+    np.testing.assert_allclose(w, point / point.sum(), rtol=1e-9)
+
+
+def test_evidence_from_one_point_is_spread_over_the_models_that_fit():
+    pointwise = _one_point_apart()
+    crit = {(k,): float(v.sum()) for k, v in pointwise.items()}
+    point = specimen_probabilities(crit, None, FIRST, FURTHER)
+    boot = specimen_probabilities(
+        crit, None, FIRST, FURTHER, pointwise=pointwise, rng=np.random.default_rng(0)
+    )
+    # 20 chi-square units: odds e^10 for the facet under the point posterior
+    assert point["inclusion"]["facet_contact"] > 0.9999
+    # under the bootstrap the one point weighs Exp(1) p / p: the facet's weight is
+    # E[1 / (1 + exp(-10 E))], E ~ Exp(1), = 0.94 (Monte Carlo error 0.016)
+    assert boot["inclusion"]["facet_contact"] == pytest.approx(0.94, abs=0.03)
+    # the verdict's model is the point posterior's
+    assert boot["most_probable"] == point["most_probable"] == "facet_contact"
+
+
+def test_the_bootstrap_is_seeded_per_specimen():
+    pointwise = _one_point_apart()
+    crit = {(k,): float(v.sum()) for k, v in pointwise.items()}
+
+    def run(name: str) -> dict:
+        rng = bootstrap_rng(0, name)
+        return specimen_probabilities(crit, None, FIRST, FURTHER, pointwise=pointwise, rng=rng)
+
+    assert run("S01")["models"] == run("S01")["models"]
+    assert run("S01")["models"] != run("S02")["models"]
+
+
+def test_the_bootstrap_needs_every_models_points():
+    pointwise = _one_point_apart()
+    crit = {(k,): float(v.sum()) for k, v in pointwise.items()}
+    crit[()] = 500.0  # the disc alone, without pointwise contributions: the point posterior
+    p = specimen_probabilities(
+        crit, None, FIRST, FURTHER, pointwise=pointwise, rng=np.random.default_rng(0)
+    )
+    assert p["inclusion"]["facet_contact"] > 0.9999

@@ -29,7 +29,7 @@ from femcal.diagnose.explain import (
 )
 from femcal.diagnose.fits import _Fit
 from femcal.diagnose.outside import assess
-from femcal.diagnose.probabilities import specimen_probabilities
+from femcal.diagnose.probabilities import bootstrap_rng, outside_label, specimen_probabilities
 from femcal.diagnose.result import (
     NONE,
     RESEMBLES,
@@ -223,6 +223,7 @@ def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
     as the search leaves it out."""
     outside = _outside_criteria(state, finals, gp)
     aside = not_engaged(state)
+    pointwise = _pointwise(state, finals, gp)
     return [
         specimen_probabilities(
             {
@@ -233,9 +234,29 @@ def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
             (state.chosen[i], outside[i]),
             state.options.min_delta,
             state.options.min_delta_inadequate,
+            pointwise=pointwise[i],
+            rng=bootstrap_rng(state.options.seed, state.specimens[i]),
         )
         for i in range(state.n)
     ]
+
+
+def _pointwise(state: DiagnosisState, finals, gp) -> list[dict[str, np.ndarray]]:
+    """Per specimen, each fitted model's chi-square contribution at each measured point
+    (label -> (p,)), and its final model's with the discrepancy's mean added (the
+    discrepancy's label): what the Bayesian bootstrap of the probabilities reweighs."""
+    out: list[dict[str, np.ndarray]] = [{} for _ in range(state.n)]
+    for i in range(state.n):
+        ok = state.mask[i]
+        for m, (f, at) in state.per_spec[i].items():
+            r = (state.measured[i] - f.pred[at].double().numpy()) / state.sigma[i]
+            out[i][model_label(m)] = r[ok] ** 2
+    for effects, rows in finals.items():
+        for pos, i in enumerate(rows):
+            f, at = state.per_spec[i][effects]
+            r = state.measured[i] - f.pred[at].double().numpy() - gp[effects].delta_at_points[pos]
+            out[i][outside_label(effects)] = (r / state.sigma[i])[state.mask[i]] ** 2
+    return out
 
 
 #: An effect is idle in a fit when removing it raises the chi-square by less than this and

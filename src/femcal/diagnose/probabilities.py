@@ -20,10 +20,25 @@ The inclusion probability of an effect is the sum over the models that hold it (
 in any load cases, and the discrepancy's model when it holds it); the probability that it acts
 in a load case is the share, among those, of the models in which it acts there
 (:func:`acts_in`).
+
+*Honest where nothing in the library is the truth* (:func:`bootstrap_weights`). The weights
+above hold where one of the fitted models is the truth. Where none is (a law from outside the
+library's families, a structure in a load case the library does not let it act in, a disc
+outside the box), two models can both fit within the noise, each a little better at some
+points, and a few chi-square units decide between them: a flexible effect standing in for
+something else then gets the probability of a found one. The reported probabilities are
+therefore averaged over the Bayesian bootstrap of the measured points (pseudo-BMA+, Yao et al.
+2018, *Bayesian Analysis* 13(3)): each draw weighs the points with Dirichlet(1, ..., 1) weights
+(scaled to the point count) in every model's chi-square, the penalties and prior costs kept,
+and the weights of each draw are averaged. Evidence that every point gives keeps its
+probability; evidence from a few points, or that points give both ways, spreads it over the
+models that fit. The most probable model, which the verdict names, is the point posterior's
+(uniform weights), so the verdicts are those of the criterion.
 """
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Mapping
 
 import numpy as np
@@ -34,6 +49,50 @@ from femcal.effects.terms import cases_of, model_case_cost
 from femcal.schema import LOAD_CASES
 
 Model = tuple[str, ...]
+
+#: Bayesian-bootstrap draws per specimen: the Monte Carlo error of a probability averaged over
+#: them is at most 0.5 / sqrt(draws) = 0.016.
+BOOTSTRAP_DRAWS = 1000
+
+
+def bootstrap_rng(seed: int, specimen: str) -> np.random.Generator:
+    """The bootstrap's generator for one specimen, from the diagnosis' seed and the specimen's
+    name: its draws do not depend on which specimens are diagnosed together."""
+    return np.random.default_rng([int(seed), zlib.crc32(str(specimen).encode())])
+
+
+def bootstrap_weights(
+    scores: np.ndarray, pointwise: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """Model weights averaged over the Bayesian bootstrap of the measured points.
+
+    Parameters
+    ----------
+    scores : ndarray, shape (k,)
+        Each model's score, ``chi^2 + penalty + prior cost`` (finite).
+    pointwise : ndarray, shape (k, p)
+        Each model's chi-square contribution at each of the specimen's ``p`` measured points
+        (summing to its chi-square).
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray, shape (k,)
+        The mean over :data:`BOOTSTRAP_DRAWS` draws of ``exp(-S_b / 2)`` normalized, where
+        ``S_b = scores + sum_j (p a_j - 1) pointwise_j`` and ``a ~ Dirichlet(1, ..., 1)``
+        (``a_j = 1 / p`` gives the scores themselves).
+    """
+    scores = np.asarray(scores, dtype=float)
+    pointwise = np.asarray(pointwise, dtype=float)
+    p = pointwise.shape[1]
+    if p < 2 or len(scores) < 2:
+        w = np.exp(-(scores - scores.min()) / 2)
+        return w / w.sum()
+    a = rng.dirichlet(np.ones(p), size=BOOTSTRAP_DRAWS) * p  # (B, p), each row sums to p
+    s = scores[None, :] + (a - 1.0) @ pointwise.T  # (B, k)
+    s -= s.min(axis=1, keepdims=True)
+    w = np.exp(-s / 2)
+    return (w / w.sum(axis=1, keepdims=True)).mean(axis=0)
 
 
 def prior_cost(effects: Model, first: float, further: float) -> float:
@@ -48,6 +107,12 @@ def model_prior_cost(effects: Model, first: float, further: float) -> float:
     """:func:`prior_cost` plus what the load cases its effects act in cost against their
     likely ones (:func:`femcal.effects.terms.model_case_cost`)."""
     return prior_cost(effects, first, further) + model_case_cost(effects)
+
+
+def outside_label(effects: Model) -> str:
+    """The label of model ``effects`` with a discrepancy: ``a+b+unexplained`` (the disc
+    alone's: ``unexplained``)."""
+    return f"{model_label(effects)}+{UNEXPLAINED}" if effects else UNEXPLAINED
 
 
 def acts_in(prob: Mapping[str, float], models: Mapping[str, Model]) -> dict:
@@ -74,6 +139,8 @@ def specimen_probabilities(
     outside: tuple[Model, float] | None,
     first: float,
     further: float,
+    pointwise: Mapping[str, np.ndarray] | None = None,
+    rng: np.random.Generator | None = None,
 ) -> dict:
     """Posterior probabilities of one specimen's explanations.
 
@@ -86,6 +153,12 @@ def specimen_probabilities(
         discrepancy (``-2 log ML - sum ln sigma^2 + (k + a) ln n``), or None.
     first, further : float
         Prior costs (:func:`prior_cost`).
+    pointwise : mapping of str to ndarray of shape (p,), optional
+        Per model label (as in ``models``), its chi-square contribution at each measured
+        point. Given for every model with ``rng``, the reported probabilities are the
+        Bayesian bootstrap's (:func:`bootstrap_weights`); else the point posterior's.
+    rng : numpy.random.Generator, optional
+        The bootstrap's generator (:func:`bootstrap_rng`).
 
     Returns
     -------
@@ -93,8 +166,9 @@ def specimen_probabilities(
         ``models``: label -> probability (``a+b``, ``a:split``, ``none``, and
         ``<model>+unexplained`` for the discrepancy), most probable first; ``inclusion``:
         effect name -> probability; ``outside_library``: the discrepancy's probability;
-        ``most_probable``: the top label and ``most_probable_effects`` its model's effects;
-        ``unexplained``: the discrepancy is more probable than the model it sits on alone;
+        ``most_probable``: the top label of the point posterior and ``most_probable_effects``
+        its model's effects; ``unexplained``: the discrepancy is more probable than the model
+        it sits on alone (point posterior);
         ``acts_in``: effect -> load case -> the probability that it acts there given that it
         is present (:func:`acts_in`).
     """
@@ -103,7 +177,7 @@ def specimen_probabilities(
     }
     if outside is not None:
         m, c = outside
-        label = f"{model_label(m)}+{UNEXPLAINED}" if m else UNEXPLAINED
+        label = outside_label(m)
         scores[label] = (m, c + model_prior_cost(m, first, further) + first)
     finite = {k: v for k, v in scores.items() if np.isfinite(v[1])}
     if not finite:
@@ -116,22 +190,29 @@ def specimen_probabilities(
             "most_probable_effects": [],
             "acts_in": {},
         }
-    low = min(c for _, c in finite.values())
-    weight = {k: float(np.exp(-(c - low) / 2)) for k, (_, c) in finite.items()}
-    total = sum(weight.values())
-    prob = {k: w / total for k, w in sorted(weight.items(), key=lambda kv: -kv[1])}
+    labels = list(finite)
+    c = np.array([finite[k][1] for k in labels])
+    point = np.exp(-(c - c.min()) / 2)
+    point /= point.sum()
+    weights = point
+    if rng is not None and pointwise is not None and all(k in pointwise for k in labels):
+        weights = bootstrap_weights(c, np.stack([pointwise[k] for k in labels]), rng)
+    prob = {labels[j]: float(weights[j]) for j in np.argsort(-weights, kind="stable")}
+    top = labels[int(np.argmax(point))]
     inclusion: dict[str, float] = {}
     for label, p in prob.items():
         for e in {base_name(e) for e in finite[label][0]}:
             inclusion[e] = inclusion.get(e, 0.0) + p
     out_label = next((k for k in prob if k.endswith(UNEXPLAINED)), None)
     own = model_label(outside[0]) if outside is not None else None
+    at = {k: j for j, k in enumerate(labels)}
+    point_own = point[at[own]] if own in at else 0.0
     return {
-        "unexplained": bool(out_label and prob[out_label] > prob.get(own, 0.0)),
+        "unexplained": bool(out_label and point[at[out_label]] > point_own),
         "models": {k: round(p, 4) for k, p in prob.items() if p >= 1e-4},
         "inclusion": {k: round(v, 4) for k, v in sorted(inclusion.items())},
         "outside_library": round(prob.get(out_label, 0.0), 4) if out_label else 0.0,
-        "most_probable": next(iter(prob)),
-        "most_probable_effects": list(finite[next(iter(prob))][0]),
+        "most_probable": top,
+        "most_probable_effects": list(finite[top][0]),
         "acts_in": acts_in(prob, {k: m for k, (m, _) in finite.items()}),
     }
