@@ -356,9 +356,10 @@ def _write_and_log(
     outputs: tuple,
 ) -> dict[str, Any]:
     """Write the outputs into a staging folder inside one MLflow run, log them, move them
-    into place; ``outputs``: the held-out model, the plot mode, the reachability, the
-    screened measurements, the timer, the surrogate and the moment policy (the figures'
-    curves). Returns the summary figures."""
+    into place (the run's tables and comparison are logged while the figures are drawn:
+    :func:`~femcal.calibration.report.write_outputs`' ``before_figures``). ``outputs``: the
+    held-out model, the plot mode, the reachability, the screened measurements, the timer,
+    the surrogate and the moment policy (the figures' curves). Returns the summary figures."""
     from femcal.calibration.report import write_outputs
     from femcal.outputs import staged_output
 
@@ -367,6 +368,23 @@ def _write_and_log(
     label = "+".join([s.method, *s.effects])
     with staged_output(s.out_dir, command="calibrate") as stage:
         tracker.submit(start_calibration_run, run_name=f"calibrate-{label}")
+
+        def log_tables(figures: dict[str, Any]) -> None:
+            # the run's tables and comparison logged while the figures are drawn
+            screened.write(stage.path)
+            figures["n_dropped_points"] = len(screened.dropped)
+            tracker.submit(
+                log_calibration,
+                tags=tags,
+                params=logged,
+                metrics={k: float(v) for k, v in figures.items() if isinstance(v, (int, float))},
+                parameters=result.parameters_frame(),
+                measurements=s.measurements,
+                figures=dict(figures),
+                out_dir=stage.path,
+                compare_to=s.compare_to,
+            )
+
         try:
             figures = write_outputs(
                 result,
@@ -377,22 +395,11 @@ def _write_and_log(
                 reachability=reach.notes(),
                 progress=s.progress,
                 curves=curves,
+                before_figures=log_tables,
             )
-            screened.write(stage.path)
-            figures["n_dropped_points"] = len(screened.dropped)
             lap(f"outputs (tables, plots: {plots})")
             stage.note(mlflow_run_id=tracker.result())
-            compared = tracker.call(
-                log_calibration,
-                tags=tags,
-                params=logged,
-                metrics={k: float(v) for k, v in figures.items() if isinstance(v, (int, float))},
-                parameters=result.parameters_frame(),
-                measurements=s.measurements,
-                figures=figures,
-                out_dir=stage.path,
-                compare_to=s.compare_to,
-            )
+            compared = tracker.result()
             stage.finalize()
             tracker.call(
                 log_artifacts, folder=stage.path, artifact_path="calibration", progress=s.progress
