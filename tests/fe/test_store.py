@@ -113,3 +113,40 @@ def test_a_bad_journal_line_is_named_by_its_line_in_the_file(tmp_path):
     store.journal.write_bytes(folded[0] + b"\n" + folded[1] + b"\nnot json\n" + folded[0] + b"\n")
     with pytest.raises(InputDataError, match=r"runs\.jsonl, line 3: not a job record"):
         store.read()
+
+
+def test_gz_store_grows_in_segments_each_under_the_limit(tmp_path):
+    """A fold starts a new segment once the last one holds segment_bytes: the earlier
+    segments' bytes never change, and read sees every record once, in order."""
+    store = CampaignStore(tmp_path / "runs.jsonl.gz", fold_every=1, segment_bytes=60)
+    _fill(store, range(2))
+    first = store.path.read_bytes()
+    assert len(first) >= 60  # one compressed record fills a segment: one per fold
+    _fill(store, range(2, 5))
+    names = [p.name for p in store.segments()]
+    assert names == ["runs.jsonl.gz"] + [f"runs-{k:03d}.jsonl.gz" for k in range(2, 6)]
+    assert store.path.read_bytes() == first
+    assert [r["config_id"] for r in CampaignStore(store.path).read()] == list(range(5))
+    # A kill between a segment's rename and the journal's truncation: read once, folded once.
+    line = gzip.decompress(store.segment_path(5).read_bytes()).splitlines()[-1]
+    store.journal.write_bytes(line + b"\n")
+    assert [r["config_id"] for r in store.read()] == list(range(5))
+    with store.writer():
+        pass
+    assert [r["config_id"] for r in store.read()] == list(range(5))
+
+
+def test_missing_segment_is_named(tmp_path):
+    store = CampaignStore(tmp_path / "runs.jsonl.gz", fold_every=1, segment_bytes=60)
+    _fill(store, range(5))
+    store.segment_path(2).unlink()
+    with pytest.raises(InputDataError, match=r"runs-002\.jsonl\.gz: a segment .* is missing"):
+        store.read()
+
+
+def test_corrupt_segment_is_named(tmp_path):
+    store = CampaignStore(tmp_path / "runs.jsonl.gz", fold_every=1, segment_bytes=60)
+    _fill(store, range(5))
+    store.segment_path(3).write_bytes(b"not gzip")
+    with pytest.raises(InputDataError, match=r"runs-003\.jsonl\.gz: not a readable gzip"):
+        store.read()

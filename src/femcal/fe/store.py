@@ -26,6 +26,9 @@ logger = logging.getLogger(__name__)
 
 #: Version of the store's record layout.
 STORE_VERSION = 1
+#: A ``.gz`` store starts a new segment once its last one holds this many compressed bytes
+#: (each committed file stays under the repository's 2 MB limit).
+SEGMENT_BYTES = 1_500_000
 
 
 # ------------------------------------------------------------------------- job keys
@@ -134,32 +137,78 @@ class CampaignStore:
         plain journal beside it (the same name without ``.gz``), which is folded into the
         compressed file every ``fold_every`` records and when the writer closes. A journal
         left by a killed writer is read with the compressed file and folded by the next one.
+        A compressed store is a chain of segments: ``runs.jsonl.gz``, then ``runs-002.jsonl.gz``,
+        ``runs-003.jsonl.gz`` ... (:meth:`segments`); a fold rewrites only the last one, and
+        starts the next once the last holds ``segment_bytes`` compressed bytes, so a growing
+        campaign adds files instead of rewriting (and re-committing) one large file.
     fold_every : int
         Records appended between two folds of the journal (``.gz`` stores only).
+    segment_bytes : int
+        Compressed size at which a ``.gz`` store starts a new segment.
     """
 
-    def __init__(self, path: str | Path, *, fold_every: int = 50) -> None:
+    def __init__(
+        self, path: str | Path, *, fold_every: int = 50, segment_bytes: int = SEGMENT_BYTES
+    ) -> None:
         self.path = Path(path)
         self.compressed = self.path.suffix == ".gz"
         #: The plain file that is appended to (the store itself unless it is compressed).
         self.journal = self.path.with_suffix("") if self.compressed else self.path
         self.fold_every = int(fold_every)
+        self.segment_bytes = int(segment_bytes)
         self._fh: Any = None
         self._since_fold = 0
 
     # reading ---------------------------------------------------------------
-    def _sealed_bytes(self) -> bytes:
-        """The decompressed content of a ``.gz`` store (empty if there is none)."""
-        if not (self.compressed and self.path.is_file()):
-            return b""
+    def segment_path(self, k: int) -> Path:
+        """The ``k``-th segment of a ``.gz`` store (1: the store's own path)."""
+        if k == 1:
+            return self.path
+        plain = Path(self.path.name[: -len(".gz")])
+        return self.path.with_name(f"{plain.stem}-{k:03d}{plain.suffix}.gz")
+
+    def segments(self) -> list[Path]:
+        """The segments of a ``.gz`` store that exist, in order (empty for a plain store).
+
+        Raises
+        ------
+        InputDataError
+            A segment is missing between two present ones (a file was deleted or not
+            checked out): the message names it.
+        """
+        if not self.compressed:
+            return []
+        found = []
+        k = 1
+        while self.segment_path(k).is_file():
+            found.append(self.segment_path(k))
+            k += 1
+        plain = Path(self.path.name[: -len(".gz")])
+        later = sorted(self.path.parent.glob(f"{plain.stem}-[0-9][0-9][0-9]{plain.suffix}.gz"))
+        stray = [p for p in later if p not in found]
+        if stray:
+            raise InputDataError(
+                f"{self.segment_path(k)}: a segment of the campaign store is missing, but "
+                f"later ones exist ({', '.join(p.name for p in stray)}). Restore it from git "
+                "(git checkout -- <file>), or delete the later segments to run their jobs again."
+            )
+        return found
+
+    @staticmethod
+    def _gunzip(path: Path) -> bytes:
         try:
-            with gzip.open(self.path, "rb") as fh:
-                return fh.read()
+            with gzip.open(path, "rb") as fh:
+                data = fh.read()
         except (OSError, EOFError) as exc:
             raise InputDataError(
-                f"{self.path}: not a readable gzip file ({exc}). Restore it from git "
+                f"{path}: not a readable gzip file ({exc}). Restore it from git "
                 "(git checkout -- <file>) or delete it to run its jobs again."
             ) from None
+        return data if not data or data.endswith(b"\n") else data + b"\n"
+
+    def _sealed_bytes(self) -> bytes:
+        """The decompressed content of a ``.gz`` store's segments (empty if there is none)."""
+        return b"".join(self._gunzip(p) for p in self.segments())
 
     def read(self) -> list[dict]:
         """All records, in file order; a torn last line (killed writer) is skipped.
@@ -171,12 +220,15 @@ class CampaignStore:
             or corrupted), or a ``.gz`` store is not gzip: the message names the file and
             line.
         """
-        sealed = self._sealed_bytes()
-        records = self._parse(self.path, sealed.split(b"\n"), torn_ok=False)
+        records: list[dict] = []
+        known: set[bytes] = set()
+        for segment in self.segments():
+            lines = self._gunzip(segment).split(b"\n")
+            records += self._parse(segment, lines, torn_ok=False)
+            known.update(lines)
         if self.journal.is_file():
             lines = self.journal.read_bytes().split(b"\n")
             # Lines already folded (a kill between the fold's rename and truncate): read once.
-            known = set(sealed.split(b"\n"))
             records += self._parse(self.journal, lines, torn_ok=True, skip=known)
         return records
 
@@ -286,10 +338,10 @@ class CampaignStore:
     def fold(self) -> None:
         """Move the journal's records into the ``.gz`` store (atomically; no-op if plain).
 
-        The compressed file is rewritten to a temporary file, synced and renamed over the old
-        one; only then is the journal emptied, so a kill at any point loses nothing (records
-        in both files are read once). The gzip header carries no time stamp, so the same
-        records give the same bytes.
+        The last segment (a new one once the last holds ``segment_bytes``) is rewritten to a
+        temporary file, synced and renamed over the old one; only then is the journal emptied,
+        so a kill at any point loses nothing (records in both files are read once). The gzip
+        header carries no time stamp, so the same records give the same bytes.
         """
         if self._fh is None:
             raise RuntimeError("CampaignStore.fold outside `with store.writer():`")
@@ -300,22 +352,24 @@ class CampaignStore:
         journal = self._fh.read()
         if not journal.strip():
             return
-        sealed = self._sealed_bytes()
-        known = set(sealed.split(b"\n"))
+        segments = self.segments()
+        known = set(self._sealed_bytes().split(b"\n"))
         new = [ln for ln in journal.split(b"\n") if ln.strip() and ln not in known]
-        if sealed and not sealed.endswith(b"\n"):
-            sealed += b"\n"
-        tmp = self.path.with_name(self.path.name + ".tmp")
+        last = segments[-1] if segments else self.path
+        if segments and last.stat().st_size >= self.segment_bytes:
+            last = self.segment_path(len(segments) + 1)
+        sealed = self._gunzip(last) if last.is_file() else b""
+        tmp = last.with_name(last.name + ".tmp")
         with open(tmp, "wb") as raw:
             with gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as gz:
                 gz.write(sealed + b"".join(ln + b"\n" for ln in new))
             raw.flush()
             os.fsync(raw.fileno())
-        os.replace(tmp, self.path)
+        os.replace(tmp, last)
         self._fh.truncate(0)
         self._fh.flush()
         os.fsync(self._fh.fileno())
-        logger.info("%s: folded %d journal records into the store.", self.path, len(new))
+        logger.info("%s: folded %d journal records into the store.", last, len(new))
 
 
 def records_frame(records: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
