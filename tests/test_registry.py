@@ -215,6 +215,29 @@ def test_builtin_modules_are_imported_on_first_use_only(site, hub):
     assert hub.names() == ["alpha", "beta"] and hub.create("beta") == "beta"
 
 
+def test_a_restore_keeps_what_the_builtin_modules_registered(site):
+    """A module registers once, when first imported: a state saved before the registry's
+    first use must not drop its entries on restore (a test fixture's snapshot and restore
+    around a look-up that imported them)."""
+    write(site / "regtest_hub.py", "REG = None\n")
+    hub_module = importlib.import_module("regtest_hub")
+    hub_module.REG = reg = widgets(builtins=("regtest_builtin",))
+    write(
+        site / "regtest_builtin.py",
+        """
+        from regtest_hub import REG
+
+        @REG.register("alpha")
+        def alpha():
+            return "alpha"
+        """,
+    )
+    state = reg.snapshot()
+    assert reg.create("alpha") == "alpha"
+    reg.restore(state)
+    assert reg.names() == ["alpha"]
+
+
 def test_one_builtin_module_is_imported_alone_for_a_look_up_that_knows_it(site, hub):
     for name in ("alpha", "beta"):
         write(

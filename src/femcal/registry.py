@@ -311,10 +311,7 @@ class Registry(Generic[T]):
                 return
             self._busy = True
             try:
-                if not self._builtins_loaded:
-                    for module in self.builtins:
-                        _import(module)
-                    self._builtins_loaded = True
+                self._load_builtins()
                 self._load_plugins()
                 self._loaded = True
             finally:
@@ -380,8 +377,20 @@ class Registry(Generic[T]):
         self._entries.update(saved)
 
     # ------------------------------------------------------------------ tests
+    def _load_builtins(self) -> None:
+        with self._lock:
+            if not self._builtins_loaded:
+                for module in self.builtins:
+                    _import(module)
+                self._builtins_loaded = True
+
     def snapshot(self) -> RegistryState:
-        """The registry's contents and loading state, for :meth:`restore` (tests)."""
+        """The registry's contents and loading state, for :meth:`restore` (tests).
+
+        The built-in modules are imported first: a module registers its entries once, when it
+        is first imported, so a state saved before that would drop them on restore.
+        """
+        self._load_builtins()
         with self._lock:
             return RegistryState(
                 dict(self._entries),
