@@ -24,7 +24,7 @@ from femcal.threads import THREAD_VARIABLES, choose_threads, limit_threads
         (2, 9.5, 1),
         (8, 2.6, 5),
         (1, 0.0, 1),
-        (4, float("nan"), 4),  # no load average known: every core
+        (4, float("nan"), 4),  # no load known: every core
         (0, 0.0, 1),
     ],
 )
@@ -32,12 +32,33 @@ def test_the_threads_are_the_free_cores(cpus, load, threads):
     assert choose_threads(cpus, load) == threads
 
 
+def test_the_load_is_the_busy_share_of_the_cpu_time_now(monkeypatch):
+    """The busy cores over the sample, from two readings of /proc/stat: a program spinning on
+    one of two cores reads 1 (a load average would still count a command that just ended)."""
+    import femcal.threads as threads
+
+    readings = iter([(1000.0, 4000.0), (1050.0, 4100.0)])  # busy, total ticks
+    monkeypatch.setattr(threads, "_cpu_times", lambda: next(readings))
+    monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
+    assert threads.machine_load(sample_s=0.0) == pytest.approx(1.0)
+
+
+def test_the_load_of_this_machine_is_a_count_of_cores():
+    """Read for real: between no core and every core."""
+    import os
+
+    from femcal.threads import machine_load
+
+    load = machine_load(sample_s=0.02)
+    assert 0.0 <= load <= (os.cpu_count() or 1) + 1e-9
+
+
 def test_the_count_chosen_is_set_for_every_thread_pool():
     environ: dict[str, str] = {}
     choice = limit_threads(environ, cpus=2, load=1.1)
     assert choice.threads == 1 and not choice.user
     assert {k: environ[k] for k in THREAD_VARIABLES} == dict.fromkeys(THREAD_VARIABLES, "1")
-    assert "on 1 thread of 2 cores (load average 1.10" in choice.describe()
+    assert "on 1 thread of 2 cores (1.10 cores busy" in choice.describe()
 
 
 @pytest.mark.parametrize("variable", THREAD_VARIABLES)

@@ -15,6 +15,7 @@ import logging
 import math
 import os
 import sys
+import time
 from collections.abc import MutableMapping
 from dataclasses import dataclass
 
@@ -23,8 +24,10 @@ logger = logging.getLogger(__name__)
 #: The variables the thread pools read: OpenMP's (torch's intra-op threads), MKL's, OpenBLAS'.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
-#: A core counts as busy from this much load average on (a program on one core shows about 1).
+#: A core counts as busy from this much load on (a program on one core shows about 1).
 BUSY_LOAD = 0.5
+#: Seconds over which :func:`machine_load` measures the busy cores.
+LOAD_SAMPLE_S = 0.05
 
 
 def choose_threads(cpus: int, load: float) -> int:
@@ -35,9 +38,9 @@ def choose_threads(cpus: int, load: float) -> int:
     cpus : int
         The cores this process may run on (:func:`os.sched_getaffinity`).
     load : float
-        The load average over the last minute (:func:`os.getloadavg`): the cores other
-        programs keep busy. Each full core of load counts once it reaches :data:`BUSY_LOAD`
-        of a core (0.4 counts none, 0.6 one, 1.5 two).
+        The cores other programs keep busy (:func:`machine_load`). Each full core of load
+        counts once it reaches :data:`BUSY_LOAD` of a core (0.4 counts none, 0.6 one, 1.5
+        two).
 
     Returns
     -------
@@ -58,8 +61,35 @@ def machine_cpus() -> int:
         return os.cpu_count() or 1
 
 
-def machine_load() -> float:
-    """The load average over the last minute (0 where the platform has none)."""
+def _cpu_times() -> tuple[float, float] | None:
+    """The machine's busy and total CPU time so far, in clock ticks (None without /proc)."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            fields = [float(x) for x in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 5:
+        return None
+    idle = fields[3] + fields[4]  # idle and iowait
+    return sum(fields[:8]) - idle, sum(fields[:8])
+
+
+def machine_load(sample_s: float = LOAD_SAMPLE_S) -> float:
+    """The cores other programs keep busy now.
+
+    On Linux, the busy share of the machine's CPU time over ``sample_s`` seconds (from
+    ``/proc/stat``, while this process sleeps) times its cores: a program spinning on one
+    core reads about 1, and a command that ended a moment ago reads 0, where the load average
+    of the last minute would still count it. Elsewhere, that load average (0 where the
+    platform has none).
+    """
+    first = _cpu_times()
+    if first is not None:
+        time.sleep(sample_s)
+        second = _cpu_times()
+        if second is not None and second[1] > first[1]:
+            share = (second[0] - first[0]) / (second[1] - first[1])
+            return max(0.0, share) * (os.cpu_count() or 1)
     try:
         return os.getloadavg()[0]
     except (AttributeError, OSError):  # pragma: no cover - Windows
@@ -77,7 +107,7 @@ class ThreadChoice:
     cpus : int
         The cores this process may run on.
     load : float
-        The load average over the last minute when the command started.
+        The busy cores when the command started (:func:`machine_load`).
     user : dict of str to str
         The :data:`THREAD_VARIABLES` the user set, as given (empty when femcal chose).
     """
@@ -94,8 +124,8 @@ class ThreadChoice:
             return f"torch, OpenMP and BLAS threads as set by the user ({given})"
         plural = "s" if self.threads != 1 else ""
         return (
-            f"torch, OpenMP and BLAS on {self.threads} thread{plural} of {self.cpus} cores (load "
-            f"average {self.load:.2f}; set OMP_NUM_THREADS to choose another count)"
+            f"torch, OpenMP and BLAS on {self.threads} thread{plural} of {self.cpus} cores "
+            f"({self.load:.2f} cores busy; set OMP_NUM_THREADS to choose another count)"
         )
 
 
@@ -117,7 +147,7 @@ def limit_threads(
     environ : mutable mapping, optional
         The environment to read and set (default: the process's).
     cpus, load : optional
-        The cores and the load average (default: :func:`machine_cpus`, :func:`machine_load`).
+        The cores and the busy ones (default: :func:`machine_cpus`, :func:`machine_load`).
 
     Returns
     -------
