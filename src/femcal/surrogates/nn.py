@@ -29,12 +29,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 import torch
-from sklearn.base import BaseEstimator, RegressorMixin
 
-from femcal.errors import ConfigError, InputDataError, SurrogateNotFittedError
+from femcal import errors
+from femcal.errors import ConfigError, InputDataError
 from femcal.schema import LOAD_CASES
 from femcal.space import ParameterSpace
 from femcal.surrogates.base import check_features, error_profile, register_surrogate
+from femcal.surrogates.contract import RegressorContract
 from femcal.surrogates.romnet import (
     ACTIVATIONS,  # noqa: F401 (re-exported: the activations NeuralSurrogate takes)
     LOSSES,
@@ -56,8 +57,9 @@ _PREDICT_BATCH = 65_536
 
 # ------------------------------------------------------------------------------ surrogate
 @register_surrogate("nn")
-class NeuralSurrogate(RegressorMixin, BaseEstimator):
-    """Neural-network RoM surrogate (scikit-learn estimator contract).
+class NeuralSurrogate(RegressorContract):
+    """Neural-network RoM surrogate (scikit-learn's estimator contract, without importing it:
+    :class:`~femcal.surrogates.contract.RegressorContract`).
 
     Defaults are the measured best recipe for the study's Large set (one member ~50 s on one
     CPU thread; use ``n_members=5`` for the best accuracy).
@@ -263,7 +265,8 @@ class NeuralSurrogate(RegressorMixin, BaseEstimator):
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "net_"):
-            raise SurrogateNotFittedError(
+            # looked up when raised: the error class imports scikit-learn (its NotFittedError)
+            raise errors.SurrogateNotFittedError(
                 f"This {type(self).__name__} is not fitted yet: call fit(X, y) or "
                 "NeuralSurrogate.load(path) first."
             )
