@@ -177,7 +177,8 @@ def build_envelope(
         ``n_samples`` or ``margin`` out of range, or ``sigma_model`` of the wrong shape.
     """
     import torch
-    from scipy.stats import qmc
+
+    from femcal.reachability.sobol import scrambled_sobol
 
     t0 = time.perf_counter()
     n_disc = int(getattr(model, "n_disc", model.dim))
@@ -201,8 +202,8 @@ def build_envelope(
             f"{sigma_model!r}. Pass MomentPolicy.sigma_surrogate(moments)."
         )
     rng = np.random.default_rng(seed)
-    sobol = qmc.Sobol(int(model.dim), scramble=True, seed=rng)
-    u = sobol.random_base2(math.ceil(math.log2(int(n_samples))))
+    # scipy.stats.qmc.Sobol's points, without importing scipy.stats
+    u = scrambled_sobol(int(model.dim), math.ceil(math.log2(int(n_samples))), rng)
     if n_disc < model.dim:
         # Half the sample at the vertices of the effects' parameter box (their extremes: an
         # effect at full strength or absent), the disc parameters space-filling.
