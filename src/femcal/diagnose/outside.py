@@ -11,8 +11,12 @@ cannot be told apart (:func:`assess`).
 envelope (at least :data:`REACH_POINTS` points beyond the level of every curve the disc alone
 produces over its box, :func:`femcal.reachability.build_envelope`), or the disc-alone fit
 presses against the box (at least :data:`BOUNDS_PRESSED` of its parameters on a bound).
-Otherwise nothing here changes a diagnosis. Looking is not deciding: a disc inside the box with
-strong posterior elements also leaves the disc alone's reach, and the shapes decide.
+Where the disc alone is probable, the box itself says how often its discs look as much at
+its edge (:func:`femcal.diagnose.box_edge.edge_reading`); the disc alone's model then stands
+in for a disc beyond the box with that probability, and the diagnosis looks where it is at
+least :data:`REPORTED`. Otherwise nothing here changes a diagnosis. Looking is not deciding:
+a disc inside the box with strong posterior elements also leaves the disc alone's reach, and
+the shapes decide.
 
 **The side**: ``stiffer`` where the points beyond the envelope lie below it (``softer``
 above), else from the sign of the disc alone's residuals. Only an effect that moves the curves
@@ -65,6 +69,7 @@ import numpy as np
 import torch
 
 from femcal.calibration.model import SurrogateCurveModel
+from femcal.diagnose.box_edge import edge_reading, edge_words
 from femcal.diagnose.result import OUTSIDE_BOX, UNEXPLAINED, model_label
 from femcal.effects.composite import EffectModel
 from femcal.effects.split import base_name
@@ -414,6 +419,12 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
     pred0 = disc.pred.double().numpy()
     unit = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
     evidence = box_evidence(base, state.measured, state.sigma, pred0, unit, state.sigma_m)
+    env = build_envelope(base, sigma_model=np.zeros(len(state.sigma_m)))
+    for i, ev in enumerate(evidence):  # the disc alone probable: how often the box looks so
+        if probabilities[i].get("models", {}).get("none", 0.0) >= MODEL_FLOOR:
+            ev["edge"] = edge_reading(state, i, env, unit[i])
+            if ev["edge"]["probability"] >= REPORTED and not ev["outside_points"]:
+                ev["looks"], ev["side"] = True, ev["edge"]["side"]
     if not any(e["looks"] for e in evidence):
         return probabilities, outside
     reader = ShapeReader(base, state.mask)
@@ -438,6 +449,8 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
                 v = fit.v[pos].double().numpy()
                 st = reader.effect_stand_ins(m, v, i, ev["side"], discrepancy)
             parts[label] = [(e, st[e]["stand_in"]) for e in m]
+            if not m and not discrepancy and "edge" in ev:  # the disc alone, at the box's edge
+                parts[label] = [("none", ev["edge"]["probability"])]
             if m == chosen and (discrepancy or not shapes):
                 shapes = st
             if discrepancy:
@@ -500,6 +513,7 @@ def _reading(state, ev: dict, prob: dict, stand_ins: tuple, fitted: list[Model])
         "outside_load_cases": ev["outside_load_cases"],
         "stand_ins": shapes,
         "discrepancy": gap,
+        "edge": ev.get("edge"),
         "remedy": REMEDY,
     }
     reading["summary"] = summary(reading)
@@ -533,6 +547,8 @@ def summary(reading: dict[str, Any]) -> str:
             f"{', '.join(base_name(e) for e in stand)} act from about 0 Nm without engaging (a "
             f"{side} disc, not an element with a gap or a slack)"
         )
+    if reading.get("edge") and reading["edge"]["probability"] >= REPORTED:
+        why.append(edge_words(reading["edge"]))
     gap = reading["discrepancy"]
     if gap is not None and gap["stand_in"] >= 0.5:
         why.append("what the model misses is about the same share of every curve")
