@@ -18,6 +18,9 @@ Its ``diagnosis.json`` is scored against ``truth.json``:
   says ``unexplained`` and its out-of-box reading has probability >= :data:`BOX_REPORTED` (the
   summary names the box beside it); and the specimens where a built-in effect has inclusion
   >= :data:`CONFIDENT`.
+  Beside the verdict: the discs outside the box whose out-of-box reading is reported (its
+  probability >= :data:`BOX_REPORTED`, under any verdict), and the box said of discs inside it
+  (the class ``none``, and every class but ``outside_box``: the Test discs).
 * **beyond the old assignment**: facets acting in LateralBending and ligaments acting in
   Extension, where that load case's contribution is visible: the right effect named (among
   others) and the exact, strict verdict.
@@ -182,6 +185,9 @@ def score_specimen(truth: dict, record: dict) -> dict[str, Any]:
         "right_named": bool(expected) and expected <= named,
         "box_said": box_said,
         "box_probability": float(box.get("probability") or 0.0),
+        "box_reported": float(box.get("probability") or 0.0) >= BOX_REPORTED,
+        "bounds_pressed": len((record.get("failures") or {}).get("on_bounds") or []),
+        "edge_probability": float((box.get("edge") or {}).get("probability", np.nan)),
         "confident_wrong": "+".join(
             sorted(e for e, p in inclusion.items() if p >= CONFIDENT and e not in expected)
         ),
@@ -226,6 +232,10 @@ def headline(t: pd.DataFrame) -> dict[str, dict[str, Any]]:
         "box_said": _rate(box["box_said"]),
         "box_said_visible": _rate(box[box["visible"]]["box_said"]),
         "box_confident_builtin": _rate(box["confident_builtin"].astype(bool)),
+        "box_reported": _rate(box["box_reported"]),
+        "box_false_none": _rate(t[t["truth"] == "none"]["box_said"]),
+        "box_reported_none": _rate(t[t["truth"] == "none"]["box_reported"]),
+        "box_false_inside": _rate(t[t["truth"] != "outside_box"]["box_said"]),
         "beyond_right_named": _rate(
             pd.concat([facets_lb["facet_named"], lig_ext["ligament_named"]], ignore_index=True)
         ),

@@ -20,6 +20,10 @@ BARS: dict[str, tuple[str, str]] = {
     ),
     "box_said_visible": ("  the same, visible discs (disc-alone MAE > 2 x true noise)", ""),
     "box_confident_builtin": ("  outside the box: a built-in effect with inclusion >= 0.9", "0"),
+    "box_reported": ("  outside the box: out-of-box reading reported (p >= 0.1), any verdict", ""),
+    "box_false_none": ("  class `none`: out-of-box verdict (or `unexplained` naming the box)", ""),
+    "box_reported_none": ("  class `none`: out-of-box reading reported (p >= 0.1)", ""),
+    "box_false_inside": ("  Test discs (every class but outside): out-of-box said", ""),
     "beyond_right_named": ("beyond the old assignment: right effect named, visible", ">= 80 %"),
     "facets_lb_right_named": ("  facets in lateral bending: facet_contact named", ""),
     "facets_lb_strict": ("  facets in lateral bending, class facets: strict", ""),
@@ -90,6 +94,8 @@ def _headline(runs: list[dict], pooled: dict) -> list[str]:
     head = ["criterion", *(f"seed {r['seed']}" for r in runs), "pooled", "bar"]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for key, (label, bar) in BARS.items():
+        if key not in pooled["headline"]:  # a results folder scored before the row existed
+            continue
         cells = [_fmt(r["summary"]["headline"].get(key)) for r in runs]
         lines.append("| " + " | ".join([label, *cells, _fmt(pooled["headline"][key]), bar]) + " |")
     return lines
@@ -149,8 +155,8 @@ def _mae(mae: dict) -> list[str]:
     return lines
 
 
-def section(payload: dict) -> list[str]:
-    """The Markdown section of one results folder."""
+def section(payload: dict, folder: Path | str = "") -> list[str]:
+    """The Markdown section of one results folder (its ``box_edge.md`` appended, if any)."""
     meta, pooled = payload["meta"], payload["pooled"]
     runs = [r for r in payload["runs"] if r.get("summary")]
     lib = meta.get("library", {})
@@ -179,6 +185,9 @@ def section(payload: dict) -> list[str]:
     lines += ["", "### Per protocol (pooled)", ""] + _groups(pooled["by_protocol"], "protocol")
     lines += ["", "### Verdicts per class (pooled)", ""] + _verdicts(pooled["verdicts_by_class"])
     lines += ["", "### Final MAE over the `none` floor (pooled)", ""] + _mae(pooled["mae"])
+    extra = Path(folder) / "box_edge.md"  # experiments.box_edge_measure's tables
+    if folder and extra.exists():
+        lines += ["", *extra.read_text().rstrip().splitlines()]
     return lines + [""]
 
 
@@ -193,7 +202,7 @@ def write_page(folders: Sequence[Path], out: Path) -> None:
     ]
     for folder in folders:
         payload = json.loads((Path(folder) / "bench_edges.json").read_text())
-        lines += section(payload)
+        lines += section(payload, folder)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines).rstrip() + "\n")
 
