@@ -170,3 +170,18 @@ def test_the_summary_page_is_drawn_beside_the_specimens(tmp_path, result):
     assert drawn == ["summary"] and all(p.exists() for p in paths)
     plot_specimens(result, [], beside=lambda: drawn.append("alone"))
     assert drawn == ["summary", "alone"]
+
+
+def test_the_written_figure_is_the_figure_drawn_in_full(tmp_path, result, noisy):
+    """Redrawn per specimen (static pixels kept, the y axes drawn without measuring their tick
+    labels, the PNG written from the canvas), a figure has the pixels of a full draw."""
+    for calibration in (result, noisy):
+        for i in range(3):
+            path = tmp_path / f"S{i}.png"
+            fig = plot_specimen(calibration, i, path)
+            canvas = text_caching_canvas(fig)
+            canvas.draw()
+            full = np.asarray(canvas.buffer_rgba())[..., :3]
+            with Image.open(path) as image:
+                assert image.mode == "RGB"
+                assert np.array_equal(np.asarray(image), full)

@@ -216,7 +216,9 @@ class _SpecimenFigure:
                 y=1.02,
             )
             for artist in (self.bands[j], held, model, measured, note, ax.yaxis, ax.title):
-                if artist is not None and artist.get_visible():
+                if artist is ax.yaxis:
+                    _draw_axis(artist, canvas.get_renderer())
+                elif artist is not None and artist.get_visible():
                     ax.draw_artist(artist)
         self.title.set_text(
             f"specimen {result.specimens[i]}: MAE {result.mae_deg[i]:.3f}°, "
@@ -224,6 +226,23 @@ class _SpecimenFigure:
         )
         self.fig.draw_artist(self.title)
         _write_png(canvas, path)
+
+
+def _draw_axis(axis: Any, renderer: Any) -> None:
+    """Draw ``axis`` (its ticks, tick labels, label and offset text) as ``axis.draw`` does,
+    without the bounding boxes of its tick labels: ``axis.draw`` measures them to place the
+    label and the offset text, which :class:`_SpecimenFigure` places by hand (the same
+    pixels, a tenth less drawing time)."""
+    if not axis.get_visible():
+        return
+    renderer.open_group(type(axis).__name__, gid=axis.get_gid())
+    for tick in axis._update_ticks():
+        tick.draw(renderer)
+    axis._update_label_position(renderer)  # nothing to do: the label's position is set
+    axis.label.draw(renderer)
+    axis.offsetText.set_text(axis.major.formatter.get_offset())
+    axis.offsetText.draw(renderer)
+    renderer.close_group(type(axis).__name__)
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
@@ -235,17 +254,20 @@ def _write_png(canvas: Any, path: Path) -> None:
     255 everywhere, so the colours are those ``savefig`` writes, without drawing). Rows
     unfiltered, deflated at level 3: the figures' flat colours compress as well as with PNG's
     adaptive filters, in a third of the time."""
+    from PIL import Image  # imported by matplotlib already
+
     rgba = np.asarray(canvas.buffer_rgba())  # (height, width, 4), uint8
     height, width = rgba.shape[:2]
+    rgb = Image.frombuffer("RGBA", (width, height), rgba, "raw", "RGBA", 0, 1).convert("RGB")
     rows = np.empty((height, 1 + 3 * width), dtype=np.uint8)
     rows[:, 0] = 0  # filter type None
-    rows[:, 1:].reshape(height, width, 3)[...] = rgba[:, :, :3]  # a view: copied in place
+    rows[:, 1:] = np.asarray(rgb).reshape(height, 3 * width)
     per_metre = round(DPI / 0.0254)
     Path(path).write_bytes(
         b"\x89PNG\r\n\x1a\n"
         + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
         + _png_chunk(b"pHYs", struct.pack(">IIB", per_metre, per_metre, 1))
-        + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), 3))
+        + _png_chunk(b"IDAT", zlib.compress(rows, 3))
         + _png_chunk(b"IEND", b"")
     )
 
