@@ -24,16 +24,16 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from femcal.effects.base import Effect, EffectParameter
-from femcal.effects.terms import SPLIT_SUFFIX, parse_term
+from femcal.effects.terms import Term, as_split, parse_term
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES
 
 __all__ = [
-    "SPLIT_SUFFIX",
     "base_name",
     "case_parameter",
     "has_split_form",
     "is_split",
+    "is_split_effect",
     "split_effect",
     "tied_parameter",
 ]
@@ -41,19 +41,24 @@ __all__ = [
 _SPLIT: dict[type[Effect], type[Effect]] = {}
 
 
-def is_split(name: str) -> bool:
-    """Whether an effect term names a split form (``<effect>:split``,
-    :mod:`femcal.effects.terms`)."""
+def is_split(name: str | Term) -> bool:
+    """Whether an effect term names a split form (:attr:`femcal.effects.terms.Term.split`)."""
     return parse_term(name).split
 
 
-def base_name(name: str) -> str:
+def base_name(name: str | Term) -> str:
     """The registered effect a term refers to: ``facet_contact:split`` and
-    ``facet_contact@Extension,LateralBending`` -> ``facet_contact``."""
+    ``facet_contact@Extension,LateralBending`` -> ``facet_contact``
+    (:attr:`femcal.effects.terms.Term.effect`)."""
     return parse_term(name).effect
 
 
-def has_split_form(name: str) -> bool:
+def is_split_effect(effect: Effect) -> bool:
+    """Whether an effect (an instance of a model's) is a split form (:func:`split_effect`)."""
+    return isinstance(effect, _SplitEffect)
+
+
+def has_split_form(name: str | Term) -> bool:
     """Whether a registered, tied effect has a split form (a parameter that may differ per
     load case, and two load cases or more)."""
     from femcal.effects.base import get_effect
@@ -115,7 +120,7 @@ def split_effect(cls: type[Effect]) -> type[Effect]:
         f"{cls.__name__}Split",
         (_SplitEffect,),
         {
-            "name": cls.name + SPLIT_SUFFIX,
+            "name": as_split(cls.name),
             "kind": cls.kind,
             "load_cases": cls.load_cases,
             "load_case_prior": dict(cls.load_case_prior),
