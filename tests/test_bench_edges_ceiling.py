@@ -70,6 +70,7 @@ def _row(truth, expected, pick, strict, within, lb=False, facet_named=False):
         "oracle_pick": pick,
         "oracle_right": pick == expected,
         "oracle_right_engaged": pick == expected,
+        "margin": 1.0 if pick == expected else -3.0,
         "strict": strict,
         "visible": True,
         "truth_within_noise": within,
@@ -101,6 +102,7 @@ def test_summarize_bounds_each_bench_row_and_splits_by_the_truth_fit():
     assert single["diagnosis"] == {"k": 1, "n": 2} and single["oracle_fit"] == {"k": 1, "n": 2}
     assert single["oracle_fit_within_noise"] == {"k": 1, "n": 1}
     assert single["oracle_fit_misfit"] == {"k": 0, "n": 1}
+    assert single["within_tie"] == {"k": 1, "n": 2}  # the miss lost by 3 > 2
     combos = s["combinations exactly right"]
     assert combos["oracle_fit"] == {"k": 0, "n": 2} and combos["within_noise"] == {"k": 1, "n": 2}
     beyond = s["beyond the old assignment: right effect named"]
