@@ -22,6 +22,7 @@ from femcal.diagnose import (
 )
 from femcal.effects.planted import fe_rotation
 from femcal.effects.split import base_name
+from femcal.effects.terms import Model, Term
 from femcal.errors import ConfigError
 from femcal.moments import MomentPolicy
 from femcal.schema import LOAD_CASES
@@ -399,8 +400,8 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
         rng=np.random.default_rng(0),
         per_spec=[{} for _ in rom],
     )
-    effects = ("facet_contact", "ligament_tension")
-    v0 = torch.full((len(rom), state.model(effects).dim), 0.5)  # one poor start: mid-box
+    effects = Model.parse("facet_contact+ligament_tension")
+    v0 = torch.full((len(rom), 1, state.model(effects).dim), 0.5)  # one poor start: mid-box
     fit = state.fit(effects, np.arange(len(rom)), v0)
     v, chi2 = fit.v.clone(), fit.chi2.copy()
     state.options = DiagnoseOptions(max_iter=10)
@@ -620,10 +621,13 @@ def test_bad_point_weights_are_refused(world, weight, match):
 def test_complementary_pairs_act_on_disjoint_load_cases():
     from femcal.diagnose.forward import complementary_pairs
 
-    assert complementary_pairs(["neutral_zone", "ligament_tension", "facet_contact"]) == [
-        FACET_LIGAMENT
+    def terms(*names: str) -> list[Term]:
+        return [Term.parse(n) for n in names]
+
+    assert complementary_pairs(terms("neutral_zone", "ligament_tension", "facet_contact")) == [
+        Model.parse("+".join(FACET_LIGAMENT))
     ]
-    assert complementary_pairs(["facet_contact", "neutral_zone"]) == []
+    assert complementary_pairs(terms("facet_contact", "neutral_zone")) == []
 
 
 def test_a_pair_neither_of_whose_effects_pays_alone_is_fitted_and_named(world):

@@ -6,9 +6,13 @@ import numpy as np
 import pytest
 
 from femcal.diagnose import explain
+from femcal.effects.terms import Model
 
 DENSE = np.array([1.0, 2.0, 4.0, 8.0])
 SIGMA = np.full(4, 0.05)
+
+
+M = Model.parse
 
 
 class _Table(dict):
@@ -21,11 +25,11 @@ def curves(monkeypatch):
     base = np.tile(np.array([1.0, 2.0, 3.0, 4.0]), (4, 1))
     table = _Table(
         {
-            (): base,
-            ("facet_contact",): base - np.array([0.0, 0.0, 0.1, 0.3]),
+            M(""): base,
+            M("facet_contact"): base - np.array([0.0, 0.0, 0.1, 0.3]),
             # the chosen model with a further effect fitted to nothing: the same curves
-            ("facet_contact", "ligament_tension"): base - np.array([0.0, 0.0, 0.1, 0.3]) + 1e-4,
-            ("facet_contact", "neutral_zone"): base - np.array([0.15, 0.0, 0.1, 0.3]),
+            M("facet_contact+ligament_tension"): base - np.array([0.0, 0.0, 0.1, 0.3]) + 1e-4,
+            M("facet_contact+neutral_zone"): base - np.array([0.15, 0.0, 0.1, 0.3]),
         }
     )
     table.sd = {}  # a model's prediction sd (4, q) where it has one; else zero
@@ -48,9 +52,9 @@ def _ranking(criteria: dict[tuple[str, ...], float]):
 
 
 def _next(ranking, min_delta=10.0):
-    fits = {tuple(r["effects"]): (None, 0) for r in ranking}
+    fits = {M(r["effect"]): (None, 0) for r in ranking}
     return explain._next_measurement(
-        ranking, fits, object(), DENSE, SIGMA, min_delta, ("facet_contact",)
+        ranking, fits, object(), DENSE, SIGMA, min_delta, M("facet_contact")
     )
 
 
@@ -89,9 +93,9 @@ def test_a_rival_whose_own_uncertainty_hides_its_difference_is_passed_over(curve
     """The rival whose curves differ most has a prediction sd that hides the difference (its
     parameters are not pinned where it differs): the other one is named, as trying every
     rival with its sd would; the Jacobian of a rival that cannot win is never computed."""
-    curves.sd[("facet_contact", "neutral_zone")] = np.full((4, 4), 1.0)
-    curves[("facet_contact", "ligament_tension")] = curves[("facet_contact",)] + 0.05
-    curves[("facet_contact", "ligament_tension", "neutral_zone")] = curves[("facet_contact",)]
+    curves.sd[M("facet_contact+neutral_zone")] = np.full((4, 4), 1.0)
+    curves[M("facet_contact+ligament_tension")] = curves[M("facet_contact")] + 0.05
+    curves[M("facet_contact+ligament_tension+neutral_zone")] = curves[M("facet_contact")]
     ranking = _ranking(
         {
             ("facet_contact",): 20.0,
@@ -106,9 +110,9 @@ def test_a_rival_whose_own_uncertainty_hides_its_difference_is_passed_over(curve
     # the chosen model, then the rivals by their bound until none can win: the same curves
     # (bound: never settles) is never refined
     assert curves.jacobians == [
-        ("facet_contact",),
-        ("facet_contact", "neutral_zone"),
-        ("facet_contact", "ligament_tension"),
+        M("facet_contact"),
+        M("facet_contact+neutral_zone"),
+        M("facet_contact+ligament_tension"),
     ]
 
 
@@ -118,7 +122,7 @@ def test_a_rivals_own_uncertainty_is_not_averaged_out_by_repeats(curves, rival_s
     variance v is shared by repeats like the surrogate's error, k = noise^2 / (delta^2 /
     needed - v) (delta 0.15 deg at 1 Nm, noise 0.05, needed 10 + 6: 1.8 -> 2 without sd,
     4.9 -> 5 with sd 0.03; with 0.04, v alone exceeds delta^2 / needed: never)."""
-    curves.sd[("facet_contact", "neutral_zone")] = np.full((4, 4), rival_sd)
+    curves.sd[M("facet_contact+neutral_zone")] = np.full((4, 4), rival_sd)
     ranking = _ranking({("facet_contact",): 20.0, ("facet_contact", "neutral_zone"): 26.0})
     n = _next(ranking)
     assert n["repeats_to_settle"] == expected

@@ -17,6 +17,7 @@ from femcal.calibration import SurrogateCurveModel
 from femcal.diagnose import diagnose
 from femcal.diagnose.where import mapped_start, wide_terms
 from femcal.effects.base import get_effect
+from femcal.effects.terms import Model, Term
 from femcal.schema import LOAD_CASES
 from femcal.surrogates.nn import NeuralSurrogate
 
@@ -96,17 +97,18 @@ def test_a_facet_in_its_likely_load_cases_stays_there(world):
 
 
 def test_the_wide_forms_are_the_effects_in_every_load_case_their_prior_allows():
-    assert wide_terms(["facet_contact", "ligament_tension", "neutral_zone"]) == [
+    names = ["facet_contact", "ligament_tension", "neutral_zone"]
+    assert [str(t) for t in wide_terms([Term.parse(n) for n in names])] == [
         "facet_contact@Extension,LateralBending,AxialRotation",
         "ligament_tension@Flexion,Extension,LateralBending",
     ]
 
 
 def test_a_start_maps_each_parameter_by_name_and_a_new_load_case_from_the_others():
-    tied = ("facet_contact:split",)
-    wide = ("facet_contact@Extension,LateralBending,AxialRotation:split",)
-    names_tied = [q.name for q in get_effect(tied[0]).parameters]
-    names_wide = [q.name for q in get_effect(wide[0]).parameters]
+    tied = Model.parse("facet_contact:split")
+    wide = Model.parse("facet_contact@Extension,LateralBending,AxialRotation:split")
+    names_tied = [q.name for q in get_effect(tied.terms[0]).parameters]
+    names_wide = [q.name for q in get_effect(wide.terms[0]).parameters]
     v = torch.cat(
         [
             torch.full((2, 13), 0.5),

@@ -1,5 +1,9 @@
-"""The last steps of a diagnosis: adequacy of the chosen models, how probable each explanation
-is, the discrepancy and what is missing, continuous curves, rankings and what to measure next."""
+"""The description step of a diagnosis: adequacy of the chosen models, the discrepancy and
+what is missing, continuous curves, rankings and what to measure next.
+
+It reads the search's state and the decision (:mod:`femcal.diagnose.decide`) and changes
+neither; it writes each model as a string (``str(model)``) into the result.
+"""
 
 from __future__ import annotations
 
@@ -8,11 +12,10 @@ from typing import Any
 
 import numpy as np
 
+from femcal.diagnose.decide import Decision
 from femcal.diagnose.discrepancy import (
-    DiscrepancyFit,
     dense_grid,
     discrepancy_posterior,
-    fit_discrepancy,
     similarity,
 )
 from femcal.diagnose.explain import (
@@ -29,7 +32,6 @@ from femcal.diagnose.explain import (
 )
 from femcal.diagnose.fits import _Fit
 from femcal.diagnose.outside import assess
-from femcal.diagnose.probabilities import bootstrap_rng, outside_label, specimen_probabilities
 from femcal.diagnose.result import (
     NONE,
     RESEMBLES,
@@ -39,14 +41,13 @@ from femcal.diagnose.result import (
     model_label,
     verdict_label,
 )
-from femcal.diagnose.state import DiagnosisState, Model
-from femcal.diagnose.where import not_engaged
-from femcal.effects.split import base_name
-from femcal.effects.terms import cases_of
+from femcal.diagnose.state import DiagnosisState
+from femcal.effects.terms import Term
 
 
 def _assemble(
     state: DiagnosisState,
+    decision: Decision,
     *,
     disc: _Fit,
     sur: np.ndarray,
@@ -55,40 +56,16 @@ def _assemble(
     moment_policy,
     t0: float,
 ) -> Diagnosis:
-    """The verdicts of the models the search chose (``disc``: the disc alone's fit of every
-    specimen; ``sur`` (m,) the surrogate's error; ``t0`` the start, for the time taken)."""
+    """The verdicts and descriptions of the models the decision chose (``disc``: the disc
+    alone's fit of every specimen; ``sur`` (m,) the surrogate's error; ``t0`` the start, for
+    the time taken).
+
+    Reads ``state`` (its fits and chosen models) and ``decision``; changes neither.
+    """
     n, measured, mask, sigma = state.n, state.measured, state.mask, state.sigma
-    finals: dict[Model, list[int]] = {}
-    for i in range(n):
-        finals.setdefault(state.chosen[i], []).append(i)
-    # One Jacobian per fitted batch: effective parameters and covariance of every model.
-    for i in range(n):
-        for f, _ in state.per_spec[i].values():
-            f.ensure_trace(mask, sigma)
     options = state.options
-    # Each final model with the discrepancy it needs (type-II maximum likelihood): how
-    # probable something outside the library is, and what it looks like.
-    gp = {effects: _gp_fit(state, effects, rows) for effects, rows in finals.items()}
-    probabilities = _probabilities(state, finals, gp)
-    # The verdict is the most probable explanation: where a fitted model is more probable
-    # than the search's choice with or without a discrepancy, that model is the verdict.
-    switched = [
-        i
-        for i, p in enumerate(probabilities)
-        if not p["most_probable"].endswith(UNEXPLAINED)
-        and tuple(p["most_probable_effects"]) != state.chosen[i]
-    ]
-    if switched:
-        for i in switched:
-            state.chosen[i] = tuple(probabilities[i]["most_probable_effects"])
-        old, finals = finals, {}
-        for i in range(n):
-            finals.setdefault(state.chosen[i], []).append(i)
-        for effects, rows in finals.items():
-            if rows != old.get(effects):  # the fits are per group, in its order
-                gp[effects] = _gp_fit(state, effects, rows)
-        probabilities = _probabilities(state, finals, gp)
-    probabilities, outside = _outside_box(state, disc, finals, gp, probabilities)
+    finals, gp = decision.finals, decision.gp
+    probabilities, outside = _outside_box(state, disc, finals, gp, decision.probabilities)
     adequacy = _adequacies(state, disc)
     moments = state.base.moments.double().numpy()
     dense = dense_grid(moments, options.curve_points)
@@ -104,18 +81,18 @@ def _assemble(
     out: list[SpecimenDiagnosis] = []
     for i, spec in enumerate(state.specimens):
         ranking = _ranking(state.per_spec[i], i, measured, sigma, state.log_n, base, mask)
-        effects = list(state.chosen[i])
+        effects: list[Term] = list(state.chosen[i])
         adequate = not probabilities[i]["unexplained"]
         verdict, model = verdict_label(effects, adequate), effects
         if outside[i] is not None and outside[i]["named"]:
             # The box, not the stand-ins: the verdict keeps the effects that engage.
-            verdict, adequate, model = outside[i]["verdict"], False, outside[i]["model"]
+            verdict, adequate, model = outside[i]["verdict"], False, list(outside[i]["model"])
         f, pos = state.per_spec[i][state.chosen[i]]
         final_res = measured[i] - f.pred[pos].double().numpy()
         own = _own_range(dense, moments, mask[i])
         curves = {"moments": dense, NONE: np.where(own, curves0[i], np.nan)}
         if model and model == effects:
-            curves[model_label(effects)] = np.where(own, final_curves[i], np.nan)
+            curves[model_label(state.chosen[i])] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
             ranking,
             state.per_spec[i],
@@ -136,9 +113,9 @@ def _assemble(
                 ranking=ranking,
                 residuals=resid,
                 failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
-                effects=[base_name(e) for e in model],
-                model=model,
-                load_cases={base_name(e): list(cases_of(e)) for e in model},
+                effects=[t.effect for t in model],
+                model=[str(t) for t in model],
+                load_cases={t.effect: list(t.acting) for t in model},
                 adequate=adequate,
                 adequacy=adequacy[i],
                 final_mae_deg=float(np.nanmean(np.abs(final_res))),
@@ -149,7 +126,7 @@ def _assemble(
                 probabilities=probabilities[i],
                 sigma=np.where(mask[i], sigma[i], np.nan),
                 surrogate_sd=np.where(mask[i], state.surrogate_sd[i], np.nan),
-                outside_box=outside[i],
+                outside_box=_written(outside[i]),
             )
         )
     return Diagnosis(
@@ -178,10 +155,25 @@ def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
             f, at = state.per_spec[i][effects]
             pred[i] = f.pred[at].double().numpy()
     probabilities, outside = assess(state, disc, probabilities, delta, pred)
-    for p, reading in zip(probabilities, outside):
-        if reading is not None and reading["named"]:
-            p["unexplained"] = UNEXPLAINED in reading["verdict"].split("+")
+    probabilities = [
+        {**p, "unexplained": UNEXPLAINED in reading["verdict"].split("+")}
+        if reading is not None and reading["named"]
+        else p
+        for p, reading in zip(probabilities, outside)
+    ]
     return probabilities, outside
+
+
+def _written(reading: dict[str, Any] | None) -> dict[str, Any] | None:
+    """An out-of-box reading (:func:`femcal.diagnose.outside.assess`) as the result holds it:
+    its effects' terms written (``stand_ins`` by term, ``model``)."""
+    if reading is None:
+        return None
+    out = dict(reading)
+    out["stand_ins"] = {str(t): v for t, v in reading["stand_ins"].items()}
+    if reading["model"] is not None:
+        out["model"] = [str(t) for t in reading["model"]]
+    return out
 
 
 def _adequacies(state: DiagnosisState, disc: _Fit) -> list[dict[str, Any]]:
@@ -199,111 +191,6 @@ def _adequacies(state: DiagnosisState, disc: _Fit) -> list[dict[str, Any]]:
                 "disc_alone": _adequacy(res0, state.sigma[i], n_i - float(disc.trace[i]), alpha),
             }
         )
-    return out
-
-
-def _gp_fit(state: DiagnosisState, effects: Model, rows: list[int]) -> DiscrepancyFit:
-    """Model ``effects`` refitted to specimens ``rows`` with the discrepancy it needs."""
-    rows_a = np.asarray(rows)
-    v = state.solutions(rows_a, effects)
-    return fit_discrepancy(
-        state.model(effects),
-        v,
-        state.measured[rows_a],
-        state.sigma[rows_a],
-        amplitude_deg="ml",
-    )
-
-
-def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
-    """Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities` of every
-    fitted model and of its final model with its discrepancy (``gp``, per final model, fitted
-    to ``finals[model]`` in that order). A model with an effect in a load case beyond its
-    likely ones where it does not engage is left out (:func:`femcal.diagnose.where.not_engaged`),
-    as the search leaves it out."""
-    outside = _outside_criteria(state, finals, gp)
-    aside = not_engaged(state)
-    pointwise = _pointwise(state, finals, gp)
-    return [
-        specimen_probabilities(
-            {
-                m: state.criterion(m, i)
-                for m in state.per_spec[i]
-                if m == state.chosen[i] or not (_idle_effect(state, m, i) or (i, m) in aside)
-            },
-            (state.chosen[i], outside[i]),
-            state.options.min_delta,
-            state.options.min_delta_inadequate,
-            pointwise=pointwise[i],
-            rng=bootstrap_rng(state.options.seed, state.specimens[i]),
-        )
-        for i in range(state.n)
-    ]
-
-
-def _pointwise(state: DiagnosisState, finals, gp) -> list[dict[str, np.ndarray]]:
-    """Per specimen, each fitted model's chi-square contribution at each measured point
-    (label -> (p,)), and its final model's with the discrepancy's mean added (the
-    discrepancy's label): what the Bayesian bootstrap of the probabilities reweighs."""
-    out: list[dict[str, np.ndarray]] = [{} for _ in range(state.n)]
-    for i in range(state.n):
-        ok = state.mask[i]
-        for m, (f, at) in state.per_spec[i].items():
-            r = (state.measured[i] - f.pred[at].double().numpy()) / state.sigma[i]
-            out[i][model_label(m)] = r[ok] ** 2
-    for effects, rows in finals.items():
-        for pos, i in enumerate(rows):
-            f, at = state.per_spec[i][effects]
-            r = state.measured[i] - f.pred[at].double().numpy() - gp[effects].delta_at_points[pos]
-            out[i][outside_label(effects)] = (r / state.sigma[i])[state.mask[i]] ** 2
-    return out
-
-
-#: An effect is idle in a fit when removing it raises the chi-square by less than this and
-#: lowers the effective number of parameters by less than :data:`IDLE_PARAMETERS`.
-IDLE_CHI2 = 1.0
-IDLE_PARAMETERS = 0.5
-
-
-def _idle_effect(state: DiagnosisState, effects: Model, i: int) -> bool:
-    """Whether model ``effects`` holds an effect that does nothing for specimen ``i``: the
-    fitted model without it has (almost) the same chi-square and effective parameters. Such a
-    model is its sub-model under another name, and is left out of the probabilities (counted,
-    it would give the idle effect the prior odds of a further effect, about 0.27, however
-    little the data say for it)."""
-    fits = state.per_spec[i]
-    f, at = fits[effects]
-    for drop in effects:
-        rest = tuple(e for e in effects if e != drop)
-        if rest not in fits:
-            continue
-        g, bt = fits[rest]
-        if (
-            float(g.chi2[bt]) - float(f.chi2[at]) < IDLE_CHI2
-            and float(f.trace[at]) - float(g.trace[bt]) < IDLE_PARAMETERS
-        ):
-            return True
-    return False
-
-
-def _outside_criteria(
-    state: DiagnosisState, finals: dict[Model, list[int]], gp: dict[Model, DiscrepancyFit]
-) -> np.ndarray:
-    """Per specimen (n,): the criterion of its final model with its discrepancy,
-    ``-2 log ML - sum ln sigma^2 + (k + a) ln n`` (``k`` the model's effective parameters,
-    ``a`` the load cases whose discrepancy amplitude is not zero), comparable with the
-    models' ``chi^2 + k ln n``."""
-    out = np.full(state.n, np.inf)
-    for effects, members in finals.items():
-        rows = np.asarray(members)
-        dfit = gp[effects]
-        ok = state.mask[rows]
-        log_noise = np.where(ok, np.log(state.sigma[rows] ** 2), 0.0).sum(axis=(1, 2))
-        n_amp = (np.asarray(dfit.amplitude_deg) > 0).sum(axis=1)
-        for pos, i in enumerate(rows):
-            f, at = state.per_spec[i][effects]
-            k = float(f.trace[at]) + float(n_amp[pos])
-            out[i] = float(dfit.neg2_log_ml[pos] - log_noise[pos]) + k * float(state.log_n[i])
     return out
 
 

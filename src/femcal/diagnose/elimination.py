@@ -19,6 +19,7 @@ from femcal.diagnose.discrepancy import fit_discrepancy
 from femcal.diagnose.fits import _columns
 from femcal.diagnose.state import DiagnosisState
 from femcal.effects.base import get_effect
+from femcal.effects.terms import Model
 
 logger = logging.getLogger(__name__)
 
@@ -29,18 +30,17 @@ logger = logging.getLogger(__name__)
 NEEDED_SHARE = 0.75
 
 
-def _explains_most(
-    fits: dict, current: tuple[str, ...], rest: tuple[str, ...], n_points: float
-) -> bool:
+def _explains_most(fits: dict, current: Model, rest: Model, n_points: float) -> bool:
     """Whether the effects ``current`` has and ``rest`` lacks remove most of the disc-alone
     misfit: refitted without them, the chi-square rises by more than :data:`NEEDED_SHARE` of
     the disc alone's excess over its expectation (its ``n_points`` measured points). Such an
     effect is needed, even where a smooth discrepancy would take its place; ``fits`` is one
     specimen's fitted models."""
-    if rest not in fits or () not in fits:
+    disc = Model()
+    if rest not in fits or disc not in fits:
         return False
-    chi2 = {m: float(fits[m][0].chi2[fits[m][1]]) for m in (current, rest, ())}
-    excess = chi2[()] - n_points
+    chi2 = {m: float(fits[m][0].chi2[fits[m][1]]) for m in (current, rest, disc)}
+    excess = chi2[disc] - n_points
     return excess > 0 and chi2[rest] - chi2[current] > NEEDED_SHARE * excess
 
 
@@ -50,7 +50,10 @@ def open_world_elimination(state: DiagnosisState) -> None:
     Where the chosen effects leave the data unexplained, an effect stays only if the model with
     it and its discrepancy beats the model without it and its own (``-2 log ML + k ln n``, ``k``
     the parameter count) by ``min_delta``, or if it removes most of the disc-alone misfit.
-    Updates ``state.chosen`` and ``state.per_spec`` in place.
+
+    Reads ``state.chosen`` and their fits in ``state.per_spec``; changes ``state.chosen``
+    (where an effect is dropped) and ``state.per_spec`` (a model it reached that was never
+    fitted, fitted from where it reached it).
     """
     _Elimination(state).run()
 
@@ -61,9 +64,9 @@ class _Elimination:
     def __init__(self, state: DiagnosisState) -> None:
         self.state = state
         #: (specimen, model) -> (-2 log ML, unit coordinates) of the model with its discrepancy
-        self.gls: dict[tuple[int, tuple[str, ...]], tuple[float, torch.Tensor]] = {}
+        self.gls: dict[tuple[int, Model], tuple[float, torch.Tensor]] = {}
         #: (specimen, model) -> (4,) its discrepancy's amplitude per load case
-        self.gls_amp: dict[tuple[int, tuple[str, ...]], np.ndarray] = {}
+        self.gls_amp: dict[tuple[int, Model], np.ndarray] = {}
         #: where elimination left a specimen (unit coordinates)
         self.reached: dict[int, torch.Tensor] = {}
 
@@ -76,7 +79,7 @@ class _Elimination:
         for _round in range(state.options.max_effects):
             if not pending:
                 return
-            groups: dict[tuple[str, ...], list[int]] = {}
+            groups: dict[Model, list[int]] = {}
             for i in pending:
                 groups.setdefault(state.chosen[i], []).append(i)
             still = []
@@ -89,7 +92,7 @@ class _Elimination:
 
     def _gls_fit(
         self,
-        effects: tuple[str, ...],
+        effects: Model,
         rows: list[int],
         v: torch.Tensor,
         again: bool = False,
@@ -121,13 +124,13 @@ class _Elimination:
                 self.gls[key] = (float(score[pos]), fit.v[pos])
                 self.gls_amp[key] = fit.amplitude_deg[pos]
 
-    def _fit_group(self, current: tuple[str, ...], members: list[int]) -> None:
+    def _fit_group(self, current: Model, members: list[int]) -> None:
         """``current`` and each model one effect smaller, with their discrepancies."""
         state, cap_factor = self.state, self.state.options.elimination_cap
         self._gls_fit(current, members, state.solutions(members, current))
         v_gls = torch.stack([self.gls[(i, current)][1] for i in members])
         for drop in current:
-            rest = tuple(e for e in current if e != drop)
+            rest = current.without(drop)
             cols = _columns(state.base.dim, current, rest)
             # In the dropped effect's own load cases the discrepancy may be no larger than the
             # model with the effect needed there: it may not take over what the effect
@@ -156,7 +159,7 @@ class _Elimination:
                     cap=None if cap is None else cap[sel],
                 )
 
-    def _decide(self, current: tuple[str, ...], members: list[int]) -> list[int]:
+    def _decide(self, current: Model, members: list[int]) -> list[int]:
         """Drop the effect whose loss is smallest where it is below ``min_delta`` and the
         effect is not needed; the specimens left with effects to examine again."""
         state = self.state
@@ -166,19 +169,22 @@ class _Elimination:
             here = self.gls[(i, current)][0] + k_cur * state.log_n[i]
             losses = {}
             for drop in current:
-                rest = tuple(e for e in current if e != drop)
+                rest = current.without(drop)
                 k_rest = k_cur - len(get_effect(drop).parameters)
                 losses[rest] = self.gls[(i, rest)][0] + k_rest * state.log_n[i] - here
             rest = min(losses, key=losses.get)
             logger.debug(
-                "%s: GP-BIC loss of dropping from %s: %s", state.specimens[i], current, losses
+                "%s: GP-BIC loss of dropping from %s: %s",
+                state.specimens[i],
+                current,
+                {str(m): loss for m, loss in losses.items()},
             )
             needed = _explains_most(state.per_spec[i], current, rest, float(state.n_points[i]))
             if losses[rest] < state.options.min_delta and not needed:
                 logger.info(
                     "%s: %s does not pay beyond a smooth discrepancy (%.1f); dropped",
                     state.specimens[i],
-                    set(current) - set(rest),
+                    sorted(set(current.key) - set(rest.key)),
                     losses[rest],
                 )
                 state.chosen[i] = rest
@@ -191,9 +197,10 @@ class _Elimination:
         """Fit (without the discrepancy) the models elimination reached that were never
         fitted, from where it reached them."""
         state = self.state
-        missing: dict[tuple[str, ...], list[int]] = {}
+        missing: dict[Model, list[int]] = {}
         for i in range(state.n):
             if state.chosen[i] not in state.per_spec[i]:
                 missing.setdefault(state.chosen[i], []).append(i)
         for effects, members in missing.items():
-            state.fit(effects, np.asarray(members), torch.stack([self.reached[i] for i in members]))
+            starts = torch.stack([self.reached[i] for i in members])[:, None]
+            state.fit(effects, np.asarray(members), starts)

@@ -21,6 +21,7 @@ from femcal.diagnose.result import (
     model_label,
 )
 from femcal.effects.composite import EffectModel
+from femcal.effects.terms import Model, Term
 from femcal.schema import LOAD_CASES
 
 
@@ -87,7 +88,8 @@ def _ranking(
     base,
     mask: np.ndarray,
 ) -> list[dict[str, Any]]:
-    """Every model fitted for specimen ``i``: MAE, the search's criterion (``cost`` (n,) per
+    """Every model fitted for specimen ``i`` (``fits``: Model -> (fit, row)) as the result
+    holds it: its label and terms written, MAE, the search's criterion (``cost`` (n,) per
     parameter, :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of
     parameters and the effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured
     points; every fit's trace is known (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`)."""
@@ -97,7 +99,7 @@ def _ranking(
         mae = float(np.nanmean(np.abs(measured[i] - pred)))
         entry = {
             "effect": model_label(effects),
-            "effects": list(effects),
+            "effects": [str(t) for t in effects],
             "mae_deg": mae,
             "criterion": f.criterion(pos, float(cost[i]), mask, sigma),
             "effective_parameters": float(f.trace[pos]),
@@ -127,15 +129,18 @@ def _ranking(
     return rows
 
 
-def _signatures(per_spec, candidates, pred0: torch.Tensor, n: int) -> list[dict[str, np.ndarray]]:
-    """What each single effect adds to the disc-alone fit, per specimen (4, m)."""
+def _signatures(
+    per_spec, candidates: list[Term], pred0: torch.Tensor, n: int
+) -> list[dict[str, np.ndarray]]:
+    """What each single effect adds to the disc-alone fit, per specimen (4, m), by the
+    candidate's written term."""
     out = []
     for i in range(n):
         sig = {}
         for name in candidates:
-            if (name,) in per_spec[i]:
-                f, pos = per_spec[i][(name,)]
-                sig[name] = (f.pred[pos] - pred0[i]).double().numpy()
+            if Model.of(name) in per_spec[i]:
+                f, pos = per_spec[i][Model.of(name)]
+                sig[str(name)] = (f.pred[pos] - pred0[i]).double().numpy()
         out.append(sig)
     return out
 
@@ -220,7 +225,7 @@ def _dense_base(base, dense: np.ndarray):
     return SurrogateCurveModel(surrogate, dense, space=base.space)
 
 
-def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.ndarray:
+def _dense_curves(dense_base, effects: Model, v: torch.Tensor) -> np.ndarray:
     if dense_base is None:
         return np.full((v.shape[0], len(LOAD_CASES), 1), np.nan)
     model = dense_base if not effects else EffectModel(dense_base, list(effects))
@@ -228,7 +233,7 @@ def _dense_curves(dense_base, effects: tuple[str, ...], v: torch.Tensor) -> np.n
         return model.curves(v).double().numpy()
 
 
-def _dense_prediction(dense_base, effects: tuple[str, ...], fit, pos: int, sd: bool = True):
+def _dense_prediction(dense_base, effects: Model, fit, pos: int, sd: bool = True):
     """One fitted model's curves (4, q) on the dense grid and their linearised sd (4, q).
 
     The sd propagates the fit's parameter covariance (``fit.cov``, unit box prior) through
@@ -303,7 +308,7 @@ def _next_measurement(
     """
     if len(ranking) < 2 or dense_base is None:
         return None
-    best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
+    best = next(r for r in ranking if r["effect"] == model_label(chosen))
     rivals = [
         r for r in ranking if r is not best and abs(r["criterion"] - best["criterion"]) < min_delta
     ]
@@ -339,10 +344,12 @@ def _closest_rival(
     settle (4, q))``, or None where no rival has a finite difference.
     """
     noise, surrogate_var = noise_parts
+    models = {model_label(m): m for m in fits}  # a ranking's entry names its model
 
     def prediction(r: dict[str, Any], sd: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        f, pos = fits[tuple(r["effects"])]
-        return _dense_prediction(dense_base, tuple(r["effects"]), f, pos, sd)
+        model = models[r["effect"]]
+        f, pos = fits[model]
+        return _dense_prediction(dense_base, model, f, pos, sd)
 
     def repeats(r: dict[str, Any], delta: np.ndarray, var: np.ndarray) -> np.ndarray:
         """(4, q) measurements to settle ``r`` against the chosen model at each point. What

@@ -1,11 +1,16 @@
 """Fitting a model to many specimens at once: starts, Gauss-Newton from them, the chi-square,
-the hat trace and the parameter covariance."""
+the hat trace and the parameter covariance.
+
+*Starts* have one shape throughout the search: a tensor (r, g, dim), ``g`` starts of unit
+coordinates for each of ``r`` specimens (``g = 1`` for one start each). Only
+:func:`_fit_from` lays them out as Gauss-Newton takes them (:func:`flat_starts`).
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -16,7 +21,11 @@ from femcal.calibration.pgd_options import GaussNewtonOptions
 from femcal.calibration.starts import single_effect_starts
 from femcal.effects.base import get_effect
 from femcal.effects.composite import EffectModel
-from femcal.effects.split import is_split
+from femcal.effects.split import is_split_effect
+from femcal.effects.terms import Model, Term
+
+if TYPE_CHECKING:
+    from femcal.diagnose.options import DiagnoseOptions
 
 #: A fit has converged when a step lowers its chi-square by less than this fraction.
 _GN_TOL = 1e-6
@@ -26,6 +35,13 @@ _GN_TOL = 1e-6
 #: best two after three iterations.
 _KEEP = {"keep_after": 3, "keep": 2}
 _KEEP_SPLIT = {"keep_after": 5, "keep": 4}
+
+
+def flat_starts(starts: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Starts (r, g, dim) as Gauss-Newton takes them: (r * g, dim), each specimen's ``g``
+    starts together, and ``g``."""
+    r, g = starts.shape[0], starts.shape[1]
+    return starts.reshape(r * g, starts.shape[2]), g
 
 
 # ------------------------------------------------------------------------ fitting helpers
@@ -43,89 +59,80 @@ def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.nda
     return np.where(np.isfinite(chi2), chi2, np.inf)
 
 
-def _grid(
-    model: EffectModel,
-    new: str,
-    levels: Sequence[float],
-    shape_starts: int = 0,
-    grid_shapes: bool = False,
-) -> tuple[slice, torch.Tensor]:
-    """Starts (g, p) for effect ``new`` of ``model`` and its slice
-    (:func:`femcal.calibration.starts.single_effect_starts`)."""
-    k = model.effect_names.index(new)
-    return model._slices[k], single_effect_starts(
-        model.effects[k], levels, shape_starts, grid_shapes
-    )
-
-
 def _starts(
     model: EffectModel,
-    prev: Sequence[str],
+    effects: Model,
+    prev: Model,
     v_prev: torch.Tensor,
-    new: str,
-    levels,
-    shape_starts: int = 0,
-    grid_shapes: bool = False,
+    new: Term,
+    options: DiagnoseOptions,
 ) -> torch.Tensor:
-    """Starts (n * g, dim): the previous solution (disc + its effects) and a grid for ``new``."""
+    """Starts (n, g, dim) of ``model`` (the EffectModel of ``effects``, ``prev`` and ``new``):
+    the previous solution ``v_prev`` (n, dim of ``prev``: disc + its effects) and a grid over
+    ``new``'s box (:func:`femcal.calibration.starts.single_effect_starts` with the options'
+    ``effect_levels``, ``shape_starts`` and ``grid_shapes``)."""
     n = v_prev.shape[0]
-    sl_new, grid = _grid(model, new, levels, shape_starts, grid_shapes)
-    g = len(grid)
-    v0 = torch.empty((n, g, model.dim))
+    grid = single_effect_starts(
+        model.effects[effects.terms.index(new)],
+        options.effect_levels,
+        options.shape_starts,
+        options.grid_shapes,
+    )
+    v0 = torch.empty((n, len(grid), model.dim))
     v0[:, :, : model.n_disc] = v_prev[:, None, : model.n_disc]
     prev_model_slices = _slices_of(prev)
-    for name, sl in zip(model.effect_names, model._slices):
-        if name == new:
+    for term, sl in zip(effects, model._slices):
+        if term == new:
             v0[:, :, sl] = grid[None]
         else:
-            a, b = prev_model_slices[name]
+            a, b = prev_model_slices[term]
             v0[:, :, sl] = v_prev[:, None, model.n_disc + a : model.n_disc + b]
-    return v0.reshape(n * g, model.dim)
+    return v0
 
 
-def _slices_of(effects: Sequence[str]) -> dict[str, tuple[int, int]]:
-    """Offsets of each effect's parameters after the disc's, in an EffectModel of ``effects``."""
+def _slices_of(effects: Model) -> dict[Term, tuple[int, int]]:
+    """Offsets of each term's parameters after the disc's, in an EffectModel of ``effects``."""
     out, start = {}, 0
-    for name in effects:
-        p = len(get_effect(name).parameters)
-        out[name] = (start, start + p)
+    for term in effects:
+        p = len(get_effect(term).parameters)
+        out[term] = (start, start + p)
         start += p
     return out
 
 
-def _split_start(v: torch.Tensor, effects: Sequence[str], split: Sequence[str]) -> torch.Tensor:
+def _split_start(v: torch.Tensor, effects: Model, split: Model) -> torch.Tensor:
     """A fit of ``effects`` (r, dim) as a start (r, dim') of ``split``, the same effects with
     some in their split form (:mod:`femcal.effects.split`): each tied value copied into every
     load case, so the split form starts where the tied fit is."""
     n_disc = v.shape[1] - sum(len(get_effect(e).parameters) for e in effects)
     offsets = _slices_of(effects)
     parts = [v[:, :n_disc]]
-    for name in split:
-        cls = get_effect(name)
-        tied = getattr(cls, "tied", None)
-        a, b = offsets[tied.name if tied is not None and tied.name in offsets else name]
+    for term in split:
+        tied = term.as_tied() if term.split else None
+        a, b = offsets[tied if tied is not None and tied in offsets else term]
         block = v[:, n_disc + a : n_disc + b]
-        parts.append(cls.expand_tied(block) if tied is not None and name not in offsets else block)
+        expand = term.split and term not in offsets
+        parts.append(get_effect(term).expand_tied(block) if expand else block)
     return torch.cat(parts, dim=1)
 
 
 def _split_starts(
-    v: torch.Tensor, effects: Sequence[str], split: Sequence[str], levels: Sequence[float]
-) -> tuple[torch.Tensor, int]:
-    """Starts (r * g, dim') of ``split`` from a fit of ``effects`` (r, dim): the tied values
+    v: torch.Tensor, effects: Model, split: Model, levels: Sequence[float]
+) -> torch.Tensor:
+    """Starts (r, g, dim') of ``split`` from a fit of ``effects`` (r, dim): the tied values
     copied into every load case (:func:`_split_start`), then, one at a time, each per-load-case
     copy of a newly split effect at each unit level of ``levels`` (a load case whose contact
-    or slack lies far from the tied compromise is not reached from it); and ``g``."""
+    or slack lies far from the tied compromise is not reached from it)."""
     first = _split_start(v, effects, split)
     n_disc = v.shape[1] - sum(len(get_effect(e).parameters) for e in effects)
     offsets = _slices_of(split)
     columns = []
-    for name in split:
-        cls = get_effect(name)
-        if name in effects or getattr(cls, "tied", None) is None:
+    for term in split:
+        if term in effects or not term.split:
             continue
+        cls = get_effect(term)
         tied = {q.name for q in cls.tied.parameters if q.per_load_case}
-        a = offsets[name][0]
+        a = offsets[term][0]
         columns += [n_disc + a + j for j, q in enumerate(cls.parameters) if q.name not in tied]
     starts = [first]
     for col in columns:
@@ -133,16 +140,15 @@ def _split_starts(
             start = first.clone()
             start[:, col] = float(level)
             starts.append(start)
-    g = len(starts)
-    return torch.stack(starts, dim=1).reshape(len(v) * g, -1), g
+    return torch.stack(starts, dim=1)
 
 
-def _solutions(per_spec: list[dict], rows, effects: tuple[str, ...]) -> torch.Tensor:
+def _solutions(per_spec: list[dict], rows, effects: Model) -> torch.Tensor:
     """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
     return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
 
 
-def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[int]:
+def _columns(n_disc: int, effects: Model, rest: Model) -> list[int]:
     """Columns of an EffectModel of ``effects`` that an EffectModel of ``rest`` keeps."""
     offsets = _slices_of(effects)
     return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
@@ -150,7 +156,7 @@ def _columns(n_disc: int, effects: Sequence[str], rest: Sequence[str]) -> list[i
 
 @dataclass
 class _Fit:
-    effects: tuple[str, ...]
+    effects: Model
     model: Any
     v: torch.Tensor  # (r, dim) for the specimens ``rows``
     rows: np.ndarray  # specimen indices
@@ -203,9 +209,10 @@ class _Fit:
 
 
 def _fit_from(
-    model, measured, weight, sigma, rows: np.ndarray, v0: torch.Tensor, g: int, max_iter: int
+    model, measured, weight, sigma, rows: np.ndarray, starts: torch.Tensor, max_iter: int
 ):
-    """Gauss-Newton from ``g`` starts per specimen of ``rows``; the best start per specimen.
+    """Gauss-Newton from ``starts`` (r, g, dim) of the specimens ``rows`` (r,); the best start
+    per specimen: unit coordinates (r, dim), curves (r, 4, m) and chi-square (r,).
 
     The starts are ranked by the chi-square of Gauss-Newton's own final residuals; only the
     best start's curves are evaluated again (its chi-square from them). The Jacobian is exact
@@ -213,8 +220,9 @@ def _fit_from(
     (``GaussNewtonOptions.jacobian_members``) moves near-tied verdicts, outside the box most."""
     problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
     r = len(rows)
+    v0, g = flat_starts(starts)
     idx = torch.arange(r).repeat_interleave(g)
-    split = any(is_split(e) for e in getattr(model, "effect_names", ()))
+    split = any(is_split_effect(e) for e in getattr(model, "effects", ()))
     keep = _KEEP_SPLIT if split else _KEEP
     keep = keep if g > keep["keep"] else {}
     options = GaussNewtonOptions(max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)

@@ -19,27 +19,29 @@ import numpy as np
 
 from femcal.diagnose.fits import _solutions, _split_starts
 from femcal.effects.split import has_split_form
-from femcal.effects.terms import as_split
+from femcal.effects.terms import Model, Term
 
 if TYPE_CHECKING:
     from femcal.diagnose.state import DiagnosisState
 
 logger = logging.getLogger(__name__)
 
-Model = tuple[str, ...]
 
-
-def split_one(effects: Model, name: str) -> Model:
-    """``effects`` with ``name`` in its split form."""
-    return tuple(sorted(as_split(e) if e == name else e for e in effects))
+def split_one(effects: Model, term: Term) -> Model:
+    """``effects`` with ``term`` in its split form."""
+    return effects.replace(term, term.as_split())
 
 
 def choose_forms(state: DiagnosisState) -> None:
     """Split, specimen by specimen, the chosen effects whose split form pays
-    ``min_delta_inadequate`` (a split's prior cost); ``state.chosen`` updated in place.
+    ``min_delta_inadequate`` (a split's prior cost).
 
     Each split starts from the tied fit, its values copied into every load case, and from each
-    load case's copy moved alone over the start levels (:func:`femcal.diagnose.fits._split_starts`).
+    load case's copy moved alone over the start levels
+    (:func:`femcal.diagnose.fits._split_starts`).
+
+    Reads ``state.chosen`` and their fits in ``state.per_spec``; changes ``state.per_spec``
+    (the split forms fitted) and ``state.chosen`` (where a split pays).
     """
     chosen, per_spec = state.chosen, state.per_spec
     delta = state.options.min_delta_inadequate
@@ -54,8 +56,8 @@ def choose_forms(state: DiagnosisState) -> None:
             return
         for (current, split), rows in jobs.items():
             v = _solutions(per_spec, rows, current)
-            v0, g = _split_starts(v, current, split, state.options.effect_levels)
-            state.fit(split, np.asarray(rows), v0, g)
+            v0 = _split_starts(v, current, split, state.options.effect_levels)
+            state.fit(split, np.asarray(rows), v0)
         changed = 0
         for i, current in enumerate(chosen):
             options = [

@@ -11,13 +11,13 @@ import torch
 
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.starts import _combination_starts, effect_bank, nearest_starts
-from femcal.diagnose.fits import _Fit, _fit_from, _grid, _split_starts, _starts
+from femcal.diagnose.fits import _Fit, _fit_from, _split_starts, _starts
 from femcal.diagnose.forms import split_one
-from femcal.diagnose.state import DiagnosisState, Model
+from femcal.diagnose.state import DiagnosisState
 from femcal.diagnose.where import engaged, wide_terms
 from femcal.effects.base import get_effect
-from femcal.effects.split import base_name, has_split_form, is_split
-from femcal.effects.terms import as_split, model_case_cost
+from femcal.effects.split import has_split_form
+from femcal.effects.terms import Model, Term
 
 logger = logging.getLogger(__name__)
 
@@ -37,11 +37,14 @@ def forward_selection(state: DiagnosisState) -> None:
     first only where no single effect pays, their second effect then paying
     ``min_delta_inadequate``. At a further level the effect just added is tried split
     (:func:`_split_added`). Every model
-    within ``beam_delta`` of the best of a level is extended at the next one. Updates
-    ``state.chosen`` and ``state.per_spec``.
+    within ``beam_delta`` of the best of a level is extended at the next one.
+
+    Reads ``state.chosen`` (the disc alone for every specimen) and the disc-alone fits in
+    ``state.per_spec``; changes ``state.chosen`` (each specimen's model when the search
+    stops) and ``state.per_spec`` (every model fitted).
     """
     options = state.options
-    frontier: list[list[Model]] = [[()] for _ in range(state.n)]
+    frontier: list[list[Model]] = [[Model()] for _ in range(state.n)]
     beam = options.min_delta if options.beam_delta is None else float(options.beam_delta)
     banks: dict[Model, tuple[torch.Tensor, torch.Tensor]] = {}
     pairs: dict[int, list[Model]] = {}
@@ -58,7 +61,7 @@ def forward_selection(state: DiagnosisState) -> None:
             for i in active:
                 children[int(i)] = sorted({*children[int(i)], *pairs.pop(int(i), [])})
         improved: list[int] = []
-        added: dict[int, str] = {}
+        added: dict[int, Term] = {}
         for i in active:
             current = state.chosen[i]
             crits = _costed(state, i, children[int(i)], current)
@@ -68,8 +71,8 @@ def forward_selection(state: DiagnosisState) -> None:
             logger.debug(
                 "%s: forward from %s: criterion gains %s",
                 state.specimens[i],
-                frontier[i],
-                {e: round(cur_crit - b, 1) for e, b in crits.items()},
+                [str(e) for e in frontier[i]],
+                {str(e): round(cur_crit - b, 1) for e, b in crits.items()},
             )
             need = options.min_delta
             if current:
@@ -101,7 +104,9 @@ def forward_selection(state: DiagnosisState) -> None:
         )
 
 
-def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[list[Model]]) -> None:
+def _split_added(
+    state: DiagnosisState, added: dict[int, Term], frontier: list[list[Model]]
+) -> None:
     """The effect each specimen just took (``added``: specimen -> effect), tried split per
     load case from its tied fit before any further effect is tried: a further effect must not
     stand in for a load case the tied law could not fit. The split replaces the tied model
@@ -114,10 +119,10 @@ def _split_added(state: DiagnosisState, added: dict[int, str], frontier: list[li
     for (current, split), rows in jobs.items():
         todo = [i for i in rows if split not in state.per_spec[i]]  # a pair's form is fitted
         if todo:
-            v0, g = _split_starts(
+            v0 = _split_starts(
                 state.solutions(todo, current), current, split, state.options.effect_levels
             )
-            state.fit(split, np.asarray(todo), v0, g)
+            state.fit(split, np.asarray(todo), v0)
     for (current, split), rows in jobs.items():
         for i in rows:
             gain = state.criterion(current, i) - state.criterion(split, i)
@@ -141,8 +146,8 @@ def _costed(state: DiagnosisState, i: int, models: list[Model], current: Model) 
 
 def _prior_costs(state: DiagnosisState, model: Model) -> float:
     """A model's split cost (:func:`_split_cost`) and what the load cases its effects act in
-    cost against their likely ones (:func:`femcal.effects.terms.model_case_cost`)."""
-    return _split_cost(state, model) + model_case_cost(model)
+    cost against their likely ones (:meth:`femcal.effects.terms.Model.case_cost`)."""
+    return _split_cost(state, model) + model.case_cost()
 
 
 def _extra_cost(state: DiagnosisState, model: Model, current: Model) -> float:
@@ -152,16 +157,17 @@ def _extra_cost(state: DiagnosisState, model: Model, current: Model) -> float:
     return state.options.min_delta_inadequate * max(0, len(model) - len(current) - 1)
 
 
-def complementary_pairs(candidates: list[str]) -> list[Model]:
-    """The pairs of ``candidates`` whose effects act on disjoint load cases (sorted names):
+def complementary_pairs(candidates: list[Term]) -> list[Model]:
+    """The pairs of ``candidates`` whose effects act on disjoint load cases (in model order):
     each explains its own load cases, so neither may pay alone where the specimen needs both
     (a facet in extension and axial rotation beside a ligament in flexion and lateral
     bending)."""
-    masks = {name: get_effect(name).load_case_mask() for name in candidates}
+    masks = {term: get_effect(term).load_case_mask() for term in candidates}
+    ordered = sorted(candidates)
     return [
-        (a, b)
-        for k, a in enumerate(sorted(candidates))
-        for b in sorted(candidates)[k + 1 :]
+        Model.of(a, b)
+        for k, a in enumerate(ordered)
+        for b in ordered[k + 1 :]
         if not bool((masks[a] & masks[b]).any())
     ]
 
@@ -181,27 +187,25 @@ def _fit_pairs(
     out: dict[int, list[Model]] = {}
     if state.options.max_effects < 2:
         return out
-    rows = [i for i in rows if not state.adequate((), i)]
+    rows = [i for i in rows if not state.adequate(Model(), i)]
     if not rows:
         return out
     for pair in complementary_pairs(state.candidates):
-        jobs: dict[str, list[int]] = {}
+        jobs: dict[Term, list[int]] = {}
         for i in rows:
-            parent = min(pair, key=lambda e, i=i: state.criterion((e,), i))
+            parent = min(pair, key=lambda e, i=i: state.criterion(Model.of(e), i))
             jobs.setdefault(parent, []).append(i)
         for parent, members in jobs.items():
             new = next(e for e in pair if e != parent)
             rows_a = np.asarray(members)
-            v0 = _new_effect_starts(state, rows_a, (parent,), new, banks)
-            fit = state.fit(pair, rows_a, v0.reshape(len(members) * v0.shape[1], -1), v0.shape[1])
+            v0 = _new_effect_starts(state, rows_a, Model.of(parent), new, banks)
+            fit = state.fit(pair, rows_a, v0)
             _refine_combination(state, fit)
         forms = _split_forms(pair)
         for form in forms:
-            v0, g = _split_starts(
-                state.solutions(rows, pair), pair, form, state.options.effect_levels
-            )
-            v0 = torch.cat([v0.reshape(len(rows), g, -1), _members_start(state, rows, form)], 1)
-            fit = state.fit(form, np.asarray(rows), v0.reshape(len(rows) * (g + 1), -1), g + 1)
+            v0 = _split_starts(state.solutions(rows, pair), pair, form, state.options.effect_levels)
+            v0 = torch.cat([v0, _members_start(state, rows, form)], 1)
+            fit = state.fit(form, np.asarray(rows), v0)
             _refine_combination(state, fit)
         for i in rows:
             out[i] = sorted({*out.get(i, []), pair, *forms})
@@ -210,9 +214,9 @@ def _fit_pairs(
 
 def _split_forms(effects: Model) -> list[Model]:
     """The forms of ``effects`` with at least one effect split per load case."""
-    options = [[e, as_split(e)] if has_split_form(e) else [e] for e in effects]
-    forms = [tuple(sorted(f)) for f in itertools.product(*options)]
-    return [f for f in forms if any(is_split(e) for e in f)]
+    options = [[e, e.as_split()] if has_split_form(e) else [e] for e in effects]
+    forms = [Model(f) for f in itertools.product(*options)]
+    return [f for f in forms if f.n_split]
 
 
 def _members_start(state: DiagnosisState, rows: list[int], form: Model) -> torch.Tensor:
@@ -220,8 +224,8 @@ def _members_start(state: DiagnosisState, rows: list[int], form: Model) -> torch
     each effect's parameters from its own fit (in the same form), the disc from the member
     that fits the specimen better."""
     n_disc = state.base.dim
-    own = {e: state.solutions(rows, (e,)) for e in form}
-    better = [min(form, key=lambda e, i=i: state.criterion((e,), i)) for i in rows]
+    own = {e: state.solutions(rows, Model.of(e)) for e in form}
+    better = [min(form, key=lambda e, i=i: state.criterion(Model.of(e), i)) for i in rows]
     disc = torch.stack([own[e][k, :n_disc] for k, e in enumerate(better)])
     return torch.cat([disc, *(own[e][:, n_disc:] for e in form)], dim=1)[:, None]
 
@@ -229,7 +233,7 @@ def _members_start(state: DiagnosisState, rows: list[int], form: Model) -> torch
 def _split_cost(state: DiagnosisState, model: Model) -> float:
     """The prior cost a model's split forms add to its criterion in forward selection:
     ``min_delta_inadequate`` when it holds one."""
-    return state.options.min_delta_inadequate if any(is_split(e) for e in model) else 0.0
+    return state.options.min_delta_inadequate if model.n_split else 0.0
 
 
 def _fit_splits(
@@ -251,13 +255,11 @@ def _fit_splits(
     rows_a = np.asarray(rows)
     for name in state.candidates:
         if has_split_form(name):
-            split = (as_split(name),)
-            v = state.solutions(rows, (name,))
-            v0, g = _split_starts(v, (name,), split, state.options.effect_levels)
-            w0 = _new_effect_starts(state, rows_a, (), split[0], banks)
-            v0 = torch.cat([v0.reshape(len(rows), g, -1), w0], dim=1)
-            g = v0.shape[1]
-            state.fit(split, rows_a, v0.reshape(len(rows) * g, -1), g)
+            split = Model.of(name.as_split())
+            v = state.solutions(rows, Model.of(name))
+            v0 = _split_starts(v, Model.of(name), split, state.options.effect_levels)
+            w0 = _new_effect_starts(state, rows_a, Model(), name.as_split(), banks)
+            state.fit(split, rows_a, torch.cat([v0, w0], dim=1))
             for i in rows:
                 children[i] = sorted({*children[i], split})
 
@@ -281,20 +283,19 @@ def _fit_wide(
     rows_a = np.asarray(rows)
     for name in state.candidates:
         for wide in wide_terms([name]):
-            v = state.solutions(rows, (name,))[:, None]
-            v0 = torch.cat([v, _new_effect_starts(state, rows_a, (), wide, banks)], dim=1)
-            g = v0.shape[1]
-            state.fit((wide,), rows_a, v0.reshape(len(rows) * g, -1), g)
-            for i, ok in zip(rows, engaged(state, (wide,), rows)):
+            v = state.solutions(rows, Model.of(name))[:, None]
+            v0 = torch.cat([v, _new_effect_starts(state, rows_a, Model(), wide, banks)], dim=1)
+            state.fit(Model.of(wide), rows_a, v0)
+            for i, ok in zip(rows, engaged(state, Model.of(wide), rows)):
                 if ok:
-                    children[i] = sorted({*children[i], (wide,)})
+                    children[i] = sorted({*children[i], Model.of(wide)})
 
 
 def _new_effect_starts(
     state: DiagnosisState,
     rows: np.ndarray,
     current: Model,
-    new: str,
+    new: Term,
     banks: dict[Model, tuple[torch.Tensor, torch.Tensor]],
 ) -> torch.Tensor:
     """Starts (r, g, dim) of model ``current`` plus ``new`` for specimens ``rows``: the
@@ -302,12 +303,9 @@ def _new_effect_starts(
     disc-and-effect combinations of the start bank nearest each specimen's curves (the disc
     fitted alone has bent towards the missing physics)."""
     options = state.options
-    effects = tuple(sorted((*current, new)))
+    effects = current.plus(new)
     model = state.model(effects)
-    levels, shapes, grids = options.effect_levels, options.shape_starts, options.grid_shapes
-    g = len(_grid(model, new, levels, shapes, grids)[1])
-    v_prev = state.solutions(rows, current)
-    v0 = _starts(model, current, v_prev, new, levels, shapes, grids).reshape(len(rows), g, -1)
+    v0 = _starts(model, effects, current, state.solutions(rows, current), new, options)
     if state.start_bank is not None and options.bank_starts > 0:
         if effects not in banks:
             banks[effects] = effect_bank(
@@ -327,16 +325,16 @@ def _extend(
 ) -> dict[int, list[Model]]:
     """Fit every model one effect larger than a frontier model, each once per specimen (from
     its best parent in the frontier); per specimen, the models fitted."""
-    jobs: dict[tuple[Model, str], list[int]] = {}
+    jobs: dict[tuple[Model, Term], list[int]] = {}
     children: dict[int, list[Model]] = {}
     for i in active:
         parents = sorted(frontier[i], key=lambda e, i=i: state.criterion(e, i))
         seen: set[Model] = set()
         for current in parents:
-            held = {base_name(e) for e in current}
+            held = set(current.effects)
             for new in state.candidates:
-                effects = tuple(sorted((*current, new)))
-                if new in held or effects in seen:
+                effects = current.plus(new)
+                if new.effect in held or effects in seen:
                     continue
                 seen.add(effects)
                 if effects not in state.per_spec[i]:  # a pair of the first level is fitted
@@ -344,10 +342,8 @@ def _extend(
         children[int(i)] = sorted(seen)
     for (current, new), members in jobs.items():
         rows = np.asarray(members)
-        effects = tuple(sorted((*current, new)))
-        v0 = _new_effect_starts(state, rows, current, new, banks)
-        g = v0.shape[1]
-        fit = state.fit(effects, rows, v0.reshape(len(rows) * g, -1), g)
+        effects = current.plus(new)
+        fit = state.fit(effects, rows, _new_effect_starts(state, rows, current, new, banks))
         if len(effects) > 1:
             _refine_combination(state, fit)
     return children
@@ -364,16 +360,8 @@ def _refine_combination(state: DiagnosisState, fit: _Fit) -> None:
         if bad.size == 0:
             return
         v1 = _combination_starts(model, fit.v[bad], state.options.effect_levels, 8)
-        g = v1.shape[1]
         v2, p2, c2 = _fit_from(
-            model,
-            state.measured,
-            state.weight,
-            state.sigma,
-            rows[bad],
-            v1.reshape(len(bad) * g, -1),
-            g,
-            state.options.max_iter,
+            model, state.measured, state.weight, state.sigma, rows[bad], v1, state.options.max_iter
         )
         better = c2 < fit.chi2[bad]
         if not better.any():

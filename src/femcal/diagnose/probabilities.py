@@ -44,11 +44,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from femcal.diagnose.result import UNEXPLAINED, model_label
-from femcal.effects.split import base_name, is_split
-from femcal.effects.terms import cases_of, model_case_cost
+from femcal.effects.terms import Model
 from femcal.schema import LOAD_CASES
-
-Model = tuple[str, ...]
 
 #: Bayesian-bootstrap draws per specimen: the Monte Carlo error of a probability averaged over
 #: them is at most 0.5 / sqrt(draws) = 0.016.
@@ -100,13 +97,13 @@ def prior_cost(effects: Model, first: float, further: float) -> float:
     first effect, ``further`` for every further effect and every split form."""
     if not effects:
         return 0.0
-    return first + further * (len(effects) - 1 + sum(is_split(e) for e in effects))
+    return first + further * (len(effects) - 1 + effects.n_split)
 
 
 def model_prior_cost(effects: Model, first: float, further: float) -> float:
     """:func:`prior_cost` plus what the load cases its effects act in cost against their
-    likely ones (:func:`femcal.effects.terms.model_case_cost`)."""
-    return prior_cost(effects, first, further) + model_case_cost(effects)
+    likely ones (:meth:`femcal.effects.terms.Model.case_cost`)."""
+    return prior_cost(effects, first, further) + effects.case_cost()
 
 
 def outside_label(effects: Model) -> str:
@@ -123,9 +120,9 @@ def acts_in(prob: Mapping[str, float], models: Mapping[str, Model]) -> dict:
     where: dict[str, dict[str, float]] = {}
     for label, p in prob.items():
         for term in models[label]:
-            e = base_name(term)
+            e = term.effect
             held[e] = held.get(e, 0.0) + p
-            for lc in cases_of(term):
+            for lc in term.acting:
                 where.setdefault(e, {})[lc] = where.setdefault(e, {}).get(lc, 0.0) + p
     return {
         e: {lc: round(where[e].get(lc, 0.0) / held[e], 4) for lc in LOAD_CASES if lc in where[e]}
@@ -146,9 +143,9 @@ def specimen_probabilities(
 
     Parameters
     ----------
-    criteria : mapping of tuple of str to float
-        Every fitted model's criterion (the disc alone is ``()``).
-    outside : (tuple of str, float) or None
+    criteria : mapping of Model to float
+        Every fitted model's criterion (the disc alone is ``Model()``).
+    outside : (Model, float) or None
         The model the discrepancy sits on and the criterion of that model with the
         discrepancy (``-2 log ML - sum ln sigma^2 + (k + a) ln n``), or None.
     first, further : float
@@ -167,7 +164,7 @@ def specimen_probabilities(
         ``<model>+unexplained`` for the discrepancy), most probable first; ``inclusion``:
         effect name -> probability; ``outside_library``: the discrepancy's probability;
         ``most_probable``: the top label of the point posterior and ``most_probable_effects``
-        its model's effects; ``unexplained``: the discrepancy is more probable than the model
+        its model's terms, written; ``unexplained``: the discrepancy is more probable than the model
         it sits on alone (point posterior);
         ``acts_in``: effect -> load case -> the probability that it acts there given that it
         is present (:func:`acts_in`).
@@ -201,7 +198,7 @@ def specimen_probabilities(
     top = labels[int(np.argmax(point))]
     inclusion: dict[str, float] = {}
     for label, p in prob.items():
-        for e in {base_name(e) for e in finite[label][0]}:
+        for e in set(finite[label][0].effects):
             inclusion[e] = inclusion.get(e, 0.0) + p
     out_label = next((k for k in prob if k.endswith(UNEXPLAINED)), None)
     own = model_label(outside[0]) if outside is not None else None
@@ -213,6 +210,6 @@ def specimen_probabilities(
         "inclusion": {k: round(v, 4) for k, v in sorted(inclusion.items())},
         "outside_library": round(prob.get(out_label, 0.0), 4) if out_label else 0.0,
         "most_probable": top,
-        "most_probable_effects": list(finite[top][0]),
+        "most_probable_effects": [str(t) for t in finite[top][0]],
         "acts_in": acts_in(prob, {k: m for k, (m, _) in finite.items()}),
     }

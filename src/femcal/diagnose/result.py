@@ -9,9 +9,11 @@ from typing import Any
 import numpy as np
 
 from femcal.effects.split import base_name
+from femcal.effects.terms import DISC_ALONE, Model, Term
 from femcal.schema import LOAD_CASES
 
-NONE = "none"
+#: The verdict and the label of the disc alone.
+NONE = DISC_ALONE
 
 
 UNEXPLAINED = "unexplained"
@@ -24,17 +26,21 @@ OUTSIDE_BOX = "outside_box"
 RESEMBLES = 0.8
 
 
-def verdict_label(effects: Sequence[str], adequate: bool) -> str:
+def verdict_label(effects: Sequence[Term | str], adequate: bool) -> str:
     """``none``, ``unexplained``, ``a+b`` or ``a+b+unexplained``: the effects by name, tied or
-    split alike (``facet_contact:split`` is ``facet_contact``)."""
+    split alike (``facet_contact:split`` is ``facet_contact``); ``effects`` terms or their
+    strings."""
     parts = [base_name(e) for e in effects]
     if not adequate:
         parts.append(UNEXPLAINED)
     return "+".join(parts) if parts else NONE
 
 
-def model_label(effects: Sequence[str]) -> str:
-    """A fitted model's name in rankings and plots: ``none`` (the disc alone) or ``a+b``."""
+def model_label(effects: Model | Sequence[str]) -> str:
+    """A fitted model's name in rankings and plots: ``none`` (the disc alone) or ``a+b``
+    (``str(model)``; a result's written terms joined alike)."""
+    if isinstance(effects, Model):
+        return str(effects)
     return "+".join(effects) if effects else NONE
 
 

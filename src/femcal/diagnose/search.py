@@ -26,12 +26,19 @@ For every specimen, :func:`diagnose` runs these steps over one :class:`Diagnosis
    open added to or left out of each chosen effect, where that pays with the prior's cost
    (forward selection fitted each candidate in every load case its prior allows too); the
    backward check again where that changed a model;
-7. **probabilities, verdicts and description** (:mod:`femcal.diagnose.assemble`): the posterior
-   probability of every fitted model, of each effect and of something outside the library
-   (:mod:`femcal.diagnose.probabilities`); the verdict says ``unexplained`` where a discrepancy
-   on top of the model is more probable than the model alone, and then describes it (load
-   cases, laxity or stiffening, from which moment, how large); *what to measure next* where the
-   runner-up is close.
+7. **the decision** (:mod:`femcal.diagnose.decide`): the posterior probability of every
+   fitted model, of each effect and of something outside the library
+   (:mod:`femcal.diagnose.probabilities`); each specimen's model is the most probable fitted
+   one;
+8. **verdicts and description** (:mod:`femcal.diagnose.assemble`), which read the decision and
+   change nothing: the verdict says ``unexplained`` where a discrepancy on top of the model is
+   more probable than the model alone, and then describes it (load cases, laxity or
+   stiffening, from which moment, how large); *what to measure next* where the runner-up is
+   close.
+
+Steps 2-7 change the :class:`~femcal.diagnose.state.DiagnosisState` (its fits and chosen
+models); each step's docstring says what it reads and what it changes. A model is a
+:class:`femcal.effects.terms.Model`, written as a string only in the files and logs.
 
 The measured rates of these choices are in the docs' benchmark pages.
 """
@@ -49,6 +56,7 @@ from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.model import CurveModel
 from femcal.calibration.pgd import pgd
 from femcal.diagnose.assemble import _assemble
+from femcal.diagnose.decide import decide
 from femcal.diagnose.elimination import open_world_elimination
 from femcal.diagnose.fits import _chi2, _columns, _Fit, _weights
 from femcal.diagnose.forms import choose_forms
@@ -59,6 +67,7 @@ from femcal.diagnose.state import DiagnosisState
 from femcal.diagnose.where import choose_cases
 from femcal.diagnose.workers import in_workers
 from femcal.effects.base import available_effects, get_effect
+from femcal.effects.terms import Model, Term
 from femcal.errors import ConfigError
 from femcal.moments import MomentPolicy
 
@@ -133,8 +142,8 @@ def diagnose(
     """
     t0 = time.perf_counter()
     options = DiagnoseOptions() if options is None else options
-    candidates = list(available_effects() if candidates is None else candidates)
-    for name in candidates:
+    names = list(available_effects() if candidates is None else candidates)
+    for name in names:
         get_effect(name)  # unknown names fail before any work
     measured = np.where(np.isfinite(rom_deg), np.asarray(rom_deg, dtype=float), np.nan)
     m = measured.shape[2]
@@ -163,7 +172,7 @@ def diagnose(
         sigma_m=np.ones(m),
         surrogate_sd=np.broadcast_to(sur, measured.shape).copy(),
         options=options,
-        candidates=candidates,
+        candidates=[Term.parse(name) for name in names],
         start_bank=start_bank,
         rng=rng,
     )
@@ -173,10 +182,11 @@ def diagnose(
     state.weight = np.ascontiguousarray(_weights(state.sigma, measured.shape))
     v_disc, pred0 = _disc_fit(state, state.weight)
     all_rows = np.arange(state.n)
-    disc = _Fit((), base, v_disc, all_rows, pred0, _chi2(pred0, measured, state.sigma), base.dim)
+    chi2 = _chi2(pred0, measured, state.sigma)
+    disc = _Fit(Model(), base, v_disc, all_rows, pred0, chi2, base.dim)
     state.per_spec = [{} for _ in range(state.n)]
     state.record(disc)
-    state.chosen = [() for _ in range(state.n)]
+    state.chosen = [Model() for _ in range(state.n)]
     keywords = dict(sur=sur, noise_used=noise_used, noise_sd=noise_sd, moment_policy=moment_policy)
     diag = in_workers(state, _diagnose_group, options.workers, t0=t0, **keywords)
     if diag is None:
@@ -186,8 +196,9 @@ def diagnose(
 
 
 def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnosis:
-    """Steps 2-6 for the specimens of ``state`` (``disc``: their disc-alone fit; ``keywords``
-    those of :func:`femcal.diagnose.assemble._assemble`)."""
+    """Steps 2-7 for the specimens of ``state`` (``disc``: their disc-alone fit; ``keywords``
+    those of :func:`femcal.diagnose.assemble._assemble`): the search and the decision change
+    ``state``; the description reads it."""
     forward_selection(state)
     choose_forms(state)
     if state.options.backward:
@@ -195,7 +206,8 @@ def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnos
     open_world_elimination(state)
     if choose_cases(state) and state.options.backward:
         _backward(state)
-    return _assemble(state, disc=disc, **keywords)
+    decision = decide(state)
+    return _assemble(state, decision, disc=disc, **keywords)
 
 
 def _disc_fit(state: DiagnosisState, weight: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -254,10 +266,14 @@ def _backward(state: DiagnosisState) -> None:
     """Stepwise selection's backward check: each effect of a combination must still gain
     ``backward_delta`` given the others, the sub-model refitted from the combination's
     solution (forward selection's fit of it had the disc bent towards the effect added
-    first); one that does not is dropped."""
+    first); one that does not is dropped.
+
+    Reads ``state.chosen`` and their fits in ``state.per_spec``; changes ``state.per_spec``
+    (each sub-model one effect smaller, refitted; an earlier fit of it kept where better) and
+    ``state.chosen`` (where an effect is dropped)."""
     options = state.options
     for _round in range(options.max_effects):
-        groups: dict[tuple[str, ...], list[int]] = {}
+        groups: dict[Model, list[int]] = {}
         for i in range(state.n):
             if len(state.chosen[i]) >= 2:
                 groups.setdefault(state.chosen[i], []).append(i)
@@ -266,10 +282,10 @@ def _backward(state: DiagnosisState) -> None:
             rows = np.asarray(members)
             v_cur = state.solutions(rows, current)
             for drop in current:
-                rest = tuple(e for e in current if e != drop)
+                rest = current.without(drop)
                 cols = _columns(state.base.dim, current, rest)
                 kept = {i: state.per_spec[i].get(rest) for i in rows}
-                fit = state.fit(rest, rows, v_cur[:, cols])
+                fit = state.fit(rest, rows, v_cur[:, None, cols])
                 for pos, i in enumerate(rows):  # the better of this fit and an earlier one
                     old = kept[i]
                     if old is not None and old[0].chi2[old[1]] <= fit.chi2[pos]:
@@ -278,14 +294,14 @@ def _backward(state: DiagnosisState) -> None:
                 here = state.criterion(current, i)
                 losses = {}
                 for drop in current:
-                    rest = tuple(e for e in current if e != drop)
+                    rest = current.without(drop)
                     losses[rest] = state.criterion(rest, i) - here
                 rest = min(losses, key=losses.get)
                 if losses[rest] < options.backward_delta:
                     logger.info(
                         "%s: %s does not pay given %s (%.1f < %.1f); dropped",
                         state.specimens[i],
-                        set(current) - set(rest),
+                        sorted(set(current.key) - set(rest.key)),
                         rest,
                         losses[rest],
                         options.backward_delta,

@@ -14,8 +14,7 @@ from femcal.diagnose.explain import _adequate_quick
 from femcal.diagnose.fits import _Fit, _fit_from, _solutions
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.effects.composite import EffectModel
-
-Model = tuple[str, ...]
+from femcal.effects.terms import Model, Term
 
 
 @dataclass
@@ -38,15 +37,18 @@ class DiagnosisState:
     surrogate_sd : ndarray, shape (n, 4, m)
         The surrogate's own part of each point's sd (deg).
     options : DiagnoseOptions
-    candidates : list of str
-        The effects the search may add.
+    candidates : list of Term
+        The effects the search may add (each a term of its own).
     start_bank : ndarray, shape (N, 13), or None
         Disc configurations to start from.
     rng : numpy.random.Generator
     per_spec : list of dict
-        Per specimen, every fitted model: ``effects -> (fit, row in the fit)``.
-    chosen : list of tuple of str
+        Per specimen, every fitted model: ``Model -> (fit, row in the fit)``.
+    chosen : list of Model
         Per specimen, the model the steps chose so far.
+
+    The steps of :func:`femcal.diagnose.diagnose` change ``per_spec`` (through :meth:`fit`
+    and :meth:`record`) and ``chosen``; everything else is set before the first step.
     """
 
     base: CurveModel
@@ -57,7 +59,7 @@ class DiagnosisState:
     sigma_m: np.ndarray
     surrogate_sd: np.ndarray
     options: DiagnoseOptions
-    candidates: list[str]
+    candidates: list[Term]
     start_bank: np.ndarray | None
     rng: np.random.Generator
     per_spec: list[dict[Model, tuple[_Fit, int]]] = field(default_factory=list)
@@ -84,7 +86,7 @@ class DiagnosisState:
         return np.log(np.maximum(self.n_points, 2.0))
 
     def model(self, effects: Model) -> CurveModel:
-        """The disc (``()``) or the disc with ``effects``, built once."""
+        """The disc (the empty model) or the disc with ``effects``, built once."""
         if not effects:
             return self.base
         if effects not in self._models:
@@ -94,7 +96,7 @@ class DiagnosisState:
     def model_rng(self, effects: Model) -> np.random.Generator:
         """A generator of its own for model ``effects``, from the options' seed and the
         model's name: its draws do not depend on which specimens are diagnosed together."""
-        key = zlib.crc32("+".join(effects).encode())
+        key = zlib.crc32("+".join(effects.key).encode())
         return np.random.default_rng([self.options.seed, key])
 
     def rows(self, rows: Sequence[int]) -> DiagnosisState:
@@ -114,7 +116,7 @@ class DiagnosisState:
             start_bank=self.start_bank,
             rng=self.rng,
         )
-        sub.chosen = [self.chosen[i] for i in rows] if self.chosen else [() for _ in rows]
+        sub.chosen = [self.chosen[i] for i in rows] if self.chosen else [Model() for _ in rows]
         sub.per_spec = [{} for _ in rows]
         fits = {id(f): f for i in rows for f, _ in self.per_spec[i].values()}
         for fit in fits.values():
@@ -127,13 +129,13 @@ class DiagnosisState:
         for pos, i in enumerate(fit.rows):
             self.per_spec[int(i)][fit.effects] = (fit, pos)
 
-    def fit(self, effects: Model, rows: np.ndarray, v0: torch.Tensor, g: int = 1) -> _Fit:
-        """Fit model ``effects`` to specimens ``rows`` (r,) from ``g`` starts each, ``v0``
-        (r * g, dim); the best start per specimen, recorded."""
+    def fit(self, effects: Model, rows: np.ndarray, starts: torch.Tensor) -> _Fit:
+        """Fit model ``effects`` to specimens ``rows`` (r,) from ``starts`` (r, g, dim); the
+        best start per specimen, recorded."""
         model = self.model(effects)
         rows = np.asarray(rows)
         v, pred, chi2 = _fit_from(
-            model, self.measured, self.weight, self.sigma, rows, v0, g, self.options.max_iter
+            model, self.measured, self.weight, self.sigma, rows, starts, self.options.max_iter
         )
         fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
         self.record(fit)

@@ -8,7 +8,7 @@ backward check and the open-world elimination (so that an effect that only stand
 physics outside the library is dropped before a further load case could entrench it),
 specimen by specimen, each effect of the chosen model is refitted, from the chosen model's solution,
 with one load case of prior strictly between 0 and 1 added or left out
-(:func:`femcal.effects.terms.toggles`); where a load case is added, the model without each
+(:meth:`femcal.effects.terms.Term.toggles`); where a load case is added, the model without each
 other effect is fitted too (from the toggled fit), so that an effect acting in a further load
 case can replace one that stood in for it there. An effect counts in a load case beyond its
 likely ones only where it engages there (:func:`engaged`). A change is kept where it lowers the
@@ -26,12 +26,12 @@ import numpy as np
 import torch
 
 from femcal.effects.base import get_effect
-from femcal.effects.split import base_name, tied_parameter
-from femcal.effects.terms import cases_of, toggles, with_cases
+from femcal.effects.split import tied_parameter
+from femcal.effects.terms import Model, Term
 from femcal.schema import LOAD_CASES
 
 if TYPE_CHECKING:
-    from femcal.diagnose.state import DiagnosisState, Model
+    from femcal.diagnose.state import DiagnosisState
 
 logger = logging.getLogger(__name__)
 
@@ -39,13 +39,13 @@ logger = logging.getLogger(__name__)
 ROUNDS = 2
 
 
-def wide_terms(candidates: list[str]) -> list[str]:
+def wide_terms(candidates: list[Term]) -> list[Term]:
     """Each candidate acting in every load case its prior allows, where that is more than its
     likely load cases (in candidate order)."""
     out = []
     for name in candidates:
         prior = get_effect(name).load_case_prior
-        wide = with_cases(name, [lc for lc in LOAD_CASES if prior.get(lc, 0.0) > 0.0])
+        wide = name.with_cases([lc for lc in LOAD_CASES if prior.get(lc, 0.0) > 0.0])
         if wide != name:
             out.append(wide)
     return out
@@ -59,14 +59,7 @@ def engaged(state: DiagnosisState, model: Model, rows: list[int]) -> np.ndarray:
     where the model holds no such load case or the disc has no network to read shapes with."""
     from femcal.diagnose.outside import ShapeReader, _ramp, flatness
 
-    extra = [
-        [
-            LOAD_CASES.index(lc)
-            for lc in cases_of(e)
-            if lc not in get_effect(base_name(e)).load_cases
-        ]
-        for e in model
-    ]
+    extra = [[LOAD_CASES.index(lc) for lc in e.beyond] for e in model]
     ok = np.ones(len(rows), dtype=bool)
     if not any(extra) or not hasattr(state.base, "surrogate"):
         return ok
@@ -88,7 +81,7 @@ def not_engaged(state: DiagnosisState) -> set[tuple[int, Model]]:
     by_model: dict[Model, list[int]] = {}
     for i in range(state.n):
         for m in state.per_spec[i]:
-            if any(set(cases_of(e)) - set(get_effect(base_name(e)).load_cases) for e in m):
+            if any(e.beyond for e in m):
                 by_model.setdefault(m, []).append(i)
     return {
         (i, m)
@@ -109,11 +102,11 @@ def mapped_start(v: torch.Tensor, effects: Model, target: Model) -> torch.Tensor
     at = n_disc
     for name in effects:
         params = get_effect(name).parameters
-        source[base_name(name)] = {q.name: v[:, at + j] for j, q in enumerate(params)}
+        source[name.effect] = {q.name: v[:, at + j] for j, q in enumerate(params)}
         at += len(params)
     parts = [v[:, :n_disc]]
     for name in target:
-        own = source.get(base_name(name), {})
+        own = source.get(name.effect, {})
         for q in get_effect(name).parameters:
             if q.name in own:
                 parts.append(own[q.name][:, None])
@@ -129,7 +122,11 @@ def mapped_start(v: torch.Tensor, effects: Model, target: Model) -> torch.Tensor
 
 def choose_cases(state: DiagnosisState) -> int:
     """Change where the chosen effects act, specimen by specimen, while a change pays (see
-    the module docstring); ``state.chosen`` updated in place. Returns the changes made."""
+    the module docstring). Returns the changes made.
+
+    Reads ``state.chosen`` and their fits in ``state.per_spec``; changes ``state.per_spec``
+    (each toggled model and its replacements, fitted) and ``state.chosen`` (where a change
+    pays)."""
     from femcal.diagnose.probabilities import model_prior_cost
 
     options = state.options
@@ -146,8 +143,8 @@ def choose_cases(state: DiagnosisState) -> int:
         jobs: dict[tuple[Model, Model], list[int]] = {}
         for i, current in enumerate(state.chosen):
             for term in current:
-                for new in toggles(term):
-                    model = tuple(sorted(new if e == term else e for e in current))
+                for new in term.toggles():
+                    model = current.replace(term, new)
                     options_of.setdefault(i, []).append(model)
                     if model not in state.per_spec[i]:
                         jobs.setdefault((current, model), []).append(i)
@@ -155,7 +152,7 @@ def choose_cases(state: DiagnosisState) -> int:
             return made
         for (current, model), rows in jobs.items():
             v0 = mapped_start(state.solutions(rows, current), current, model)
-            state.fit(model, np.asarray(rows), v0)
+            state.fit(model, np.asarray(rows), v0[:, None])
         _fit_replacements(state, options_of)
         by_model: dict[Model, list[int]] = {}
         for i, models in options_of.items():
@@ -179,7 +176,7 @@ def choose_cases(state: DiagnosisState) -> int:
                     "%s: %s acts where %s (gains %.1f)",
                     state.specimens[i],
                     best,
-                    {e: cases_of(e) for e in best},
+                    {str(e): e.acting for e in best},
                     gains[best],
                 )
                 state.chosen[i] = best
@@ -203,18 +200,15 @@ def _fit_replacements(state: DiagnosisState, options_of: dict[int, list[Model]])
                 e
                 for e in model
                 if e not in current
-                and any(
-                    base_name(e) == base_name(c) and set(cases_of(e)) > set(cases_of(c))
-                    for c in current
-                )
+                and any(e.effect == c.effect and set(e.acting) > set(c.acting) for c in current)
             ]
             for drop in model:
                 if not grown or drop in grown:
                     continue
-                rest = tuple(e for e in model if e != drop)
+                rest = model.without(drop)
                 options_of[i].append(rest)
                 if rest not in state.per_spec[i]:
                     jobs.setdefault((model, rest), []).append(i)
     for (model, rest), rows in jobs.items():
         v0 = mapped_start(state.solutions(rows, model), model, rest)
-        state.fit(rest, np.asarray(rows), v0)
+        state.fit(rest, np.asarray(rows), v0[:, None])

@@ -22,6 +22,7 @@ import numpy as np
 
 from femcal.diagnose.result import Diagnosis
 from femcal.diagnose.state import DiagnosisState
+from femcal.effects.terms import Model
 
 #: Fewest specimens per worker: below, the fits' batches are too small to pay for a process.
 MIN_ROWS = 8
@@ -54,7 +55,8 @@ def _one(j: int) -> Diagnosis:
     state, run, keywords = _SHARED
     keywords = dict(keywords)
     sub = state.rows(groups(state.n, keywords.pop("_workers"))[j])
-    return run(sub, disc=sub.per_spec[0][()][0], **keywords)  # their disc-alone fit, renumbered
+    disc = sub.per_spec[0][Model()][0]  # their disc-alone fit, renumbered
+    return run(sub, disc=disc, **keywords)
 
 
 def in_workers(

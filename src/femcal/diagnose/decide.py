@@ -1,0 +1,189 @@
+"""The step that decides each specimen's model (a step of :func:`femcal.diagnose.diagnose`):
+how probable every fitted model is, with and without a discrepancy, and the most probable one.
+
+Each final model gets the discrepancy it needs (type-II maximum likelihood): how probable
+something outside the library is. The probabilities of every fitted model and of the final
+model with its discrepancy follow (:func:`femcal.diagnose.probabilities.specimen_probabilities`).
+The verdict is the most probable explanation: where a fitted model is more probable than the
+search's choice (and no discrepancy is the most probable), that model is chosen, and the
+discrepancies and probabilities are computed again for the models that changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from femcal.diagnose.discrepancy import DiscrepancyFit, fit_discrepancy
+from femcal.diagnose.probabilities import bootstrap_rng, outside_label, specimen_probabilities
+from femcal.diagnose.result import UNEXPLAINED, model_label
+from femcal.diagnose.state import DiagnosisState
+from femcal.diagnose.where import not_engaged
+from femcal.effects.terms import Model
+
+#: An effect is idle in a fit when removing it raises the chi-square by less than this and
+#: lowers the effective number of parameters by less than :data:`IDLE_PARAMETERS`.
+IDLE_CHI2 = 1.0
+IDLE_PARAMETERS = 0.5
+
+
+@dataclass
+class Decision:
+    """What :func:`decide` decided, for the description to read.
+
+    Attributes
+    ----------
+    finals : dict of Model to list of int
+        Each chosen model and its specimens (in specimen order).
+    gp : dict of Model to DiscrepancyFit
+        Each chosen model refitted with the discrepancy it needs, to ``finals[model]`` in that
+        order.
+    probabilities : list of dict, length n
+        Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities`.
+    """
+
+    finals: dict[Model, list[int]]
+    gp: dict[Model, DiscrepancyFit]
+    probabilities: list[dict[str, Any]]
+
+
+def decide(state: DiagnosisState) -> Decision:
+    """Each specimen's model: the most probable fitted model (see the module docstring).
+
+    Reads ``state.chosen`` and every fit in ``state.per_spec``; changes ``state.chosen``
+    (where another fitted model is the most probable) and the fits' effective parameters
+    and covariance (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`, once per fit).
+    """
+    # One Jacobian per fitted batch: effective parameters and covariance of every model.
+    for i in range(state.n):
+        for f, _ in state.per_spec[i].values():
+            f.ensure_trace(state.mask, state.sigma)
+    finals = _finals(state)
+    gp = {effects: _gp_fit(state, effects, rows) for effects, rows in finals.items()}
+    probabilities = _probabilities(state, finals, gp)
+    switched = {}
+    for i, p in enumerate(probabilities):
+        top = p["most_probable"]
+        if top.endswith(UNEXPLAINED):
+            continue
+        model = next(m for m in state.per_spec[i] if model_label(m) == top)
+        if model != state.chosen[i]:
+            switched[i] = model
+    if switched:
+        for i, model in switched.items():
+            state.chosen[i] = model
+        old, finals = finals, _finals(state)
+        for effects, rows in finals.items():
+            if rows != old.get(effects):  # the fits are per group, in its order
+                gp[effects] = _gp_fit(state, effects, rows)
+        probabilities = _probabilities(state, finals, gp)
+    return Decision(finals, gp, probabilities)
+
+
+def _finals(state: DiagnosisState) -> dict[Model, list[int]]:
+    """Each chosen model and its specimens, in specimen order."""
+    finals: dict[Model, list[int]] = {}
+    for i in range(state.n):
+        finals.setdefault(state.chosen[i], []).append(i)
+    return finals
+
+
+def _gp_fit(state: DiagnosisState, effects: Model, rows: list[int]) -> DiscrepancyFit:
+    """Model ``effects`` refitted to specimens ``rows`` with the discrepancy it needs."""
+    rows_a = np.asarray(rows)
+    v = state.solutions(rows_a, effects)
+    return fit_discrepancy(
+        state.model(effects),
+        v,
+        state.measured[rows_a],
+        state.sigma[rows_a],
+        amplitude_deg="ml",
+    )
+
+
+def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
+    """Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities` of every
+    fitted model and of its final model with its discrepancy (``gp``, per final model, fitted
+    to ``finals[model]`` in that order). A model with an effect in a load case beyond its
+    likely ones where it does not engage is left out (:func:`femcal.diagnose.where.not_engaged`),
+    as the search leaves it out."""
+    outside = _outside_criteria(state, finals, gp)
+    aside = not_engaged(state)
+    pointwise = _pointwise(state, finals, gp)
+    return [
+        specimen_probabilities(
+            {
+                m: state.criterion(m, i)
+                for m in state.per_spec[i]
+                if m == state.chosen[i] or not (_idle_effect(state, m, i) or (i, m) in aside)
+            },
+            (state.chosen[i], outside[i]),
+            state.options.min_delta,
+            state.options.min_delta_inadequate,
+            pointwise=pointwise[i],
+            rng=bootstrap_rng(state.options.seed, state.specimens[i]),
+        )
+        for i in range(state.n)
+    ]
+
+
+def _pointwise(state: DiagnosisState, finals, gp) -> list[dict[str, np.ndarray]]:
+    """Per specimen, each fitted model's chi-square contribution at each measured point
+    (label -> (p,)), and its final model's with the discrepancy's mean added (the
+    discrepancy's label): what the Bayesian bootstrap of the probabilities reweighs."""
+    out: list[dict[str, np.ndarray]] = [{} for _ in range(state.n)]
+    for i in range(state.n):
+        ok = state.mask[i]
+        for m, (f, at) in state.per_spec[i].items():
+            r = (state.measured[i] - f.pred[at].double().numpy()) / state.sigma[i]
+            out[i][model_label(m)] = r[ok] ** 2
+    for effects, rows in finals.items():
+        for pos, i in enumerate(rows):
+            f, at = state.per_spec[i][effects]
+            r = state.measured[i] - f.pred[at].double().numpy() - gp[effects].delta_at_points[pos]
+            out[i][outside_label(effects)] = (r / state.sigma[i])[state.mask[i]] ** 2
+    return out
+
+
+def _idle_effect(state: DiagnosisState, effects: Model, i: int) -> bool:
+    """Whether model ``effects`` holds an effect that does nothing for specimen ``i``: the
+    fitted model without it has (almost) the same chi-square and effective parameters. Such a
+    model is its sub-model under another name, and is left out of the probabilities (counted,
+    it would give the idle effect the prior odds of a further effect, about 0.27, however
+    little the data say for it)."""
+    fits = state.per_spec[i]
+    f, at = fits[effects]
+    for drop in effects:
+        rest = effects.without(drop)
+        if rest not in fits:
+            continue
+        g, bt = fits[rest]
+        if (
+            float(g.chi2[bt]) - float(f.chi2[at]) < IDLE_CHI2
+            and float(f.trace[at]) - float(g.trace[bt]) < IDLE_PARAMETERS
+        ):
+            return True
+    return False
+
+
+def _outside_criteria(
+    state: DiagnosisState, finals: dict[Model, list[int]], gp: dict[Model, DiscrepancyFit]
+) -> np.ndarray:
+    """Per specimen (n,): the criterion of its final model with its discrepancy,
+    ``-2 log ML - sum ln sigma^2 + (k + a) ln n`` (``k`` the model's effective parameters,
+    ``a`` the load cases whose discrepancy amplitude is not zero), comparable with the
+    models' ``chi^2 + k ln n``."""
+    out = np.full(state.n, np.inf)
+    for effects, members in finals.items():
+        rows = np.asarray(members)
+        dfit = gp[effects]
+        ok = state.mask[rows]
+        log_noise = np.where(ok, np.log(state.sigma[rows] ** 2), 0.0).sum(axis=(1, 2))
+        n_amp = (np.asarray(dfit.amplitude_deg) > 0).sum(axis=1)
+        for pos, i in enumerate(rows):
+            f, at = state.per_spec[i][effects]
+            k = float(f.trace[at]) + float(n_amp[pos])
+            out[i] = float(dfit.neg2_log_ml[pos] - log_noise[pos]) + k * float(state.log_n[i])
+    return out
