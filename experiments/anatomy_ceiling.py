@@ -44,8 +44,9 @@ TIE = 2.0
 def prior(model: tuple[str, ...]) -> float:
     """The diagnosis' prior cost of a model (:func:`femcal.diagnose.probabilities.prior_cost`)."""
     from femcal.diagnose.probabilities import prior_cost
+    from femcal.effects.terms import Model
 
-    return prior_cost(model, FIRST, FURTHER)
+    return prior_cost(Model.parse("+".join(model)), FIRST, FURTHER)
 
 
 def thorough_scores(

@@ -98,14 +98,15 @@ def analyse(
         out = original(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, *a, **kw)
         if not out or dense_base is None:
             return out
-        rival = next(r for r in ranking if r["effect"] == out["between"][1])
-        best = next(r for r in ranking if tuple(r["effects"]) == tuple(chosen))
-        fa, pa = fits[tuple(best["effects"])]
-        fb, pb = fits[tuple(rival["effects"])]
+        models = {str(m): m for m in fits}  # a ranking's entry names its model
+        rival = models[out["between"][1]]
+        best = chosen
+        fa, pa = fits[best]
+        fb, pb = fits[rival]
         if fa.cov is None or fb.cov is None:
             return out
-        ca, ja = _curves_jacobian(dense_base, tuple(best["effects"]), fa, pa)
-        cb, jb = _curves_jacobian(dense_base, tuple(rival["effects"]), fb, pb)
+        ca, ja = _curves_jacobian(dense_base, best, fa, pa)
+        cb, jb = _curves_jacobian(dense_base, rival, fb, pb)
         s2 = np.tile(sigma_dense**2 - min(noise, float(sigma_dense.min())) ** 2, 4)
         per_point = noise**2 / repeats + surrogate_scale**2 * s2
         picked, gains = greedy_design(ca - cb, per_point, ja, fa.cov[pa], jb, fb.cov[pb], points)
