@@ -312,3 +312,31 @@ def test_every_run_a_command_starts_is_tagged_with_its_stage(tmp_path, monkeypat
     assert [t.get("femcal.stage") for t in tags] == ["evaluate", "evaluate"]
     assert all(t.get("mine") == "kept" for t in tags)
     assert os.environ["MLFLOW_RUN_CONTEXT"] == '{"mine": "kept"}'  # as before the command
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_the_program_ends_without_tearing_its_modules_down(tmp_path, background):
+    """``femcal`` (main without argv) ends the process once the command is done: the atexit
+    functions run and the output is flushed, the interpreter's teardown is skipped; a thread
+    still working keeps the normal exit (it is not cut short)."""
+    code = (
+        "import atexit, sys, threading, time\n"
+        "class Probe:\n"
+        "    def __del__(self):\n"
+        "        print('TORN DOWN', flush=True)\n"
+        "probe = Probe()\n"
+        "atexit.register(print, 'ATEXIT')\n"
+        f"if {background}:\n"
+        "    threading.Thread(target=time.sleep, args=(0.5,)).start()\n"
+        f"sys.argv = ['femcal', '--params', {str(tmp_path / 'nope.yaml')!r}, 'prepare']\n"
+        "from femcal.cli import main\n"
+        "print('RETURNED', main(), flush=True)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    out = proc.stdout.split()
+    assert proc.returncode == (0 if background else 2), proc.stderr
+    assert "femcal prepare: error:" in proc.stderr and "ATEXIT" in out
+    if background:  # returned; the interpreter waits for the thread and exits as usual
+        assert "RETURNED" in out and "TORN DOWN" in proc.stdout
+    else:
+        assert "RETURNED" not in out and "TORN DOWN" not in proc.stdout
