@@ -70,6 +70,7 @@ def _row(truth, expected, pick, strict, within, lb=False, facet_named=False):
         "oracle_pick": pick,
         "oracle_right": pick == expected,
         "oracle_right_engaged": pick == expected,
+        "oracle_right_true_noise": pick == expected,
         "margin": 1.0 if pick == expected else -3.0,
         "strict": strict,
         "visible": True,
