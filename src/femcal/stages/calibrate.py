@@ -135,6 +135,7 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
 
     names = load_user_effects(settings.effect_modules)
     with TrackingProcess(settings.params) as tracker:
+        leave_a_core_to_mlflow()
         _, figures = run_calibration(settings, tracker=tracker)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, calibration_headline(figures))
@@ -148,6 +149,23 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
         noise_deg=settings.noise_deg,
         noise_source=settings.noise_source,
     )
+
+
+def leave_a_core_to_mlflow() -> int:
+    """torch's threads in this process: one fewer than the command's (at least one), the
+    MLflow process (:class:`TrackingProcess`) working on a core of its own meanwhile; returns
+    the count.
+
+    Two torch threads beside a busy process on two cores wait for each other's core: the
+    calibration then takes several times its CPU time. The figures' worker processes still
+    take every free core (:func:`femcal.figures.plot_workers`): they are drawn once the
+    calibration is done.
+    """
+    import torch
+
+    threads = max(1, torch.get_num_threads() - 1)
+    torch.set_num_threads(threads)
+    return threads
 
 
 def describe(figures: Mapping[str, Any]) -> list[str]:
