@@ -320,17 +320,19 @@ def test_the_program_ends_without_tearing_its_modules_down(tmp_path, background)
     functions run and the output is flushed, the interpreter's teardown is skipped; a thread
     still working keeps the normal exit (it is not cut short)."""
     code = (
-        "import atexit, sys, threading, time\n"
+        "import atexit, sys, threading\n"
         "class Probe:\n"
         "    def __del__(self):\n"
         "        print('TORN DOWN', flush=True)\n"
         "probe = Probe()\n"
         "atexit.register(print, 'ATEXIT')\n"
-        f"if {background}:\n"
-        "    threading.Thread(target=time.sleep, args=(0.5,)).start()\n"
+        "done = threading.Event()\n"
+        f"if {background}:  # a thread working until main has returned\n"
+        "    threading.Thread(target=done.wait, args=(600,)).start()\n"
         f"sys.argv = ['femcal', '--params', {str(tmp_path / 'nope.yaml')!r}, 'prepare']\n"
         "from femcal.cli import main\n"
         "print('RETURNED', main(), flush=True)\n"
+        "done.set()\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     out = proc.stdout.split()
@@ -340,3 +342,18 @@ def test_the_program_ends_without_tearing_its_modules_down(tmp_path, background)
         assert "RETURNED" in out and "TORN DOWN" in proc.stdout
     else:
         assert "RETURNED" not in out and "TORN DOWN" not in proc.stdout
+
+
+def test_a_profiled_program_returns_to_its_profiler(tmp_path):
+    """Under ``python -m cProfile -o FILE -m femcal``, the command returns to the profiler,
+    which writes FILE."""
+    stats = tmp_path / "femcal.prof"
+    argv = ["--params", str(tmp_path / "nope.yaml"), "prepare"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "cProfile", "-o", str(stats), "-m", "femcal", *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert "femcal prepare: error:" in proc.stderr  # (cProfile's own exit status: 0)
+    assert stats.stat().st_size > 0

@@ -414,10 +414,14 @@ def exit_now(code: int) -> None:
     """End the process with ``code`` without the interpreter's teardown of every module
     (about 0.3 CPU-s with torch loaded): the ``atexit`` functions run first and the output
     streams are flushed, as at a normal exit. Returns (and the interpreter exits as usual)
-    while a thread other than the main one is still running: its work is not cut short."""
+    while a thread other than the main one is still running (its work is not cut short) and
+    under a profiler or tracer (``python -m cProfile -o FILE -m femcal ...`` writes FILE once
+    the command returns)."""
     import atexit
     import threading
 
+    if sys.getprofile() is not None or sys.gettrace() is not None:
+        return
     main_thread = threading.main_thread()
     if any(t is not main_thread and not t.daemon and t.is_alive() for t in threading.enumerate()):
         return
