@@ -217,16 +217,13 @@ def _starts(state, form: tuple[str, ...], rows: list[int]) -> torch.Tensor:
     return torch.cat(parts, dim=1)
 
 
-def fill_forms(state, forms: list[tuple[str, ...]]) -> dict[str, int]:
+def fill_forms(state, forms: list[tuple[str, ...]]) -> None:
     """Fit every form of ``forms`` the search did not reach (singles first, then pairs), each
-    pair then given the combination rounds; returns how many specimen-forms each source
-    fitted (``search``, ``filled``)."""
+    pair then given the combination rounds."""
     from femcal.diagnose.forward import _refine_combination
 
-    counts = {"search": 0, "filled": 0}
     for form in sorted(forms, key=len):
         rows = [i for i in range(state.n) if form not in state.per_spec[i]]
-        counts["search"] += state.n - len(rows)
         if not rows or not form:
             continue
         v0 = _starts(state, form, rows)
@@ -234,8 +231,6 @@ def fill_forms(state, forms: list[tuple[str, ...]]) -> dict[str, int]:
         fit = state.fit(form, np.asarray(rows), v0.reshape(len(rows) * g, -1), g)
         if len(form) > 1:
             _refine_combination(state, fit)
-        counts["filled"] += len(rows)
-    return counts
 
 
 # ----------------------------------------------------------------------------- the scores
@@ -362,26 +357,21 @@ def judge(scores: dict[str, float], truth: str) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------- a cohort
-def selected(bench: Path, seed: int, max_specimens: int | None) -> pd.DataFrame:
-    """The specimens of ``seed`` in ``bench/specimens.csv`` of the five classes that are
-    visible or show a structure beyond the old assignment (the first ``max_specimens``)."""
-    table = pd.read_csv(bench / "specimens.csv")
-    t = table[(table["seed"] == seed) & table["truth"].isin(CLASSES)]
-    t = t[t["visible"] | t["facets_lb_visible"] | t["ligaments_ext_visible"]]
-    return t.head(max_specimens) if max_specimens else t
-
-
 def one_cohort(bench: Path, seed: int, budget: Budget, max_specimens: int | None) -> dict:
-    """Fit every form to the selected specimens of one cohort, score and judge them."""
+    """Fit every form to the specimens of one cohort of the five classes that are visible or
+    show a structure beyond the old assignment (the first ``max_specimens``); score, judge."""
     t0, c0 = time.perf_counter(), time.process_time()
     root = bench / f"seed-{seed}"
-    table = selected(bench, seed, max_specimens)
+    table = pd.read_csv(bench / "specimens.csv")  # the five classes, visible or beyond
+    table = table[(table["seed"] == seed) & table["truth"].isin(CLASSES)]
+    table = table[table["visible"] | table["facets_lb_visible"] | table["ligaments_ext_visible"]]
+    table = table.head(max_specimens) if max_specimens else table
     names = [str(s) for s in table["specimen"]]
     truth = {r["specimen"]: r for r in json.loads((root / "cohort/truth.json").read_text())}
     diag = {r["specimen"]: r for r in json.loads((root / "diagnosis/diagnosis.json").read_text())}
     state, w = build_state(root / "cohort", names, budget)
     search(state)
-    counts = fill_forms(state, all_forms(state.candidates))
+    fill_forms(state, all_forms(state.candidates))
     own = [{x["effect"]: x["criterion"] for x in diag[s]["ranking"]} for s in names]
     scores, engaged_only = form_scores(state, own)
     rms = np.array([float(truth[s]["noise"]["rms_deg"]) for s in names])
@@ -427,7 +417,6 @@ def one_cohort(bench: Path, seed: int, budget: Budget, max_specimens: int | None
     return {
         "seed": seed,
         "n": len(names),
-        "forms": counts,
         "wall_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - c0,
         "specimens": rows,
@@ -436,7 +425,7 @@ def one_cohort(bench: Path, seed: int, budget: Budget, max_specimens: int | None
 
 # -------------------------------------------------------------------------------- summary
 def _rate(flags: pd.Series) -> dict[str, Any]:
-    ok = flags.astype(bool)
+    ok = flags.dropna().astype(bool)
     return {"k": int(ok.sum()), "n": int(ok.size)}
 
 
@@ -537,17 +526,26 @@ def write(rows: list[dict[str, Any]], meta: dict[str, Any], out: Path) -> None:
     (out / "bench_edges_ceiling.md").write_text("\n".join(lines) + "\n")
 
 
-def rewrite(out: Path) -> None:
-    """Write the report of a finished run in ``out`` again from its json and csv."""
-    payload = json.loads((out / "bench_edges_ceiling.json").read_text())
-    table = pd.read_csv(out / "specimens.csv", keep_default_na=False, na_values=[""])
-    table["oracle_pick"] = table["oracle_pick"].fillna("")
-    rows = [
-        {**c, "specimens": table[table["seed"] == c["seed"]].to_dict("records")}
-        for c in payload.pop("cohorts")
-    ]
+def rewrite(out: Path, sources: Sequence[Path]) -> None:
+    """Write the report of finished runs again from their json and csv (``sources``, default
+    ``out``): with several, per specimen the truth counts where any run's fits let it win
+    (margins their largest, the oracle's pick from the run where the truth fares best)."""
+    tables, cohorts, commands = [], {}, []
+    for src in sources or [out]:
+        payload = json.loads((src / "bench_edges_ceiling.json").read_text())
+        tables.append(pd.read_csv(src / "specimens.csv", keep_default_na=False, na_values=[""]))
+        commands.append(payload["command"])
+        for c in payload.pop("cohorts"):
+            old = cohorts.setdefault(c["seed"], {**c, "cpu_s": 0.0, "wall_s": 0.0})
+            old.update(cpu_s=old["cpu_s"] + c["cpu_s"], wall_s=old["wall_s"] + c["wall_s"])
+    t = pd.concat(tables).fillna({"oracle_pick": ""}).sort_values("margin", ascending=False)
+    agg = {c: "max" if c.startswith(("oracle_right", "margin")) else "first" for c in t}
+    t = t.groupby(["seed", "specimen"], as_index=False).agg(
+        {k: v for k, v in agg.items() if k not in ("seed", "specimen")}
+    )
+    rows = [{**c, "specimens": t[t["seed"] == k].to_dict("records")} for k, c in cohorts.items()]
     payload.pop("summary")
-    write(rows, payload, out)
+    write(rows, {**payload, "command": "` and `".join(commands)}, out)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -561,9 +559,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--rounds", type=int, default=Budget.combination_rounds)
     ap.add_argument("--max-iter", type=int, default=Budget.max_iter)
     ap.add_argument("--rewrite", action="store_true", help="write the report of --out again")
+    ap.add_argument("--from", dest="sources", type=Path, action="append", default=[])
     args = ap.parse_args(argv)
     if args.rewrite:
-        rewrite(args.out)
+        rewrite(args.out, args.sources)
         return
     seeds = [int(s) for s in args.seeds.split(",") if s]
     fresh = sorted(set(seeds) & set(FRESH_SEEDS))
