@@ -3,6 +3,7 @@ the forms fitted, the prior costs, the oracle's judgement and the bench rows it 
 
 from __future__ import annotations
 
+import json
 import math
 
 import pandas as pd
@@ -114,3 +115,37 @@ def test_main_refuses_the_fresh_seeds(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--bench", str(tmp_path), "--seeds", f"101,{FRESH_SEEDS[0]}", "--out", str(tmp_path)])
     assert "fresh cohorts, run once" in capsys.readouterr().err
+
+
+def _run(folder, margin, right, command):
+    """A finished run's files in ``folder``: one facet specimen of seed 101."""
+    row = _row("facets", "facet_contact", "facet_contact" if right else "neutral_zone", True, True)
+    row.update(
+        seed=101,
+        specimen="E006",
+        margin=margin,
+        acts_in="{}",
+        verdict="facet_contact",
+        truth_form="facet_contact:split",
+        truth_chi2_true_per_dof=0.5,
+        truth_p_true=0.9,
+    )
+    folder.mkdir()
+    pd.DataFrame([row]).to_csv(folder / "specimens.csv", index=False)
+    cohort = {"seed": 101, "n": 1, "cpu_s": 60.0, "wall_s": 120.0, "specimens": None}
+    meta = {"command": command, "seeds": [101], "summary": {}, "cohorts": [cohort]}
+    (folder / "bench_edges_ceiling.json").write_text(json.dumps(meta))
+
+
+def test_rewrite_joins_runs_counting_the_truth_where_any_run_lets_it_win(tmp_path):
+    _run(tmp_path / "a", -1.5, False, "run a")
+    _run(tmp_path / "b", 0.5, True, "run b")
+    main(
+        ["--bench", "x", "--seeds", "101", "--rewrite", "--out", str(tmp_path / "ab")]
+        + ["--from", str(tmp_path / "a"), "--from", str(tmp_path / "b")]
+    )
+    t = pd.read_csv(tmp_path / "ab" / "specimens.csv")
+    assert len(t) == 1 and bool(t["oracle_right"][0]) and t["margin"][0] == 0.5
+    assert t["oracle_pick"][0] == "facet_contact"  # from the run where the truth wins
+    report = (tmp_path / "ab" / "bench_edges_ceiling.md").read_text()
+    assert "`run a` and `run b`" in report and "2 CPU-min, 4 min wall" in report
