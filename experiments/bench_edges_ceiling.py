@@ -30,8 +30,9 @@ Writes ``bench_edges_ceiling.json``, ``specimens.csv`` and ``bench_edges_ceiling
 ``--out``; ``--bench`` is a ``bench_edges`` run of the same seeds (its diagnoses' rankings
 count). The fits use the diagnosis' internals as of commit 9731e30 (models as tuples of term
 strings), the library of the ``dev-item4`` diagnoses, so the run imports that snapshot. Dev
-seeds only, one process (the default budget: 40 specimens of seeds 101 and 102 in about 15
-CPU-min; ``--bank-starts 8 --shape-starts 8 --rounds 2 --max-iter 40``: 7.6 CPU-min)::
+seeds only, one process (the default budget: 40 specimens of seeds 101 and 102 in 10.7
+CPU-min, 27 min wall beside other jobs on 2 cores; ``--bank-starts 8 --shape-starts 8
+--rounds 2 --max-iter 40``: 7.6 CPU-min, 16 min wall)::
 
     git archive 9731e30 src/femcal | tar -x -C /tmp/snap
     PYTHONPATH=/tmp/snap/src:. FEMCAL_DATA_MIRROR=/work/shared/data/ivd-calibnn \\
