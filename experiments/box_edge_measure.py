@@ -13,7 +13,8 @@ command's ``diagnosis.json``), per specimen:
   draws with ``k_r >= k`` and ``margin_r <= margin`` (the p-value the diagnosis computes with
   more draws where it is small).
 
-Writes ``box_edge.json`` and ``box_edge.md`` into the results folder; ``experiments.edges_report``
+Writes ``box_edge.json`` and ``box_edge.md`` into the results folder (each seed's rows also to
+``seed-<seed>/box_edge.csv``, reused when present); ``experiments.edges_report``
 prints ``box_edge.md`` in that folder's section. From the project root::
 
     OMP_NUM_THREADS=1 .venv/bin/python -m experiments.box_edge_measure \\
@@ -106,7 +107,7 @@ def measure_seed(seed_dir: Path) -> pd.DataFrame:
         group = OUTSIDE if label == "outside_box" else INSIDE_NONE if label == "none" else None
         rows.append(
             {
-                "seed": seed_dir.name,
+                "seed": seed_dir.name.split("-")[-1],
                 "specimen": name,
                 "truth": label,
                 "group": group or INSIDE_OTHER,
@@ -122,7 +123,13 @@ def measure_seed(seed_dir: Path) -> pd.DataFrame:
             }
         )
         rows += [
-            {"seed": seed_dir.name, "specimen": name, "group": BOX, "k": int(a), "margin": float(b)}
+            {
+                "seed": rows[-1]["seed"],
+                "specimen": name,
+                "group": BOX,
+                "k": int(a),
+                "margin": float(b),
+            }
             for a, b in zip(kr, mr)
         ]
     return pd.DataFrame(rows)
@@ -154,11 +161,12 @@ def tables(t: pd.DataFrame) -> list[str]:
         "",
         "Specimens given `none`: the disc-alone fit's bounds (k), its margin, the share of the "
         f"specimen's {DRAWS} box draws pressing at least k bounds (p, k alone) and also as near "
-        "the edge (p, k and margin; the diagnosis draws up to 512 where it is small), and the "
-        "out-of-box probability the diagnosis gave (- where it gave none).",
+        "the edge (p, k and margin; the diagnosis draws up to 512 where it is small) and "
+        "the diagnosis' own edge probability (its p from up to 512 draws; - where it kept no "
+        "reading: below 0.1 and nothing else pointing beyond the box).",
         "",
         "| seed | specimen | truth | k | margin (sigma) | side | p, k alone | p, k and margin "
-        "| out-of-box probability |",
+        "| edge probability (diagnosis) |",
         "|---" * 9 + "|",
     ]
     for r in none.itertuples():
@@ -175,7 +183,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--results", type=Path, required=True, help="a bench_edges results folder")
     args = ap.parse_args(argv)
     seeds = sorted(p for p in args.results.glob("seed-*") if (p / "diagnosis").exists())
-    t = pd.concat([measure_seed(s) for s in seeds], ignore_index=True)
+    parts = []
+    for seed_dir in seeds:  # each seed's rows kept beside its diagnosis, measured once
+        cached = seed_dir / "box_edge.csv"
+        if not cached.exists():
+            measure_seed(seed_dir).to_csv(cached, index=False)
+        parts.append(pd.read_csv(cached, dtype={"seed": str}))
+    t = pd.concat(parts, ignore_index=True)
     (args.results / "box_edge.json").write_text(
         json.dumps(t.to_dict(orient="records"), indent=1, default=str) + "\n"
     )
