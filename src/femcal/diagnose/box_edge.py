@@ -7,7 +7,7 @@ noise, also presses bounds (4 of 13 is typical) and may lie near the envelope. T
 how often it does so, of the box itself (:func:`edge_reading`).
 
 **The statistic** of a specimen: ``k``, the disc-alone parameters on a bound (unit coordinate
-within :data:`~femcal.diagnose.outside.AT_BOUND` of 0 or 1), and ``margin``, how far its
+within :data:`AT_BOUND` of 0 or 1), and ``margin``, how far its
 curves lie inside the disc's envelope (:func:`margins`: per load case the mean over the
 measured points of the distance, in sigma, to the envelope's stiffer edge (``stiffer``) or its
 softer one; the smallest over the load cases and the two edges; the side is that edge's).
@@ -50,8 +50,9 @@ EDGE_DRAWS = 32
 EDGE_MAX_DRAWS = 512
 #: Exceeding draws at which the sequential test stops (p is then at least this / draws).
 EDGE_STOP = 4
-#: A unit coordinate this close to 0 or 1 is on its bound (as in femcal.diagnose.outside).
-_AT_BOUND = 1e-3
+#: A unit-box coordinate closer than this to 0 or 1 is on its bound (here, in the out-of-box
+#: reading, :mod:`femcal.diagnose.outside`, and in the failures the diagnosis reports).
+AT_BOUND = 1e-3
 STIFFER, SOFTER = "stiffer", "softer"
 
 
@@ -88,7 +89,7 @@ def margins(rom: np.ndarray, lower: np.ndarray, upper: np.ndarray, sigma: np.nda
 
 def bounds_pressed(unit: np.ndarray) -> np.ndarray:
     """Parameters on a bound per disc, shape (r,), of unit coordinates ``unit`` (r, dim)."""
-    return np.sum((unit < _AT_BOUND) | (unit > 1 - _AT_BOUND), axis=1)
+    return np.sum((unit < AT_BOUND) | (unit > 1 - AT_BOUND), axis=1)
 
 
 def _box_draws(state, i: int, env, rng: np.random.Generator, count: int):

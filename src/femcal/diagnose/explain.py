@@ -10,6 +10,7 @@ import torch
 
 from femcal.calibration.base import chi2_p_value
 from femcal.calibration.model import SurrogateCurveModel
+from femcal.diagnose.box_edge import AT_BOUND
 from femcal.diagnose.discrepancy import (
     describe,
     runs_p_value,
@@ -468,5 +469,5 @@ def _failures(
                 }
             )
         out["sign_pattern"][lc] = "".join("+" if v > 0 else "-" for v in resid[j][ok])
-    out["on_bounds"] = [n for n, u in zip(names, x_unit) if u < 1e-3 or u > 1 - 1e-3]
+    out["on_bounds"] = [n for n, u in zip(names, x_unit) if u < AT_BOUND or u > 1 - AT_BOUND]
     return out

@@ -69,7 +69,7 @@ import numpy as np
 import torch
 
 from femcal.calibration.model import SurrogateCurveModel
-from femcal.diagnose.box_edge import edge_reading, edge_words
+from femcal.diagnose.box_edge import AT_BOUND, edge_reading, edge_words
 from femcal.diagnose.result import OUTSIDE_BOX, UNEXPLAINED, model_label
 from femcal.effects.composite import EffectModel
 from femcal.effects.split import base_name
@@ -88,9 +88,6 @@ REACH_POINTS = 2
 #: discs beyond it 8-12); a disc with strong posterior elements presses more (the synthetic
 #: world of the tests: 13), which is why the shapes, not this count, decide.
 BOUNDS_PRESSED = 6
-#: A unit-box coordinate closer than this to 0 or 1 is on its bound (as in the failures the
-#: diagnosis reports, :func:`femcal.diagnose.explain._failures`).
-AT_BOUND = 1e-3
 #: The shapes are read from this fraction of a load case's largest measured moment up to it:
 #: "from about 0 Nm", where a gap or a slack has not closed yet.
 LOW_FRACTION = 0.05
