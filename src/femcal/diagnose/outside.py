@@ -261,7 +261,7 @@ def discrepancy_stand_in(delta: np.ndarray, pred: np.ndarray, side: str) -> dict
 
 
 def box_evidence(
-    base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarray, unit_disc, sigma_m
+    base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarray, unit_disc, sigma_m, env=None
 ) -> list[dict[str, Any]]:
     """Per specimen, whether it lies beyond the disc's reach or presses against the box.
 
@@ -279,6 +279,9 @@ def box_evidence(
         The disc-alone fit in the box's unit coordinates.
     sigma_m : ndarray, shape (m,)
         The sd of a point of weight 1 at each moment (distances to the envelope in it).
+    env : Envelope, optional
+        The disc alone's envelope over the box without the surrogate's error
+        (:func:`femcal.reachability.build_envelope`); built here when None.
 
     Returns
     -------
@@ -288,7 +291,8 @@ def box_evidence(
         ``softer`` above), ``side`` (where most points lie beyond, else the sign of the disc
         alone's residuals) and ``on_bounds`` (parameter -> ``lower`` or ``upper``).
     """
-    env = build_envelope(base, sigma_model=np.zeros(len(sigma_m)))
+    if env is None:
+        env = build_envelope(base, sigma_model=np.zeros(len(sigma_m)))
     d = _distances(measured, env, np.asarray(sigma_m, dtype=float))
     names = list(base.space.names)
     out = []
@@ -415,8 +419,8 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
         return probabilities, outside
     pred0 = disc.pred.double().numpy()
     unit = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
-    evidence = box_evidence(base, state.measured, state.sigma, pred0, unit, state.sigma_m)
     env = build_envelope(base, sigma_model=np.zeros(len(state.sigma_m)))
+    evidence = box_evidence(base, state.measured, state.sigma, pred0, unit, state.sigma_m, env)
     for i, ev in enumerate(evidence):  # the disc alone probable: how often the box looks so
         if probabilities[i].get("models", {}).get("none", 0.0) >= MODEL_FLOOR:
             ev["edge"] = edge_reading(state, i, env, unit[i])
