@@ -33,6 +33,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from experiments.common import screened_cohort
 from experiments.diagnosis import THOROUGH
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,26 +55,13 @@ def thorough_scores(
 ) -> dict[tuple[str, ...], np.ndarray]:
     """Criterion (r,) of each model for the specimens, thorough ``pgd`` fits, the diagnosis'
     noise (0.05 deg and the surrogate's own error at each moment)."""
-    import yaml
 
     from femcal.calibration import SurrogateCurveModel, calibrate
     from femcal.datasets import training_configurations
     from femcal.diagnose.fits import _chi2, _Fit
     from femcal.effects.composite import EffectModel
-    from femcal.measurements import read_measurements
-    from femcal.moments import MomentPolicy
-    from femcal.tracking import load_surrogate, open_model
 
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
-    mom = params["moments"]
-    meas = read_measurements(cohort / "measurements.csv")
-    sur = load_surrogate(open_model(str(REPO / params["calibrate"]["model_uri"])))
-    policy = MomentPolicy.for_surrogate(
-        sur,
-        growth=tuple(mom["error_growth"].values()),
-        max_log_ratio=tuple(mom["max_log_ratio"].values()),
-    )
-    meas = policy.screen(meas).measurements
+    params, sur, policy, meas = screened_cohort(cohort / "measurements.csv")
     idx = np.array([meas.specimens.index(s) for s in specimens])
     rom = meas.rom_deg[idx]
     sigma = np.broadcast_to(np.sqrt(0.05**2 + policy.sigma_surrogate(meas.moments) ** 2), rom.shape)

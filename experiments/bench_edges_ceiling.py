@@ -59,7 +59,7 @@ import pandas as pd
 import torch
 from scipy import stats
 
-from experiments.common import REPO, reproduce_command
+from experiments.common import REPO, reproduce_command, screened_cohort
 
 #: The cohorts issue 55's closing figures were measured on: never fitted here.
 FRESH_SEEDS = (285572, 847237, 310379, 406164, 636007, 866352)
@@ -122,7 +122,6 @@ def build_state(cohort: Path, specimens: list[str], budget: Budget):
     prepares it (moment screening, the surrogate's error per point, the stated noise), with
     the search's options widened (``budget``; every model of a level extended, the first
     effect needing no gain so that every specimen reaches two effects)."""
-    import yaml
 
     from femcal.calibration import SurrogateCurveModel
     from femcal.datasets import training_configurations
@@ -131,20 +130,10 @@ def build_state(cohort: Path, specimens: list[str], budget: Budget):
     from femcal.diagnose.search import _point_weight
     from femcal.diagnose.state import DiagnosisState
     from femcal.effects import available_effects
-    from femcal.measurements import read_measurements
-    from femcal.moments import MomentPolicy
-    from femcal.tracking import load_surrogate, open_model
 
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
-    mom = params["moments"]
-    meas = read_measurements(cohort / "measurements.csv", noise_deg=NOISE_DEG)
-    sur_model = load_surrogate(open_model(str(REPO / params["calibrate"]["model_uri"])))
-    policy = MomentPolicy.for_surrogate(
-        sur_model,
-        growth=tuple(mom["error_growth"].values()),
-        max_log_ratio=tuple(mom["max_log_ratio"].values()),
+    params, sur_model, policy, meas = screened_cohort(
+        cohort / "measurements.csv", noise_deg=NOISE_DEG
     )
-    meas = policy.screen(meas).measurements
     idx = [meas.specimens.index(s) for s in specimens]
     sur = np.broadcast_to(policy.sigma_surrogate(meas.moments, meas.rom_deg), meas.rom_deg.shape)
     measured = np.asarray(meas.rom_deg, dtype=float)[idx]

@@ -37,3 +37,34 @@ def reproduce_command(module: str, argv: Sequence[str] | None) -> str:
         + f".venv/bin/python -m experiments.{module} "
         + " ".join(shlex.quote(a) for a in args)
     ).strip()
+
+
+def screened_cohort(measurements: Path, **read_options):
+    """A cohort's measurements as the project's commands see them: read, then screened by the
+    moment policy of ``params.yaml`` for the registered surrogate (``calibrate.model_uri``).
+
+    Returns
+    -------
+    params : dict
+        ``params.yaml``.
+    surrogate : NeuralSurrogate
+    policy : femcal.moments.MomentPolicy
+    measurements : femcal.measurements.Measurements
+        The screened measurements (``read_options`` passed to ``read_measurements``).
+    """
+    import yaml
+
+    from femcal.measurements import read_measurements
+    from femcal.moments import MomentPolicy
+    from femcal.tracking import load_surrogate, open_model
+
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    mom = params["moments"]
+    meas = read_measurements(measurements, **read_options)
+    surrogate = load_surrogate(open_model(str(REPO / params["calibrate"]["model_uri"])))
+    policy = MomentPolicy.for_surrogate(
+        surrogate,
+        growth=tuple(mom["error_growth"].values()),
+        max_log_ratio=tuple(mom["max_log_ratio"].values()),
+    )
+    return params, surrogate, policy, policy.screen(meas).measurements
