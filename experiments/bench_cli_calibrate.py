@@ -13,7 +13,8 @@ longer than plain ones (the profiler's overhead), so read them as shares.
 
 Writes ``bench_cli_calibrate.json`` into ``experiments/results/bench_cli_calibrate/`` (each label's
 figures, merged with the file's other labels) and ``bench_cli_calibrate.md`` (every label in the
-file).
+file); ``--results DIR`` writes them into DIR instead. ``experiments/timeline_cli_calibrate.py``
+gives the timeline of one run (each process' phases and its garbage collector's time).
 
 ``--src <worktree>/src`` runs an earlier commit's code (``git worktree add /tmp/before <rev>``)
 with this project's data and models; ``--baseline-src <worktree>/src`` adds that code as one
@@ -372,6 +373,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-profile", action="store_true", help="skip importtime and cProfile")
     parser.add_argument("--note", default="", help="a sentence added under the label's tables")
     parser.add_argument(
+        "--results",
+        type=Path,
+        default=JSON_PATH.parent,
+        help="the folder of bench_cli_calibrate.json and .md (default: the experiments "
+        "pipeline's output, experiments/results/bench_cli_calibrate)",
+    )
+    parser.add_argument(
         "--src",
         type=Path,
         help="run femcal from this source folder instead (PYTHONPATH), e.g. a `git worktree` "
@@ -429,12 +437,13 @@ def main(argv: list[str] | None = None) -> int:
         entry["profile"] = profile(env)
     if args.note:
         entry["note"] = args.note
-    data = json.loads(JSON_PATH.read_text()) if JSON_PATH.exists() else {}
+    json_path, md_path = args.results / JSON_PATH.name, args.results / MD_PATH.name
+    data = json.loads(json_path.read_text()) if json_path.exists() else {}
     data[args.label] = entry
-    JSON_PATH.parent.mkdir(parents=True, exist_ok=True)
-    JSON_PATH.write_text(json.dumps(data, indent=2) + "\n")
-    MD_PATH.write_text(markdown(data))
-    print(f"wrote {JSON_PATH.relative_to(REPO)}, {MD_PATH.relative_to(REPO)}")
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(data, indent=2) + "\n")
+    md_path.write_text(markdown(data))
+    print(f"wrote {json_path}, {md_path}")
     return 0
 
 
