@@ -3,9 +3,9 @@
 * :data:`LOAD_CASE_LABELS`: the load cases as the figures name them;
 * :func:`dense_grid`: the moments continuous curves are drawn at;
 * :func:`noise_band`: the ± 2σ band around a curve (or zero);
-* :func:`plot_workers` and :func:`fork_map`: drawing many independent figures in as many
-  processes as the cores free (never more: a worker beside a busy core slows every figure
-  down): the process that holds the data and workers forked from it;
+* :func:`plot_workers` and :func:`fork_map`: drawing many independent figures in worker
+  processes, as many as the cores free (never more: a worker beside a busy core slows every
+  figure down), forked from the process that holds the data;
 * :func:`text_caching_canvas`: an Agg canvas that renders each distinct text once (figures
   redrawn many times repeat their tick labels and titles).
 """
@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any
 
 import numpy as np
@@ -187,32 +186,18 @@ def chunks(n: int, workers: int) -> list[range]:
 def fork_map(
     fn: Callable[[Any], Any], pieces: Sequence[Any], workers: int
 ) -> Iterator[tuple[Any, Any]]:
-    """``(piece, fn(piece))`` for every piece, as each finishes, in ``workers`` processes: this
-    one and ``workers - 1`` forked from it (they read what this process holds). The pieces
-    are taken in order: the forked processes keep two each in hand, this process takes the
-    next one whenever they are served. Where ``workers`` is 1 or the platform does not fork,
-    this process alone.
-    """
+    """``(piece, fn(piece))`` for every piece, in ``workers`` processes forked from this one
+    (they read what this process holds), as each finishes, the pieces taken in order; in this
+    process where ``workers`` is 1 or the platform does not fork."""
     if workers < 2 or len(pieces) < 2 or "fork" not in multiprocessing.get_all_start_methods():
         for piece in pieces:
             yield piece, fn(piece)
         return
     ctx = multiprocessing.get_context("fork")
-    todo, forked = deque(pieces), workers - 1
-    with ProcessPoolExecutor(forked, mp_context=ctx) as pool:
-        running: dict[Any, Any] = {}
-        while todo or running:
-            while todo and len(running) < 2 * forked:
-                piece = todo.popleft()
-                running[pool.submit(fn, piece)] = piece
-            done = [f for f in running if f.done()]
-            if not done and not todo:
-                done = list(wait(running, return_when=FIRST_COMPLETED).done)
-            for future in done:
-                yield running.pop(future), future.result()
-            if todo and not done:  # the forked processes are served: this one draws too
-                piece = todo.popleft()
-                yield piece, fn(piece)
+    with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+        futures = {pool.submit(fn, piece): piece for piece in pieces}
+        for future in as_completed(futures):
+            yield futures[future], future.result()
 
 
 def progress_over(pieces: Iterable[tuple[range, Any]], total: int, desc: str, show: bool):

@@ -1,10 +1,9 @@
-"""fork_map: every piece once, in this process and the workers forked from it."""
+"""fork_map: every piece once, in workers forked from this process (or in it, for one)."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
-import time
 
 import pytest
 
@@ -16,7 +15,6 @@ pytestmark = pytest.mark.skipif(
 
 
 def _where(piece: int) -> tuple[int, int]:
-    time.sleep(0.05)  # a piece outlasts a look at the forked worker: this process takes some
     return piece * piece, os.getpid()
 
 
@@ -26,13 +24,12 @@ def _fails_at_three(piece: int) -> int:
     return piece
 
 
-def test_every_piece_once_this_process_and_the_forked_ones():
+def test_every_piece_once_in_forked_workers():
     out = dict(fork_map(_where, list(range(12)), workers=2))
     assert sorted(out) == list(range(12))
     assert all(square == piece * piece for piece, (square, _) in out.items())
     pids = {pid for _, pid in out.values()}
-    assert os.getpid() in pids  # this process draws too
-    assert len(pids) == 2  # and one forked worker: two processes in all
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2
 
 
 def test_one_worker_is_this_process_alone():
