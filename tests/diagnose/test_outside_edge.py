@@ -14,6 +14,9 @@ from femcal.diagnose.box_edge import (
     EDGE_STOP,
     SOFTER,
     STIFFER,
+    _box_draws,
+    _draw,
+    _exceeding,
     bounds_pressed,
     edge_probability,
     edge_reading,
@@ -134,3 +137,28 @@ def test_the_box_answers_how_often_its_discs_look_as_much_at_its_edge(edge_world
     assert beyond["p_inside"] == pytest.approx(p, rel=1e-3)
     assert beyond["probability"] == pytest.approx(edge_probability(p, math.exp(-5.0)), rel=1e-6)
     assert beyond["probability"] > NAMED
+
+
+@pytest.mark.parametrize("quantile", [None, 0.0, 0.3, 1.0])
+def test_fitting_only_the_draws_that_can_exceed_counts_as_fitting_them_all(edge_world, quantile):
+    """The exceedances of two successive rounds (the generator carried on) from the fits of
+    the draws whose margin is at most the specimen's equal those from fitting every draw:
+    a draw's margin needs no fit, and the fit draws the same numbers for any rows (None: a
+    margin below every draw's, so that no draw is fitted but the generator moves on). The
+    count is read at the draws' own median of bounds pressed, so that it counts some fits
+    and not others."""
+    state, env, _ = edge_world
+    counted = []
+    for i in range(2):
+        probe = _draw(state, i, np.random.default_rng(7), EDGE_DRAWS)
+        mr0, _ = margins(probe, env.lower, env.upper, state.sigma[i])
+        margin = float(mr0.min() - 1.0 if quantile is None else np.quantile(mr0, quantile))
+        full, some = np.random.default_rng(7), np.random.default_rng(7)
+        for _round in range(2):
+            kr, mr = _box_draws(state, i, env, full, EDGE_DRAWS)
+            k = int(np.median(kr))
+            expected = int(np.sum((kr >= k) & (mr <= margin)))
+            assert _exceeding(state, i, env, some, EDGE_DRAWS, k, margin) == expected
+            counted.append(0 < expected < np.sum(mr <= margin))
+        assert full.random() == some.random()  # both generators at the same place
+    assert any(counted) or quantile in (None, 0.0)

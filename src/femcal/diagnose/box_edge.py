@@ -18,7 +18,10 @@ surrogate error), each fitted by the same disc-alone fit. The Monte Carlo p-valu
 ``p = (1 + #{K >= k and margin_r <= margin}) / (1 + R)`` (``R`` draws) is how often a disc
 inside the box looks at least as much like one at its edge. :data:`EDGE_DRAWS` draws first; as
 many again up to :data:`EDGE_MAX_DRAWS` while fewer than :data:`EDGE_STOP` draws exceed (a
-sequential test: a clearly inside specimen costs the first draws only).
+sequential test: a clearly inside specimen costs the first draws only). A draw's margin needs
+its curves only, not its fit: only the draws whose margin is at most the specimen's can
+exceed, and only they are fitted (:func:`_exceeding`; the fit draws the same numbers from the
+generator for any number of rows, so the draws and the count are those of fitting them all).
 
 **The probability**: a disc beyond the box presses the faces it lies beyond and sits at the
 envelope's edge, so the likelihood ratio of the event is at most ``1 / p`` (its probability
@@ -92,27 +95,50 @@ def bounds_pressed(unit: np.ndarray) -> np.ndarray:
     return np.sum((unit < AT_BOUND) | (unit > 1 - AT_BOUND), axis=1)
 
 
-def _box_draws(state, i: int, env, rng: np.random.Generator, count: int):
+def _draw(state, i: int, rng: np.random.Generator, count: int) -> np.ndarray:
     """``count`` discs drawn uniformly in the box, their curves at specimen ``i``'s points
-    with noise of its sd, fitted by the disc alone: bounds pressed (count,) and margins
-    (count,)."""
-    from femcal.diagnose.search import _disc_fit  # the same fit (search imports this module)
-
+    with noise of its sd: (count, 4, m), NaN where the specimen is not measured."""
     base = state.base
-    mask, sigma = state.mask[i], state.sigma[i]
     unit = rng.uniform(size=(count, base.dim))
     v = base.from_physical(base.space.from_unit(unit))
     with torch.no_grad():
         curves = base.curves(torch.as_tensor(v, dtype=torch.float32)).double().numpy()
-    sim = np.where(mask, curves + rng.normal(size=curves.shape) * sigma, np.nan)
+    return np.where(state.mask[i], curves + rng.normal(size=curves.shape) * state.sigma[i], np.nan)
+
+
+def _pressed(state, i: int, sim: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Bounds pressed (r,) by the disc-alone fits of the curves ``sim`` (r, 4, m) under
+    specimen ``i``'s weights; ``rng`` feeds the fit's starts (the same draws for any r)."""
+    from femcal.diagnose.search import _disc_fit  # the same fit (search imports this module)
+
+    base = state.base
     weight = np.ascontiguousarray(np.broadcast_to(state.weight[i], sim.shape))
     fit_state = types.SimpleNamespace(
         base=base, measured=sim, rng=rng, start_bank=state.start_bank, options=state.options
     )
     v_fit, _ = _disc_fit(fit_state, weight)
-    fitted = base.space.to_unit(base.to_physical(v_fit.double().numpy()))
-    margin, _ = margins(sim, env.lower, env.upper, sigma)
-    return bounds_pressed(fitted), margin
+    return bounds_pressed(base.space.to_unit(base.to_physical(v_fit.double().numpy())))
+
+
+def _box_draws(state, i: int, env, rng: np.random.Generator, count: int):
+    """``count`` discs drawn uniformly in the box, their curves at specimen ``i``'s points
+    with noise of its sd, fitted by the disc alone: bounds pressed (count,) and margins
+    (count,)."""
+    sim = _draw(state, i, rng, count)
+    margin, _ = margins(sim, env.lower, env.upper, state.sigma[i])
+    return _pressed(state, i, sim, rng), margin
+
+
+def _exceeding(state, i: int, env, rng: np.random.Generator, count: int, k: int, margin: float):
+    """How many of ``count`` box draws (:func:`_box_draws`) press at least ``k`` bounds with
+    a margin at most ``margin``: the draws and the count of :func:`_box_draws`, the fits of
+    only the draws whose margin is at most ``margin`` (at least one draw is fitted, so that
+    the generator moves on as :func:`_box_draws` moves it)."""
+    sim = _draw(state, i, rng, count)
+    mr, _ = margins(sim, env.lower, env.upper, state.sigma[i])
+    near = np.flatnonzero(mr <= margin)
+    kr = _pressed(state, i, sim[near if near.size else [0]], rng)
+    return int(np.sum(kr >= k)) if near.size else 0
 
 
 def edge_reading(state, i: int, env, unit_disc: np.ndarray) -> dict[str, Any]:
@@ -143,9 +169,9 @@ def edge_reading(state, i: int, env, unit_disc: np.ndarray) -> dict[str, Any]:
     rng = np.random.default_rng(seed)
     draws = exceeding = 0
     while draws < EDGE_MAX_DRAWS and exceeding < EDGE_STOP:
-        kr, mr = _box_draws(state, i, env, rng, EDGE_DRAWS if not draws else draws)
-        exceeding += int(np.sum((kr >= k) & (mr <= margin[0])))
-        draws += len(kr)
+        count = EDGE_DRAWS if not draws else draws
+        exceeding += _exceeding(state, i, env, rng, count, k, float(margin[0]))
+        draws += count
     p = (1 + exceeding) / (1 + draws)
     odds = math.exp(-state.options.min_delta / 2)
     return {
