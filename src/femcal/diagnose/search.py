@@ -270,8 +270,11 @@ def _backward(state: DiagnosisState) -> None:
 
     Reads ``state.chosen`` and their fits in ``state.per_spec``; changes ``state.per_spec``
     (each sub-model one effect smaller, refitted; an earlier fit of it kept where better) and
-    ``state.chosen`` (where an effect is dropped)."""
+    ``state.chosen`` (where an effect is dropped). A batch an earlier round fitted (the same
+    sub-model, specimens and starts: a group no drop changed) is not fitted again: its
+    specimens hold that fit, or a better one."""
     options = state.options
+    fitted: set[tuple[Model, bytes, bytes]] = set()  # (sub-model, specimens, starts) fitted
     for _round in range(options.max_effects):
         groups: dict[Model, list[int]] = {}
         for i in range(state.n):
@@ -283,9 +286,13 @@ def _backward(state: DiagnosisState) -> None:
             v_cur = state.solutions(rows, current)
             for drop in current:
                 rest = current.without(drop)
-                cols = _columns(state.base.dim, current, rest)
+                v0 = v_cur[:, None, _columns(state.base.dim, current, rest)]
+                batch = (rest, rows.tobytes(), v0.numpy().tobytes())
+                if batch in fitted:
+                    continue
+                fitted.add(batch)
                 kept = {i: state.per_spec[i].get(rest) for i in rows}
-                fit = state.fit(rest, rows, v_cur[:, None, cols])
+                fit = state.fit(rest, rows, v0)
                 for pos, i in enumerate(rows):  # the better of this fit and an earlier one
                     old = kept[i]
                     if old is not None and old[0].chi2[old[1]] <= fit.chi2[pos]:
