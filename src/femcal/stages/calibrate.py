@@ -159,8 +159,8 @@ class ImportCollector:
 
     The imports of ``femcal calibrate`` (pandas and torch in this process, MLflow and its SQL
     store in the MLflow process) build about 600,000 objects and free few of them: the
-    collector, which runs every 700 new objects and scans more of them each time, took about
-    0.85 CPU-s of the command's 6 (0.43 s in this process, 0.42 s in the MLflow process; see
+    collector, which runs every 700 new objects and scans more of them each time, takes about
+    0.9 CPU-s of the command's 6.5 without this (0.43-0.47 s in each process; see
     docs/benchmarks/calibrate-speed.md). Entering turns it off; :meth:`resume`, once the
     imports are done, freezes what exists (:func:`gc.freeze`: never scanned again, nor the
     pages of the figures' worker processes touched by a scan) and turns it back on; leaving
