@@ -12,7 +12,6 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     WrapValidator,
-    create_model,
     model_validator,
 )
 from pydantic.dataclasses import dataclass
@@ -57,7 +56,15 @@ def _element(cls: type) -> type:
     return dataclass(frozen=True, config=ConfigDict(extra="forbid"))(cls)
 
 
-class _Bounds(Keywords):
+@with_options(
+    **{n: (ListOf(Float(), min_len=2), setting("[lower, upper]", None)) for n in PARAMETER_NAMES}
+)
+class Bounds(Keywords):
+    """The sampling box: parameter -> [lower, upper] in physical units."""
+
+    _unknown: ClassVar[str] = "unknown parameter"
+    _describe: ClassVar[str] = "a mapping parameter -> [lower, upper]"
+
     @model_validator(mode="after")
     def _ordered(self) -> Any:
         for name in self.model_fields_set:
@@ -66,17 +73,6 @@ class _Bounds(Keywords):
                 message = f"expected [lower, upper] with lower < upper, got {yaml_repr(pair)}"
                 raise fail(message, name)
         return self
-
-
-#: ``fe.bounds`` as a mapping: parameter -> [lower, upper] in physical units.
-Bounds = create_model(
-    "Bounds",
-    __base__=_Bounds,
-    __doc__="The sampling box: parameter -> [lower, upper] in physical units.",
-    **{n: (ListOf(Float(), min_len=2), setting("[lower, upper]", None)) for n in PARAMETER_NAMES},
-)
-Bounds._unknown = "unknown parameter"
-Bounds._describe = "a mapping parameter -> [lower, upper]"
 
 
 def _path_or_bounds(value: Any, handler: Any) -> Any:
@@ -188,7 +184,12 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
 LIGAMENTS: tuple[str, ...] = tuple(LIGAMENT_DEFAULTS)
 
 
-class _Ligaments(Keywords):
+@with_options(**{n: (LigamentSettings, setting(f"the {n} ligament", None)) for n in LIGAMENTS})
+class Ligaments(Keywords):
+    """``fe.settings.posterior.ligaments``: ligament -> its settings (the defaults overridden)."""
+
+    _unknown: ClassVar[str] = "unknown ligament"
+
     @model_validator(mode="before")
     @classmethod
     def _with_defaults(cls, value: Any) -> Any:
@@ -205,15 +206,6 @@ class _Ligaments(Keywords):
             k: {**LIGAMENT_DEFAULTS[k], **(v or {})} if k in LIGAMENT_DEFAULTS else v
             for k, v in value.items()
         }
-
-
-#: ``fe.settings.posterior.ligaments``: ligament -> its settings (the defaults overridden).
-Ligaments = create_model(
-    "Ligaments",
-    __base__=_Ligaments,
-    **{n: (LigamentSettings, setting(f"the {n} ligament", None)) for n in LIGAMENTS},
-)
-Ligaments._unknown = "unknown ligament"
 
 
 @_element
@@ -324,7 +316,10 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
     return dict(value or {})
 
 
-class _Fe(OptionSection):
+@with_options
+class FeSettings(OptionSection):
+    """``fe``: the FE campaign (fe/params.yaml)."""
+
     _options: ClassVar[type] = _CAMPAIGN
 
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
@@ -362,10 +357,6 @@ class _Fe(OptionSection):
         return self
 
 
-#: ``fe``: the campaign, and the options of :class:`femcal.fe.options.CampaignOptions`.
-FeSettings = with_options("FeSettings", _Fe, "``fe``: the FE campaign (fe/params.yaml).")
-
-
 class IdpRange(Section):
     """A literature range of the intradiscal pressure at one force, MPa."""
 
@@ -396,7 +387,10 @@ class PublishedIdp(Section):
     level: NAME = setting("disc level, e.g. L4-L5")
 
 
-class _Adapt(OptionSection):
+@with_options
+class AdaptSettings(OptionSection):
+    """``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion."""
+
     _complete: ClassVar[bool] = True
     _options: ClassVar[type] = _ADAPT
 
@@ -423,30 +417,16 @@ class _Adapt(OptionSection):
         }
 
 
-#: ``adapt``: the stage's files, and the options of :class:`femcal.fe.options.AdaptOptions`.
-AdaptSettings = with_options(
-    "AdaptSettings",
-    _Adapt,
-    "``adapt``: adaptive sampling, fine-tuning, and the challenger against the champion.",
-)
+@with_options
+class RefineSettings(OptionSection):
+    """``validate.refine``: FE-in-the-loop refinement of the calibration before validating it."""
 
-
-class _Refine(OptionSection):
     _complete: ClassVar[bool] = True
     _options: ClassVar[type] = _VALIDATE
 
     model_uri: MODEL_URI = setting(
         "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
     )
-
-
-#: ``validate.refine``: the surrogate, and the refinement's options of
-#: :class:`femcal.fe.options.ValidateOptions`.
-RefineSettings = with_options(
-    "RefineSettings",
-    _Refine,
-    "``validate.refine``: FE-in-the-loop refinement of the calibration before validating it.",
-)
 
 
 class ValidateSettings(Section):

@@ -1,10 +1,6 @@
-"""What ``fixed``, ``search_space``, ``options`` and ``settings`` take: keyword arguments.
-
-The registries' names (surrogates, calibrators, splits, FE solvers, mesh presets) and the
-keyword arguments of the estimators, the calibrators and the disc geometry, each with its type
-and a one-line doc. They are static so that validating needs no heavy import (no torch,
-Lightning, scikit-learn or MLflow); ``tests/test_settings.py`` checks them against the real
-signatures and registries.
+"""The registries' names, and the keyword arguments of the estimators, the calibrators and the
+disc geometry (``fixed``, ``options``, ``settings``), static so that validating imports
+nothing heavy; ``tests/test_settings.py`` checks them against the signatures and registries.
 
 A ``search_space`` (:func:`space_of`) maps keywords to Optuna entries, told apart by their
 ``type`` (the form :func:`femcal.training.study.suggest` reads): ``{type: float, low, high,
@@ -66,22 +62,9 @@ MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
 
 
 class Registered(tuple):
-    """The built-in names of an open registry (what help texts and messages list) that also
-    contains every plugin's name (``name in`` it, :meth:`plugins`).
-
-    Parameters
-    ----------
-    builtins : tuple of str
-        The built-in names.
-    group : str
-        The entry-point group of the plugins (a plugin names its entry point after what it
-        registers).
-    registry : str
-        ``module:attribute`` of the :class:`femcal.registry.Registry`; once that module is
-        loaded, the names registered in this process count too.
-    exclude : tuple of str
-        Names of that registry that are not choices here (the network is no baseline).
-    """
+    """The built-in names of an open registry (what help texts list) that also contains
+    every plugin's name: the entry points of ``group`` and, once the module of ``registry``
+    (``module:attribute``) is loaded, the names registered there, but ``exclude``."""
 
     def __new__(
         cls, builtins: tuple[str, ...], group: str, registry: str, exclude: tuple[str, ...] = ()
@@ -91,9 +74,7 @@ class Registered(tuple):
         return names
 
     def plugins(self) -> tuple[str, ...]:
-        """The plugins' names beyond the built-ins, sorted. Imports and loads nothing: the
-        command looks the name up in the registry itself, which names the choices when it is
-        unknown and the plugin when it fails to load."""
+        """The plugins' names beyond the built-ins, sorted; imports and loads nothing."""
         from importlib.metadata import entry_points
 
         names = {ep.name for ep in entry_points(group=self.group)}
@@ -127,24 +108,15 @@ class Registered(tuple):
         return Annotated[Literal[tuple(self)], WrapValidator(or_plugin)]
 
 
-#: ``name in CALIBRATOR_NAMES``: a built-in or a plugin calibrator; iterating: the built-ins.
+_REGISTRY = "femcal.{}.base:{}_registry"
 CALIBRATOR_NAMES = Registered(
-    CALIBRATORS, "femcal.calibrators", "femcal.calibration.base:calibrator_registry"
+    CALIBRATORS, "femcal.calibrators", _REGISTRY.format("calibration", "calibrator")
 )
-#: The FE solver adapters: the built-ins and the plugins (``femcal.solvers``).
-SOLVER_NAMES = Registered(SOLVERS, "femcal.solvers", "femcal.fe.base:solver_registry")
-#: The baseline models: the built-ins and the plugin surrogates (``femcal.surrogates``).
+SOLVER_NAMES = Registered(SOLVERS, "femcal.solvers", _REGISTRY.format("fe", "solver"))
 BASELINE_NAMES = Registered(
-    BASELINE_MODELS, "femcal.surrogates", "femcal.surrogates.base:surrogate_registry", ("nn",)
+    BASELINE_MODELS, "femcal.surrogates", _REGISTRY.format("surrogates", "surrogate"), ("nn",)
 )
-
-
-#: A calibration method: a built-in (``Literal``, its messages) or a plugin's name.
-METHOD = CALIBRATOR_NAMES.choice()
-#: An FE solver adapter: a built-in or a plugin's name.
-SOLVER = SOLVER_NAMES.choice()
-#: A baseline model: a built-in or a plugin surrogate's name.
-BASELINE = BASELINE_NAMES.choice()
+METHOD, SOLVER, BASELINE = (n.choice() for n in (CALIBRATOR_NAMES, SOLVER_NAMES, BASELINE_NAMES))
 
 
 # ------------------------------------------------------------------ network hyper-parameters
@@ -218,7 +190,10 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
-class _Pgd(OptionSection, Keywords):
+@with_options
+class PgdKeywords(OptionSection, Keywords):
+    """The pgd calibrator's options (``calibrate.options.pgd``)."""
+
     _owner: ClassVar[str] = "pgd calibrator"
     _options: ClassVar[type] = light_class("calibration.pgd_options", "PgdOptions")
     _reasons: ClassVar[dict[str, str]] = {
@@ -228,37 +203,22 @@ class _Pgd(OptionSection, Keywords):
     }
 
 
-#: The pgd calibrator's options: those of :class:`femcal.calibration.PgdOptions`.
-PgdKeywords = with_options(
-    "PgdKeywords", _Pgd, "The pgd calibrator's options (``calibrate.options.pgd``)."
-)
+@with_options
+class PgdStudyKeywords(OptionSection, Keywords):
+    """The pgd-study calibrator's options (``calibrate.options.pgd-study``)."""
 
-
-class _PgdStudy(OptionSection, Keywords):
     _owner: ClassVar[str] = "pgd-study calibrator"
     _options: ClassVar[type] = light_class("calibration.pgd_study_options", "PgdStudyOptions")
     _reasons: ClassVar[dict[str, str]] = _RNG
 
 
-#: The pgd-study calibrator's options: those of
-#: :class:`femcal.calibration.pgd_study_options.PgdStudyOptions`.
-PgdStudyKeywords = with_options(
-    "PgdStudyKeywords",
-    _PgdStudy,
-    "The pgd-study calibrator's options (``calibrate.options.pgd-study``).",
-)
+@with_options
+class GaKeywords(OptionSection, Keywords):
+    """The ga calibrator's options (``calibrate.options.ga``)."""
 
-
-class _Ga(OptionSection, Keywords):
     _owner: ClassVar[str] = "ga calibrator"
     _options: ClassVar[type] = light_class("calibration.ga_options", "GaOptions")
     _reasons: ClassVar[dict[str, str]] = _RNG
-
-
-#: The ga calibrator's options: those of :class:`femcal.calibration.ga.GaOptions`.
-GaKeywords = with_options(
-    "GaKeywords", _Ga, "The ga calibrator's options (``calibrate.options.ga``)."
-)
 
 
 class InverseCalibratorKeywords(Keywords):
@@ -282,7 +242,18 @@ CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = {
 }
 
 
-class _Options(Section):
+@with_options(
+    **{
+        m.replace("-", "_"): (plain(model), Field(None, alias=m, description=model.__doc__))
+        for m, model in CALIBRATOR_OPTIONS.items()
+    }
+)
+class CalibratorOptions(Section):
+    """``calibrate.options``: each calibrator's keyword options, by method."""
+
+    _unknown: ClassVar[str] = "unknown calibration method"
+    _describe: ClassVar[str] = "calibrator options per method"
+
     @model_validator(mode="before")
     @classmethod
     def _plugins_as_given(cls, value: Any) -> Any:
@@ -299,22 +270,11 @@ class _Options(Section):
         return {k: v for k, v in value.items() if k not in plugins}
 
 
-#: ``calibrate.options``: the options model of each calibrator, by method.
-CalibratorOptions = create_model(
-    "CalibratorOptions",
-    __base__=_Options,
-    __doc__="``calibrate.options``: each calibrator's keyword options, by method.",
-    **{
-        m.replace("-", "_"): (plain(model), Field(None, alias=m, description=model.__doc__))
-        for m, model in CALIBRATOR_OPTIONS.items()
-    },
-)
-CalibratorOptions._unknown = "unknown calibration method"
-CalibratorOptions._describe = "calibrator options per method"
-
-
 # ------------------------------------------------------------------ the disc geometry
-class _Geometry(OptionSection, Keywords):
+@with_options
+class GeometryKeywords(OptionSection, Keywords):
+    """The disc geometry (femcal.fe.geometry.DiscGeometry)."""
+
     _owner: ClassVar[str] = "DiscGeometry"
     _options: ClassVar[type] = light_class("fe.options", "GeometryOptions")
 
@@ -335,13 +295,6 @@ class _Geometry(OptionSection, Keywords):
         return value
 
     preset: Literal[MESH_PRESETS] = keyword("mesh density the other fields start from")
-
-
-#: The disc geometry (``fe.settings.geometry``): a mesh preset, and the options of
-#: :class:`femcal.fe.options.GeometryOptions` (those of :class:`femcal.fe.geometry.DiscGeometry`).
-GeometryKeywords = with_options(
-    "GeometryKeywords", _Geometry, "The disc geometry (femcal.fe.geometry.DiscGeometry)."
-)
 
 
 # ------------------------------------------------------------------ search spaces

@@ -312,11 +312,11 @@ class PlantSettings(Section):
     seed: Int(0) = setting("seed of the cohort", 0)
 
 
-_OPTIONS = light_class("diagnose.options", "DiagnoseOptions")
+@with_options
+class DiagnoseSettings(OptionSection):
+    """``diagnose``: where the model fails and which effect is missing."""
 
-
-class _DiagnoseStage(OptionSection):
-    _options: ClassVar[type] = _OPTIONS
+    _options: ClassVar[type] = light_class("diagnose.options", "DiagnoseOptions")
 
     measurements: PATH = setting("measurement file diagnosed")
     out_dir: PATH = setting("output folder")
@@ -327,11 +327,3 @@ class _DiagnoseStage(OptionSection):
     )
     plots: Bool = setting("write plots", True)
     max_plots: Int(0) | None = setting(_MAX_PLOTS, None)
-
-
-#: ``diagnose``: the stage's files, and every option of :class:`femcal.diagnose.DiagnoseOptions`.
-DiagnoseSettings = with_options(
-    "DiagnoseSettings",
-    _DiagnoseStage,
-    "``diagnose``: where the model fails and which effect is missing.",
-)

@@ -1,10 +1,6 @@
-"""The value types of the settings, and the bases of sections and keyword tables.
-
-Numbers with bounds (:func:`Int`, :func:`Float`), lists (:func:`ListOf`), names, paths, URLs
-and moments; each ``*_problem`` function says why a string is not usable (None when it is),
-in words that name the fix, and the environment variables (:mod:`femcal.settings.env`) use
-them too. :class:`Section` is the base of a section of a params file, :class:`Keywords` of the
-keyword arguments of a function that a mapping sets (:func:`plain` keeps them as given).
+"""Value types (numbers with bounds, lists, names, paths, URLs; each ``*_problem`` says why
+a string is unusable and the fix), the bases :class:`Section` and :class:`Keywords`, and the
+options of options dataclasses (:func:`option`, :func:`check_options`, :func:`with_options`).
 """
 
 from __future__ import annotations
@@ -39,15 +35,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from femcal.errors import ConfigError
-from femcal.settings._format import (
-    Doc,
-    PlainOf,
-    closest,
-    describe,
-    fail,
-    keys_of,
-    yaml_repr,
-)
+from femcal.settings._format import Doc, PlainOf, closest, describe, fail, keys_of, yaml_repr
 
 #: SQLAlchemy dialects (their common spellings), for suggestions.
 _SQL_DIALECTS = ("sqlite", "postgresql", "mysql", "mariadb", "oracle", "mssql", "cockroachdb")
@@ -173,19 +161,12 @@ def Int(ge: int | None = None, le: int | None = None) -> Any:  # noqa: N802 (a t
     return Annotated[int, Strict(), Field(ge=ge, le=le)]
 
 
-def Float(  # noqa: N802 (a type)
-    ge: float | None = None,
-    le: float | None = None,
-    *,
-    gt: float | None = None,
-    lt: float | None = None,
-) -> Any:
-    """A finite number (a YAML int or float, not a bool) in the given interval."""
-    return Annotated[float, Strict(), Field(ge=ge, le=le, gt=gt, lt=lt, allow_inf_nan=False)]
+def Float(ge: float | None = None, le: float | None = None, **open_: float) -> Any:  # noqa: N802
+    """A finite number (a YAML int or float, not a bool) in ``[ge, le]`` (``gt``, ``lt``)."""
+    return Annotated[float, Strict(), Field(ge=ge, le=le, **open_, allow_inf_nan=False)]
 
 
-class _Unique:
-    unique = True
+_Unique = type("_Unique", (), {"unique": True})  # ListOf's mark: describe says "no repeats"
 
 
 def _unique(value: tuple) -> tuple:
@@ -222,33 +203,28 @@ def _n_jobs(value: Any) -> int:
 
 
 def _dataset_name(value: Any) -> str:
-    if not isinstance(value, str) or not _DATASET_NAME.match(value):
-        raise fail(
-            f"dataset name {yaml_repr(value)} must start with a letter or digit and hold only "
-            "letters, digits, '_', '.' and '-' (it names the stage calibrate@<name> and "
-            "reports/calibrate-<name>.json)"
-        )
-    return value
+    if isinstance(value, str) and re.match(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", value):
+        return value
+    raise fail(
+        f"dataset name {yaml_repr(value)} must start with a letter or digit and hold only "
+        "letters, digits, '_', '.' and '-' (it names the stage calibrate@<name> and "
+        "reports/calibrate-<name>.json)"
+    )
 
 
-_DATASET_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 SQL_URL = Text("a SQLAlchemy database URL", sqlalchemy_url_problem)
 DASK_ADDRESS = Text("a Dask scheduler address tcp://host:port", dask_address_problem)
 MODEL_URI = Text("an MLflow model URI (models:/NAME@ALIAS)", model_uri_problem)
 PATH = Text("a path (a non-empty string)")
 NAME = Text("a non-empty name")
-#: A list of moments in Nm (positive, each once).
-MOMENTS = ListOf(Float(gt=0), min_len=1, unique=True)
-#: A dataset name: it names the stage calibrate@<name> and reports/calibrate-<name>.json.
+MOMENTS = ListOf(Float(gt=0), min_len=1, unique=True)  # Nm
 DATASET_NAME = Annotated[str, PlainValidator(_dataset_name), Doc("a dataset name")]
-#: Parallel jobs: an integer >= 1, or -1 for all cores.
 N_JOBS = Annotated[int, PlainValidator(_n_jobs), Doc("an integer >= 1, or -1 (all cores)")]
 
 
 def light_class(module: str, name: str) -> type:
-    """``femcal.<module>.<name>`` (e.g. the defaults of ``diagnose.options.DiagnoseOptions``);
-    from its file alone while its package, which imports torch, is not loaded, so that
-    validating stays light. The file must import nothing heavy itself."""
+    """``femcal.<module>.<name>``, from its file alone while its package (which imports
+    torch) is not loaded, so that validating stays light; that file imports nothing heavy."""
     full = f"femcal.{module}"
     if full.rsplit(".", 1)[0] in sys.modules:
         return getattr(importlib.import_module(full), name)
@@ -287,21 +263,24 @@ class Section(BaseModel):
 
 
 class Keywords(Section):
-    """The keyword arguments of a function that a mapping of the params file sets.
-
-    ``_owner`` names the function in messages; ``_reasons`` maps keywords that must not be
-    set there to why and the fix. Every keyword is optional (the function's default).
-    """
+    """The keyword arguments of a function that a mapping of the params file sets, each
+    optional (the function's default). ``_owner`` names the function in messages;
+    ``_reasons``: keyword not settable there -> why, and the fix."""
 
     _owner: ClassVar[str] = "function"
     _reasons: ClassVar[dict[str, str]] = {}
+    _auto: ClassVar[frozenset] = frozenset()  # the messages' words derived from _owner
 
     @classmethod
     def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
-        if "_unknown" not in cls.__dict__:
-            cls._unknown = f"unknown {cls._owner} keyword"
-        if "_describe" not in cls.__dict__:
-            cls._describe = f"a mapping of {cls._owner} keywords ({', '.join(keys_of(cls))})"
+        words = {
+            "_unknown": f"unknown {cls._owner} keyword",
+            "_describe": f"a mapping of {cls._owner} keywords ({', '.join(keys_of(cls))})",
+        }
+        auto = {k for k in words if k not in vars(cls) and (k in cls._auto or not hasattr(cls, k))}
+        for key in auto:
+            setattr(cls, key, words[key])
+        cls._auto = auto
         cls._refused = {k: f"not settable here; {v}" for k, v in cls._reasons.items()}
 
 
@@ -420,12 +399,17 @@ class OptionSection(Section):
         return self
 
 
-def with_options(name: str, base: type[OptionSection], doc: str) -> Any:
-    """``base`` with one field per option of ``base._options``: its annotation, doc and
-    default (a keyword table: None, the function's own default)."""
+def with_options(base: type | None = None, /, **fields: Any) -> Any:
+    """Class decorator: the section or keyword table ``base`` with one more field per item of
+    ``fields`` (key -> (annotation, Field)) or, without them, per option of ``base._options``
+    (its annotation, doc and default; in a keyword table None, the function's own default)."""
+    if base is None:
+        return lambda cls: with_options(cls, **fields)
     unset = issubclass(base, Keywords)
-    fields = {
+    fields = fields or {
         key: (tp, Field(None if unset else default, description=what))
         for key, (tp, default, what) in option_fields(base._options).items()
     }
-    return create_model(name, __base__=base, __doc__=doc, __module__=base.__module__, **fields)
+    return create_model(
+        base.__name__, __base__=base, __doc__=base.__doc__, __module__=base.__module__, **fields
+    )
