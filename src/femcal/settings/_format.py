@@ -1,17 +1,12 @@
 """Pydantic's validation errors as femcal's messages: file, line, key, what was given, the fix.
 
-:func:`describe` says in words what a type annotation allows (``an integer >= 0 or null``);
-:func:`problems` turns a :class:`pydantic.ValidationError` into ``(path, message)`` pairs: an
-unknown key names the closest valid one (or what replaced a retired one), a missing key its
-doc, a wrong value what was given and what is allowed. :func:`raise_problems` adds each
-problem's line in the YAML file and raises one :class:`~femcal.errors.ConfigError`.
-
+:func:`describe` words what a type allows (``an integer >= 0 or null``); :func:`problems`
+turns a ValidationError into ``(path, message)`` pairs (an unknown key names the closest valid
+one); :func:`raise_problems` adds each line in the YAML file and raises one ConfigError.
 Models tune the messages with class variables: ``_unknown`` (what an unknown key is called),
-``_retired`` and ``_refused`` (key -> what to do instead), ``_complete`` (missing keys are
-reported even when a file is checked partially), ``_missing`` (the message of a missing key),
-``_open`` (a field holding the model's other keys, e.g. the splits of ``train``; ``_open_what``
-says what they are), ``_describe`` (the model in words) and ``_hint`` (appended to every
-problem inside).
+``_retired``/``_refused`` (key -> what to do instead), ``_complete`` (missing keys reported in
+a partial check too), ``_missing`` (its message), ``_open`` (the field holding the other keys;
+``_open_what`` says what they are), ``_describe`` (the model in words), ``_hint`` (appended).
 """
 
 from __future__ import annotations
@@ -92,11 +87,9 @@ def closest(word: str, candidates: Iterable[str], cutoff: float = 0.6) -> str | 
 
 
 def unknown_message(key: Any, path: tuple, known: Iterable[str], **how: Any) -> str:
-    """``calibrate.plot_max: unknown setting; did you mean calibrate.max_plots?`` and kin.
-
-    ``how``: ``retired`` and ``refused`` (key -> text), ``missing`` (required keys not given),
-    ``what`` (default "unknown setting") and ``extra`` (appended to the first clause).
-    """
+    """``calibrate.plot_max: unknown setting; did you mean calibrate.max_plots?``; ``how``:
+    ``retired``/``refused`` (key -> text), ``missing`` (required keys not given), ``what``
+    (default "unknown setting"), ``extra`` (appended to the first clause)."""
     retired, refused = how.get("retired", {}), how.get("refused", {})
     what, extra, here = (
         how.get("what", "unknown setting"),
@@ -313,18 +306,9 @@ def _message(err: dict, node: _Node, missing: set, paired: set, complete: bool) 
 def problems(
     exc: ValidationError, root: Any, *, prefix: tuple = (), complete: bool = True
 ) -> list[tuple[tuple, str]]:
-    """``(path, message)`` of every error of ``exc``, raised validating a value as ``root``.
-
-    Parameters
-    ----------
-    exc : pydantic.ValidationError
-    root : type
-        The model (or annotation) validated.
-    prefix : tuple
-        The path of the value in the file (e.g. ``("calibrate",)``).
-    complete : bool
-        Report missing keys (otherwise only those of models with ``_complete``).
-    """
+    """``(path, message)`` of every error of ``exc``, raised validating a value as ``root``
+    (a model or annotation) at ``prefix`` in the file (e.g. ``("calibrate",)``); missing keys
+    only when ``complete`` (or in models with ``_complete``)."""
     same = {"unexpected_keyword_argument": "extra_forbidden", "missing_argument": "missing"}
     errors = [dict(e, type=same.get(e["type"], e["type"])) for e in exc.errors(include_url=False)]
     nodes = [_walk(root, prefix, err["loc"]) for err in errors]

@@ -79,21 +79,9 @@ ENVIRONMENT: dict[str, EnvVar] = {
 def check_environment(
     command: str | None = None, environ: Mapping[str, str] | None = None
 ) -> dict[str, str]:
-    """Validate the environment variables ``command`` reads (all of femcal's when None).
-
-    An empty or blank variable counts as unset, as where it is read.
-
-    Parameters
-    ----------
-    command : str, optional
-        A ``femcal`` sub-command, e.g. ``"fetch"``.
-    environ : mapping, optional
-        The environment (default: the process's).
-
-    Returns
-    -------
-    dict
-        The variables that are set, name -> value.
+    """The variables (name -> value) that the sub-command ``command`` reads (None: all of
+    femcal's) set in ``environ`` (default: the process's), each checked; an empty or blank
+    variable counts as unset, as where it is read.
 
     Raises
     ------

@@ -1,6 +1,9 @@
-"""The sections only ``fe/params.yaml`` has: the FE campaign (``fe``), ``validate`` and
-``adapt``, the CalculiX adapter's keyword arguments (``fe.settings``) and the posterior
-elements of the CalculiX model (``fe.settings.posterior``).
+"""The sections only ``fe/params.yaml`` has (``fe``, ``validate``, ``adapt``, ``cohort``),
+the CalculiX adapter's keyword arguments (``fe.settings``) and the posterior elements.
+
+The posterior elements' parameters, units, ranges and defaults are declared here once; axes as
+the disc model's (x lateral, y anterior, z cranial; the lower endplate at z = 0, the disc
+centre at x = y = 0). Sources and calibration: docs/fe-posterior-elements.md.
 """
 
 from typing import Annotated, Any, ClassVar, Literal
@@ -45,10 +48,7 @@ from femcal.settings.values import (
     with_options,
 )
 
-#: The FE workflows' options (femcal.fe.options), declared there once.
-_CAMPAIGN = light_class("fe.options", "CampaignOptions")
-_ADAPT = light_class("fe.options", "AdaptOptions")
-_VALIDATE = light_class("fe.options", "ValidateOptions")
+_ADAPT = light_class("fe.options", "AdaptOptions")  # the FE workflows' options, declared there
 
 
 def _element(cls: type) -> type:
@@ -98,21 +98,13 @@ class Splits(Keywords):
 
 
 # ------------------------------------------------------------------ posterior elements
-# The posterior elements of the CalculiX model (femcal.fe.posterior): their parameters, units,
-# ranges and defaults, declared here once. Axes as the disc model's: x lateral (right), y
-# anterior, z cranial; the lower endplate at z = 0, the disc centre at x = y = 0. Sources:
-# docs/fe-posterior-elements.md.
-
-
 @_element
 class FacetSettings:
     """``fe.settings.posterior.facets``: two facet joints, each one unilateral gap element.
 
-    Each joint is a CalculiX ``GAPUNI`` between a node tied to the upper (moving) endplate and a
-    coincident node of the fixed lower vertebra, at ``(+-lateral_mm, -posterior_mm,
-    height_mm)``. It closes when the upper node has moved ``gap_mm`` along the joint's contact
-    normal: in the transverse plane at ``axial_angle_deg`` from the lateral direction
-    (the joint plane's angle to the sagittal plane), tilted ``inclination_deg`` downwards.
+    A CalculiX ``GAPUNI`` between a node tied to the upper endplate and a fixed one at
+    ``(+-lateral_mm, -posterior_mm, height_mm)``, closed once the upper node has moved ``gap_mm``
+    along the contact normal (``axial_angle_deg`` from lateral, tilted ``inclination_deg`` down).
     """
 
     _complete: ClassVar[bool] = True
@@ -138,11 +130,9 @@ class FacetSettings:
 class LigamentSettings:
     """One ligament: a tension-only nonlinear spring (``SPRINGA``), one per side if lateral.
 
-    The spring is vertical, centred at ``(+-lateral_mm, -posterior_mm, height_mm)`` with rest
-    length ``length_mm``; it carries no force below the elongation ``slack_strain *
-    length_mm``, a quadratic toe over the next ``toe_strain * length_mm`` whose slope reaches
-    ``stiffness_n_per_mm``, then that slope (linear region). Defaults per ligament:
-    :data:`LIGAMENT_DEFAULTS`.
+    Vertical, at ``(+-lateral_mm, -posterior_mm, height_mm)``, rest length ``length_mm``: no
+    force below the elongation ``slack_strain * length_mm``, a quadratic toe over the next
+    ``toe_strain * length_mm`` up to the slope ``stiffness_n_per_mm``, then that slope.
     """
 
     _complete: ClassVar[bool] = True
@@ -160,15 +150,10 @@ class LigamentSettings:
     length_mm: Float(0.5, 60) = setting("rest length (upper to lower attachment), mm")
 
 
-#: Default properties and attachment of each ligament, a tension-only caudal-cranial spring
-#: (keys: the fields of :class:`LigamentSettings`). Stiffness of the linear region: Pintar et
-#: al. 1992 (supraspinous, interspinous, flavum, capsular), the tri-linear table quoted by Guo
-#: et al. 2021 (PMC8147546) for the intertransverse; toe strain: the first transition strain of
-#: that table; rest lengths: Naserkhaki et al. 2018 (L4-L5) but the capsule's, its vertical span
-#: across the joint (an estimate: a shorter vertical spring's nodes pass each other in extension
-#: and it pulls again). Positions: estimates for the 50 x 35 mm disc. Slack strain 0.45 of the
-#: four posterior ligaments (0 of the intertransverse): calibrated so that the segment-to-disc
-#: RoM ratios at 10 Nm fall near the published ones (docs/fe-posterior-elements.md).
+#: Default properties and attachment of each ligament (keys: the fields of
+#: :class:`LigamentSettings`): stiffness from Pintar et al. 1992 and Guo et al. 2021, rest
+#: lengths from Naserkhaki et al. 2018, the slack strains calibrated to the segment-to-disc RoM
+#: ratios (the sources and estimates: docs/fe-posterior-elements.md).
 LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     name: dict(zip(LigamentSettings.__pydantic_fields__, row, strict=True))
     for name, *row in (
@@ -212,8 +197,7 @@ class Ligaments(Keywords):
 class PosteriorSettings:
     """``fe.settings.posterior``: the posterior elements joined to the disc (all optional).
 
-    Absent (or null) ``facets`` and an empty ``ligaments``: the disc alone.
-    """
+    Null ``facets`` and no ``ligaments``: the disc alone."""
 
     _complete: ClassVar[bool] = True
     _describe: ClassVar[str] = "a mapping (facets, ligaments) or null"
@@ -268,18 +252,8 @@ SOLVER_SETTINGS: dict[str, type[Keywords]] = {"calculix": CalculixSettings}
 def posterior_settings(
     value: PosteriorSettings | dict | None, where: str = "fe/params.yaml"
 ) -> PosteriorSettings:
-    """Validated posterior elements from their settings (a mapping, an instance or None).
-
-    Parameters
-    ----------
-    value : PosteriorSettings, mapping or None
-        ``fe.settings.posterior``; None or an empty mapping is the disc alone.
-    where : str
-        The file the value came from, named in messages.
-
-    Returns
-    -------
-    PosteriorSettings
+    """Validated posterior elements from ``fe.settings.posterior`` (a mapping, an instance, or
+    None: the disc alone) of the file ``where``.
 
     Raises
     ------
@@ -320,7 +294,7 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
 class FeSettings(OptionSection):
     """``fe``: the FE campaign (fe/params.yaml)."""
 
-    _options: ClassVar[type] = _CAMPAIGN
+    _options: ClassVar[type] = light_class("fe.options", "CampaignOptions")
 
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
     bounds: Annotated[
@@ -422,7 +396,7 @@ class RefineSettings(OptionSection):
     """``validate.refine``: FE-in-the-loop refinement of the calibration before validating it."""
 
     _complete: ClassVar[bool] = True
-    _options: ClassVar[type] = _VALIDATE
+    _options: ClassVar[type] = light_class("fe.options", "ValidateOptions")
 
     model_uri: MODEL_URI = setting(
         "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"

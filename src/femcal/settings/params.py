@@ -1,10 +1,5 @@
-"""The params files as a whole: :class:`Settings` and the entry points.
-
-:func:`validate_params` checks a loaded mapping (every problem in one
-:class:`~femcal.errors.ConfigError`, each with its line in the file) and returns the typed
-:class:`Settings`; :func:`load_settings` reads a complete file; :func:`describe_setting`
-gives the one-line doc of a key.
-"""
+"""The params files as a whole: :class:`Settings`, :func:`validate_params` (a loaded
+mapping; every problem in one ConfigError), :func:`load_settings` (a complete file)."""
 
 import re
 from collections.abc import Iterable, Mapping
@@ -15,17 +10,9 @@ from typing import Any, get_args
 from pydantic import TypeAdapter, ValidationError
 
 from femcal.errors import ConfigError
+from femcal.settings import _format as fmt
 from femcal.settings import fe as _fe
 from femcal.settings import root as _root
-from femcal.settings._format import (
-    closest,
-    fields_of,
-    is_model,
-    keys_of,
-    problems,
-    raise_problems,
-    unknown_message,
-)
 
 #: The file kinds: the root pipeline's params.yaml and the FE pipeline's fe/params.yaml.
 SCHEMAS: tuple[str, ...] = ("root", "fe")
@@ -40,23 +27,10 @@ def _section(files: dict[str, bool]) -> Any:
 
 @dataclass(frozen=True)
 class Settings:
-    """A validated params file: one typed section each (None when the file lacks it).
-
-    A section that misses required keys is None too when the file was checked partially
-    (:func:`femcal.config.load_params`); :meth:`require` names what it misses.
-
-    Attributes
-    ----------
-    path : Path
-        The file.
-    schema : {"root", "fe"}
-        The pipeline it drives: the root ``params.yaml`` or the FE pipeline's
-        ``fe/params.yaml`` (which also has ``fe`` and ``validate``).
-    given : dict
-        Section -> the keys the file gives it.
-    partial : dict
-        Section -> the keys a partial section gives, validated (:meth:`require`).
-    """
+    """A validated params file (``path``; ``schema`` "root" or "fe"): one typed section each,
+    None when the file lacks it or, checked partially, the section misses required keys
+    (``partial``: section -> those it gives, validated; :meth:`require`). ``given``: section
+    -> the keys the file gives it."""
 
     path: Path
     schema: str
@@ -79,12 +53,9 @@ class Settings:
     cohort: _fe.CohortSettings | None = _section({"fe": False})
 
     def require(self, name: str, *keys: str) -> Any:
-        """Section ``name``, which must give ``keys`` (e.g. a split of ``train``).
-
-        A section the file gives partially (a command-line option may stand for a missing
-        key) serves the keys it gives; reading a missing one raises the ConfigError that
-        names it. An absent section, or a missing key of ``keys``, raises it here.
-        """
+        """Section ``name``, which must give ``keys``; a partial section serves the keys it
+        gives (reading a missing one raises the ConfigError naming it, as does an absent
+        section or a missing key of ``keys`` here)."""
         value = getattr(self, name) or self.partial.get(name)
         missing = [k for k in keys if k not in self.given.get(name, ())]
         if value is not None and not missing:
@@ -109,7 +80,7 @@ def missing_setting(path: str | Path, key: str) -> ConfigError:
 
 def _partial(model: type, value: Mapping[str, Any], path: str | Path) -> Any:
     """A section that misses required keys, with the keys it gives (each valid)."""
-    fields, names = fields_of(model), keys_of(model)
+    fields, names = fmt.fields_of(model), fmt.keys_of(model)
     given = {}
     for key, item in value.items():
         if key not in names:  # e.g. the splits of train
@@ -142,7 +113,7 @@ def _sections(
             found.append(((key,), message + "pipeline's fe/params.yaml"))
         elif key not in allowed:
             missing = [n for n in required if n not in data]
-            message = unknown_message(
+            message = fmt.unknown_message(
                 key, (), sorted(allowed), missing=missing, what="unknown section"
             )
             found.append(((key,), message))
@@ -151,11 +122,11 @@ def _sections(
             try:
                 out[key] = model.model_validate(value, context={"complete": complete})
             except ValidationError as exc:
-                found += problems(exc, model, prefix=(key,), complete=complete)
+                found += fmt.problems(exc, model, prefix=(key,), complete=complete)
                 missing = [e["loc"] for e in exc.errors() if e["type"] == "missing"]
                 if len(missing) == len(exc.errors()) and all(len(loc) == 1 for loc in missing):
                     partial[key] = _partial(model, value, f"{path}:{key}")
-    unknown = {closest(str(k), allowed) for k in data if k not in allowed}
+    unknown = {fmt.closest(str(k), allowed) for k in data if k not in allowed}
     for name in required if complete else ():
         if name not in data and name not in unknown:
             file = "fe/params.yaml" if schema == "fe" else "params.yaml"
@@ -172,52 +143,31 @@ def validate_params(
     text: str | None = None,
     given: Mapping[tuple, str] | None = None,
 ) -> Settings:
-    """Validate a loaded params mapping; raise one ConfigError listing every problem.
+    """The typed :class:`Settings` of a loaded params mapping ``data`` (the file ``path``,
+    its ``text`` for line numbers; ``schema`` default :func:`detect_schema`).
 
-    Parameters
-    ----------
-    data : mapping
-        The YAML document (sections at the top).
-    path : str or Path
-        The file, for messages.
-    schema : {"root", "fe"}, optional
-        Which file it is (default: :func:`detect_schema`).
-    complete : bool
-        Require every required section and key (``load_settings``). Otherwise only what the
-        file holds is checked; a section missing keys is None (:meth:`Settings.require`
-        names them when a command needs it).
-    text : str, optional
-        The file's text, for line numbers in messages.
-    given : mapping, optional
-        Path -> the command-line option whose value ``data`` holds there (messages name it).
-
-    Returns
-    -------
-    Settings
+    ``complete`` requires every required section and key; otherwise a section missing keys
+    is partial (:meth:`Settings.require`). ``given``: path -> the command-line option whose
+    value ``data`` holds there (messages name it).
 
     Raises
     ------
     ConfigError
-        Unknown, retired, missing (``complete``), mistyped or out-of-range settings.
+        Unknown, retired, missing (``complete``), mistyped or out-of-range settings, each
+        with its line.
     """
     schema = schema or detect_schema(data)
     if schema not in SCHEMAS:
         raise ConfigError(f"schema must be one of {', '.join(SCHEMAS)}; got {schema!r}.")
     sections, partial, found = _sections(data, schema, complete, path)
-    raise_problems(found, str(path), text, given)
+    fmt.raise_problems(found, str(path), text, given)
     given = {k: tuple(v) for k, v in data.items() if isinstance(v, Mapping)}
     return Settings(Path(path), schema, given=given, partial=partial, **sections)
 
 
 def load_settings(path: str | Path = "params.yaml", *, schema: str | None = None) -> Settings:
-    """Read, validate and type a complete params file.
-
-    Raises
-    ------
-    ConfigError
-        The file is missing or not YAML, or a setting is unknown, retired, missing, of the
-        wrong type or out of range (all of them in one message).
-    """
+    """The typed settings of a complete params file (ConfigError: as :func:`validate_params`,
+    or the file is missing or not YAML)."""
     from femcal.config import read_yaml_mapping
 
     data, text = read_yaml_mapping(path)
@@ -232,7 +182,7 @@ def describe_setting(keys: Iterable[str]) -> str | None:
     model: Any = SECTIONS[keys[0]][0]
     doc = re.sub(r"^``[^`]+``: ", "", model.__doc__.splitlines()[0]).rstrip(".")
     for key in keys[1:]:
-        info = model.model_fields.get(key) if is_model(model) else None
+        info = model.model_fields.get(key) if fmt.is_model(model) else None
         if info is None:
             return None
         doc, model = info.description, info.annotation
