@@ -87,6 +87,7 @@ minimum, increment limit) and a timeout are not retryable.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import logging
@@ -95,7 +96,6 @@ import os
 import re
 import shutil
 import subprocess
-import threading
 import time
 from pathlib import Path
 
@@ -110,6 +110,7 @@ from femcal.fe.base import (
     RunOutcome,
     register_solver,
 )
+from femcal.fe.cpu_limit import CpuLimit
 from femcal.fe.dat import read_dat
 from femcal.fe.geometry import DiscGeometry, DiscMesh
 from femcal.fe.materials import region_materials, validate_parameters
@@ -178,7 +179,8 @@ class CalculixDisc:
     max_attempts : int
         Attempts of a job whose failure is retryable (fibre-routine abort).
     timeout_s : float or None
-        Wall-clock limit per run; a run over it is killed and failed.
+        CPU seconds (user + system) a run may use; a run over them is killed and failed
+        (:class:`femcal.fe.cpu_limit.CpuLimit`: the machine's load does not decide it).
     max_increments : int
         Increment limit of the first attempt (times 4 on each retry).
     retry_factor : float
@@ -436,7 +438,6 @@ class CalculixDisc:
         exe = self._resolve_executable()
         env = {**os.environ, **SINGLE_THREAD_ENV}
         log_path = prepared.workdir / f"{JOB_NAME}.log"
-        timed_out = threading.Event()
         start = time.perf_counter()
         with open(log_path, "wb") as log:
             try:
@@ -450,29 +451,19 @@ class CalculixDisc:
                 )
             except OSError as exc:
                 raise SolverError(f"Cannot start {exe} ({exc}); {INSTALL_HINT}.") from exc
-
-            def kill() -> None:
-                timed_out.set()
-                proc.kill()
-
-            timer = threading.Timer(self.timeout_s, kill) if self.timeout_s else None
-            if timer is not None:
-                timer.daemon = True
-                timer.start()
-            try:
-                _, status, usage = os.wait4(proc.pid, 0)
-            except BaseException:
-                proc.kill()
-                proc.wait()
-                raise
-            finally:
-                if timer is not None:
-                    timer.cancel()
+            limit = CpuLimit(proc, self.timeout_s) if self.timeout_s else contextlib.nullcontext()
+            with limit:
+                try:
+                    _, status, usage = os.wait4(proc.pid, 0)
+                except BaseException:
+                    proc.kill()
+                    proc.wait()
+                    raise
         returncode = os.waitstatus_to_exitcode(status)
         proc.returncode = returncode
         wall = time.perf_counter() - start
         cpu = usage.ru_utime + usage.ru_stime
-        prepared.info["timed_out"] = timed_out.is_set()
+        prepared.info["timed_out"] = getattr(limit, "reason", None)
         tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-40:])
         logger.debug(
             "ccx %s attempt %d: exit %d, %.1f s CPU, %.1f s wall",
@@ -522,7 +513,7 @@ class CalculixDisc:
         else:
             status = STATUS_FAILED
             if timed_out:
-                message = f"timeout after {self.timeout_s:g} s"
+                message = f"timeout after {prepared.info['timed_out']}"
             elif FIBRE_ABORT in log_text.lower():
                 message = next(
                     (line.strip() for line in log_text.splitlines() if FIBRE_ABORT in line.lower()),

@@ -12,7 +12,7 @@ finished job to a durable store as it arrives:
 * failed simulations are records with ``status = "failed"`` and the reason (and the tail of
   the solver's log), never zeros; a failure is data and is not retried by a rerun unless
   ``retry_failed`` says so (every failure, or those a predicate picks, e.g.
-  :func:`timed_out`: a wall-clock timeout depends on the machine's load, not the model).
+  :func:`timed_out`: a record made under a wall-clock limit depends on the machine's load).
   A job whose worker raised (solver missing, worker died) is not stored: a rerun runs it
   again.
 
@@ -317,7 +317,7 @@ def dask_client(scheduler_address: str | None, n_workers: int) -> Iterator[Any]:
 
 
 def timed_out(record: Mapping[str, Any]) -> bool:
-    """Whether a stored job failed on its wall-clock limit (``retry_failed=timed_out``)."""
+    """Whether a stored job failed on its time limit (``retry_failed=timed_out``)."""
     return record.get("status") != STATUS_OK and str(record.get("reason", "")).startswith(
         "timeout after"
     )

@@ -22,10 +22,10 @@ if TYPE_CHECKING:
     from femcal.space import ParameterSpace
 
 
-#: Wall-clock limit of one attempt of a job, s, for the campaigns that run niced on a shared
-#: machine (:mod:`femcal.fe.cohort`, :mod:`femcal.fe.predictive`); it replaces
-#: ``fe.settings.timeout_s`` there. A tight limit would turn the machine's load into
-#: failures, and leaving those out would favour specimens that solve fast.
+#: Time limit of one attempt of a job, s, for the cohort's and the predictive validation's
+#: campaigns (:mod:`femcal.fe.cohort`, :mod:`femcal.fe.predictive`); it replaces
+#: ``fe.settings.timeout_s`` there, and their committed stores' job hashes include it. A tight
+#: limit would leave out the specimens that solve slowly.
 SHARED_MACHINE_TIMEOUT_S = 1200
 
 
