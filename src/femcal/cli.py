@@ -373,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--retry-timeouts",
         action="store_true",
-        help="run the stored jobs that failed on their wall-clock limit again",
+        help="run the stored jobs that failed on their time limit again",
     )
     _add_metrics_file(p)
     p = command("adapt", help="adaptive FE sampling; fine-tuned challenger vs the champion")

@@ -127,8 +127,9 @@ def run_simulate(
     """The FE campaign (Dask, durable store, resume) and its dataset in the study's layout.
 
     ``fe`` names the solver, its settings, the campaign store and the Dask cluster.
-    ``retry_timeouts`` runs the stored jobs that failed on their wall-clock limit again (a
-    timeout depends on the machine's load; the other failures are the model's and stay).
+    ``retry_timeouts`` runs the stored jobs that failed on their time limit again (a record
+    made under a wall-clock limit depends on the machine's load; the other failures are the
+    model's and stay).
 
     Returns
     -------
