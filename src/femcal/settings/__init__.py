@@ -1,16 +1,11 @@
 """Typed, validated settings: ``params.yaml``, ``fe/params.yaml`` and femcal's environment.
 
-Every key of both params files is declared once, in a pydantic model: its type with its
-bounds or choices, its one-line doc (the field's description) and its default. Validating a
-file reports every problem at once, each with the file, the line, the dotted key, what was
-given and what is allowed; an unknown key names the closest valid one, a retired key what
-replaced it (:mod:`~femcal.settings._format` turns pydantic's errors into these messages).
-
-Modules: :mod:`~femcal.settings.values` (value types, the bases of sections and keyword
-tables), :mod:`~femcal.settings.keywords` (registries' names, keyword arguments, search
-spaces), :mod:`~femcal.settings.root` and :mod:`~femcal.settings.fe` (the sections),
-:mod:`~femcal.settings.params` (the files as a whole) and :mod:`~femcal.settings.env` (the
-environment variables). Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
+Every key is declared once (type with bounds or choices, one-line doc, default); a file's
+problems are reported at once, each with the file, line, dotted key, what was given and what is
+allowed (an unknown key names the closest valid one). Modules: ``values`` (value types, bases),
+``keywords`` (registries' names, keyword arguments, search spaces), ``root`` and ``fe`` (the
+sections), ``params`` (the files), ``env`` (the environment), ``_format`` (the messages).
+Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
 """
 
 from importlib import import_module

@@ -375,6 +375,9 @@ def _kinds(annotation: Any) -> tuple[str, ...]:
 
 class _Space(Keywords):
     _keywords: ClassVar[type[Keywords]]
+    _describe: ClassVar[str] = (
+        "a mapping hyper-parameter -> {type: float|int|categorical, low, high, log, choices}"
+    )
 
     @model_validator(mode="wrap")
     @classmethod
@@ -404,15 +407,11 @@ class _Space(Keywords):
 
 def space_of(keywords: type[Keywords]) -> Any:
     """The search space over ``keywords``: keyword -> entry, kept as plain data."""
+    doc = f"An Optuna search space over the {keywords._owner} keywords."
     fields = {
-        name: (SearchEntry, Field(None, description=field.description))
-        for name, field in keywords.model_fields.items()
+        k: (SearchEntry, Field(None, description=f.description))
+        for k, f in keywords.model_fields.items()
     }
-    model = create_model(f"{keywords.__name__}Space", __base__=_Space, **fields)
-    model.__doc__ = f"An Optuna search space over the {keywords._owner} keywords."
-    for attr in ("_keywords", "_unknown", "_refused"):
-        setattr(model, attr, keywords if attr == "_keywords" else getattr(keywords, attr))
-    model._describe = (
-        "a mapping hyper-parameter -> {type: float|int|categorical, low, high, log, choices}"
-    )
+    model = create_model(f"{keywords.__name__}Space", __base__=_Space, __doc__=doc, **fields)
+    model._keywords, model._unknown, model._refused = keywords, keywords._unknown, keywords._refused
     return plain(model)
