@@ -2,11 +2,24 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 
-from femcal.fe.hidden import found_effects, score, visible_threshold
+from femcal.config import load_params
+from femcal.errors import ConfigError
+from femcal.fe.hidden import (
+    FE_START_BANK,
+    calibration_job,
+    found_effects,
+    score,
+    start_bank_of,
+    visible_threshold,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
 
 ANSWERS = pd.DataFrame(
     {
@@ -63,3 +76,25 @@ def test_visible_means_beyond_twice_the_noise_plus_the_surrogate_error():
     summary = {"sigma_deg": sigma[0], "sigma_by_moment": sigma}
     assert visible_threshold(summary, 0.05) == pytest.approx(0.1 + 0.075)
     assert visible_threshold({"sigma_deg": 0.05, "sigma_by_moment": None}, 0.05) == 0.1
+
+
+def test_the_jobs_start_from_the_given_bank(tmp_path):
+    bank = tmp_path / "large.csv"
+    bank.write_text("config_id\n")
+    assert start_bank_of(bank) == {"start_bank": bank.resolve()}
+    assert start_bank_of(None) == {}
+    params = load_params(ROOT / "params.yaml")
+    options = {"params": params, "model_uri": "m", "noise_deg": 0.05, "start_bank": bank}
+    job = calibration_job(tmp_path / "meas.csv", tmp_path / "out", ["ligament_tension"], options)
+    assert job.start_bank == bank.resolve() and job.effects == ("ligament_tension",)
+    # None: params.yaml's calibrate.start_bank
+    job = calibration_job(
+        tmp_path / "meas.csv", tmp_path / "out", [], {**options, "start_bank": None}
+    )
+    assert job.start_bank.as_posix().endswith(params["calibrate"]["start_bank"])
+
+
+def test_a_missing_start_bank_names_the_fix(tmp_path):
+    with pytest.raises(ConfigError, match=r"is not a file.*prepare.*--start-bank ''"):
+        start_bank_of(tmp_path / "absent.csv")
+    assert FE_START_BANK.name == "large.csv"

@@ -1,7 +1,10 @@
 """The loop on the FE-made cohort: diagnose what the FE added, then calibrate with it.
 
 ``python -m femcal.fe.hidden`` runs, with the project's ``params.yaml``, the jobs a user runs
-(:mod:`femcal.jobs`, in this process):
+(:mod:`femcal.jobs`, in this process), both starting from the FE campaign's own training
+configurations (``--start-bank``, :data:`FE_START_BANK`: pgd's starts and the reachability
+envelope's FE curves) rather than ``params.yaml``'s ``calibrate.start_bank`` (the root
+pipeline's prepared split, another FE model's curves):
 
 1. the diagnosis (``femcal diagnose``) of the cohort's noisy curves (``measured/Test``) with
    the disc-only surrogate: a verdict per specimen, without the answers;
@@ -43,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from femcal.effects.terms import parse_term
+from femcal.errors import ConfigError
 from femcal.fe.cohort import CLASS_EFFECTS, CLASSES
 from femcal.jobs.calibrate import CalibrationJob, run_calibration
 from femcal.jobs.diagnose import DiagnosisJob, run_diagnosis
@@ -54,6 +58,31 @@ VISIBLE_NOISE_SDS = 2.0
 
 #: Where the calibrations and the diagnosis of :func:`run_hidden` say their noise comes from.
 NOISE_SOURCE = "python -m femcal.fe.hidden --noise-deg"
+
+#: The FE pipeline's prepared Large split (``fe/dvc.yaml`` stage ``prepare``), relative to the
+#: working directory: the configurations the FE surrogate was trained on, the jobs' start bank.
+FE_START_BANK = Path("fe/data/prepared/large.csv")
+
+
+def start_bank_of(path: Path | None) -> dict[str, Path]:
+    """The jobs' ``start_bank`` keyword: ``{"start_bank": path}`` (resolved), or ``{}`` for
+    ``params.yaml``'s ``calibrate.start_bank`` when ``path`` is None.
+
+    Raises
+    ------
+    ConfigError
+        ``path`` is not a file.
+    """
+    if path is None:
+        return {}
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(
+            f"The start bank {path} is not a file; give the FE campaign's prepared Large split "
+            f"(--start-bank, default {FE_START_BANK}: run `dvc repro fe/dvc.yaml -s prepare` to "
+            "make it), or --start-bank '' for params.yaml's calibrate.start_bank."
+        )
+    return {"start_bank": path.resolve()}
 
 
 def found_effects(effects: Sequence[str]) -> tuple[str, ...]:
@@ -165,6 +194,27 @@ def score(
     }
 
 
+def calibration_job(
+    measurements: Path, out_dir: Path, effects: Sequence[str], options: Mapping
+) -> CalibrationJob:
+    """The calibration job of :func:`run_hidden`: ``options["params"]``'s ``calibrate``
+    settings with the terms ``effects``, the surrogate ``options["model_uri"]``, the noise
+    ``options["noise_deg"]`` and the start bank ``options["start_bank"]`` (None: params.yaml's);
+    no held-out surrogate, no figures."""
+    return CalibrationJob.from_params(
+        options["params"],
+        measurements=measurements,
+        out_dir=out_dir,
+        model_uri=options["model_uri"],
+        holdout_uri=None,
+        plots="none",
+        effects=tuple(effects),
+        noise_deg=float(options["noise_deg"]),
+        noise_source=NOISE_SOURCE,
+        **start_bank_of(options.get("start_bank")),
+    )
+
+
 def _calibrate(
     long: pd.DataFrame,
     names: Sequence[str],
@@ -178,18 +228,7 @@ def _calibrate(
     subset = folder / "measurements.csv"
     long[long["specimen"].astype(str).isin(names)].to_csv(subset, index=False)
     result = folder / "calibration"
-    job = CalibrationJob.from_params(
-        options["params"],
-        measurements=subset,
-        out_dir=result,
-        model_uri=options["model_uri"],
-        holdout_uri=None,
-        plots="none",
-        effects=tuple(effects),
-        noise_deg=float(options["noise_deg"]),
-        noise_source=NOISE_SOURCE,
-    )
-    run_calibration(job)
+    run_calibration(calibration_job(subset, result, effects, options))
     metrics = pd.read_csv(result / "metrics.csv", dtype={"specimen": str})
     return dict(zip(metrics["specimen"], metrics["mae_deg"].astype(float)))
 
@@ -219,7 +258,12 @@ def _calibrate_groups(
 
 
 def run_hidden(
-    cohort_dir: Path, model_uri: str, out_dir: Path, noise_deg: float, root: Path
+    cohort_dir: Path,
+    model_uri: str,
+    out_dir: Path,
+    noise_deg: float,
+    root: Path,
+    start_bank: Path | None = FE_START_BANK,
 ) -> dict[str, Any]:
     """Diagnose and calibrate the cohort; write and return the figures (module docstring).
 
@@ -238,6 +282,9 @@ def run_hidden(
         The project root: its ``params.yaml`` gives both jobs' other settings, its MLflow
         store and its user effects (:func:`femcal.jobs.common.use_project`), its git commit
         is recorded.
+    start_bank : Path or None
+        The prepared split whose configurations both jobs start from (and whose FE curves
+        bound the reachability envelope); None: ``params.yaml``'s ``calibrate.start_bank``.
 
     Returns
     -------
@@ -250,6 +297,7 @@ def run_hidden(
     cohort_dir, out_dir = Path(cohort_dir).resolve(), Path(out_dir).resolve()
     measured = cohort_dir / "measured" / "Test"
     diagnosis_dir = out_dir / "diagnosis"
+    bank = start_bank_of(start_bank)  # a missing bank is the first error, not the last
     params = load_params(Path(root) / "params.yaml")
     use_project(params)
     job = DiagnosisJob.from_params(
@@ -259,20 +307,30 @@ def run_hidden(
         model_uri=model_uri,
         noise_deg=float(noise_deg),
         noise_source=NOISE_SOURCE,
+        **bank,
     )
     run_diagnosis(job)
     diagnosis = json.loads((diagnosis_dir / "diagnosis.json").read_text())
     summary = json.loads((diagnosis_dir / "summary.json").read_text())
     threshold = visible_threshold(summary, noise_deg)
     answers = pd.read_csv(cohort_dir / "answers.csv", dtype={"specimen": str})
-    options = {"model_uri": model_uri, "noise_deg": noise_deg, "params": params}
+    options = {
+        "model_uri": model_uri,
+        "noise_deg": noise_deg,
+        "params": params,
+        "start_bank": bank.get("start_bank"),
+    }
     disc, after = _calibrate_groups(measured, diagnosis, out_dir, options)
     figures = score(diagnosis, answers, threshold, disc, after)
     commit = subprocess.run(
         ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True
     ).stdout.strip()
     figures.update(
-        model_uri=model_uri, noise_deg=float(noise_deg), cohort=str(cohort_dir), commit=commit
+        model_uri=model_uri,
+        noise_deg=float(noise_deg),
+        cohort=str(cohort_dir),
+        commit=commit,
+        start_bank=str(job.start_bank),
     )
     info = cohort_dir / "cohort.json"
     if info.is_file():  # the cohort's own figures: complete or a partial preview, its jobs
@@ -292,9 +350,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--noise-deg", type=float, default=0.05)
     parser.add_argument("--root", type=Path, default=Path("."))
     parser.add_argument("--metrics-file", type=Path, default=None)
+    parser.add_argument(
+        "--start-bank",
+        default=str(FE_START_BANK),
+        help="prepared split of the jobs' starts; '' for params.yaml's calibrate.start_bank",
+    )
     args = parser.parse_args(argv)
     limit_threads()  # as femcal's command line: the cores free now, before torch starts
-    figures = run_hidden(args.cohort, args.model_uri, args.out, args.noise_deg, args.root)
+    bank = Path(args.start_bank) if args.start_bank else None
+    figures = run_hidden(args.cohort, args.model_uri, args.out, args.noise_deg, args.root, bank)
     if args.metrics_file:
         headline = {k: v for k, v in figures.items() if k != "specimens"}
         args.metrics_file.write_text(json.dumps(headline, indent=2) + "\n")
