@@ -133,3 +133,25 @@ def test_a_cheaper_jacobian_differentiates_the_disc_through_its_first_members(en
         rtol=1e-10,
         atol=1e-12,
     )
+
+
+@pytest.mark.parametrize("section_points", [1, 64, 1 << 20])
+def test_the_disc_share_is_the_same_however_many_levels_one_evaluation_bisects(
+    surrogate, monkeypatch, section_points
+):
+    """One bisection level per evaluation (:func:`_bisect_levels`' torch path) and several
+    (its grid path) visit the same midpoints: the shares are equal bit for bit; and the share
+    solves ``M_d + sum M_e = M`` (float32 here, as in the diagnosis: 1e-5 of the moment)."""
+    from femcal.effects import composite
+
+    model = EffectModel(SurrogateCurveModel(surrogate, MOMENTS), ["facet_contact:split"])
+    v = torch.rand(12, model.dim, generator=torch.Generator().manual_seed(3))
+    monkeypatch.setattr(composite, "_SECTION_POINTS", 16384)
+    reference = model._disc_share(v)
+    monkeypatch.setattr(composite, "_SECTION_POINTS", section_points)
+    assert torch.equal(model._disc_share(v), reference)
+    phi = model._disc(v[:, : model.n_disc])(reference, slope=False)[0]
+    params = model.effects[0].from_unit(v[:, model.n_disc :])
+    carried = model.effects[0].moment_at(phi, params) * model._lc_masks[0][None, :, None]
+    applied = model.moments.expand_as(reference)
+    torch.testing.assert_close(reference + carried, applied, rtol=1e-5, atol=1e-5)

@@ -43,7 +43,7 @@ _MAX_SHARES = 200_000
 _MIN_SHARE = 1e-3  # the disc carries at least this share of the applied moment
 #: Points evaluated at once by :func:`_bisect_levels` (rows x load cases x moments x midpoints):
 #: small batches are bisected several levels per evaluation, large ones one level at a time.
-_SECTION_POINTS = 16384
+_SECTION_POINTS = 4096
 
 
 def _levels_per_round(n_points: int) -> int:
@@ -63,6 +63,10 @@ def _bisect_levels(above, lo: torch.Tensor, hi: torch.Tensor, levels: int):
     ``0.5 * (left + right)`` of its neighbours as bisection computes it) is evaluated at once;
     then the bisection's path through them is followed. Returns the new ``lo, hi`` (B, c, m).
     """
+    if levels == 1:  # one midpoint per bracket: the same operations in torch
+        mid = 0.5 * (lo + hi)
+        up = above(torch.exp(mid))
+        return torch.where(up, lo, mid), torch.where(up, mid, hi)
     points = np.stack([lo.numpy(), hi.numpy()], axis=-1)  # (B, c, m, 2 ** level + 1)
     half = points.dtype.type(0.5)
     for _ in range(levels):
