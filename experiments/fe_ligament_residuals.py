@@ -27,17 +27,18 @@ disc-only floor. For the specimens of those classes whose MAE after the found mo
 Every MAE is in degrees against the noisy curves the loop fitted (noise sd 0.05 deg) unless a
 column says ``clean``. Writes ``<out>/<command>.json`` and prints its tables.
 
-Usage (from the project root; one heavy process at a time)::
+``report`` prints the table of ``docs/benchmarks/fe.md`` ("Why the ligaments stay above the
+floor") from the JSON files in ``--out``. Usage (from the project root; one at a time)::
 
-    export OMP_NUM_THREADS=1 MLFLOW_TRACKING_URI=sqlite:////tmp/L/mlflow.db
-    H=/tmp/hid/out C=/tmp/fewt2/fe/data/cohort M=/tmp/hid/surrogate-large-896
-    nice -n 10 .venv/bin/python -m experiments.fe_ligament_residuals tables --hidden $H --cohort $C
-    nice -n 10 .venv/bin/python -m experiments.fe_ligament_residuals fe --cohort $C \\
-        --store /tmp/L/disc-alone/runs.jsonl.gz               # CalculiX, ~1 CPU-min per disc
-    nice -n 10 .venv/bin/python -m experiments.fe_ligament_residuals oracle --hidden $H \\
-        --cohort $C --model $M --store /tmp/L/disc-alone/runs.jsonl.gz
-    nice -n 10 .venv/bin/python -m experiments.fe_ligament_residuals rerun --hidden $H \\
-        --cohort $C --model $M --root /tmp/ferun --bank fe/data/prepared/large.csv
+    export OMP_NUM_THREADS=1
+    H=fe/reports/hidden C=fe/data/cohort M=fe/models/surrogate-large S=DIR/runs.jsonl.gz
+    python -m experiments.fe_ligament_residuals tables --hidden $H --cohort $C --out OUT
+    python -m experiments.fe_ligament_residuals fe --cohort $C --store $S --out OUT  # CalculiX
+    python -m experiments.fe_ligament_residuals oracle --hidden $H --cohort $C --model $M \\
+        --store $S --out OUT
+    python -m experiments.fe_ligament_residuals rerun --hidden $H --cohort $C --model $M \\
+        --root . [--terms class] [--bank fe/data/prepared/large.csv] --tag T --out OUT
+    python -m experiments.fe_ligament_residuals report --out OUT
 """
 
 from __future__ import annotations
@@ -373,6 +374,8 @@ def _oracle_row(name: str, cls: str, data: Mapping[str, Any], base: Any) -> dict
     row["surrogate_vs_fe_disc"] = band_mae(at_truth - disc, moments)
     row["fe_disc_reached"] = int(np.isfinite(disc).sum())
     row["fe_disc_vs_noisy"] = band_mae(disc - target, moments)
+    # the elements' share at the first level: with them over the disc alone, per load case
+    row["fe_first_level_ratio"] = (clean[:, 0] / disc[:, 0]).tolist()
     effects = [get_effect(t)() for t in terms]
     sizes = np.cumsum([0] + [len(e.parameters) for e in effects])
 
@@ -534,13 +537,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Command line (module docstring)."""
     parser = argparse.ArgumentParser(prog="python -m experiments.fe_ligament_residuals")
     parser.add_argument("command", choices=("tables", "fe", "oracle", "rerun", "report"))
-    parser.add_argument("--hidden", type=Path, default=Path("/tmp/hid/out"))
+    parser.add_argument("--hidden", type=Path, default=Path("fe/reports/hidden"))
     parser.add_argument("--cohort", type=Path, default=Path("fe/data/cohort"))
     parser.add_argument("--model", default="fe/models/surrogate-large")
-    parser.add_argument("--store", type=Path, default=Path("/tmp/L/disc-alone/runs.jsonl.gz"))
+    parser.add_argument("--store", type=Path, default=Path("fe-disc-alone/runs.jsonl.gz"))
     parser.add_argument("--fe-params", type=Path, default=Path("fe/params.yaml"))
     parser.add_argument("--specimens", default="", help="comma-separated; default: examined")
-    parser.add_argument("--out", type=Path, default=Path("/tmp/L/results"))
+    parser.add_argument("--out", type=Path, default=Path("fe-ligament-residuals"))
     parser.add_argument("--root", type=Path, default=Path("."))
     parser.add_argument("--bank", default=None, help="rerun: a prepared table of starts")
     parser.add_argument("--terms", default="", help="rerun: terms joined by '+', or 'class'")
