@@ -15,19 +15,28 @@ experiment runs that remedy and measures whether the error falls.
   femcal's training API on the FE campaign's Large split plus the added configurations.
 * **Scored** (``score``): the held-out error inside the old box (the FE Test split, 0.5-5 and
   5.5-10 Nm) of the old and the new surrogate, and the disc-alone MAE and verdicts of the 16
-  outside discs (``femcal diagnose`` with each surrogate).
+  outside discs (``femcal diagnose`` and ``femcal calibrate --effects ''`` with each
+  surrogate), and the added campaign's CalculiX CPU time.
 
 Usage (from the project root; FE tables of the campaign in ``PREP``, e.g.
 /tmp/ferun/fe/data/prepared; the outside discs' folder ``OUT`` from
-``python -m experiments.fe_outside_box --out OUT``)::
+``python -m experiments.fe_outside_box --out OUT``; the old surrogate ``OLD``, e.g.
+fe/models/surrogate-large; ``MLFLOW_TRACKING_URI`` set for the training run)::
 
     nice -n 10 .venv/bin/python -m experiments.fe_widened_box campaign
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m experiments.fe_widened_box train \\
-        --prepared PREP --out DIR
+        --prepared PREP --members 3 --out DIR
+    # for M, D, C in (OLD, OUT/diagnosis-old, OUT/calibration-old), (DIR/surrogate,
+    # DIR/diagnosis, DIR/calibration):
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/femcal diagnose --measurements OUT/measurements.csv \\
-        --noise-deg 0.05 --model-uri DIR/surrogate --out DIR/diagnosis
+        --noise-deg 0.05 --plots false --model-uri M --out D
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/femcal calibrate --effects '' --no-holdout \\
+        --plots none --measurements OUT/measurements.csv --noise-deg 0.05 --model-uri M --out C
     OMP_NUM_THREADS=1 .venv/bin/python -m experiments.fe_widened_box score --prepared PREP \\
-        --out DIR --old-model fe/models/surrogate-large --old-diagnosis OUT/diagnosis
+        --out DIR --old-model OLD --old-diagnosis OUT/diagnosis-old \\
+        --old-calibration OUT/calibration-old
+
+``score`` writes ``DIR/widened_box.json``.
 """
 
 from __future__ import annotations
@@ -257,7 +266,12 @@ def cmd_score(args: argparse.Namespace, params: Mapping) -> None:
     old, new = disc_alone(args.old_diagnosis), disc_alone(args.out / "diagnosis")
     summary = json.loads((args.old_diagnosis / "summary.json").read_text())
     visible = old["disc_mae_deg"] > visible_threshold(summary, summary["noise_deg"])
-    table = old.join(new, lsuffix="_old", rsuffix="_new").assign(visible_old=visible)
+    table = old.add_suffix("_old").join(new.add_suffix("_new")).assign(visible_old=visible)
+    for label, folder in (("old", args.old_calibration), ("new", args.out / "calibration")):
+        metrics = pd.read_csv(folder / "metrics.csv").set_index("specimen")
+        table[f"calibrate_mae_deg_{label}"] = metrics["mae_deg"]
+        table[f"beyond_noise_{label}"] = metrics["flag"].astype(str).str.contains("beyond noise")
+        figures[f"calibrate_mae_all_{label}"] = float(metrics["mae_deg"].mean())
     figures["discs"] = table.reset_index().to_dict(orient="records")
     figures["mae_all_old"] = float(table["disc_mae_deg_old"].mean())
     figures["mae_all_new"] = float(table["disc_mae_deg_new"].mean())
@@ -286,11 +300,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--prepared", type=Path, default=Path("/tmp/ferun/fe/data/prepared"))
     parser.add_argument("--out", type=Path, default=Path("/tmp/W/widened"))
-    parser.add_argument("--members", type=int, default=2)
+    parser.add_argument("--members", type=int, default=3)
     parser.add_argument(
         "--old-model", type=Path, default=Path("/tmp/ferun/fe/models/surrogate-large")
     )
     parser.add_argument("--old-diagnosis", type=Path, default=Path("/tmp/W/outside/diagnosis-old"))
+    parser.add_argument(
+        "--old-calibration", type=Path, default=Path("/tmp/W/outside/calibration-old")
+    )
     args = parser.parse_args(argv)
     params = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())
     {"campaign": cmd_campaign, "train": cmd_train, "score": cmd_score}[args.command](args, params)
