@@ -5,24 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
 import experiments.fe_widened_box as wb
+from experiments.common import REPO
 
-BOUNDS = {
-    "C10Nucleus": [0.03, 0.21],
-    "C01Nucleus": [0.0075, 0.0525],
-    "C10Annulus": [0.065, 0.455],
-    "K1Annulus": [1.0, 50.0],
-    "K2Annulus": [10.0, 200.0],
-    "Kappa": [0.0, 0.33],
-    "K1Circ": [-0.2, 0.0],
-    "K2Circ": [-0.2, 0.0],
-    "K1Rad": [-0.2, 0.0],
-    "K2Rad": [-0.2, 0.0],
-    "FiberAngle": [7.5, 52.5],
-    "FiberAngleCirc": [0.0, 0.3],
-    "FiberAngleRad": [0.0, 0.2],
-}
+#: The FE campaign's box (fe/params.yaml ``fe.bounds``), the box the script widens.
+BOUNDS = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())["fe"]["bounds"]
 
 
 def test_widened_bounds_double_only_the_stiffnesses_upper_bounds():

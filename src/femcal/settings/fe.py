@@ -234,7 +234,7 @@ class CalculixSettings(Keywords):
     executable: NAME = keyword("the CalculiX executable")
     initial_increment: Float(gt=0, le=1) = keyword("first load increment")
     max_attempts: Int(1) = keyword("attempts per job (retries of a fibre-routine abort)")
-    timeout_s: Float(gt=0) | None = keyword("seconds per attempt (null = none)")
+    timeout_s: Float(gt=0) | None = keyword("CPU seconds per attempt (null = none)")
     max_increments: Int(1) = keyword("load increments at most")
     retry_factor: Float(gt=0, le=1) = keyword("increment factor of a retry")
     nucleus_d1: Float(gt=0) = keyword("compressibility of the nucleus")
