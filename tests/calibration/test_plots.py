@@ -185,3 +185,21 @@ def test_the_written_figure_is_the_figure_drawn_in_full(tmp_path, result, noisy)
             with Image.open(path) as image:
                 assert image.mode == "RGB"
                 assert np.array_equal(np.asarray(image), full)
+
+
+def test_the_parameter_names_of_the_ranges_panel_stay_clear_of_the_panel_beside_it(
+    tmp_path, result, curve_model
+):
+    ranges = identifiability(result)
+    long = ranges.assign(parameter=[f"{p}_with_a_long_effect_name" for p in ranges["parameter"]])
+    for table in (ranges, long):
+        fig = plot_summary(result, tmp_path / "summary.png", None, table)
+        renderer = fig.canvas.get_renderer()
+        scatter, bars = fig.axes[2], fig.axes[3]
+        names = [t.get_window_extent(renderer) for t in bars.get_yticklabels() if t.get_text()]
+        assert len(names) == len(table)
+        # every name inside the figure and right of the scatter panel's frame
+        assert min(b.x0 for b in names) > scatter.get_window_extent(renderer).x1
+        # neighbouring names do not overlap
+        ys = sorted((b.y0, b.y1) for b in names)
+        assert all(a[1] <= b[0] + 0.5 for a, b in zip(ys, ys[1:]))
