@@ -159,12 +159,13 @@ def test_plugin_solvers_and_baselines_are_settings_choices():
     installed plugin's entry point registers it) is a valid setting; its settings pass."""
     from femcal.fe.base import solver_registry
     from femcal.settings import validate_params
-    from femcal.surrogates.base import surrogate_registry
+    from femcal.surrogates.base import baseline_registry
 
-    state = (solver_registry.snapshot(), surrogate_registry.snapshot())
+    state = (solver_registry.snapshot(), baseline_registry.snapshot())
     try:
         solver_registry.register("toy-solver", object)
-        surrogate_registry.register("toy-baseline", type("Toy", (), {}))
+        methods = {m: None for m in ("fit", "predict", "save", "load")}
+        baseline_registry.register("toy-baseline", type("Toy", (), methods))
         fe = {"solver": "toy-solver", "settings": {"mesh_size": 2}}
         settings = validate_params({"fe": fe, "baselines": {"models": ["toy-baseline"]}})
         assert settings.baselines is None  # partial (seed, n_jobs missing): checked, not typed
@@ -172,4 +173,11 @@ def test_plugin_solvers_and_baselines_are_settings_choices():
             validate_params({"baselines": {"models": ["nn"]}})
     finally:
         solver_registry.restore(state[0])
-        surrogate_registry.restore(state[1])
+        baseline_registry.restore(state[1])
+
+
+def test_diagnose_has_one_output_folder_option_under_both_names():
+    diagnose = build_parser()._subparsers._group_actions[0].choices["diagnose"]
+    assert diagnose._option_string_actions["--out"] is diagnose._option_string_actions["--out-dir"]
+    args = build_parser().parse_args(["diagnose", "--out-dir", "X"])
+    assert args.out == "X" and not setting_overrides(args)

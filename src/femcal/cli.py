@@ -238,10 +238,13 @@ def _add_shared(p: argparse.ArgumentParser, section: str) -> None:
         f"files (default: {'calibrate.datasets.<name>' if section == 'calibrate' else section}"
         ".measurements)",
     )
+    # diagnose's --out is its setting diagnose.out_dir: one option under both names; calibrate's
+    # is the folder of one dataset, inside calibrate.out_dir (its own --out-dir).
     p.add_argument(
-        "--out",
+        *(("--out",) if section == "calibrate" else ("--out", "--out-dir")),
+        dest="out",
         help=f"output folder (default: {section}.out_dir"
-        + ("/<dataset>)" if section == "calibrate" else ")"),
+        + ("/<dataset>)" if section == "calibrate" else " in params.yaml)"),
     )
     p.add_argument("--model-uri", help="MLflow model URI or folder (default: calibrate.model_uri)")
     _add_metrics_file(p)
