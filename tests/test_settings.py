@@ -196,7 +196,8 @@ def test_missing_required_key_in_a_complete_file(tmp_path):
     with pytest.raises(
         ConfigError,
         match=r"calibrate\.method: missing setting; add it \(method: calibration method; "
-        r"expected one of 'pgd', 'pgd-study', 'ga', 'inverse'\)",
+        r"expected one of 'pgd', 'pgd-study', 'ga', 'inverse', or a plugin's name \(group "
+        r"femcal\.calibrators\)\)",
     ):
         load_settings(path)
 
@@ -983,9 +984,10 @@ def test_registry_tables_match_the_registries():
     from femcal.prepare import SPLITS as PREPARED
     from femcal.settings import BASELINE_MODELS, SOLVER_SETTINGS, SOLVERS, SPLITS, GeometryKeywords
     from femcal.settings import MESH_PRESETS as PRESETS
-    from femcal.surrogates import available_surrogates
+    from femcal.surrogates import available_baselines, available_surrogates
 
-    assert sorted(BASELINE_MODELS) == sorted(set(available_surrogates()) - {"nn"})
+    assert sorted(BASELINE_MODELS) == available_baselines()
+    assert set(available_baselines()) == set(available_surrogates()) - {"nn"}
     assert sorted(SOLVERS) == available_solvers() == sorted(SOLVER_SETTINGS)
     calculix = set(SOLVER_SETTINGS["calculix"].model_fields)
     assert calculix == set(_keywords(CalculixDisc.__init__))

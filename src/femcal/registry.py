@@ -35,7 +35,7 @@ import, so a command that does not use it pays nothing and cannot fail because o
   distribution, the error and the fix, on every use of that registry until it is fixed or
   uninstalled; whatever it registered before failing is removed, and the other plugins load.
 
-femcal's four registries, each with thin module functions of the same verbs:
+femcal's five registries, each with thin module functions of the same verbs:
 
 ==========================================  ======================  =========================
 registry                                    entry-point group       module functions
@@ -44,6 +44,10 @@ registry                                    entry-point group       module funct
                                                                     ``get_surrogate``,
                                                                     ``make_surrogate``,
                                                                     ``available_surrogates``
+``femcal.surrogates.baseline_registry``     ``femcal.baselines``    ``register_baseline``,
+                                                                    ``get_baseline``,
+                                                                    ``make_baseline``,
+                                                                    ``available_baselines``
 ``femcal.calibration.calibrator_registry``  ``femcal.calibrators``  ``register_calibrator``,
                                                                     ``get_calibrator``,
                                                                     ``available_calibrators``

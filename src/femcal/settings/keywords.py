@@ -15,14 +15,14 @@ from typing import Annotated, Any, ClassVar, Literal, Union, get_args, get_origi
 from pydantic import (
     AfterValidator,
     Field,
+    PlainValidator,
     TypeAdapter,
     ValidationError,
-    WrapValidator,
     create_model,
     model_validator,
 )
 
-from femcal.settings._format import Index, closest, describe, fail, got, unwrap
+from femcal.settings._format import Doc, Index, closest, describe, fail, got, unwrap
 from femcal.settings.values import (
     MODEL_URI,
     Bool,
@@ -44,7 +44,7 @@ from femcal.settings.values import (
 ACTIVATIONS: tuple[str, ...] = ("silu", "gelu", "relu", "tanh", "softplus")
 #: What ``femcal calibrate --plots`` writes (femcal.calibration.report.plot_mode).
 PLOT_CHOICES: tuple[str, ...] = ("all", "summary", "none")
-#: The study's baseline models (femcal.surrogates registry, without "nn").
+#: The study's baseline models (femcal.surrogates baseline registry); plugins add more.
 BASELINE_MODELS: tuple[str, ...] = (
     *("linear", "poly2", "poly3", "poly4", "poly5", "svr", "random_forest"),
     *("gaussian_process", "lightgbm"),
@@ -55,7 +55,7 @@ CALIBRATORS: tuple[str, ...] = ("pgd", "pgd-study", "ga", "inverse")
 BUILTIN_EFFECTS: tuple[str, ...] = ("facet_contact", "ligament_tension", "neutral_zone")
 #: Prepared splits (femcal.prepare.SPLITS) and FE campaign splits (femcal.fe.campaign).
 SPLITS: tuple[str, ...] = ("large", "small", "test")
-#: Registered FE solver adapters (femcal.fe registry).
+#: Built-in FE solver adapters (femcal.fe registry); plugins add more.
 SOLVERS: tuple[str, ...] = ("calculix",)
 #: Mesh presets of the disc geometry (femcal.fe.geometry.MESH_PRESETS).
 MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
@@ -64,13 +64,14 @@ MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
 class Registered(tuple):
     """The built-in names of an open registry (what help texts list) that also contains
     every plugin's name: the entry points of ``group`` and, once the module of ``registry``
-    (``module:attribute``) is loaded, the names registered there, but ``exclude``."""
+    (``module:attribute``) is loaded, the names registered there. ``how`` says how to add a
+    name (the end of an unknown name's message)."""
 
     def __new__(
-        cls, builtins: tuple[str, ...], group: str, registry: str, exclude: tuple[str, ...] = ()
+        cls, builtins: tuple[str, ...], group: str, registry: str, how: str
     ) -> "Registered":
         names = super().__new__(cls, builtins)
-        names.group, names.registry, names.exclude = group, registry, exclude
+        names.group, names.registry, names.how = group, registry, how
         return names
 
     def plugins(self) -> tuple[str, ...]:
@@ -82,39 +83,70 @@ class Registered(tuple):
         if module in sys.modules:
             registry = getattr(sys.modules[module], attribute)
             names.update(name for name, _ in registry.items(load=False))
-        return tuple(sorted(names - set(self) - set(self.exclude)))
+        return tuple(sorted(names - set(self)))
 
     def __contains__(self, name: object) -> bool:
         return tuple.__contains__(self, name) or name in self.plugins()
 
     def choice(self) -> Any:
-        """A setting naming one of them: a built-in (``Literal``, its messages) or a plugin."""
+        """A setting naming one of them: a string checked when it is validated against the
+        built-in names and the plugins' (:meth:`plugins`); an unknown name's message lists
+        them all, suggests the closest and says how to register one (``how``)."""
 
-        def or_plugin(value: Any, handler: Any) -> Any:
-            try:
-                return handler(value)
-            except ValidationError:
-                plugins = self.plugins()
-                if not plugins or not isinstance(value, str):
-                    raise
-                if value in plugins:
-                    return value
-                names = (*self, *plugins)
-                close = closest(value, names)
-                fix = f"; did you mean {close!r}?" if close else ""
-                message = f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
-                raise fail(message) from None
+        def check(value: Any) -> str:
+            names = (*self, *self.plugins())
+            if isinstance(value, str) and value in names:
+                return value
+            close = closest(value, names) if isinstance(value, str) else None
+            message = f"expected one of {', '.join(map(repr, names))}, got {got(value)}; "
+            message += f"did you mean {close!r}? To add one, " if close else "to add one, "
+            raise fail(message + self.how)
 
-        return Annotated[Literal[tuple(self)], WrapValidator(or_plugin)]
+        words = f"one of {', '.join(map(repr, self))}, or a plugin's name (group {self.group})"
+        return Annotated[str, PlainValidator(check), Doc(words)]
 
 
 _REGISTRY = "femcal.{}.base:{}_registry"
-CALIBRATOR_NAMES = Registered(
-    CALIBRATORS, "femcal.calibrators", _REGISTRY.format("calibration", "calibrator")
+_HOW = (
+    'decorate {what} with @register_{kind}("name") ({package}) and name it in the entry-point '
+    "group {group} of your package (docs: How-to > Write a {page} plugin)"
 )
-SOLVER_NAMES = Registered(SOLVERS, "femcal.solvers", _REGISTRY.format("fe", "solver"))
+_PAGE = "solver, surrogate or baseline"
+CALIBRATOR_NAMES = Registered(
+    CALIBRATORS,
+    "femcal.calibrators",
+    _REGISTRY.format("calibration", "calibrator"),
+    _HOW.format(
+        what="a calibrator function",
+        kind="calibrator",
+        package="femcal.calibration",
+        group="femcal.calibrators",
+        page="calibrator",
+    ),
+)
+SOLVER_NAMES = Registered(
+    SOLVERS,
+    "femcal.solvers",
+    _REGISTRY.format("fe", "solver"),
+    _HOW.format(
+        what="a solver adapter class",
+        kind="solver",
+        package="femcal.fe",
+        group="femcal.solvers",
+        page=_PAGE,
+    ),
+)
 BASELINE_NAMES = Registered(
-    BASELINE_MODELS, "femcal.surrogates", _REGISTRY.format("surrogates", "surrogate"), ("nn",)
+    BASELINE_MODELS,
+    "femcal.baselines",
+    _REGISTRY.format("surrogates", "baseline"),
+    _HOW.format(
+        what="a baseline class",
+        kind="baseline",
+        package="femcal.surrogates",
+        group="femcal.baselines",
+        page=_PAGE,
+    ),
 )
 METHOD, SOLVER, BASELINE = (n.choice() for n in (CALIBRATOR_NAMES, SOLVER_NAMES, BASELINE_NAMES))
 

@@ -67,11 +67,12 @@ def run_baselines(
     seed: int,
     n_jobs: int,
 ) -> dict[str, float]:
-    """Fit the study's model zoo on one split; save each fitted model; log each as a run."""
+    """Fit the baselines ``models`` (names of :data:`femcal.surrogates.baseline_registry`) on
+    one split; save each fitted model into ``out_dir / name``; log each as a run."""
     import mlflow
 
     from femcal.datasets import ok_rows
-    from femcal.surrogates import make_surrogate
+    from femcal.surrogates import make_baseline
 
     table, space = load_split(prepared_dir, split)
     data = ok_rows(table)
@@ -81,13 +82,13 @@ def run_baselines(
         mlflow.set_tag("femcal.stage", "baselines")
         for name in models:
             with mlflow.start_run(run_name=f"{name}-{split}", nested=True):
-                model = make_surrogate(name, space=space, seed=seed, n_jobs=n_jobs)
+                model = make_baseline(name, space=space, seed=seed, n_jobs=n_jobs)
                 t0 = time.perf_counter()
                 model.fit(data, data["rom_deg"].to_numpy())
                 seconds[name] = time.perf_counter() - t0
                 mlflow.log_params({"model": name, "train_split": split, "seed": seed})
                 mlflow.log_metric("fit_seconds", seconds[name])
-                model.save(out_dir / name)  # skops + LightGBM text: data, not a pickle
+                model.save(out_dir / name)  # built-ins: skops + LightGBM text, data, not a pickle
                 logger.info("%s on %s fitted in %.1f s", name, split, seconds[name])
     (out_dir / "fit_seconds.json").write_text(json.dumps(seconds, indent=2) + "\n")
     return seconds

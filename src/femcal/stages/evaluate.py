@@ -98,7 +98,7 @@ def run_evaluate(settings: EvaluateSettings, plot_split: str = "large") -> dict[
     import mlflow
 
     from femcal.evaluate import prediction_table, training_curves
-    from femcal.surrogates.baselines import load_baseline
+    from femcal.surrogates import get_baseline
 
     s = settings
     surrogate_dirs, baseline_dirs = s.surrogate_dirs, s.baseline_dirs
@@ -131,7 +131,7 @@ def run_evaluate(settings: EvaluateSettings, plot_split: str = "large") -> dict[
             )
         )
         for name in s.baseline_models:
-            model = load_baseline(baseline_dirs[split] / name)
+            model = get_baseline(name).load(baseline_dirs[split] / name)
             rows.append(score_model(model, test, name=name, train_split=split))
         rows.sort(key=lambda s: s.scores["mae"])
         sections[f"Trained on {split.capitalize()}"] = rows

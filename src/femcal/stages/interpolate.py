@@ -81,7 +81,7 @@ def run_interpolation(
     """Train on some moments of Large, test at others on Test (NN and chosen baselines)."""
     import mlflow
 
-    from femcal.surrogates import make_surrogate
+    from femcal.surrogates import make_baseline
     from femcal.surrogates.nn import NeuralSurrogate
     from femcal.train import ok_rows, surrogate_kwargs, validation_split
 
@@ -101,7 +101,7 @@ def run_interpolation(
         label = "large, " + ",".join(f"{m:g}" for m in train_moments) + " Nm"
         scores.append(score_model(nn, test, name="nn", train_split=label, moments=test_moments))
         for name in baselines:
-            model = make_surrogate(name, space=space, seed=seed, n_jobs=n_jobs)
+            model = make_baseline(name, space=space, seed=seed, n_jobs=n_jobs)
             model.fit(data, data["rom_deg"].to_numpy())
             scores.append(
                 score_model(model, test, name=name, train_split=label, moments=test_moments)

@@ -12,11 +12,16 @@ listed in the registry's ``builtins`` (:data:`surrogate_registry`, a
 entry-point group ``femcal.surrogates`` (a module that registers its classes on import, or a
 class, registered under the entry point's name).
 Only registered classes are loaded from saved models (:func:`trusted_surrogate_class`).
+
+The baselines the ``baselines`` stage fits and the ``evaluate`` stage scores are a registry of
+their own (:data:`baseline_registry`, :class:`Baseline`, :func:`register_baseline`, entry-point
+group ``femcal.baselines``): a surrogate that also saves itself into a folder and loads back.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -88,6 +93,85 @@ def get_surrogate(name: str) -> type:
 def make_surrogate(name: str, **kwargs: Any) -> Surrogate:
     """Build the surrogate registered as ``name`` with keyword arguments ``kwargs``."""
     return surrogate_registry.create(name, **kwargs)
+
+
+@runtime_checkable
+class Baseline(Protocol):
+    """What a baseline offers: a surrogate the ``baselines`` stage fits and saves, and the
+    ``evaluate`` stage loads back and scores.
+
+    ``cls(space, *, seed, n_jobs)`` builds it (``space`` a
+    :class:`~femcal.space.ParameterSpace`, ``seed`` an int, the only source of randomness,
+    ``n_jobs`` the threads it may use); ``fit(X, y)`` and ``predict(X)`` as
+    :class:`Surrogate` (``X`` n rows, ``y`` and the prediction RoM in degrees, shape (n,));
+    ``save(folder)`` writes the fitted model into a folder, and the classmethod
+    ``load(folder)`` reads it back.
+    """
+
+    def fit(self, X: pd.DataFrame, y: np.ndarray) -> Baseline: ...
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray: ...
+
+    def save(self, path: str | Path) -> None: ...
+
+    @classmethod
+    def load(cls, path: str | Path) -> Baseline: ...
+
+
+#: Entry-point group of installed baseline plugins.
+BASELINE_GROUP = "femcal.baselines"
+
+
+def _check_baseline(name: str, cls: Any) -> None:
+    """A baseline is registered as a class with ``fit``, ``predict``, ``save`` and ``load``."""
+    missing = [m for m in ("fit", "predict", "save", "load") if not hasattr(cls, m)]
+    if not isinstance(cls, type) or missing:
+        raise ConfigError(
+            f"A baseline is registered as a class with fit, predict, save and load "
+            f"(femcal.surrogates.base.Baseline); got {cls!r} for '{name}'"
+            + (f", without {', '.join(missing)}" if isinstance(cls, type) else "")
+            + ". Register such a class."
+        )
+
+
+#: The baseline registry: the study's model zoo the ``baselines`` stage fits
+#: (``baselines.models``) and installed plugins (entry points of :data:`BASELINE_GROUP`).
+baseline_registry: Registry[type] = Registry(
+    "baseline",
+    group=BASELINE_GROUP,
+    builtins=("femcal.surrogates.baselines",),
+    fix=(
+        'Or register your own: a class decorated with @register_baseline("name"), in a '
+        f"package with an entry point in the group {BASELINE_GROUP}."
+    ),
+    accepts=lambda obj: isinstance(obj, type),
+    expects="a baseline class",
+    on_register=_check_baseline,
+)
+
+
+def register_baseline(name: str, *, replace: bool = False) -> Callable[[type], type]:
+    """Class decorator: make a baseline available under ``name`` (``baselines.models``).
+
+    ConfigError if another class already holds ``name`` (unless ``replace=True``), or the
+    class lacks one of ``fit``, ``predict``, ``save``, ``load`` (:class:`Baseline`).
+    """
+    return baseline_registry.register(name, replace=replace)
+
+
+def available_baselines() -> list[str]:
+    """Registered baseline names, sorted."""
+    return baseline_registry.names()
+
+
+def get_baseline(name: str) -> type:
+    """The baseline class registered as ``name`` (ConfigError listing the names otherwise)."""
+    return baseline_registry.get(name)
+
+
+def make_baseline(name: str, **kwargs: Any) -> Baseline:
+    """Build the baseline registered as ``name`` with keyword arguments ``kwargs``."""
+    return baseline_registry.create(name, **kwargs)
 
 
 def trusted_surrogate_classes() -> dict[str, type]:

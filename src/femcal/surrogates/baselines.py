@@ -72,7 +72,7 @@ from femcal.errors import (
     UntrustedArtifactError,
 )
 from femcal.space import ParameterSpace
-from femcal.surrogates.base import encode_features, register_surrogate
+from femcal.surrogates.base import encode_features, register_baseline, register_surrogate
 
 # Importable from here too: files saved before the estimators had their own module name
 # them by this module's path (TRUSTED_TYPES).
@@ -514,46 +514,55 @@ def load_baseline(path: str | Path) -> SklearnSurrogate:
 
 
 # --------------------------------------------------------------------- registered baselines
+@register_baseline("linear")
 @register_surrogate("linear")
 class LinearSurrogate(SklearnSurrogate):
     """Linear regression (study: LR, default settings)."""
 
 
+@register_baseline("svr")
 @register_surrogate("svr")
 class SVRSurrogate(SklearnSurrogate):
     """Support vector regression, RBF kernel, C=2.479, gamma="auto" (study: SVR)."""
 
 
+@register_baseline("poly2")
 @register_surrogate("poly2")
 class Poly2Surrogate(SklearnSurrogate):
     """Degree-2 polynomial + ridge (alpha=1.0), per load case (study: PR degree 2)."""
 
 
+@register_baseline("poly3")
 @register_surrogate("poly3")
 class Poly3Surrogate(SklearnSurrogate):
     """Degree-3 polynomial + ridge (alpha=1.0), per load case (study: PR degree 3)."""
 
 
+@register_baseline("poly4")
 @register_surrogate("poly4")
 class Poly4Surrogate(SklearnSurrogate):
     """Degree-4 polynomial + ridge (alpha=0.1169), per load case (study: PR degree 4)."""
 
 
+@register_baseline("poly5")
 @register_surrogate("poly5")
 class Poly5Surrogate(SklearnSurrogate):
     """Degree-5 polynomial + ridge (alpha=0.7742), per load case (study: PR degree 5)."""
 
 
+@register_baseline("random_forest")
 @register_surrogate("random_forest")
 class RandomForestSurrogate(SklearnSurrogate):
     """Random forest, 51 trees, max_depth=31 (study: RF)."""
 
 
+@register_baseline("gaussian_process")
 @register_surrogate("gaussian_process")
 class GaussianProcessSurrogate(SklearnSurrogate):
     """Per-load-case GP, C*RBF kernel tuned on a subset (study: GP); see the module notes."""
 
 
+@register_baseline("lightgbm")
 @register_surrogate("lightgbm")
 class LightGBMSurrogate(SklearnSurrogate):
     """LightGBM, 71 leaves, max_depth=24, lr=0.0959, 183 trees (study: LightGBM)."""
