@@ -18,7 +18,9 @@ What each rule counts:
     import statement at all: at module level, inside a function, or under
     ``if TYPE_CHECKING:``. Nor may it run femcal's command line as a program: a list or tuple
     of literal strings with ``"femcal"`` as an item, or ``"-m"`` followed by ``"femcal..."``
-    (a subprocess's arguments), counts as running it.
+    (a subprocess's arguments), counts as running it, and so does a string ``"... -m femcal..."``
+    or ``"femcal ..."`` given to ``subprocess``'s or ``os``' functions that run a program
+    (:data:`PROGRAM_RUNNERS`).
 *cycles*
     Only the imports that run when the module is imported count: those at module level
     (in ``try``/``if``/``with`` blocks too). Imports inside a function or lambda body, and
@@ -29,6 +31,7 @@ What each rule counts:
 from __future__ import annotations
 
 import ast
+import re
 from functools import cache
 from pathlib import Path
 
@@ -169,17 +172,37 @@ def strongly_connected(graph: dict[str, list[str]]) -> list[tuple[str, ...]]:
     return sorted(found)
 
 
+#: Functions that run a program from a command string (``subprocess.run("...", shell=True)``).
+PROGRAM_RUNNERS = (
+    *("run", "Popen", "call", "check_call", "check_output", "getoutput", "getstatusoutput"),
+    *("system", "popen", "create_subprocess_shell", "create_subprocess_exec"),
+)
+#: A command string that runs femcal: ``python -m femcal ...`` or ``femcal ...``.
+COMMAND_STRING = re.compile(r"(^|\s)-m\s+femcal(\.|\s|$)|^\s*femcal(\s|$)")
+
+
 def runs_command_line(tree: ast.AST) -> list[int]:
-    """Lines of list or tuple literals that name femcal's command line as a program."""
+    """Lines that run femcal's command line as a program: a list or tuple literal naming it
+    (a subprocess's arguments), or a string naming it given to a function of
+    :data:`PROGRAM_RUNNERS`."""
     lines = []
     for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and ast.unparse(node.func).split(".")[-1] in PROGRAM_RUNNERS:
+            texts = [
+                c.value
+                for arg in (*node.args, *(k.value for k in node.keywords))
+                for c in ast.walk(arg)
+                if isinstance(c, ast.Constant) and isinstance(c.value, str)
+            ]
+            if any(COMMAND_STRING.search(t) for t in texts):
+                lines.append(node.lineno)
         if not isinstance(node, ast.List | ast.Tuple):
             continue
         words = [e.value for e in node.elts if isinstance(e, ast.Constant)]
         after_m = [b for a, b in zip(words, words[1:]) if a == "-m"]
         if "femcal" in words or any(str(w).split(".")[0] == "femcal" for w in after_m):
             lines.append(node.lineno)
-    return lines
+    return sorted(set(lines))
 
 
 def test_no_library_module_imports_the_command_line():
@@ -232,8 +255,12 @@ def test_the_checks_can_fail():
         "subprocess.run([sys.executable, '-m', 'femcal', 'calibrate'])\n"
         "subprocess.run(['femcal', 'diagnose'])\n"
         "subprocess.run(['git', 'rev-parse', 'HEAD'])\n"
+        "subprocess.run(f'{sys.executable} -m femcal.fe.cohort --out x', shell=True)\n"
+        "os.system('femcal diagnose --measurements m.csv')\n"
+        "NOTE = 'python -m femcal.fe.hidden --noise-deg'\n"
+        "subprocess.run('echo femcalibrate', shell=True)\n"
     )
-    assert runs_command_line(tree) == [2, 3]
+    assert runs_command_line(tree) == [2, 3, 5, 6]
     # the graph's reader: femcal.jobs.calibrate imports femcal.jobs.common at module level,
     # and the package femcal.jobs holds it (no edge to its own package)
     assert "femcal.jobs.common" in edges("femcal.jobs.calibrate")
