@@ -7,10 +7,11 @@ effects do not *engage*; they stand in for a stiffer disc. This module tells the
 evidence the diagnosis already holds, and shares the probability between them where they
 cannot be told apart (:func:`assess`).
 
-**When it looks** (:func:`box_evidence`): the specimen lies beyond the disc's reachable
-envelope (at least :data:`REACH_POINTS` points beyond the level of every curve the disc alone
-produces over its box, :func:`femcal.reachability.build_envelope`), or the disc-alone fit
-presses against the box (at least :data:`BOUNDS_PRESSED` of its parameters on a bound).
+**When it looks** (:func:`femcal.diagnose.beyond.box_evidence`): the specimen lies beyond the
+disc's reachable envelope (at least ``REACH_POINTS`` points beyond the level of every curve
+the disc alone produces over its box, :func:`femcal.reachability.build_envelope`), or the
+disc-alone fit presses against the box (at least ``BOUNDS_PRESSED`` of its parameters on a
+bound).
 Where the disc alone is probable, the box itself says how often its discs look as much at
 its edge (:func:`femcal.diagnose.box_edge.edge_reading`); the disc alone's model then stands
 in for a disc beyond the box with that probability, and the diagnosis looks where it is at
@@ -19,7 +20,10 @@ a disc inside the box with strong posterior elements also leaves the disc alone'
 the shapes decide.
 
 **The side**: ``stiffer`` where the points beyond the envelope lie below it (``softer``
-above), else from the sign of the disc alone's residuals. Only an effect that moves the curves
+above), else from the sign of the disc alone's residuals; where the bounds the disc-alone fit
+presses pull it the other way (:func:`femcal.diagnose.beyond.pressed_side`), both sides at
+0.5 each: every stand-in probability below is then the mean of the two sides', and the side
+reported is the one whose stand-ins carry more. Only an effect that moves the curves
 that way can stand in for the disc: a parallel element stiffens, a series element adds
 rotation. A laxity saturates by its nature, so its share of the rotation falls over the
 moments as a softer disc's stand-in's does: a series effect stands in for a softer disc only in
@@ -69,25 +73,16 @@ import numpy as np
 import torch
 
 from femcal.calibration.model import SurrogateCurveModel
-from femcal.diagnose.box_edge import AT_BOUND, edge_reading, edge_words
+from femcal.diagnose.beyond import box_evidence
+from femcal.diagnose.box_edge import SOFTER, STIFFER, edge_reading, edge_words
 from femcal.diagnose.result import OUTSIDE_BOX, UNEXPLAINED, model_label
 from femcal.effects.composite import EffectModel
 from femcal.effects.split import base_name
-from femcal.reachability import Z_OUTSIDE, build_envelope
-from femcal.reachability.envelope import _distances
+from femcal.reachability import build_envelope
 from femcal.schema import LOAD_CASES
 
 Model = tuple[str, ...]
 
-#: Points beyond the disc alone's envelope (its level, by more than the reachability check's
-#: ``Z_OUTSIDE`` sigma) from which a specimen lies beyond the disc's reach: two, so that one
-#: wild point does not make a disc outside the box.
-REACH_POINTS = 2
-#: Parameters of the disc-alone fit on a bound (of 13) from which the fit presses against the
-#: box. Discs inside the box leave at most five there on the issue's held-out cohort (1-5,
-#: discs beyond it 8-12); a disc with strong posterior elements presses more (the synthetic
-#: world of the tests: 13), which is why the shapes, not this count, decide.
-BOUNDS_PRESSED = 6
 #: The shapes are read from this fraction of a load case's largest measured moment up to it:
 #: "from about 0 Nm", where a gap or a slack has not closed yet.
 LOW_FRACTION = 0.05
@@ -111,7 +106,6 @@ NAMED = 0.5
 REPORTED = 0.1
 #: The side of the box each kind of effect can stand in for: a parallel element stiffens, a
 #: series element adds rotation.
-STIFFER, SOFTER = "stiffer", "softer"
 _SIDE_OF_KIND = {"parallel": STIFFER, "series": SOFTER}
 #: The remedy, named in every out-of-box verdict.
 REMEDY = (
@@ -260,73 +254,6 @@ def discrepancy_stand_in(delta: np.ndarray, pred: np.ndarray, side: str) -> dict
     }
 
 
-def box_evidence(
-    base, measured: np.ndarray, sigma: np.ndarray, pred0: np.ndarray, unit_disc, sigma_m, env=None
-) -> list[dict[str, Any]]:
-    """Per specimen, whether it lies beyond the disc's reach or presses against the box.
-
-    Parameters
-    ----------
-    base : SurrogateCurveModel
-        The disc surrogate on the measurement grid (its envelope is built here).
-    measured : ndarray, shape (n, 4, m)
-        Measured RoM (deg), NaN where not measured.
-    sigma : ndarray, shape (n, 4, m)
-        Each point's sd (noise and surrogate error).
-    pred0 : ndarray, shape (n, 4, m)
-        The disc-alone fit's curves.
-    unit_disc : ndarray, shape (n, 13)
-        The disc-alone fit in the box's unit coordinates.
-    sigma_m : ndarray, shape (m,)
-        The sd of a point of weight 1 at each moment (distances to the envelope in it).
-    env : Envelope, optional
-        The disc alone's envelope over the box without the surrogate's error
-        (:func:`femcal.reachability.build_envelope`); built here when None.
-
-    Returns
-    -------
-    list of dict
-        ``looks`` (beyond reach or pressed), ``outside_points`` (beyond the envelope),
-        ``outside_load_cases`` (load case -> ``stiffer`` below every disc's curve or
-        ``softer`` above), ``side`` (where most points lie beyond, else the sign of the disc
-        alone's residuals) and ``on_bounds`` (parameter -> ``lower`` or ``upper``).
-    """
-    if env is None:
-        env = build_envelope(base, sigma_model=np.zeros(len(sigma_m)))
-    d = _distances(measured, env, np.asarray(sigma_m, dtype=float))
-    names = list(base.space.names)
-    out = []
-    for i in range(len(measured)):
-        beyond = np.nan_to_num(d.level_z[i], nan=0.0) > Z_OUTSIDE
-        level = np.where(beyond, np.nan_to_num(d.level[i], nan=0.0), 0.0)
-        lcs = {
-            lc: STIFFER if level[j].sum() < 0 else SOFTER
-            for j, lc in enumerate(LOAD_CASES)
-            if beyond[j].any()
-        }
-        if beyond.any():
-            side = STIFFER if np.sum(np.sign(level[beyond])) < 0 else SOFTER
-        else:
-            z = (measured[i] - pred0[i]) / sigma[i]
-            side = STIFFER if np.nansum(z) < 0 else SOFTER
-        bounds = {
-            n: "lower" if u < AT_BOUND else "upper"
-            for n, u in zip(names, unit_disc[i])
-            if u < AT_BOUND or u > 1 - AT_BOUND
-        }
-        n_out = int(beyond.sum())
-        out.append(
-            {
-                "looks": bool(n_out >= REACH_POINTS or len(bounds) >= BOUNDS_PRESSED),
-                "outside_points": n_out,
-                "outside_load_cases": lcs,
-                "side": side,
-                "on_bounds": bounds,
-            }
-        )
-    return out
-
-
 def split_probabilities(
     probabilities: dict[str, Any], components: dict[str, list[tuple[str, float]]]
 ) -> dict[str, Any]:
@@ -420,12 +347,17 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
     pred0 = disc.pred.double().numpy()
     unit = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
     env = build_envelope(base, sigma_model=np.zeros(len(state.sigma_m)))
-    evidence = box_evidence(base, state.measured, state.sigma, pred0, unit, state.sigma_m, env)
+    with torch.no_grad():
+        jac0 = base.curves_jacobian(disc.v)[1].double().numpy()
+    evidence = box_evidence(
+        base, state.measured, state.sigma, pred0, unit, state.sigma_m, env, jac0
+    )
     for i, ev in enumerate(evidence):  # the disc alone probable: how often the box looks so
         if probabilities[i].get("models", {}).get("none", 0.0) >= MODEL_FLOOR:
             ev["edge"] = edge_reading(state, i, env, unit[i])
             if ev["edge"]["probability"] >= REPORTED and not ev["outside_points"]:
                 ev["looks"], ev["side"] = True, ev["edge"]["side"]
+                ev["sides"] = {ev["side"]: 1.0}
     if not any(e["looks"] for e in evidence):
         return probabilities, outside
     reader = ShapeReader(base, state.mask)
@@ -436,31 +368,53 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
             continue
         labels = {model_label(m): m for m in state.per_spec[i]}
         chosen = state.chosen[i]
+        sides = ev.get("sides") or {ev["side"]: 1.0}
         parts: dict[str, list[tuple[str, float]]] = {}
         shapes: dict[str, dict] = {}
         gap = None
+        pull = dict.fromkeys(sides, 0.0)  # per side, the stand-in probability it gives
         for label, p in probabilities[i]["models"].items():
             discrepancy = label.endswith(UNEXPLAINED)
             m = chosen if discrepancy else labels.get(label)
             if p < MODEL_FLOOR or m is None:
                 continue
-            st = {}
+            per_side = {s: {} for s in sides}
             if m:
                 fit, pos = state.per_spec[i][m]
                 v = fit.v[pos].double().numpy()
-                st = reader.effect_stand_ins(m, v, i, ev["side"], discrepancy)
+                per_side = {s: reader.effect_stand_ins(m, v, i, s, discrepancy) for s in sides}
+            st = _weighted(sides, per_side)
             parts[label] = [(e, st[e]["stand_in"]) for e in m]
             if not m and not discrepancy and "edge" in ev:  # the disc alone, at the box's edge
                 parts[label] = [("none", ev["edge"]["probability"])]
             if m == chosen and (discrepancy or not shapes):
                 shapes = st
             if discrepancy:
-                gap = _gap_stand_in(i, st, delta[i], final_pred[i], pred0[i], state, ev["side"])
+                gaps = {
+                    s: _gap_stand_in(i, per_side[s], delta[i], final_pred[i], pred0[i], state, s)
+                    for s in sides
+                }
+                gap = max(gaps.values(), key=lambda g: g["stand_in"])
+                gap = {**gap, "stand_in": sum(w * gaps[s]["stand_in"] for s, w in sides.items())}
                 parts[label].append((UNEXPLAINED, gap["stand_in"]))
+            for s in sides:
+                pull[s] += p * sum(r["stand_in"] for r in per_side[s].values())
+        if len(sides) > 1:  # the side reported: the one whose stand-ins carry more
+            ev = {**ev, "side": max(sides, key=lambda s: (pull[s], s == ev["side"]))}
         out[i] = split_probabilities(probabilities[i], parts)
         fitted = [chosen, *(labels[k] for k in probabilities[i]["models"] if k in labels)]
         outside[i] = _reading(state, ev, out[i], (shapes, gap), fitted)
     return out, outside
+
+
+def _weighted(sides: dict[str, float], per_side: dict[str, dict]) -> dict[str, dict]:
+    """Each effect's stand-in reading under the likelier side, its ``stand_in`` probability
+    the mean over the ``sides`` (side -> weight) of each side's."""
+    first = per_side[max(sides, key=lambda s: sides[s])]
+    return {
+        name: {**r, "stand_in": sum(w * per_side[s][name]["stand_in"] for s, w in sides.items())}
+        for name, r in first.items()
+    }
 
 
 def _gap_stand_in(i, shapes, delta, pred, pred0, state, side: str) -> dict[str, Any]:
