@@ -298,6 +298,8 @@ def test_every_run_a_command_starts_is_tagged_with_its_stage(tmp_path, monkeypat
 
     def dispatch(args, params):
         mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+        # an experiment of this store: the process may hold another store's active experiment
+        mlflow.set_experiment("tagged")
         with mlflow.start_run(run_name="evaluate") as parent:
             with mlflow.start_run(run_name="eval-nn-large", nested=True) as child:
                 started.extend([parent.info.run_id, child.info.run_id])
