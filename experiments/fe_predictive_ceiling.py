@@ -237,7 +237,7 @@ class LoggedFe:
     Parameters
     ----------
     runtime : FeRuntime
-        Solver, settings, store and cluster of the new runs.
+        Solver, settings, store and cluster of the runs it makes.
     moments : ndarray, shape (m,)
         Levels of every run, Nm.
     x0, fe0 : ndarray, shapes (n, d) and (n, 4, m)
