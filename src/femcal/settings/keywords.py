@@ -62,16 +62,19 @@ MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
 
 
 class Registered(tuple):
-    """The built-in names of an open registry (what help texts list) that also contains
-    every plugin's name: the entry points of ``group`` and, once the module of ``registry``
-    (``module:attribute``) is loaded, the names registered there. ``how`` says how to add a
-    name (the end of an unknown name's message)."""
+    """An open registry's built-in names (what help texts list) that also contains its plugins:
+    the entry points of ``group`` and, once ``<package>.base`` is loaded, its ``<kind>_registry``'s
+    names. ``how`` says how to add one (``what`` is registered; ``page`` names the how-to)."""
 
     def __new__(
-        cls, builtins: tuple[str, ...], group: str, registry: str, how: str
+        cls, builtins: tuple[str, ...], kind: str, package: str, what: str, page: str
     ) -> "Registered":
         names = super().__new__(cls, builtins)
-        names.group, names.registry, names.how = group, registry, how
+        names.group, names.registry = f"femcal.{kind}s", f"{package}.base:{kind}_registry"
+        names.how = (
+            f'decorate {what} with @register_{kind}("name") ({package}) and name it in the entry-'
+            f"point group {names.group} of your package (docs: How-to > Write a {page} plugin)"
+        )
         return names
 
     def plugins(self) -> tuple[str, ...]:
@@ -89,9 +92,8 @@ class Registered(tuple):
         return tuple.__contains__(self, name) or name in self.plugins()
 
     def choice(self) -> Any:
-        """A setting naming one of them: a string checked when it is validated against the
-        built-in names and the plugins' (:meth:`plugins`); an unknown name's message lists
-        them all, suggests the closest and says how to register one (``how``)."""
+        """A setting naming one of them, checked against the built-ins and the plugins when
+        validated; an unknown name's message lists them, the closest and ``how``."""
 
         def check(value: Any) -> str:
             names = (*self, *self.plugins())
@@ -106,47 +108,13 @@ class Registered(tuple):
         return Annotated[str, PlainValidator(check), Doc(words)]
 
 
-_REGISTRY = "femcal.{}.base:{}_registry"
-_HOW = (
-    'decorate {what} with @register_{kind}("name") ({package}) and name it in the entry-point '
-    "group {group} of your package (docs: How-to > Write a {page} plugin)"
-)
 _PAGE = "solver, surrogate or baseline"
 CALIBRATOR_NAMES = Registered(
-    CALIBRATORS,
-    "femcal.calibrators",
-    _REGISTRY.format("calibration", "calibrator"),
-    _HOW.format(
-        what="a calibrator function",
-        kind="calibrator",
-        package="femcal.calibration",
-        group="femcal.calibrators",
-        page="calibrator",
-    ),
+    CALIBRATORS, "calibrator", "femcal.calibration", "a calibrator function", "calibrator"
 )
-SOLVER_NAMES = Registered(
-    SOLVERS,
-    "femcal.solvers",
-    _REGISTRY.format("fe", "solver"),
-    _HOW.format(
-        what="a solver adapter class",
-        kind="solver",
-        package="femcal.fe",
-        group="femcal.solvers",
-        page=_PAGE,
-    ),
-)
+SOLVER_NAMES = Registered(SOLVERS, "solver", "femcal.fe", "a solver adapter class", _PAGE)
 BASELINE_NAMES = Registered(
-    BASELINE_MODELS,
-    "femcal.baselines",
-    _REGISTRY.format("surrogates", "baseline"),
-    _HOW.format(
-        what="a baseline class",
-        kind="baseline",
-        package="femcal.surrogates",
-        group="femcal.baselines",
-        page=_PAGE,
-    ),
+    BASELINE_MODELS, "baseline", "femcal.surrogates", "a baseline class", _PAGE
 )
 METHOD, SOLVER, BASELINE = (n.choice() for n in (CALIBRATOR_NAMES, SOLVER_NAMES, BASELINE_NAMES))
 
