@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from femcal.calibration import SurrogateCurveModel
-from femcal.diagnose import OUTSIDE_BOX, diagnose
+from femcal.diagnose import OUTSIDE_BOX, UNEXPLAINED, diagnose
 from femcal.diagnose.outside import (
     FLAT_DISC,
     FLAT_ELEMENT,
@@ -197,3 +197,20 @@ def test_the_printed_line_counts_the_sides_and_names_the_bounds():
     assert line.startswith("outside the box: 2 specimens (1 stiffer, 1 softer")
     assert "C10Annulus (upper 0.455)" in line and "dvc repro fe/dvc.yaml" in line
     assert cohort_note([]) == ""
+
+
+def test_a_flat_effect_is_shared_with_something_outside_the_library():
+    probabilities = {
+        "models": {"facet_contact+ligament_tension": 0.8, "facet_contact": 0.2},
+        "inclusion": {"facet_contact": 1.0, "ligament_tension": 0.8},
+        "outside_library": 0.0,
+    }
+    parts = {"facet_contact+ligament_tension": [("facet_contact", 0.0), ("ligament_tension", 0.5)]}
+    p = split_probabilities(probabilities, parts, alternative=UNEXPLAINED)
+    assert p["models"] == {
+        "facet_contact+ligament_tension": 0.4,
+        f"facet_contact+{UNEXPLAINED}": 0.4,
+        "facet_contact": 0.2,
+    }
+    assert p["inclusion"] == {"facet_contact": 1.0, "ligament_tension": 0.4}
+    assert p["outside_library"] == pytest.approx(0.4) and OUTSIDE_BOX not in p

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from femcal.diagnose.balance import balance_stand_ins
 from femcal.diagnose.decide import Decision
 from femcal.diagnose.discrepancy import (
     dense_grid,
@@ -155,6 +156,7 @@ def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
             f, at = state.per_spec[i][effects]
             pred[i] = f.pred[at].double().numpy()
     probabilities, outside = assess(state, disc, probabilities, delta, pred)
+    probabilities = balance_stand_ins(state, probabilities, [o is not None for o in outside])
     probabilities = [
         {**p, "unexplained": UNEXPLAINED in reading["verdict"].split("+")}
         if reading is not None and reading["named"]

@@ -255,7 +255,9 @@ def discrepancy_stand_in(delta: np.ndarray, pred: np.ndarray, side: str) -> dict
 
 
 def split_probabilities(
-    probabilities: dict[str, Any], components: dict[str, list[tuple[str, float]]]
+    probabilities: dict[str, Any],
+    components: dict[str, list[tuple[str, float]]],
+    alternative: str = OUTSIDE_BOX,
 ) -> dict[str, Any]:
     """Share each model's probability between it and its out-of-box alternatives.
 
@@ -266,6 +268,9 @@ def split_probabilities(
     components : dict
         Model label -> its parts (effects as fitted, and ``unexplained`` for a discrepancy),
         each with the probability that it stands in for a disc outside the box.
+    alternative : {"outside_box", "unexplained"}
+        What the parts that stand in are replaced with: a disc outside the box, or something
+        outside the library (:mod:`femcal.diagnose.balance`).
 
     Returns
     -------
@@ -273,9 +278,9 @@ def split_probabilities(
         A copy with ``models`` shared out: a model of probability ``p`` whose parts stand in
         with probabilities ``s`` keeps ``p prod(1 - s)``; each subset ``R`` of its parts kept as
         real gives ``p prod_R (1 - s) prod_(not R) s`` to the label of ``R`` with
-        ``outside_box`` (the parts by registered name); ``inclusion``, ``outside_library`` and
+        ``alternative`` (the parts by registered name); ``inclusion``, ``outside_library`` and
         ``most_probable`` summed anew; ``outside_box`` the probability of every label naming
-        the box.
+        the box (where ``alternative`` is the box).
     """
     shared: dict[str, float] = {}
     for label, p in probabilities["models"].items():
@@ -291,8 +296,9 @@ def split_probabilities(
             else:
                 kept = [base_name(n) for (n, _), real in zip(parts, keep) if real]
                 effects = [n for n in dict.fromkeys(kept) if n != UNEXPLAINED]
-                tail = [UNEXPLAINED] if UNEXPLAINED in kept else []
-                key = "+".join([*effects, OUTSIDE_BOX, *tail])
+                box = [OUTSIDE_BOX] if alternative == OUTSIDE_BOX else []
+                tail = [UNEXPLAINED] if UNEXPLAINED in kept or not box else []
+                key = "+".join([*effects, *box, *tail])
             shared[key] = shared.get(key, 0.0) + w
     total = sum(shared.values()) or 1.0
     models = {k: v / total for k, v in sorted(shared.items(), key=lambda kv: -kv[1])}
@@ -307,7 +313,8 @@ def split_probabilities(
         for k in sorted(set(inclusion) | set(probabilities["inclusion"]))
     }
     out["outside_library"] = round(sum(v for k, v in models.items() if UNEXPLAINED in k), 4)
-    out["outside_box"] = round(sum(v for k, v in models.items() if OUTSIDE_BOX in k), 4)
+    if alternative == OUTSIDE_BOX:
+        out["outside_box"] = round(sum(v for k, v in models.items() if OUTSIDE_BOX in k), 4)
     out["most_probable"] = next(iter(models))
     return out
 
