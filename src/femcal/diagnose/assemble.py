@@ -147,7 +147,9 @@ def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
     """The out-of-box reading (:func:`femcal.diagnose.outside.assess`) with each specimen's
     discrepancy and curves of its final model (``finals``, ``gp`` per final model): the
     probabilities shared out, and per specimen the reading or None. Where the box is named,
-    ``unexplained`` says whether a discrepancy is named beside it."""
+    ``unexplained`` says whether a discrepancy is named beside it. The specimens without a
+    reading have their flat effects shared with something outside the library
+    (:func:`femcal.diagnose.balance.balance_stand_ins`)."""
     delta = np.full(state.measured.shape, np.nan)
     pred = np.full(state.measured.shape, np.nan)
     for effects, rows in finals.items():
