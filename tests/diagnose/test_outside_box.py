@@ -12,13 +12,17 @@ near a bound, with a facet that engages after a gap added (a linear spring, not 
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import pickle
+from collections.abc import Mapping
 
 import numpy as np
 import pytest
+import torch
 
 from femcal.calibration import SurrogateCurveModel
-from femcal.diagnose import OUTSIDE_BOX, UNEXPLAINED, diagnose
+from femcal.diagnose import OUTSIDE_BOX, UNEXPLAINED, diagnose, search
 from femcal.diagnose.outside import (
     FLAT_DISC,
     FLAT_ELEMENT,
@@ -59,8 +63,53 @@ def _with_facet(rom: np.ndarray) -> np.ndarray:
     return out
 
 
+def _plain(x):
+    """``x`` with its arrays as bytes and its objects without data of their own (models,
+    surrogates) as their identity: equal pickles mean equal contents."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().numpy()
+    if isinstance(x, np.ndarray):
+        return ("array", x.tobytes(), x.shape, str(x.dtype))
+    if isinstance(x, Mapping):
+        return ("map", tuple((_plain(k), _plain(v)) for k, v in x.items()))
+    if isinstance(x, (list, tuple)):
+        return (type(x).__name__, tuple(_plain(v) for v in x))
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        fields = dataclasses.fields(x)
+        return (type(x).__name__, tuple((f.name, _plain(getattr(x, f.name))) for f in fields))
+    if isinstance(x, (str, int, float, bool, type(None), np.generic)):
+        return x
+    return ("object", type(x).__qualname__, id(x))
+
+
+def _snapshot(state, decision) -> tuple[bytes, bytes]:
+    """The state's contents (but its surrogate and its cache of built models) and the
+    decision's, as bytes."""
+    kept = {
+        f.name: getattr(state, f.name)
+        for f in dataclasses.fields(state)
+        if f.name not in ("base", "_models", "rng")
+    }
+    kept["rng"] = state.rng.bit_generator.state
+    return pickle.dumps(_plain(kept)), pickle.dumps(_plain(decision))
+
+
+def _described_by(real, seen: list):
+    """``search._assemble`` that first notes the decision and afterwards whether the state
+    and the decision are as it found them."""
+
+    def describe_and_check(state, decision, **keywords):
+        before = _snapshot(state, decision)
+        out = real(state, decision, **keywords)
+        after = _snapshot(state, decision)
+        seen.append((decision, before[0] == after[0], before[1] == after[1]))
+        return out
+
+    return describe_and_check
+
+
 @pytest.fixture(scope="module")
-def box_world():
+def box_run():
     table = tidy_table(48, seed=3)
     surrogate = NeuralSurrogate(
         study_space(), hidden=(32, 32), max_epochs=40, patience=40, batch_size=16, seed=0
@@ -81,8 +130,17 @@ def box_world():
     kinds += [f"edge {k} + facet" for k in range(3)]
     rng = np.random.default_rng(21)
     rom = np.stack(curves) + rng.normal(0, NOISE, (len(curves), 4, len(MOMENTS)))
-    diag = diagnose(base, rom, specimens=kinds, noise_deg=NOISE)
-    return rom, kinds, diag
+    seen: list = []
+    with pytest.MonkeyPatch.context() as patch:
+        # 11 specimens, fewer than two workers' MIN_ROWS each: described in this process
+        patch.setattr(search, "_assemble", _described_by(search._assemble, seen))
+        diag = diagnose(base, rom, specimens=kinds, noise_deg=NOISE)
+    return rom, kinds, diag, seen
+
+
+@pytest.fixture(scope="module")
+def box_world(box_run):
+    return box_run[:3]
 
 
 def _outside(box_world):
@@ -150,6 +208,19 @@ def test_the_outputs_carry_the_verdict_like_unexplained(box_world, tmp_path):
     }
     (line,) = [x for x in describe(figures) if x.startswith("outside the box:")]
     assert "stiffer" in line and "softer" in line and "dvc repro fe/dvc.yaml" in line
+
+
+def test_the_description_reads_the_decision_and_changes_neither_it_nor_the_state(box_run):
+    _, _, diag, seen = box_run
+    ((decision, state_kept, decision_kept),) = seen  # one group: one description
+    assert state_kept and decision_kept
+    # the verdicts, the box's among them, are the decision's, as decided
+    assert [s.verdict for s in diag.specimens] == [d.verdict for d in decision.specimens]
+    assert any(OUTSIDE_BOX in d.verdict.split("+") for d in decision.specimens)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        decision.specimens[0].verdict = "none"
+    with pytest.raises(TypeError):
+        decision.finals[decision.specimens[0].chosen] = ()
 
 
 # ------------------------------------------------------------------ the pieces, no surrogate

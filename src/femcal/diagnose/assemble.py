@@ -1,8 +1,9 @@
 """The description step of a diagnosis: adequacy of the chosen models, the discrepancy and
 what is missing, continuous curves, rankings and what to measure next.
 
-It reads the search's state and the decision (:mod:`femcal.diagnose.decide`) and changes
-neither; it writes each model as a string (``str(model)``) into the result.
+It reads the search's state and the decision (:mod:`femcal.diagnose.decide`: each specimen's
+model, verdict, probabilities and out-of-box reading) and changes neither; it writes each model
+as a string (``str(model)``) into the result.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from femcal.diagnose.balance import balance_stand_ins
 from femcal.diagnose.decide import Decision
 from femcal.diagnose.discrepancy import (
     dense_grid,
@@ -32,18 +32,8 @@ from femcal.diagnose.explain import (
     _summary,
 )
 from femcal.diagnose.fits import _Fit
-from femcal.diagnose.outside import assess
-from femcal.diagnose.result import (
-    NONE,
-    RESEMBLES,
-    UNEXPLAINED,
-    Diagnosis,
-    SpecimenDiagnosis,
-    model_label,
-    verdict_label,
-)
+from femcal.diagnose.result import NONE, RESEMBLES, Diagnosis, SpecimenDiagnosis, model_label
 from femcal.diagnose.state import DiagnosisState
-from femcal.effects.terms import Term
 
 
 def _assemble(
@@ -61,18 +51,17 @@ def _assemble(
     alone's fit of every specimen; ``sur`` (m,) the surrogate's error; ``t0`` the start, for
     the time taken).
 
-    Reads ``state`` (its fits and chosen models) and ``decision``; changes neither.
+    Reads ``state`` (its fits), ``decision`` and ``disc``; changes none of them.
     """
     n, measured, mask, sigma = state.n, state.measured, state.mask, state.sigma
     options = state.options
-    finals, gp = decision.finals, decision.gp
-    probabilities, outside = _outside_box(state, disc, finals, gp, decision.probabilities)
-    adequacy = _adequacies(state, disc)
+    finals, decided = decision.finals, decision.specimens
+    adequacy = _adequacies(state, decided, disc)
     moments = state.base.moments.double().numpy()
     dense = dense_grid(moments, options.curve_points)
     described: list[dict[str, Any] | None] = [None] * n
     if options.discrepancy:
-        described = _describe(state, finals, gp, dense, adequacy, probabilities, disc.pred)
+        described = _describe(state, decision, dense, adequacy, disc.pred)
     curves0, final_curves = _curves(state, finals, dense, disc.v)
     probe_base, probe, sigma_probe = _probe(state, dense, noise_used, moment_policy)
     pred0 = disc.pred.double().numpy()
@@ -81,19 +70,14 @@ def _assemble(
     unit_disc = base.space.to_unit(base.to_physical(disc.v.double().numpy()))
     out: list[SpecimenDiagnosis] = []
     for i, spec in enumerate(state.specimens):
+        d = decided[i]
         ranking = _ranking(state.per_spec[i], i, measured, sigma, state.log_n, base, mask)
-        effects: list[Term] = list(state.chosen[i])
-        adequate = not probabilities[i]["unexplained"]
-        verdict, model = verdict_label(effects, adequate), effects
-        if outside[i] is not None and outside[i]["named"]:
-            # The box, not the stand-ins: the verdict keeps the effects that engage.
-            verdict, adequate, model = outside[i]["verdict"], False, list(outside[i]["model"])
-        f, pos = state.per_spec[i][state.chosen[i]]
+        f, pos = state.per_spec[i][d.chosen]
         final_res = measured[i] - f.pred[pos].double().numpy()
         own = _own_range(dense, moments, mask[i])
         curves = {"moments": dense, NONE: np.where(own, curves0[i], np.nan)}
-        if model and model == effects:
-            curves[model_label(state.chosen[i])] = np.where(own, final_curves[i], np.nan)
+        if d.model and d.model == tuple(d.chosen):
+            curves[model_label(d.chosen)] = np.where(own, final_curves[i], np.nan)
         nxt = _next_measurement(
             ranking,
             state.per_spec[i],
@@ -101,7 +85,7 @@ def _assemble(
             probe,
             sigma_probe,
             options.min_delta,
-            state.chosen[i],
+            d.chosen,
             [moments[mask[i][j]] for j in range(mask.shape[1])],
             noise_deg=noise_used,
         )
@@ -109,25 +93,25 @@ def _assemble(
         out.append(
             SpecimenDiagnosis(
                 specimen=str(spec),
-                verdict=verdict,
+                verdict=d.verdict,
                 baseline_mae_deg=float(mae0[i]),
                 ranking=ranking,
                 residuals=resid,
                 failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
-                effects=[t.effect for t in model],
-                model=[str(t) for t in model],
-                load_cases={t.effect: list(t.acting) for t in model},
-                adequate=adequate,
+                effects=[t.effect for t in d.model],
+                model=[str(t) for t in d.model],
+                load_cases={t.effect: list(t.acting) for t in d.model},
+                adequate=d.adequate,
                 adequacy=adequacy[i],
                 final_mae_deg=float(np.nanmean(np.abs(final_res))),
                 final_residuals=final_res,
                 curves=curves,
                 discrepancy=described[i],
                 next_measurement=nxt,
-                probabilities=probabilities[i],
+                probabilities=d.probabilities,
                 sigma=np.where(mask[i], sigma[i], np.nan),
                 surrogate_sd=np.where(mask[i], state.surrogate_sd[i], np.nan),
-                outside_box=_written(outside[i]),
+                outside_box=_written(d.outside_box),
             )
         )
     return Diagnosis(
@@ -143,31 +127,6 @@ def _assemble(
     )
 
 
-def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
-    """The out-of-box reading (:func:`femcal.diagnose.outside.assess`) with each specimen's
-    discrepancy and curves of its final model (``finals``, ``gp`` per final model): the
-    probabilities shared out, and per specimen the reading or None. Where the box is named,
-    ``unexplained`` says whether a discrepancy is named beside it. The specimens without a
-    reading have their flat effects shared with something outside the library
-    (:func:`femcal.diagnose.balance.balance_stand_ins`)."""
-    delta = np.full(state.measured.shape, np.nan)
-    pred = np.full(state.measured.shape, np.nan)
-    for effects, rows in finals.items():
-        for pos, i in enumerate(rows):
-            delta[i] = gp[effects].delta_at_points[pos]
-            f, at = state.per_spec[i][effects]
-            pred[i] = f.pred[at].double().numpy()
-    probabilities, outside = assess(state, disc, probabilities, delta, pred)
-    probabilities = balance_stand_ins(state, probabilities, [o is not None for o in outside])
-    probabilities = [
-        {**p, "unexplained": UNEXPLAINED in reading["verdict"].split("+")}
-        if reading is not None and reading["named"]
-        else p
-        for p, reading in zip(probabilities, outside)
-    ]
-    return probabilities, outside
-
-
 def _written(reading: dict[str, Any] | None) -> dict[str, Any] | None:
     """An out-of-box reading (:func:`femcal.diagnose.outside.assess`) as the result holds it:
     its effects' terms written (``stand_ins`` by term, ``model``)."""
@@ -180,12 +139,13 @@ def _written(reading: dict[str, Any] | None) -> dict[str, Any] | None:
     return out
 
 
-def _adequacies(state: DiagnosisState, disc: _Fit) -> list[dict[str, Any]]:
-    """Per specimen: the chi-square and runs tests of the final model and of the disc alone."""
+def _adequacies(state: DiagnosisState, decided, disc: _Fit) -> list[dict[str, Any]]:
+    """Per specimen: the chi-square and runs tests of its decided model (``decided``, per
+    specimen a :class:`~femcal.diagnose.decide.SpecimenDecision`) and of the disc alone."""
     out = []
     alpha = state.options.alpha
     for i in range(state.n):
-        f, pos = state.per_spec[i][state.chosen[i]]
+        f, pos = state.per_spec[i][decided[i].chosen]
         res = state.measured[i] - f.pred[pos].double().numpy()
         res0 = state.measured[i] - disc.pred[i].double().numpy()
         n_i = float(state.n_points[i])
@@ -198,9 +158,12 @@ def _adequacies(state: DiagnosisState, disc: _Fit) -> list[dict[str, Any]]:
     return out
 
 
-def _describe(state, finals, gp, dense, adequacy, probabilities, pred0) -> list:
+def _describe(state, decision: Decision, dense, adequacy, pred0) -> list:
     """Per specimen: the discrepancy on top of its final model on ``dense`` (q,) and what is
-    missing, in words, compared with each registered effect's signature."""
+    missing, in words, compared with each registered effect's signature (``pred0`` (n, 4, m)
+    the disc alone's curves)."""
+    finals, gp = decision.finals, decision.gp
+    probabilities = [d.probabilities for d in decision.specimens]
     out: list[dict[str, Any] | None] = [None] * state.n
     moments = state.base.moments.double().numpy()
     signatures = _signatures(state.per_spec, state.candidates, pred0, state.n)

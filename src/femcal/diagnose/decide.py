@@ -6,22 +6,30 @@ something outside the library is. The probabilities of every fitted model and of
 model with its discrepancy follow (:func:`femcal.diagnose.probabilities.specimen_probabilities`).
 The verdict is the most probable explanation: where a fitted model is more probable than the
 search's choice (and no discrepancy is the most probable), that model is chosen, and the
-discrepancies and probabilities are computed again for the models that changed.
+discrepancies and probabilities are computed again for the models that changed. Last, the
+out-of-box reading (:func:`femcal.diagnose.outside.assess`) shares the probabilities with a
+disc beyond the parameter box; where it names the box, the verdict names it with the effects
+that engage. The :class:`Decision` holds all of it, frozen, for the description to read.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
+from femcal.diagnose.balance import balance_stand_ins
 from femcal.diagnose.discrepancy import DiscrepancyFit, fit_discrepancy
+from femcal.diagnose.fits import _Fit
+from femcal.diagnose.outside import assess
 from femcal.diagnose.probabilities import bootstrap_rng, outside_label, specimen_probabilities
-from femcal.diagnose.result import UNEXPLAINED, model_label
+from femcal.diagnose.result import UNEXPLAINED, model_label, verdict_label
 from femcal.diagnose.state import DiagnosisState
 from femcal.diagnose.where import not_engaged
-from femcal.effects.terms import Model
+from femcal.effects.terms import Model, Term
 
 #: An effect is idle in a fit when removing it raises the chi-square by less than this and
 #: lowers the effective number of parameters by less than :data:`IDLE_PARAMETERS`.
@@ -29,32 +37,67 @@ IDLE_CHI2 = 1.0
 IDLE_PARAMETERS = 0.5
 
 
-@dataclass
+@dataclass(frozen=True)
+class SpecimenDecision:
+    """What :func:`decide` decided for one specimen.
+
+    Attributes
+    ----------
+    chosen : Model
+        The fitted model decided: the description's fits, curves and residuals are its.
+    verdict : str
+        ``none``, ``unexplained``, the effects joined by ``+`` (possibly ending in
+        ``+unexplained``) or, where the out-of-box reading names the box, the effects that
+        engage and ``outside_box`` (:func:`femcal.diagnose.outside.assess`).
+    model : tuple of Term
+        The effects the verdict names: ``chosen``'s terms, or the reading's where it names the
+        box.
+    adequate : bool
+        The verdict says the model explains the data: no discrepancy is named on top of it,
+        and the box is not named.
+    probabilities : dict
+        :func:`~femcal.diagnose.probabilities.specimen_probabilities`, shared out with the box
+        where the specimen looks beyond it (``unexplained`` then says whether a discrepancy is
+        named beside the box).
+    outside_box : dict or None
+        The out-of-box reading where the specimen looks beyond the box, else None.
+    """
+
+    chosen: Model
+    verdict: str
+    model: tuple[Term, ...]
+    adequate: bool
+    probabilities: dict[str, Any]
+    outside_box: dict[str, Any] | None
+
+
+@dataclass(frozen=True)
 class Decision:
     """What :func:`decide` decided, for the description to read.
 
     Attributes
     ----------
-    finals : dict of Model to list of int
+    finals : mapping of Model to tuple of int
         Each chosen model and its specimens (in specimen order).
-    gp : dict of Model to DiscrepancyFit
+    gp : mapping of Model to DiscrepancyFit
         Each chosen model refitted with the discrepancy it needs, to ``finals[model]`` in that
         order.
-    probabilities : list of dict, length n
-        Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities`.
+    specimens : tuple of SpecimenDecision, length n
+        Per specimen, its model, verdict and probabilities.
     """
 
-    finals: dict[Model, list[int]]
-    gp: dict[Model, DiscrepancyFit]
-    probabilities: list[dict[str, Any]]
+    finals: Mapping[Model, tuple[int, ...]]
+    gp: Mapping[Model, DiscrepancyFit]
+    specimens: tuple[SpecimenDecision, ...]
 
 
-def decide(state: DiagnosisState) -> Decision:
-    """Each specimen's model: the most probable fitted model (see the module docstring).
+def decide(state: DiagnosisState, disc: _Fit) -> Decision:
+    """Each specimen's model and verdict: the most probable explanation (see the module
+    docstring); ``disc`` is the disc alone's fit of every specimen of ``state``.
 
-    Reads ``state.chosen`` and every fit in ``state.per_spec``; changes ``state.chosen``
-    (where another fitted model is the most probable) and the fits' effective parameters
-    and covariance (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`, once per fit).
+    Reads ``state.chosen``, every fit in ``state.per_spec`` and ``disc``; changes
+    ``state.chosen`` (where another fitted model is the most probable) and the fits' effective
+    parameters and covariance (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`, once per fit).
     """
     # One Jacobian per fitted batch: effective parameters and covariance of every model.
     for i in range(state.n):
@@ -79,7 +122,52 @@ def decide(state: DiagnosisState) -> Decision:
             if rows != old.get(effects):  # the fits are per group, in its order
                 gp[effects] = _gp_fit(state, effects, rows)
         probabilities = _probabilities(state, finals, gp)
-    return Decision(finals, gp, probabilities)
+    probabilities, outside = _outside_box(state, disc, finals, gp, probabilities)
+    return Decision(
+        finals=MappingProxyType({m: tuple(rows) for m, rows in finals.items()}),
+        gp=MappingProxyType({m: gp[m] for m in finals}),
+        specimens=tuple(
+            _specimen(state.chosen[i], probabilities[i], outside[i]) for i in range(state.n)
+        ),
+    )
+
+
+def _specimen(
+    chosen: Model, probabilities: dict[str, Any], reading: dict[str, Any] | None
+) -> SpecimenDecision:
+    """One specimen's decision from its chosen model, its (shared-out) probabilities and its
+    out-of-box reading (or None)."""
+    adequate = not probabilities["unexplained"]
+    verdict, model = verdict_label(list(chosen), adequate), tuple(chosen)
+    if reading is not None and reading["named"]:
+        # The box, not the stand-ins: the verdict keeps the effects that engage.
+        verdict, adequate, model = reading["verdict"], False, tuple(reading["model"])
+    return SpecimenDecision(chosen, verdict, model, adequate, probabilities, reading)
+
+
+def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
+    """The out-of-box reading (:func:`femcal.diagnose.outside.assess`) with each specimen's
+    discrepancy and curves of its final model (``finals``, ``gp`` per final model): the
+    probabilities shared out, and per specimen the reading or None. Where the box is named,
+    ``unexplained`` says whether a discrepancy is named beside it. The specimens without a
+    reading have their flat effects shared with something outside the library
+    (:func:`femcal.diagnose.balance.balance_stand_ins`)."""
+    delta = np.full(state.measured.shape, np.nan)
+    pred = np.full(state.measured.shape, np.nan)
+    for effects, rows in finals.items():
+        for pos, i in enumerate(rows):
+            delta[i] = gp[effects].delta_at_points[pos]
+            f, at = state.per_spec[i][effects]
+            pred[i] = f.pred[at].double().numpy()
+    probabilities, outside = assess(state, disc, probabilities, delta, pred)
+    probabilities = balance_stand_ins(state, probabilities, [o is not None for o in outside])
+    probabilities = [
+        {**p, "unexplained": UNEXPLAINED in reading["verdict"].split("+")}
+        if reading is not None and reading["named"]
+        else p
+        for p, reading in zip(probabilities, outside)
+    ]
+    return probabilities, outside
 
 
 def _finals(state: DiagnosisState) -> dict[Model, list[int]]:

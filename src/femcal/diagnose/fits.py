@@ -3,7 +3,8 @@ the hat trace and the parameter covariance.
 
 *Starts* have one shape throughout the search: a tensor (r, g, dim), ``g`` starts of unit
 coordinates for each of ``r`` specimens (``g = 1`` for one start each). Only
-:func:`_fit_from` lays them out as Gauss-Newton takes them (:func:`flat_starts`).
+:func:`_fit_from` lays them out as Gauss-Newton takes them, through :class:`Starts`, which
+holds every conversion between the two layouts.
 """
 
 from __future__ import annotations
@@ -37,11 +38,42 @@ _KEEP = {"keep_after": 3, "keep": 2}
 _KEEP_SPLIT = {"keep_after": 5, "keep": 4}
 
 
-def flat_starts(starts: torch.Tensor) -> tuple[torch.Tensor, int]:
-    """Starts (r, g, dim) as Gauss-Newton takes them: (r * g, dim), each specimen's ``g``
-    starts together, and ``g``."""
-    r, g = starts.shape[0], starts.shape[1]
-    return starts.reshape(r * g, starts.shape[2]), g
+@dataclass(frozen=True)
+class Starts:
+    """A batch's starts and their layout for Gauss-Newton, which takes them flat: (r * g, dim),
+    each specimen's ``g`` starts together.
+
+    Attributes
+    ----------
+    values : Tensor, shape (r, g, dim)
+        ``g`` starts of unit coordinates for each of ``r`` specimens.
+    """
+
+    values: torch.Tensor
+
+    @property
+    def g(self) -> int:
+        """Starts per specimen."""
+        return int(self.values.shape[1])
+
+    @property
+    def flat(self) -> torch.Tensor:
+        """The starts (r * g, dim), each specimen's ``g`` together."""
+        r, g, dim = self.values.shape
+        return self.values.reshape(r * g, dim)
+
+    @property
+    def owner(self) -> torch.Tensor:
+        """Each flat start's specimen, its position in the batch (r * g,)."""
+        return torch.arange(self.values.shape[0]).repeat_interleave(self.g)
+
+    def per_specimen(self, flat: np.ndarray, *shape: int) -> np.ndarray:
+        """A value of each flat start (r * g, prod(shape)) as (r, g, *shape)."""
+        return flat.reshape(self.values.shape[0], self.g, *shape)
+
+    def pick(self, flat: torch.Tensor, best: np.ndarray) -> torch.Tensor:
+        """Rows (r, ...) of ``flat`` (r * g, ...): each specimen's start ``best`` (r,)."""
+        return flat[torch.as_tensor(np.arange(self.values.shape[0]) * self.g + best)]
 
 
 # ------------------------------------------------------------------------ fitting helpers
@@ -219,18 +251,16 @@ def _fit_from(
     throughout: one from fewer ensemble members in the first iterations
     (``GaussNewtonOptions.jacobian_members``) moves near-tied verdicts, outside the box most."""
     problem = CalibrationProblem.from_arrays(model, measured[rows], weight[rows])
-    r = len(rows)
-    v0, g = flat_starts(starts)
-    idx = torch.arange(r).repeat_interleave(g)
+    layout = Starts(starts)
     split = any(is_split_effect(e) for e in getattr(model, "effects", ()))
     keep = _KEEP_SPLIT if split else _KEEP
-    keep = keep if g > keep["keep"] else {}
+    keep = keep if layout.g > keep["keep"] else {}
     options = GaussNewtonOptions(max_iter=max_iter, loss="l2", tol=_GN_TOL, **keep)
-    v, _, _, res = gauss_newton_residuals(problem, v0, idx, options)
-    z = res.double().numpy().reshape(r, g, *measured.shape[1:]) / sigma[rows][:, None]
+    v, _, _, res = gauss_newton_residuals(problem, layout.flat, layout.owner, options)
+    z = layout.per_specimen(res.double().numpy(), *measured.shape[1:]) / sigma[rows][:, None]
     chi2 = (np.where(np.isfinite(measured[rows])[:, None], z, 0.0) ** 2).sum(axis=(2, 3))
     best = np.nan_to_num(chi2, nan=np.inf, posinf=np.inf).argmin(1)
-    v = v[torch.as_tensor(np.arange(r) * g + best)]
+    v = layout.pick(v, best)
     with torch.no_grad():
         pred = model.curves(v)
     return v, pred, _chi2(pred, measured[rows], sigma[rows])

@@ -29,12 +29,15 @@ For every specimen, :func:`diagnose` runs these steps over one :class:`Diagnosis
 7. **the decision** (:mod:`femcal.diagnose.decide`): the posterior probability of every
    fitted model, of each effect and of something outside the library
    (:mod:`femcal.diagnose.probabilities`); each specimen's model is the most probable fitted
-   one;
-8. **verdicts and description** (:mod:`femcal.diagnose.assemble`), which read the decision and
-   change nothing: the verdict says ``unexplained`` where a discrepancy on top of the model is
-   more probable than the model alone, and then describes it (load cases, laxity or
-   stiffening, from which moment, how large); *what to measure next* where the runner-up is
-   close.
+   one; the verdict says ``unexplained`` where a discrepancy on top of the model is more
+   probable than the model alone, and names the box where a disc beyond the parameter box is
+   the likelier reading (:mod:`femcal.diagnose.outside`). The
+   :class:`~femcal.diagnose.decide.Decision` holds each specimen's model, verdict,
+   probabilities and out-of-box reading, frozen;
+8. **the description** (:mod:`femcal.diagnose.assemble`), which reads the state and the
+   decision and changes neither: adequacy tests, the discrepancy described (load cases,
+   laxity or stiffening, from which moment, how large), continuous curves, rankings and
+   *what to measure next* where the runner-up is close.
 
 Steps 2-7 change the :class:`~femcal.diagnose.state.DiagnosisState` (its fits and chosen
 models); each step's docstring says what it reads and what it changes. A model is a
@@ -196,9 +199,9 @@ def diagnose(
 
 
 def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnosis:
-    """Steps 2-7 for the specimens of ``state`` (``disc``: their disc-alone fit; ``keywords``
+    """Steps 2-8 for the specimens of ``state`` (``disc``: their disc-alone fit; ``keywords``
     those of :func:`femcal.diagnose.assemble._assemble`): the search and the decision change
-    ``state``; the description reads it."""
+    ``state``; the description reads it and the decision."""
     forward_selection(state)
     choose_forms(state)
     if state.options.backward:
@@ -206,13 +209,16 @@ def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnos
     open_world_elimination(state)
     if choose_cases(state) and state.options.backward:
         _backward(state)
-    decision = decide(state)
+    decision = decide(state, disc)
     return _assemble(state, decision, disc=disc, **keywords)
 
 
 def _disc_fit(state: DiagnosisState, weight: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """The disc alone calibrated with ``pgd`` under ``weight`` (n, 4, m): unit coordinates
-    (n, 13) and curves (n, 4, m)."""
+    (n, 13) and curves (n, 4, m).
+
+    Reads ``state.base``, ``state.measured``, ``state.start_bank`` and ``state.options``;
+    changes ``state.rng`` (pgd's draws) and nothing else."""
     base = state.base
     problem = CalibrationProblem.from_arrays(base, state.measured, weight)
     sol = pgd(

@@ -42,13 +42,16 @@ class DiagnosisState:
     start_bank : ndarray, shape (N, 13), or None
         Disc configurations to start from.
     rng : numpy.random.Generator
+        The disc-alone fit's draws; the later steps draw from :meth:`model_rng`.
     per_spec : list of dict
         Per specimen, every fitted model: ``Model -> (fit, row in the fit)``.
     chosen : list of Model
         Per specimen, the model the steps chose so far.
 
-    The steps of :func:`femcal.diagnose.diagnose` change ``per_spec`` (through :meth:`fit`
-    and :meth:`record`) and ``chosen``; everything else is set before the first step.
+    The steps of :func:`femcal.diagnose.diagnose` after the disc alone change ``per_spec``
+    (through :meth:`fit` and :meth:`record`; each fit's effective parameters are computed on
+    first use) and ``chosen``; everything else is set before them. The description reads the
+    state and changes nothing in it.
     """
 
     base: CurveModel
