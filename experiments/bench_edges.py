@@ -291,11 +291,33 @@ def mae_ratios(t: pd.DataFrame) -> dict[str, Any]:
     }
 
 
+def inclusion_scores(t: pd.DataFrame) -> dict[str, Any]:
+    """The inclusion probabilities of the built-in effects scored against the truth, over every
+    (specimen, effect) pair: the Brier score, the log loss (probabilities clipped to
+    [0.001, 0.999]) and how many present and absent effects have inclusion >= CONFIDENT."""
+    p, y = [], []
+    for inc, expected in zip(t["inclusion"], t["expected"]):
+        got, present = json.loads(inc or "{}"), set(str(expected or "").split("+"))
+        for effect in sorted(BUILTIN):
+            p.append(float(got.get(effect, 0.0)))
+            y.append(effect in present)
+    prob, truth = np.clip(np.array(p), 1e-3, 1 - 1e-3), np.array(y, dtype=bool)
+    loss = -np.log(np.where(truth, prob, 1 - prob))
+    return {
+        "pairs": len(p),
+        "brier": float(np.mean((prob - truth) ** 2)) if p else np.nan,
+        "log_loss": float(np.mean(loss)) if p else np.nan,
+        "present_confident": _rate(pd.Series(prob[truth] >= CONFIDENT)),
+        "absent_confident": _rate(pd.Series(prob[~truth] >= CONFIDENT)),
+    }
+
+
 def summarize(t: pd.DataFrame) -> dict[str, Any]:
     """Every figure of the report for one table of scored specimens."""
     return {
         "n_specimens": len(t),
         "headline": headline(t),
+        "inclusion_scores": inclusion_scores(t),
         "by_class": by_group(t, "truth"),
         "by_noise": by_group(t, "noise_kind"),
         "by_protocol": by_group(t, "protocol"),

@@ -179,6 +179,16 @@ def section(payload: dict, folder: Path | str = "") -> list[str]:
     if pooled is None:
         return lines + ["No run finished: nothing scored.", ""]
     lines += _headline(runs, pooled)
+    scores = pooled.get("inclusion_scores")  # absent in folders scored before it existed
+    if scores:
+        lines += [
+            "",
+            f"Inclusion probabilities of the built-in effects against the truth, over "
+            f"{scores['pairs']} (specimen, effect) pairs: Brier score "
+            f"{_num(scores['brier'], 4)}, log loss {_num(scores['log_loss'], 3)}; present "
+            f"effects at >= 0.9: {_fmt(scores['present_confident'])}, absent effects at "
+            f">= 0.9: {_fmt(scores['absent_confident'])}.",
+        ]
     lines += ["", "### Time of the whole command", ""] + _timing(payload["runs"])
     lines += ["", "### Per class (pooled)", ""] + _groups(pooled["by_class"], "truth")
     lines += ["", "### Per noise kind (pooled)", ""] + _groups(pooled["by_noise"], "noise_kind")

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -176,3 +177,18 @@ def test_time_report_is_parsed():
     t = be.parse_time(text)
     assert t["cpu_s"] == pytest.approx(72.75) and t["time_wall_s"] == pytest.approx(72.3)
     assert t["max_rss_mb"] == pytest.approx(1024.0)
+
+
+def test_inclusion_scores_count_present_and_absent_effects():
+    table = pd.DataFrame(
+        {
+            "expected": ["facet_contact", ""],
+            "inclusion": ['{"facet_contact": 1.0, "ligament_tension": 0.95}', "{}"],
+        }
+    )
+    got = be.inclusion_scores(table)
+    assert got["pairs"] == 6  # two specimens x three built-in effects
+    assert got["present_confident"]["k"] == 1 and got["present_confident"]["n"] == 1
+    assert got["absent_confident"]["k"] == 1 and got["absent_confident"]["n"] == 5
+    # the one miss: 0.95 on an absent effect; the rest exact (clipped to 0.999 / 0.001)
+    assert got["brier"] == pytest.approx((0.95**2 + 1e-6 * 5) / 6, rel=1e-3)
