@@ -14,7 +14,7 @@ import pytest
 
 from femcal.calibration import SurrogateCurveModel
 from femcal.diagnose import UNEXPLAINED
-from femcal.diagnose.balance import SHARE, shared_out
+from femcal.diagnose.balance import SHARE, flat_note, shared_out
 from femcal.diagnose.outside import ShapeReader
 from femcal.effects.base import get_effect
 from femcal.effects.terms import Model, Term
@@ -71,3 +71,12 @@ def test_a_facet_that_engages_after_a_gap_keeps_its_probability(reader):
         shared_out(_probabilities(), {"facet_contact": (FACET, _facet(2.0))}, FACET, reader, 0)
         is None
     )
+
+
+def test_the_note_names_the_flat_effect_and_its_load_cases(reader):
+    got = shared_out(_probabilities(), {"facet_contact": (FACET, _facet(0.0))}, FACET, reader, 0)
+    note = flat_note(got)
+    assert note.startswith("Possibly a stand-in: facet_contact acts from about 0 Nm in ")
+    assert "Extension (flatness" in note and "AxialRotation (flatness" in note
+    assert f"`{UNEXPLAINED}` (outside the library 0.48)" in note
+    assert flat_note(_probabilities()) is None

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from femcal.diagnose.box_edge import STIFFER
-from femcal.diagnose.outside import ShapeReader, split_probabilities
+from femcal.diagnose.outside import FLAT_DISC, FLAT_ELEMENT, ShapeReader, split_probabilities
 from femcal.diagnose.result import UNEXPLAINED, model_label
 from femcal.effects.terms import Model
 
@@ -38,6 +38,9 @@ from femcal.effects.terms import Model
 SHARE = 0.5
 #: The probability a model needs to be read for its shape.
 MODEL_FLOOR = 1e-3
+#: A load case is named as flat from this flatness on: its stand-in probability is at least
+#: 0.5 on the ramp of :mod:`femcal.diagnose.outside`.
+FLAT_READ = (FLAT_ELEMENT + FLAT_DISC) / 2
 
 
 def balance_stand_ins(state, probabilities: list[dict], skip: list[bool]) -> list[dict]:
@@ -119,3 +122,24 @@ def shared_out(
     if stand_ins:
         shared["stand_ins"] = stand_ins
     return shared
+
+
+def flat_note(probabilities: dict[str, Any]) -> str | None:
+    """The chosen model's flat effects in words (``probabilities["stand_ins"]`` of
+    :func:`shared_out`), for summary.md and the plots; None where there are none."""
+    stand_ins = probabilities.get("stand_ins") or {}
+    if not stand_ins:
+        return None
+    parts = []
+    for term, reading in stand_ins.items():
+        flat = {lc: f for lc, f in reading["flatness"].items() if f >= FLAT_READ}
+        cases = ", ".join(f"{lc} (flatness {f:.2f})" for lc, f in flat.items())
+        parts.append(f"{term} acts from about 0 Nm in {cases or 'its load cases'}")
+    return (
+        "Possibly a stand-in: "
+        + "; ".join(parts)
+        + ". A facet in contact at the neutral posture or a ligament without slack does so, and "
+        "so does a disc whose balance between load cases the library's disc does not hold; "
+        f"up to half its probability goes to `{UNEXPLAINED}` (outside the library "
+        f"{probabilities.get('outside_library', 0.0):.2f})."
+    )

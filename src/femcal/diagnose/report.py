@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from femcal.calibration.report import safe_file_name
+from femcal.diagnose.balance import flat_note
 from femcal.diagnose.outside import REPORTED
 from femcal.diagnose.result import NONE, Diagnosis, SpecimenDiagnosis
 from femcal.figures import LOAD_CASE_LABELS, free_cores
@@ -203,6 +204,8 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
     notes = list(s.discrepancy["description"]) if s.discrepancy is not None else []
     if (box := outside_box_note(s)) is not None:
         notes.insert(0, box)
+    if (flat := flat_note(s.probabilities or {})) is not None:
+        notes.append(flat)
     if measure_next:
         notes.append(measure_next)
     _place_notes(fig, notes)
@@ -346,9 +349,12 @@ def outside_box_note(s: SpecimenDiagnosis) -> str | None:
 
 
 def _missing(s: SpecimenDiagnosis) -> str:
-    """What is missing, for summary.md: the discrepancy's summary, and the out-of-box
-    reading where there is one to report (first where the verdict names the box)."""
+    """What is missing, for summary.md: the discrepancy's summary, the chosen model's flat
+    effects (:func:`~femcal.diagnose.balance.flat_note`), and the out-of-box reading where
+    there is one to report (first where the verdict names the box)."""
     text = s.discrepancy["summary"] if s.discrepancy else ""
+    if (flat := flat_note(s.probabilities or {})) is not None:
+        text = f"{text} {flat}".strip()
     box = outside_box_note(s)
     if box is None:
         return text
