@@ -451,8 +451,8 @@ class CalculixDisc:
                 )
             except OSError as exc:
                 raise SolverError(f"Cannot start {exe} ({exc}); {INSTALL_HINT}.") from exc
-            limit = CpuLimit(proc, self.timeout_s) if self.timeout_s else contextlib.nullcontext()
-            with limit:
+            limit = CpuLimit(proc, self.timeout_s) if self.timeout_s else None
+            with limit or contextlib.nullcontext():
                 try:
                     _, status, usage = os.wait4(proc.pid, 0)
                 except BaseException:
@@ -463,7 +463,7 @@ class CalculixDisc:
         proc.returncode = returncode
         wall = time.perf_counter() - start
         cpu = usage.ru_utime + usage.ru_stime
-        prepared.info["timed_out"] = getattr(limit, "reason", None)
+        prepared.info["timed_out"] = limit.reason if limit is not None else None
         tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-40:])
         logger.debug(
             "ccx %s attempt %d: exit %d, %.1f s CPU, %.1f s wall",
