@@ -26,6 +26,7 @@ from femcal.settings._format import Doc, fail, got, problems, yaml_repr
 from femcal.settings.keywords import (
     SOLVER,
     SOLVERS,
+    SPLITS,
     GeometryKeywords,
     PgdKeywords,
     SurrogateKeywords,
@@ -86,15 +87,12 @@ def _path_or_bounds(value: Any, handler: Any) -> Any:
     return handler(value)
 
 
+@with_options(**{n: (Int(0), setting(f"configurations of the {n} split", None)) for n in SPLITS})
 class Splits(Keywords):
     """``fe.splits``: configurations per split."""
 
     _unknown: ClassVar[str] = "unknown split"
     _describe: ClassVar[str] = "a mapping split -> configurations (large, small, test)"
-
-    large: Int(0) = setting("configurations of the large split", None)
-    small: Int(0) = setting("configurations of the small split", None)
-    test: Int(0) = setting("configurations of the test split", None)
 
 
 # ------------------------------------------------------------------ posterior elements
