@@ -16,7 +16,7 @@ from femcal.diagnose.discrepancy import (
     runs_p_value,
 )
 from femcal.diagnose.fits import (
-    _Fit,
+    Fit,
 )
 from femcal.diagnose.result import (
     model_label,
@@ -27,7 +27,7 @@ from femcal.schema import LOAD_CASES
 
 
 # ------------------------------------------------------------------------- adequacy
-def _adequacy(
+def adequacy_tests(
     res: np.ndarray, sigma: np.ndarray, dof: float, alpha: float, per_load_case: bool = False
 ) -> dict[str, Any]:
     """Chi-square and runs tests of residuals (4, m) against the noise.
@@ -63,8 +63,8 @@ def _adequacy(
     return out
 
 
-def _adequate_quick(
-    fit: _Fit, pos: int, i: int, measured, sigma, n_points, alpha, per_load_case: bool = False
+def adequate_quick(
+    fit: Fit, pos: int, i: int, measured, sigma, n_points, alpha, per_load_case: bool = False
 ) -> bool:
     """Adequacy during the search: the final test's degrees of freedom (``n - trace`` of the
     hat matrix, one Jacobian per fitted batch) where the fit has them, else ``n - k/2``.
@@ -76,11 +76,11 @@ def _adequate_quick(
     res = measured[i] - fit.pred[pos].double().numpy()
     used = fit.k / 2 if fit.trace is None else float(fit.trace[pos])
     dof = float(n_points[i] - used)
-    return bool(_adequacy(res, sigma[i], dof, alpha, per_load_case)["adequate"])
+    return bool(adequacy_tests(res, sigma[i], dof, alpha, per_load_case)["adequate"])
 
 
 # ------------------------------------------------------------------------ reporting
-def _ranking(
+def effect_ranking(
     fits: dict,
     i: int,
     measured: np.ndarray,
@@ -91,9 +91,9 @@ def _ranking(
 ) -> list[dict[str, Any]]:
     """Every model fitted for specimen ``i`` (``fits``: Model -> (fit, row)) as the result
     holds it: its label and terms written, MAE, the search's criterion (``cost`` (n,) per
-    parameter, :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of
+    parameter, :meth:`femcal.diagnose.fits.Fit.criterion`), its effective number of
     parameters and the effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured
-    points; every fit's trace is known (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`)."""
+    points; every fit's trace is known (:meth:`~femcal.diagnose.fits.Fit.ensure_trace`)."""
     rows = []
     for effects, (f, pos) in fits.items():
         pred = f.pred[pos].double().numpy()
@@ -130,7 +130,7 @@ def _ranking(
     return rows
 
 
-def _signatures(
+def effect_signatures(
     per_spec, candidates: list[Term], pred0: torch.Tensor, n: int
 ) -> list[dict[str, np.ndarray]]:
     """What each single effect adds to the disc-alone fit, per specimen (4, m), by the
@@ -146,7 +146,7 @@ def _signatures(
     return out
 
 
-def _missing_text(
+def missing_text(
     dense: np.ndarray,
     mean: np.ndarray,
     sd: np.ndarray,
@@ -178,13 +178,34 @@ def _missing_text(
     ]
 
 
-def _summary(
+def summary_text(
     text: list[str],
     resembles: str | None,
     sim: dict[str, float],
     adequacy: dict[str, Any] | None = None,
     probabilities: dict[str, Any] | None = None,
 ) -> str:
+    """One specimen's discrepancy in one sentence: where it is, what it resembles.
+
+    Parameters
+    ----------
+    text : list of str
+        ``"<load case>: <description>"`` per load case with a discrepancy beyond the noise.
+    resembles : str or None
+        The registered effect whose signature the discrepancy resembles, if any.
+    sim : dict of str to float
+        Similarity (cosine, -1..1) of the discrepancy with each effect's signature.
+    adequacy : dict, optional
+        The adequacy tests (:func:`adequacy_tests`); its ``p_chi2`` is quoted.
+    probabilities : dict, optional
+        The specimen's probabilities; with ``unexplained`` set, the probability that
+        something outside the library is missing is quoted.
+
+    Returns
+    -------
+    str
+        The sentence.
+    """
     sure = ""
     if probabilities is not None and probabilities["unexplained"]:
         sure = (
@@ -209,7 +230,7 @@ def _summary(
     return f"missing in {', '.join(lcs)}: {what}. It {tail}.{sure}"
 
 
-def _own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Bool (4, q): the dense moments within each load case's own measured range."""
     out = np.zeros((len(LOAD_CASES), len(dense)), dtype=bool)
     for j in range(len(LOAD_CASES)):
@@ -219,14 +240,44 @@ def _own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.n
     return out
 
 
-def _dense_base(base, dense: np.ndarray):
+def dense_base_model(base, dense: np.ndarray):
+    """The base model's surrogate evaluated on the dense moment grid ``dense`` (q,) in Nm.
+
+    Parameters
+    ----------
+    base : CurveModel
+        The base (disc) model; only a surrogate model has a dense counterpart.
+    dense : ndarray, shape (q,)
+        Moments in Nm.
+
+    Returns
+    -------
+    SurrogateCurveModel or None
+        Curves (.., 4, q) at ``dense``; None when ``base`` has no surrogate.
+    """
     surrogate = getattr(base, "surrogate", None)
     if surrogate is None:
         return None
     return SurrogateCurveModel(surrogate, dense, space=base.space)
 
 
-def _dense_curves(dense_base, effects: Model, v: torch.Tensor) -> np.ndarray:
+def dense_curves(dense_base, effects: Model, v: torch.Tensor) -> np.ndarray:
+    """The curves of model ``effects`` on the dense grid at parameters ``v``.
+
+    Parameters
+    ----------
+    dense_base : SurrogateCurveModel or None
+        The dense base model (:func:`dense_base_model`).
+    effects : Model
+        The effects added to the base (none: the base alone).
+    v : Tensor, shape (r, dim)
+        Parameters in unit coordinates.
+
+    Returns
+    -------
+    ndarray, shape (r, 4, q)
+        RoM in degrees, float64; all NaN with shape (r, 4, 1) when ``dense_base`` is None.
+    """
     if dense_base is None:
         return np.full((v.shape[0], len(LOAD_CASES), 1), np.nan)
     model = dense_base if not effects else EffectModel(dense_base, list(effects))
@@ -275,7 +326,7 @@ def _repeats_grid(
     return k
 
 
-def _next_measurement(
+def next_measurement(
     ranking,
     fits,
     dense_base,
@@ -335,7 +386,7 @@ def _closest_rival(
     noise_parts: tuple[np.ndarray, np.ndarray],
     min_delta: float,
 ) -> tuple[np.ndarray, tuple | None]:
-    """The rival of :func:`_next_measurement` that the fewest measurements settle against the
+    """The rival of :func:`next_measurement` that the fewest measurements settle against the
     chosen model ``best`` (ties: the larger difference in sigma, then the smaller criterion
     gap).
 
@@ -404,7 +455,7 @@ def _measurement_report(
     sigma_dense: np.ndarray,
     measured_moments,
 ) -> dict[str, Any]:
-    """The point of :func:`_next_measurement` for the rival ``pick`` of :func:`_closest_rival`
+    """The point of :func:`next_measurement` for the rival ``pick`` of :func:`_closest_rival`
     (the chosen model's curves ``best_curve`` (4, q) on the moments ``dense`` (q,), Nm): where
     the fewest repeats settle the two, else where they differ most in sigma; with
     ``measured_moments``, whether it lies within the specimen's measured range and, where it
@@ -449,7 +500,7 @@ def _measurement_report(
     return out
 
 
-def _failures(
+def failures(
     resid: np.ndarray, sigma: np.ndarray, moments: np.ndarray, x_unit: np.ndarray, names
 ) -> dict[str, Any]:
     """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds."""
