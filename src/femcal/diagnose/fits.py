@@ -78,7 +78,21 @@ class Starts:
 
 # ------------------------------------------------------------------------ fitting helpers
 def point_weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """Relative weights 1/sigma^2 of every point (the optimiser normalises them)."""
+    """Relative weights 1/sigma^2 of every point (the optimiser normalises them).
+
+    Parameters
+    ----------
+    sigma : ndarray, shape broadcastable to ``shape``
+        Noise sd in degrees, for example (n, 4, m) or (n, 1, 1).
+    shape : tuple of int
+        The weights' shape, for example (n, 4, m).
+
+    Returns
+    -------
+    ndarray, shape ``shape``
+        ``(min(sigma) / sigma) ** 2``: 1 at the smallest noise, dimensionless (a read-only
+        broadcast view).
+    """
     return np.broadcast_to((sigma.min() / sigma) ** 2, shape)
 
 
@@ -266,6 +280,29 @@ class Fit:
 def fit_from(model, measured, weight, sigma, rows: np.ndarray, starts: torch.Tensor, max_iter: int):
     """Gauss-Newton from ``starts`` (r, g, dim) of the specimens ``rows`` (r,); the best start
     per specimen: unit coordinates (r, dim), curves (r, 4, m) and chi-square (r,).
+
+    Parameters
+    ----------
+    model : CurveModel
+        The model fitted.
+    measured : ndarray, shape (n, 4, m)
+        Measured RoM in degrees, NaN where not measured.
+    weight : ndarray, shape (n, 4, m)
+        Point weights (:func:`point_weights`).
+    sigma : ndarray, shape (n, 4, m)
+        Noise sd in degrees.
+    rows : ndarray of int, shape (r,)
+        The specimens fitted.
+    starts : Tensor, shape (r, g, dim)
+        ``g`` starts per specimen in unit coordinates.
+    max_iter : int
+        Gauss-Newton iterations at most.
+
+    Returns
+    -------
+    v : Tensor, shape (r, dim)
+    pred : Tensor, shape (r, 4, m)
+    chi2 : ndarray, shape (r,)
 
     The starts are ranked by the chi-square of Gauss-Newton's own final residuals; only the
     best start's curves are evaluated again (its chi-square from them). The Jacobian is exact
