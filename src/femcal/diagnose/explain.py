@@ -35,6 +35,23 @@ def adequacy_tests(
     With ``per_load_case``, also a chi-square test in each load case (Bonferroni: level
     ``alpha / 4``, the model's effective parameters shared out by the load case's points): an
     effect missing in one or two load cases drowns in the pooled test when the others fit well.
+
+    Parameters
+    ----------
+    res : ndarray, shape (4, m)
+        Residuals in degrees, NaN where not measured.
+    sigma : ndarray, shape (4, m)
+        Noise sd in degrees.
+    dof : float
+        Degrees of freedom of the pooled chi-square test (at least 1 is used).
+    alpha : float
+        Significance level.
+
+    Returns
+    -------
+    dict
+        ``chi2``, ``dof``, ``p_chi2``, ``p_runs``, ``adequate`` (bool) and, with
+        ``per_load_case``, ``p_chi2_load_case`` (4 p-values).
     """
     z = res / sigma
     chi2 = float(np.nansum(z**2))
@@ -72,6 +89,24 @@ def adequate_quick(
     The search and the verdict must ask the same question: with ``n - k/2`` a short protocol
     (16 points, 15 parameters) passed a model during the search that the final test rejected,
     and the verdict said ``+unexplained`` where the next effect had never been tried.
+
+    Parameters
+    ----------
+    fit : Fit
+        A batch fit; ``pos`` is specimen ``i``'s row in it.
+    pos, i : int
+        Row in ``fit`` and specimen index.
+    measured, sigma : ndarray, shape (n, 4, m)
+        Measured RoM and noise sd in degrees (NaN where not measured).
+    n_points : ndarray of int, shape (n,)
+        Measured points per specimen.
+    alpha, per_load_case : float, bool
+        As in :func:`adequacy_tests`.
+
+    Returns
+    -------
+    bool
+        Whether the model is adequate for specimen ``i``.
     """
     res = measured[i] - fit.pred[pos].double().numpy()
     used = fit.k / 2 if fit.trace is None else float(fit.trace[pos])
@@ -134,7 +169,24 @@ def effect_signatures(
     per_spec, candidates: list[Term], pred0: torch.Tensor, n: int
 ) -> list[dict[str, np.ndarray]]:
     """What each single effect adds to the disc-alone fit, per specimen (4, m), by the
-    candidate's written term."""
+    candidate's written term.
+
+    Parameters
+    ----------
+    per_spec : list of dict, length n
+        Per specimen, every fitted model -> (fit, row in the fit).
+    candidates : list of Term
+        The candidate effects; those never fitted alone for a specimen are left out.
+    pred0 : Tensor, shape (n, 4, m)
+        The disc-alone fit's curves in degrees.
+    n : int
+        Number of specimens.
+
+    Returns
+    -------
+    list of dict of str to ndarray, length n
+        Per specimen, the effect's written term -> curves minus ``pred0`` (4, m) in degrees.
+    """
     out = []
     for i in range(n):
         sig = {}
@@ -503,7 +555,25 @@ def _measurement_report(
 def failures(
     resid: np.ndarray, sigma: np.ndarray, moments: np.ndarray, x_unit: np.ndarray, names
 ) -> dict[str, Any]:
-    """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds."""
+    """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds.
+
+    Parameters
+    ----------
+    resid, sigma : ndarray, shape (4, m)
+        Residuals (NaN where not measured) and noise sd, in degrees.
+    moments : ndarray, shape (m,)
+        Moments in Nm.
+    x_unit : ndarray, shape (d,)
+        The disc's parameters in unit coordinates.
+    names : sequence of str, length d
+        The parameters' names.
+
+    Returns
+    -------
+    dict
+        ``beyond_2_sigma`` (per load case: moments and largest ``|z|``), ``sign_pattern``
+        (load case -> ``"+-..."``) and ``on_bounds`` (names within ``AT_BOUND`` of a bound).
+    """
     z = resid / sigma
     out: dict[str, Any] = {"beyond_2_sigma": [], "sign_pattern": {}, "on_bounds": []}
     for j, lc in enumerate(LOAD_CASES):
