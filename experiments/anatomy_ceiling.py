@@ -58,7 +58,7 @@ def thorough_scores(
 
     from femcal.calibration import SurrogateCurveModel, calibrate
     from femcal.datasets import training_configurations
-    from femcal.diagnose.fits import _chi2, _Fit
+    from femcal.diagnose.fits import Fit, chi_square
     from femcal.effects.composite import EffectModel
 
     params, sur, policy, meas = screened_cohort(cohort / "measurements.csv")
@@ -76,8 +76,8 @@ def thorough_scores(
         res = calibrate(
             m, rom, weight=weight, method="pgd", options={**THOROUGH, "start_bank": bank}, seed=0
         )
-        chi2 = _chi2(torch.as_tensor(res.prediction), rom, sigma)
-        fit = _Fit(model, m, m.from_physical(np.asarray(res.x)), np.arange(len(idx)), None, chi2, 0)
+        chi2 = chi_square(torch.as_tensor(res.prediction), rom, sigma)
+        fit = Fit(model, m, m.from_physical(np.asarray(res.x)), np.arange(len(idx)), None, chi2, 0)
         out[model] = np.array([fit.criterion(k, cost[k], mask, sigma) for k in range(len(idx))])
     return out
 

@@ -126,7 +126,7 @@ def build_state(cohort: Path, specimens: list[str], budget: Budget):
     from femcal.calibration import SurrogateCurveModel
     from femcal.datasets import training_configurations
     from femcal.diagnose import DiagnoseOptions
-    from femcal.diagnose.fits import _weights
+    from femcal.diagnose.fits import point_weights
     from femcal.diagnose.search import _point_weight
     from femcal.diagnose.state import DiagnosisState
     from femcal.effects import available_effects
@@ -153,7 +153,7 @@ def build_state(cohort: Path, specimens: list[str], budget: Budget):
         base=SurrogateCurveModel(sur_model, meas.moments),
         specimens=list(specimens),
         measured=measured,
-        weight=np.ascontiguousarray(_weights(sigma, measured.shape)),
+        weight=np.ascontiguousarray(point_weights(sigma, measured.shape)),
         sigma=sigma,
         sigma_m=np.full(measured.shape[2], NOISE_DEG),
         surrogate_sd=np.ascontiguousarray(sur[idx]),
@@ -168,15 +168,15 @@ def build_state(cohort: Path, specimens: list[str], budget: Budget):
 def search(state) -> None:
     """The disc alone, then forward selection with the widened options (every form it
     reaches recorded in ``state.per_spec``)."""
-    from femcal.diagnose.fits import _chi2, _Fit
+    from femcal.diagnose.fits import Fit, chi_square
     from femcal.diagnose.forward import forward_selection
-    from femcal.diagnose.search import _disc_fit
+    from femcal.diagnose.search import disc_fit
 
-    v, pred = _disc_fit(state, state.weight)
+    v, pred = disc_fit(state, state.weight)
     rows = np.arange(state.n)
-    chi2 = _chi2(pred, state.measured, state.sigma)
+    chi2 = chi_square(pred, state.measured, state.sigma)
     state.per_spec = [{} for _ in range(state.n)]
-    state.record(_Fit((), state.base, v, rows, pred, chi2, state.base.dim))
+    state.record(Fit((), state.base, v, rows, pred, chi2, state.base.dim))
     state.chosen = [() for _ in range(state.n)]
     forward_selection(state)
 
@@ -186,7 +186,7 @@ def _starts(state, form: tuple[str, ...], rows: list[int]) -> torch.Tensor:
     (split terms' per-load-case copies at the grid levels), from its members' own fits side by
     side (the disc of the better one), and, for a term new to the better member, its grid and
     the start bank."""
-    from femcal.diagnose.fits import _split_starts
+    from femcal.diagnose.fits import split_starts
     from femcal.diagnose.forward import _members_start, _new_effect_starts
     from femcal.effects.split import is_split
     from femcal.effects.terms import parse_term
@@ -194,7 +194,7 @@ def _starts(state, form: tuple[str, ...], rows: list[int]) -> torch.Tensor:
     parts = []
     tied = tuple(sorted(str(replace(parse_term(t), split=False)) for t in form))
     if any(is_split(t) for t in form) and all(tied in state.per_spec[i] for i in rows):
-        v0, g = _split_starts(state.solutions(rows, tied), tied, form, state.options.effect_levels)
+        v0, g = split_starts(state.solutions(rows, tied), tied, form, state.options.effect_levels)
         parts.append(v0.reshape(len(rows), g, -1))
     singles = [(t,) for t in form]
     if len(form) > 1 and all(s in state.per_spec[i] for s in singles for i in rows):

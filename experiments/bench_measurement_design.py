@@ -92,7 +92,7 @@ def analyse(
     noise = float(ctx["plant"]["noise_deg"])
     cohort = hidden_cohort(seed, ctx["fe_moments"], ctx["fe_rom"], noise)
     rows: list[dict[str, Any]] = []
-    original = assemble._next_measurement
+    original = assemble.next_measurement
 
     def wrapped(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, *a, **kw):
         out = original(ranking, fits, dense_base, dense, sigma_dense, min_delta, chosen, *a, **kw)
@@ -123,11 +123,11 @@ def analyse(
         )
         return out
 
-    assemble._next_measurement = wrapped
+    assemble.next_measurement = wrapped
     try:
         run_diagnosis(cohort, ctx)
     finally:
-        assemble._next_measurement = original
+        assemble.next_measurement = original
     return rows
 
 

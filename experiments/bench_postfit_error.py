@@ -37,7 +37,7 @@ from experiments.hidden_cohorts import PROTOCOLS, make_hidden_cohort
 from femcal.calibration import SurrogateCurveModel
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.pgd import pgd
-from femcal.diagnose.fits import _weights
+from femcal.diagnose.fits import point_weights
 
 
 def measure(per_protocol: int, seed: int) -> dict:
@@ -56,7 +56,7 @@ def measure(per_protocol: int, seed: int) -> dict:
     rom, moments = cohort.rom_deg, cohort.moments
     model = SurrogateCurveModel(ctx["surrogate"], moments)
     prefit = policy.sigma_surrogate(moments)
-    weight = _weights(np.sqrt(noise**2 + prefit**2), rom.shape)
+    weight = point_weights(np.sqrt(noise**2 + prefit**2), rom.shape)
     problem = CalibrationProblem.from_arrays(model, rom, weight)
     sol = pgd(
         problem,

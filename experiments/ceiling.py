@@ -14,7 +14,7 @@ import torch
 from experiments.diagnosis import THOROUGH
 from femcal.calibration import calibrate
 from femcal.diagnose import Diagnosis
-from femcal.diagnose.fits import _chi2, _Fit
+from femcal.diagnose.fits import Fit, chi_square
 from femcal.effects.base import available_effects
 from femcal.effects.composite import EffectModel
 
@@ -151,10 +151,10 @@ def model_criteria(
             m, rom, weight=w, method="pgd", options=opts, seed=0, weight_sd=ctx["weight_sd"]
         )
         # the diagnosis' own chi-square: measured points only, a failed prediction there inf
-        chi2 = _chi2(torch.as_tensor(res.prediction), rom, sigma)
+        chi2 = chi_square(torch.as_tensor(res.prediction), rom, sigma)
         # scored by the diagnosis' own criterion (its traces from one Jacobian of the batch)
         v = m.from_physical(np.asarray(res.x))
-        fit = _Fit(effects, m, v, np.arange(len(idx)), None, chi2, m.dim)
+        fit = Fit(effects, m, v, np.arange(len(idx)), None, chi2, m.dim)
         bic[effects] = np.array(
             [
                 min(fit.criterion(k, cost[k], mask, sigma), own.get((k, effects), np.inf))
@@ -180,7 +180,7 @@ def truth_preferred(
     (:data:`THOROUGH`) and scored as the diagnosis scores it: ``chi^2 + cost k`` with the
     noise and the surrogate's error ``sigma_m`` (m,), ``k`` counted as the diagnosis'
     ``penalty`` option says (by default the effective number of parameters at the thorough
-    fit, the trace of its hat matrix; :meth:`femcal.diagnose.fits._Fit.criterion`); with the
+    fit, the trace of its hat matrix; :meth:`femcal.diagnose.fits.Fit.criterion`); with the
     ``diag`` given, a model the diagnosis also fitted counts with the lower of the two. Where
     another model scores lower than the true combination, no search with that criterion can
     name the combination whole: this is the ceiling of

@@ -338,21 +338,21 @@ def test_a_miss_confined_to_one_load_case_fails_the_per_load_case_test():
     """Three load cases within the noise (alternating +-0.8 sigma) and one missed by 1.7 sigma
     at every point: the pooled chi-square (p ~ 0.06) and runs tests pass, the per-load-case
     test (Bonferroni alpha / 4) does not."""
-    from femcal.diagnose.explain import _adequacy
+    from femcal.diagnose.explain import adequacy_tests
 
     sigma = np.full((4, 9), 0.05)
     res = 0.8 * 0.05 * np.where(np.arange(9) % 2, 1.0, -1.0) * np.ones((4, 1))
     res[1] = 1.7 * 0.05
     dof = 36 - 6.5
-    pooled = _adequacy(res, sigma, dof, 0.01)
-    per_lc = _adequacy(res, sigma, dof, 0.01, per_load_case=True)
+    pooled = adequacy_tests(res, sigma, dof, 0.01)
+    per_lc = adequacy_tests(res, sigma, dof, 0.01, per_load_case=True)
     assert pooled["adequate"] and pooled["p_chi2"] > 0.01
     assert not per_lc["adequate"]
     assert np.argmin(per_lc["p_chi2_load_case"]) == 1
     assert min(per_lc["p_chi2_load_case"]) < 0.01 / 4
     # the same residuals spread over every load case: nothing to flag per load case
     res[1] = res[0]
-    assert _adequacy(res, sigma, dof, 0.01, per_load_case=True)["adequate"]
+    assert adequacy_tests(res, sigma, dof, 0.01, per_load_case=True)["adequate"]
 
 
 def test_the_search_asks_the_final_adequacy_question_once_the_fit_has_its_trace():
@@ -361,18 +361,18 @@ def test_the_search_asks_the_final_adequacy_question_once_the_fit_has_its_trace(
     during the search (dof 8.5) that the final test (dof ~7) rejected."""
     import torch
 
-    from femcal.diagnose.explain import _adequacy, _adequate_quick
-    from femcal.diagnose.fits import _Fit
+    from femcal.diagnose.explain import adequacy_tests, adequate_quick
+    from femcal.diagnose.fits import Fit
 
     sigma = np.full((1, 4, 4), 0.05)  # (n, 4, m): every point's own
     measured = np.zeros((1, 4, 4))
     pred = torch.full((1, 4, 4), 0.05 * np.sqrt(19.2 / 16))  # chi2 = 19.2 on 16 points
-    fit = _Fit(("x",), None, torch.zeros(1, 15), np.array([0]), pred, np.array([19.2]), 15)
+    fit = Fit(("x",), None, torch.zeros(1, 15), np.array([0]), pred, np.array([19.2]), 15)
     n_points = np.array([16.0])
-    assert _adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)  # dof 8.5: p ~ 0.02
+    assert adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)  # dof 8.5: p ~ 0.02
     fit.trace = np.array([9.0])  # dof 7
-    assert not _adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)
-    assert not _adequacy(measured[0] - pred[0].numpy(), sigma[0], 7.0, 0.01)["adequate"]
+    assert not adequate_quick(fit, 0, 0, measured, sigma, n_points, 0.01)
+    assert not adequacy_tests(measured[0] - pred[0].numpy(), sigma[0], 7.0, 0.01)["adequate"]
 
 
 def test_refining_a_combination_never_makes_a_fit_worse(world):
@@ -380,7 +380,7 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
     leave alone the fits that already explain the data."""
     import torch
 
-    from femcal.diagnose.fits import _chi2, _weights
+    from femcal.diagnose.fits import chi_square, point_weights
     from femcal.diagnose.forward import _refine_combination
     from femcal.diagnose.state import DiagnosisState
 
@@ -390,7 +390,7 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
         base=base,
         specimens=[f"S{i}" for i in range(len(rom))],
         measured=rom,
-        weight=np.ascontiguousarray(_weights(sigma, rom.shape)),
+        weight=np.ascontiguousarray(point_weights(sigma, rom.shape)),
         sigma=sigma,
         sigma_m=sigma[0, 0],
         surrogate_sd=np.zeros(rom.shape),
@@ -408,7 +408,7 @@ def test_refining_a_combination_never_makes_a_fit_worse(world):
     _refine_combination(state, fit)
     assert np.all(fit.chi2 <= chi2)
     assert np.any(fit.chi2 < 0.5 * chi2)  # three Gauss-Newton steps from the middle are not done
-    np.testing.assert_allclose(_chi2(fit.pred, rom, sigma), fit.chi2, rtol=1e-5)
+    np.testing.assert_allclose(chi_square(fit.pred, rom, sigma), fit.chi2, rtol=1e-5)
     same = fit.chi2 == chi2
     assert torch.equal(fit.v[torch.as_tensor(same)], v[torch.as_tensor(same)])
 
@@ -489,9 +489,9 @@ def test_the_criterion_counts_the_parameters_the_data_determine(world):
     criterion is ordered and consistent with its own effective number of parameters."""
     import torch
 
-    from femcal.diagnose.fits import _Fit
+    from femcal.diagnose.fits import Fit
 
-    fit = _Fit(("x",), None, torch.zeros(1, 15), np.array([0]), None, np.array([30.0]), 15)
+    fit = Fit(("x",), None, torch.zeros(1, 15), np.array([0]), None, np.array([30.0]), 15)
     fit.trace = np.array([6.5])
     mask, sigma = np.ones((1, 4, 9), dtype=bool), np.full((1, 4, 9), NOISE)
     assert fit.criterion(0, np.log(36), mask, sigma) == pytest.approx(30.0 + 6.5 * np.log(36))
@@ -531,7 +531,7 @@ def test_chi2_skips_unmeasured_points_but_not_a_failed_prediction():
     chosen (it used to be skipped like an unmeasured point)."""
     import torch
 
-    from femcal.diagnose.fits import _chi2
+    from femcal.diagnose.fits import chi_square
 
     sigma = np.full((2, 4, 3), 0.5)
     measured = np.zeros((2, 4, 3))
@@ -539,7 +539,7 @@ def test_chi2_skips_unmeasured_points_but_not_a_failed_prediction():
     pred = torch.full((2, 4, 3), 0.5)
     pred[0, 0, 2] = float("nan")  # at the unmeasured point: fine
     pred[1, 1, 1] = float("nan")  # at a measured point: this model failed there
-    chi2 = _chi2(pred, measured, sigma)
+    chi2 = chi_square(pred, measured, sigma)
     assert chi2[0] == pytest.approx(11.0)  # 11 measured points, each (0.5 / 0.5)^2
     assert chi2[1] == np.inf
 

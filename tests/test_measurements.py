@@ -577,10 +577,10 @@ def test_from_arrays_errors(kwargs: dict, match: str) -> None:
 
 
 def test_data_rows_collects_rows_and_specimens(tmp_path: Path) -> None:
-    from femcal.measurements.parse import _DataRows
+    from femcal.measurements.parse import DataRows
 
     records = [(2, ["a", "x"]), (3, []), (4, ["b", "y", "extra"]), (5, ["a"])]
-    rows = _DataRows(tmp_path / "m.csv", records, 2)
+    rows = DataRows(tmp_path / "m.csv", records, 2)
     assert list(rows) == [(2, ["a", "x"]), (5, ["a", ""])]  # empty skipped, short padded
     assert [line for line, _ in rows.problems.items] == [4]  # the row with an extra cell
     for specimen, line in [("b", 7), ("a", 8), ("b", 9)]:
@@ -590,9 +590,9 @@ def test_data_rows_collects_rows_and_specimens(tmp_path: Path) -> None:
 
 
 def test_data_rows_without_rows(tmp_path: Path) -> None:
-    from femcal.measurements.parse import _DataRows
+    from femcal.measurements.parse import DataRows
 
-    rows = _DataRows(tmp_path / "m.csv", [(2, [])], 2)
+    rows = DataRows(tmp_path / "m.csv", [(2, [])], 2)
     assert list(rows) == []
     with pytest.raises(InputDataError, match=r"m\.csv has a header \(line 1\) .* per thing\.$"):
         rows.measurements(1, one_row_per="thing", with_idp=False)

@@ -23,7 +23,7 @@ import pandas as pd
 from femcal.errors import ConfigError, InputDataError
 from femcal.schema import LOAD_CASES, STATUS_FAILED, STATUS_OK
 from femcal.space import ParameterSpace
-from femcal.tidy import BOUNDS_RTOL, _finalize, _listing
+from femcal.tidy import BOUNDS_RTOL, finalize, listing
 
 logger = logging.getLogger(__name__)
 
@@ -164,7 +164,7 @@ def _parse_numbers(
     if bad:
         raise InputDataError(
             f"{path}: {what} must be finite numbers; non-numeric or infinite entries at "
-            f"{_listing(bad)}. Replace them with numbers ({_FIX_REFETCH})."
+            f"{listing(bad)}. Replace them with numbers ({_FIX_REFETCH})."
         )
     return values, missing
 
@@ -192,7 +192,7 @@ def _read_configurations(path: Path, space: ParameterSpace, bounds_name: str) ->
     if missing.any():
         cells = [f"column '{header[j]}', row {i} (line {i + 2})" for i, j in np.argwhere(missing)]
         raise InputDataError(
-            f"{path}: missing (empty or NaN) parameter values at {_listing(cells)}. Every "
+            f"{path}: missing (empty or NaN) parameter values at {listing(cells)}. Every "
             f"configuration needs all {space.dim} parameters; fill them in ({_FIX_REFETCH})."
         )
     order = [header.index(name) for name in space.names]
@@ -207,7 +207,7 @@ def _read_configurations(path: Path, space: ParameterSpace, bounds_name: str) ->
         ]
         raise InputDataError(
             f"{path}: parameter values outside the bounds of {bounds_name}: "
-            f"{_listing(cells, len(outside))}. Fix the values or the bounds file."
+            f"{listing(cells, len(outside))}. Fix the values or the bounds file."
         )
     return x
 
@@ -268,7 +268,7 @@ def _check_unloaded(path: Path, header_moments: np.ndarray, values: np.ndarray) 
         cells = [f"row {i} (line {i + 2}): {float(v0[i])!r}" for i in bad]
         raise InputDataError(
             f"{path}: column '{header_moments[0]:g}' (the unloaded 0 Nm state) must be 0 "
-            f"(|value| < {ZERO_MOMENT_ATOL:g}); got {_listing(cells, bad.size)}. The columns "
+            f"(|value| < {ZERO_MOMENT_ATOL:g}); got {listing(cells, bad.size)}. The columns "
             f"may be shifted; {_FIX_REFETCH}."
         )
 
@@ -297,7 +297,7 @@ def _classify(
         cells = [f"row {i} (line {i + 2}), column '{moments[j]:g}'" for i, j in gaps]
         raise InputDataError(
             f"{path}: missing {quantity} values followed by values at later moments, at "
-            f"{_listing(cells, len(gaps))}. An aborted simulation must be empty or zero from "
+            f"{listing(cells, len(gaps))}. An aborted simulation must be empty or zero from "
             "some moment to the last one; fill in the gap or blank the rest of the row."
         )
     if positive:
@@ -309,7 +309,7 @@ def _classify(
             ]
             raise InputDataError(
                 f"{path}: {quantity} must be positive; non-positive values that are not an "
-                f"aborted tail (zero up to the last moment) at {_listing(cells, len(nonpos))}. "
+                f"aborted tail (zero up to the last moment) at {listing(cells, len(nonpos))}. "
                 f"Fix the sign or the values ({_FIX_REFETCH})."
             )
     return tail
@@ -398,7 +398,7 @@ def read_split(raw_root: Path, split: str, space: ParameterSpace | None = None) 
     columns["rom_deg"] = rom_all.reshape(-1)
     columns["idp_mpa"] = idp_all.reshape(-1)
     columns["status"] = np.where(failed.reshape(-1), STATUS_FAILED, STATUS_OK).astype(object)
-    df = _finalize(pd.DataFrame(columns), space)
+    df = finalize(pd.DataFrame(columns), space)
 
     n_failed = int(failed.sum())
     if n_failed:

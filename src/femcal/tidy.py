@@ -28,14 +28,28 @@ def tidy_columns(space: ParameterSpace) -> list[str]:
     return [*KEY_COLUMNS, *space.names, *OUTPUT_COLUMNS]
 
 
-def _listing(items: Sequence[str], total: int | None = None) -> str:
+def listing(items: Sequence[str], total: int | None = None) -> str:
+    """``items`` joined by ``"; "``, the first ``_MAX_LISTED`` of them and a count of the rest.
+
+    Parameters
+    ----------
+    items : sequence of str
+        The items, already in words.
+    total : int, optional
+        How many there are in all (default ``len(items)``), when ``items`` holds only some.
+
+    Returns
+    -------
+    str
+        For example ``"a; b (and 3 more)"``.
+    """
     total = len(items) if total is None else total
     shown = "; ".join(items[:_MAX_LISTED])
     more = f" (and {total - _MAX_LISTED} more)" if total > _MAX_LISTED else ""
     return shown + more
 
 
-def _finalize(df: pd.DataFrame, space: ParameterSpace) -> pd.DataFrame:
+def finalize(df: pd.DataFrame, space: ParameterSpace) -> pd.DataFrame:
     """Apply the canonical column order and dtypes of a tidy table."""
     df = df[tidy_columns(space)].copy()
     df["config_id"] = df["config_id"].astype(np.int64)
@@ -129,7 +143,7 @@ def load_tidy(path: Path, space: ParameterSpace) -> pd.DataFrame:
             f"{rows[:_MAX_LISTED].tolist()}; the table and parameter_space.json do not belong "
             f"together; {_FIX_PREPARE}."
         )
-    return _finalize(df, space)
+    return finalize(df, space)
 
 
 def to_wide(df: pd.DataFrame, value: str = "rom_deg") -> tuple[np.ndarray, np.ndarray, np.ndarray]:

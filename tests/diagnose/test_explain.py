@@ -1,4 +1,4 @@
-"""What to measure next (femcal.diagnose.explain._next_measurement) on given model curves."""
+"""What to measure next (femcal.diagnose.explain.next_measurement) on given model curves."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ def _ranking(criteria: dict[tuple[str, ...], float]):
 
 def _next(ranking, min_delta=10.0):
     fits = {M(r["effect"]): (None, 0) for r in ranking}
-    return explain._next_measurement(
+    return explain.next_measurement(
         ranking, fits, object(), DENSE, SIGMA, min_delta, M("facet_contact")
     )
 

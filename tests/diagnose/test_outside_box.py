@@ -95,7 +95,7 @@ def _snapshot(state, decision) -> tuple[bytes, bytes]:
 
 
 def _described_by(real, seen: list):
-    """``search._assemble`` that first notes the decision and afterwards whether the state
+    """``search.assemble_result`` that first notes the decision and afterwards whether the state
     and the decision are as it found them."""
 
     def describe_and_check(state, decision, **keywords):
@@ -133,7 +133,7 @@ def box_run():
     seen: list = []
     with pytest.MonkeyPatch.context() as patch:
         # 11 specimens, fewer than two workers' MIN_ROWS each: described in this process
-        patch.setattr(search, "_assemble", _described_by(search._assemble, seen))
+        patch.setattr(search, "assemble_result", _described_by(search.assemble_result, seen))
         diag = diagnose(base, rom, specimens=kinds, noise_deg=NOISE)
     return rom, kinds, diag, seen
 

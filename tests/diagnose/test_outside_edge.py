@@ -83,7 +83,7 @@ def edge_world():
     disc-alone fits."""
     from femcal.calibration import SurrogateCurveModel
     from femcal.diagnose import DiagnoseOptions
-    from femcal.diagnose.search import _disc_fit
+    from femcal.diagnose.search import disc_fit
     from femcal.surrogates.nn import NeuralSurrogate
 
     from synth import study_space, tidy_table, true_curves
@@ -114,7 +114,7 @@ def edge_world():
         options=DiagnoseOptions(),
         rng=np.random.default_rng(0),
     )
-    v, _ = _disc_fit(state, state.weight)
+    v, _ = disc_fit(state, state.weight)
     unit = base.space.to_unit(base.to_physical(v.double().numpy()))
     env = build_envelope(base, sigma_model=np.zeros(len(moments)))
     return state, env, unit

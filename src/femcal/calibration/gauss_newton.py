@@ -21,11 +21,43 @@ from femcal.calibration.progress import report_step
 _SETTLE_GAIN = 0.01
 
 
-def _residual(problem, rows, pred):
+def gn_residual(problem, rows, pred):
+    """The masked residuals of predicted curves against the targets of specimens ``rows``.
+
+    Parameters
+    ----------
+    problem : CalibrationProblem
+        Holds ``target`` (n, 4, m) in degrees and ``mask`` (n, 4, m).
+    rows : Tensor of int, shape (B,)
+        The specimen of each row.
+    pred : Tensor, shape (B, 4, m)
+        Predicted RoM in degrees.
+
+    Returns
+    -------
+    Tensor, shape (B, 4 * m)
+        ``pred - target`` in degrees, 0 where a point is not measured.
+    """
     return ((pred - problem.target[rows]) * problem.mask[rows]).reshape(len(rows), -1)
 
 
-def _cost(r, w, loss):
+def gn_cost(r, w, loss):
+    """The weighted loss of each row: ``sum(w * |r|)`` for ``"l1"``, ``sum(w * r**2)`` else.
+
+    Parameters
+    ----------
+    r : Tensor, shape (B, 4 * m)
+        Residuals in degrees (:func:`gn_residual`).
+    w : Tensor, shape (B, 4 * m)
+        Point weights (relative inverse noise variances), 0 where not measured.
+    loss : {"l2", "l1"}
+        The loss.
+
+    Returns
+    -------
+    Tensor, shape (B,)
+        The loss of each row, in degrees (l1) or squared degrees (l2) times weight.
+    """
     return (w * r.abs()).sum(1) if loss == "l1" else (w * r**2).sum(1)
 
 
@@ -99,13 +131,13 @@ def gauss_newton_residuals(
             f, jf = model.curves_jacobian(
                 v[part], jacobian_members=None if on_exact else jacobian_members
             )
-            res[part] = _residual(problem, rows[part], f)
+            res[part] = gn_residual(problem, rows[part], f)
             mask = problem.mask[rows[part]].reshape(part.numel(), -1, 1)
             jac[part] = jf.reshape(part.numel(), -1, d) * mask
         need_jac[fresh] = False
         a_idx = active
         r, jj, wa = res[a_idx], jac[a_idx], w[a_idx]
-        cost = _cost(r, wa, loss)
+        cost = gn_cost(r, wa, loss)
         wk = wa / r.abs().clamp_min(l1_delta) if loss == "l1" else wa
         jtw = jj.transpose(1, 2) * wk[:, None, :]
         hess = jtw @ jj
@@ -121,8 +153,8 @@ def gauss_newton_residuals(
         step = torch.linalg.solve(system, -(grad * free)[..., None])[..., 0]
         v_new = (va + step).clamp(0.0, 1.0)
         with torch.no_grad():
-            r_new = _residual(problem, rows[a_idx], model.curves(v_new))
-        cost_new = _cost(r_new, wa, loss)
+            r_new = gn_residual(problem, rows[a_idx], model.curves(v_new))
+        cost_new = gn_cost(r_new, wa, loss)
         ok = cost_new < cost
         gain = (cost - cost_new) / cost.clamp_min(1e-30)
         v[a_idx[ok]] = v_new[ok]
@@ -148,7 +180,7 @@ def _keep_best(problem, rows, active, keep, w, loss, keep_first: bool, res) -> t
     """The active rows among the ``keep`` lowest-loss starts of each specimen (and its first
     start with ``keep_first``), by the residuals ``res`` (B, 4 * m) at the rows' current
     parameters."""
-    cost = torch.nan_to_num(_cost(res, w, loss), nan=float("inf"))
+    cost = torch.nan_to_num(gn_cost(res, w, loss), nan=float("inf"))
     n = problem.n_specimens
     k = len(rows) // n
     if k <= keep:

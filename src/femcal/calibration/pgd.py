@@ -46,14 +46,14 @@ from femcal.calibration.base import (
     chi2_p_value,
     register_calibrator,
 )
-from femcal.calibration.gauss_newton import _cost, _residual, gauss_newton
+from femcal.calibration.gauss_newton import gauss_newton, gn_cost, gn_residual
 from femcal.calibration.pgd_options import LOSSES as LOSSES
 from femcal.calibration.pgd_options import OPTIMIZERS as OPTIMIZERS
 from femcal.calibration.pgd_options import SELECT as SELECT
 from femcal.calibration.pgd_options import GaussNewtonOptions, PgdOptions
 from femcal.calibration.starts import (
-    _bank,
-    _combination_starts,
+    build_bank,
+    combination_starts,
     effect_bank,
     effect_starts,
     nearest_starts,
@@ -89,8 +89,8 @@ def adam(
     w = problem.weight[rows].reshape(len(rows), -1)
     for _ in range(steps):
         opt.zero_grad()
-        r = _residual(problem, rows, problem.model.curves(v))
-        _cost(r, w, loss).sum().backward()
+        r = gn_residual(problem, rows, problem.model.curves(v))
+        gn_cost(r, w, loss).sum().backward()
         opt.step()
         with torch.no_grad():
             v.clamp_(0.0, 1.0)
@@ -113,7 +113,7 @@ def lbfgsb(
 
     def fun(flat: np.ndarray):
         vt = torch.tensor(flat.reshape(shape), dtype=torch.float32, requires_grad=True)
-        total = _cost(_residual(problem, rows, problem.model.curves(vt)), w, loss).sum()
+        total = gn_cost(gn_residual(problem, rows, problem.model.curves(vt)), w, loss).sum()
         total.backward()
         return float(total.detach()), vt.grad.double().numpy().reshape(-1)
 
@@ -210,7 +210,7 @@ def pgd(
             halving_after, o.effect_keep, sum(s.shape[1] for s in starts), max_iter
         )
     else:
-        bank_v, bank_pred = _bank(problem, start_bank, o.n_bank_uniform, rng)
+        bank_v, bank_pred = build_bank(problem, start_bank, o.n_bank_uniform, rng)
         idx = nearest_starts(problem, bank_v, bank_pred, o.n_starts)
         k_bank = idx.shape[1]
         starts = [bank_v[idx]] if k_bank else []
@@ -360,7 +360,7 @@ def _combination_round(problem, v, rows, k, o, newton):
         mae = problem.scores(model.curves(v), rows)["mae"].reshape(n, k)
     mae = torch.nan_to_num(mae, nan=float("inf"))
     best = v.reshape(n, k, d)[torch.arange(n), mae.argmin(1)]
-    v0 = _combination_starts(model, best, o.effect_levels, o.effect_shape_starts)
+    v0 = combination_starts(model, best, o.effect_levels, o.effect_shape_starts)
     k = v0.shape[1]
     rows = torch.arange(n).repeat_interleave(k)
     v, nit, converged = newton(v0.reshape(n * k, d), rows, k)

@@ -14,7 +14,32 @@ from femcal.errors import ConfigError
 _BANK_BATCH = 8192
 
 
-def _bank(problem: CalibrationProblem, start_bank: np.ndarray | None, n_uniform: int, rng):
+def build_bank(problem: CalibrationProblem, start_bank: np.ndarray | None, n_uniform: int, rng):
+    """The candidate starts of a calibration and the model's curves at each.
+
+    Parameters
+    ----------
+    problem : CalibrationProblem
+        The problem; its model maps physical parameters to unit coordinates.
+    start_bank : ndarray, shape (N, dim) or (N, n_disc), or None
+        Given starts in physical units; an effect model takes disc-only starts as well.
+    n_uniform : int
+        Number of starts drawn uniformly in the unit box.
+    rng : numpy.random.Generator
+        Draws the uniform starts.
+
+    Returns
+    -------
+    v : Tensor, shape (N + n_uniform, dim)
+        The starts in unit coordinates.
+    pred : Tensor, shape (N + n_uniform, 4, m)
+        The model's RoM in degrees at each start.
+
+    Raises
+    ------
+    ConfigError
+        ``start_bank`` has neither ``dim`` nor ``n_disc`` columns.
+    """
     model = problem.model
     parts = []
     if start_bank is not None and len(start_bank):
@@ -168,7 +193,7 @@ def _effect_blocks(model, levels, shape_starts: int) -> list[tuple[int, int, tor
     return out
 
 
-def _combination_starts(model, best: torch.Tensor, levels, shape_starts: int) -> torch.Tensor:
+def combination_starts(model, best: torch.Tensor, levels, shape_starts: int) -> torch.Tensor:
     """Starts (n, 1 + g, d) from each specimen's best solution ``best`` (n, d): itself, then each
     effect's grid and design with the disc and the other effects where ``best`` has them (so a
     second effect can join one the first round found)."""

@@ -20,27 +20,27 @@ from femcal.diagnose.discrepancy import (
     similarity,
 )
 from femcal.diagnose.explain import (
-    _adequacy,
-    _dense_base,
-    _dense_curves,
-    _failures,
-    _missing_text,
-    _next_measurement,
-    _own_range,
-    _ranking,
-    _signatures,
-    _summary,
+    adequacy_tests,
+    dense_base_model,
+    dense_curves,
+    effect_ranking,
+    effect_signatures,
+    failures,
+    missing_text,
+    next_measurement,
+    own_range,
+    summary_text,
 )
-from femcal.diagnose.fits import _Fit
+from femcal.diagnose.fits import Fit
 from femcal.diagnose.result import NONE, RESEMBLES, Diagnosis, SpecimenDiagnosis, model_label
 from femcal.diagnose.state import DiagnosisState
 
 
-def _assemble(
+def assemble_result(
     state: DiagnosisState,
     decision: Decision,
     *,
-    disc: _Fit,
+    disc: Fit,
     sur: np.ndarray,
     noise_used: float,
     noise_sd: float,
@@ -71,14 +71,14 @@ def _assemble(
     out: list[SpecimenDiagnosis] = []
     for i, spec in enumerate(state.specimens):
         d = decided[i]
-        ranking = _ranking(state.per_spec[i], i, measured, sigma, state.log_n, base, mask)
+        ranking = effect_ranking(state.per_spec[i], i, measured, sigma, state.log_n, base, mask)
         f, pos = state.per_spec[i][d.chosen]
         final_res = measured[i] - f.pred[pos].double().numpy()
-        own = _own_range(dense, moments, mask[i])
+        own = own_range(dense, moments, mask[i])
         curves = {"moments": dense, NONE: np.where(own, curves0[i], np.nan)}
         if d.model and d.model == tuple(d.chosen):
             curves[model_label(d.chosen)] = np.where(own, final_curves[i], np.nan)
-        nxt = _next_measurement(
+        nxt = next_measurement(
             ranking,
             state.per_spec[i],
             probe_base,
@@ -97,7 +97,7 @@ def _assemble(
                 baseline_mae_deg=float(mae0[i]),
                 ranking=ranking,
                 residuals=resid,
-                failures=_failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
+                failures=failures(resid, sigma[i], moments, unit_disc[i], base.space.names),
                 effects=[t.effect for t in d.model],
                 model=[str(t) for t in d.model],
                 load_cases={t.effect: list(t.acting) for t in d.model},
@@ -139,7 +139,7 @@ def _written(reading: dict[str, Any] | None) -> dict[str, Any] | None:
     return out
 
 
-def _adequacies(state: DiagnosisState, decided, disc: _Fit) -> list[dict[str, Any]]:
+def _adequacies(state: DiagnosisState, decided, disc: Fit) -> list[dict[str, Any]]:
     """Per specimen: the chi-square and runs tests of its decided model (``decided``, per
     specimen a :class:`~femcal.diagnose.decide.SpecimenDecision`) and of the disc alone."""
     out = []
@@ -151,8 +151,10 @@ def _adequacies(state: DiagnosisState, decided, disc: _Fit) -> list[dict[str, An
         n_i = float(state.n_points[i])
         out.append(
             {
-                "final": _adequacy(res, state.sigma[i], n_i - float(f.trace[pos]), alpha),
-                "disc_alone": _adequacy(res0, state.sigma[i], n_i - float(disc.trace[i]), alpha),
+                "final": adequacy_tests(res, state.sigma[i], n_i - float(f.trace[pos]), alpha),
+                "disc_alone": adequacy_tests(
+                    res0, state.sigma[i], n_i - float(disc.trace[i]), alpha
+                ),
             }
         )
     return out
@@ -166,14 +168,14 @@ def _describe(state, decision: Decision, dense, adequacy, pred0) -> list:
     probabilities = [d.probabilities for d in decision.specimens]
     out: list[dict[str, Any] | None] = [None] * state.n
     moments = state.base.moments.double().numpy()
-    signatures = _signatures(state.per_spec, state.candidates, pred0, state.n)
+    signatures = effect_signatures(state.per_spec, state.candidates, pred0, state.n)
     sigma_deg = float(state.sigma_m.min())
     for effects, members in finals.items():
         rows = np.asarray(members)
         dfit = gp[effects]
         mean, sd = discrepancy_posterior(dfit, moments, dense, state.mask[rows])
         for pos, i in enumerate(rows):
-            own = _own_range(dense, moments, state.mask[i])
+            own = own_range(dense, moments, state.mask[i])
             mu = np.where(own, mean[pos], np.nan)
             sdev = np.where(own, sd[pos], np.nan)
             sim = similarity(dfit.delta_at_points[pos], signatures[i], state.sigma[i])
@@ -181,7 +183,7 @@ def _describe(state, decision: Decision, dense, adequacy, pred0) -> list:
             resembles = best_sim if best_sim and sim[best_sim] >= RESEMBLES else None
             f, at = state.per_spec[i][effects]
             final_res = state.measured[i] - f.pred[at].double().numpy()
-            text = _missing_text(
+            text = missing_text(
                 dense, mu, sdev, sigma_deg, final_res, state.sigma[i], probabilities[i]
             )
             out[i] = {
@@ -191,7 +193,9 @@ def _describe(state, decision: Decision, dense, adequacy, pred0) -> list:
                 "mae_deg": float(dfit.mae_deg[pos]),
                 "amplitude_deg": [float(a) for a in dfit.amplitude_deg[pos]],
                 "description": text,
-                "summary": _summary(text, resembles, sim, adequacy[i]["final"], probabilities[i]),
+                "summary": summary_text(
+                    text, resembles, sim, adequacy[i]["final"], probabilities[i]
+                ),
                 "similarity": sim,
                 "resembles": resembles,
             }
@@ -201,15 +205,15 @@ def _describe(state, decision: Decision, dense, adequacy, pred0) -> list:
 def _curves(state: DiagnosisState, finals, dense: np.ndarray, v_disc):
     """Continuous curves on ``dense`` of the disc alone (n, 4, q) and, per specimen, of its
     final model (4, q)."""
-    dense_base = _dense_base(state.base, dense)
-    curves0 = _dense_curves(dense_base, (), v_disc)
+    dense_base = dense_base_model(state.base, dense)
+    curves0 = dense_curves(dense_base, (), v_disc)
     final_curves: dict[int, np.ndarray] = {}
     for effects, members in finals.items():
         if not effects:
             for i in members:
                 final_curves[i] = curves0[i]
             continue
-        cv = _dense_curves(dense_base, effects, state.solutions(members, effects))
+        cv = dense_curves(dense_base, effects, state.solutions(members, effects))
         for pos, i in enumerate(members):
             final_curves[i] = cv[pos]
     return curves0, final_curves
@@ -220,11 +224,11 @@ def _probe(state: DiagnosisState, dense: np.ndarray, noise_used: float, moment_p
     surrogate's larger error there), else the measured range. The dense model, the moments
     and their sigma."""
     moments = state.base.moments.double().numpy()
-    dense_base = _dense_base(state.base, dense)
+    dense_base = dense_base_model(state.base, dense)
     sigma_dense = np.interp(np.log(dense), np.log(moments), state.sigma_m)
     if moment_policy is None or dense_base is None:
         return dense_base, dense, sigma_dense
     lo, hi = moment_policy.accepted_range
     probe = np.unique(np.concatenate([np.geomspace(lo, hi, state.options.curve_points), moments]))
     sigma_probe = np.sqrt(noise_used**2 + moment_policy.sigma_surrogate(probe) ** 2)
-    return _dense_base(state.base, probe), probe, sigma_probe
+    return dense_base_model(state.base, probe), probe, sigma_probe

@@ -16,7 +16,7 @@ import numpy as np
 
 from femcal.diagnose.box_edge import AT_BOUND, SOFTER, STIFFER
 from femcal.reachability import Z_OUTSIDE, build_envelope
-from femcal.reachability.envelope import _distances
+from femcal.reachability.envelope import envelope_distances
 from femcal.schema import LOAD_CASES
 
 #: Points beyond the disc alone's envelope (its level, by more than the reachability check's
@@ -76,7 +76,7 @@ def box_evidence(
     """
     if env is None:
         env = build_envelope(base, sigma_model=np.zeros(len(sigma_m)))
-    d = _distances(measured, env, np.asarray(sigma_m, dtype=float))
+    d = envelope_distances(measured, env, np.asarray(sigma_m, dtype=float))
     names = list(base.space.names)
     out = []
     for i in range(len(measured)):

@@ -109,14 +109,14 @@ def _draw(state, i: int, rng: np.random.Generator, count: int) -> np.ndarray:
 def _pressed(state, i: int, sim: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Bounds pressed (r,) by the disc-alone fits of the curves ``sim`` (r, 4, m) under
     specimen ``i``'s weights; ``rng`` feeds the fit's starts (the same draws for any r)."""
-    from femcal.diagnose.search import _disc_fit  # the same fit (search imports this module)
+    from femcal.diagnose.search import disc_fit  # the same fit (search imports this module)
 
     base = state.base
     weight = np.ascontiguousarray(np.broadcast_to(state.weight[i], sim.shape))
     fit_state = types.SimpleNamespace(
         base=base, measured=sim, rng=rng, start_bank=state.start_bank, options=state.options
     )
-    v_fit, _ = _disc_fit(fit_state, weight)
+    v_fit, _ = disc_fit(fit_state, weight)
     return bounds_pressed(base.space.to_unit(base.to_physical(v_fit.double().numpy())))
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from femcal.diagnose.balance import balance_stand_ins
 from femcal.diagnose.discrepancy import DiscrepancyFit, fit_discrepancy
-from femcal.diagnose.fits import _Fit
+from femcal.diagnose.fits import Fit
 from femcal.diagnose.outside import assess
 from femcal.diagnose.probabilities import bootstrap_rng, outside_label, specimen_probabilities
 from femcal.diagnose.result import UNEXPLAINED, model_label, verdict_label
@@ -91,13 +91,13 @@ class Decision:
     specimens: tuple[SpecimenDecision, ...]
 
 
-def decide(state: DiagnosisState, disc: _Fit) -> Decision:
+def decide(state: DiagnosisState, disc: Fit) -> Decision:
     """Each specimen's model and verdict: the most probable explanation (see the module
     docstring); ``disc`` is the disc alone's fit of every specimen of ``state``.
 
     Reads ``state.chosen``, every fit in ``state.per_spec`` and ``disc``; changes
     ``state.chosen`` (where another fitted model is the most probable) and the fits' effective
-    parameters and covariance (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`, once per fit).
+    parameters and covariance (:meth:`~femcal.diagnose.fits.Fit.ensure_trace`, once per fit).
     """
     # One Jacobian per fitted batch: effective parameters and covariance of every model.
     for i in range(state.n):
@@ -145,7 +145,7 @@ def _specimen(
     return SpecimenDecision(chosen, verdict, model, adequate, probabilities, reading)
 
 
-def _outside_box(state: DiagnosisState, disc: _Fit, finals, gp, probabilities):
+def _outside_box(state: DiagnosisState, disc: Fit, finals, gp, probabilities):
     """The out-of-box reading (:func:`femcal.diagnose.outside.assess`) with each specimen's
     discrepancy and curves of its final model (``finals``, ``gp`` per final model): the
     probabilities shared out, and per specimen the reading or None. Where the box is named,

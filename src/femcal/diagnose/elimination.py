@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from femcal.diagnose.discrepancy import fit_discrepancy
-from femcal.diagnose.fits import _columns
+from femcal.diagnose.fits import design_columns
 from femcal.diagnose.state import DiagnosisState
 from femcal.effects.base import get_effect
 from femcal.effects.terms import Model
@@ -131,7 +131,7 @@ class _Elimination:
         v_gls = torch.stack([self.gls[(i, current)][1] for i in members])
         for drop in current:
             rest = current.without(drop)
-            cols = _columns(state.base.dim, current, rest)
+            cols = design_columns(state.base.dim, current, rest)
             # In the dropped effect's own load cases the discrepancy may be no larger than the
             # model with the effect needed there: it may not take over what the effect
             # explained; elsewhere it is free, so the disc can stop bending towards physics

@@ -16,7 +16,7 @@ from femcal.diagnose.discrepancy import (
     runs_p_value,
 )
 from femcal.diagnose.fits import (
-    _Fit,
+    Fit,
 )
 from femcal.diagnose.result import (
     model_label,
@@ -27,7 +27,7 @@ from femcal.schema import LOAD_CASES
 
 
 # ------------------------------------------------------------------------- adequacy
-def _adequacy(
+def adequacy_tests(
     res: np.ndarray, sigma: np.ndarray, dof: float, alpha: float, per_load_case: bool = False
 ) -> dict[str, Any]:
     """Chi-square and runs tests of residuals (4, m) against the noise.
@@ -35,6 +35,23 @@ def _adequacy(
     With ``per_load_case``, also a chi-square test in each load case (Bonferroni: level
     ``alpha / 4``, the model's effective parameters shared out by the load case's points): an
     effect missing in one or two load cases drowns in the pooled test when the others fit well.
+
+    Parameters
+    ----------
+    res : ndarray, shape (4, m)
+        Residuals in degrees, NaN where not measured.
+    sigma : ndarray, shape (4, m)
+        Noise sd in degrees.
+    dof : float
+        Degrees of freedom of the pooled chi-square test (at least 1 is used).
+    alpha : float
+        Significance level.
+
+    Returns
+    -------
+    dict
+        ``chi2``, ``dof``, ``p_chi2``, ``p_runs``, ``adequate`` (bool) and, with
+        ``per_load_case``, ``p_chi2_load_case`` (4 p-values).
     """
     z = res / sigma
     chi2 = float(np.nansum(z**2))
@@ -63,8 +80,8 @@ def _adequacy(
     return out
 
 
-def _adequate_quick(
-    fit: _Fit, pos: int, i: int, measured, sigma, n_points, alpha, per_load_case: bool = False
+def adequate_quick(
+    fit: Fit, pos: int, i: int, measured, sigma, n_points, alpha, per_load_case: bool = False
 ) -> bool:
     """Adequacy during the search: the final test's degrees of freedom (``n - trace`` of the
     hat matrix, one Jacobian per fitted batch) where the fit has them, else ``n - k/2``.
@@ -72,15 +89,33 @@ def _adequate_quick(
     The search and the verdict must ask the same question: with ``n - k/2`` a short protocol
     (16 points, 15 parameters) passed a model during the search that the final test rejected,
     and the verdict said ``+unexplained`` where the next effect had never been tried.
+
+    Parameters
+    ----------
+    fit : Fit
+        A batch fit; ``pos`` is specimen ``i``'s row in it.
+    pos, i : int
+        Row in ``fit`` and specimen index.
+    measured, sigma : ndarray, shape (n, 4, m)
+        Measured RoM and noise sd in degrees (NaN where not measured).
+    n_points : ndarray of int, shape (n,)
+        Measured points per specimen.
+    alpha, per_load_case : float, bool
+        As in :func:`adequacy_tests`.
+
+    Returns
+    -------
+    bool
+        Whether the model is adequate for specimen ``i``.
     """
     res = measured[i] - fit.pred[pos].double().numpy()
     used = fit.k / 2 if fit.trace is None else float(fit.trace[pos])
     dof = float(n_points[i] - used)
-    return bool(_adequacy(res, sigma[i], dof, alpha, per_load_case)["adequate"])
+    return bool(adequacy_tests(res, sigma[i], dof, alpha, per_load_case)["adequate"])
 
 
 # ------------------------------------------------------------------------ reporting
-def _ranking(
+def effect_ranking(
     fits: dict,
     i: int,
     measured: np.ndarray,
@@ -91,9 +126,9 @@ def _ranking(
 ) -> list[dict[str, Any]]:
     """Every model fitted for specimen ``i`` (``fits``: Model -> (fit, row)) as the result
     holds it: its label and terms written, MAE, the search's criterion (``cost`` (n,) per
-    parameter, :meth:`femcal.diagnose.fits._Fit.criterion`), its effective number of
+    parameter, :meth:`femcal.diagnose.fits.Fit.criterion`), its effective number of
     parameters and the effect parameters ± sd. ``mask`` (n, 4, m): the cohort's measured
-    points; every fit's trace is known (:meth:`~femcal.diagnose.fits._Fit.ensure_trace`)."""
+    points; every fit's trace is known (:meth:`~femcal.diagnose.fits.Fit.ensure_trace`)."""
     rows = []
     for effects, (f, pos) in fits.items():
         pred = f.pred[pos].double().numpy()
@@ -130,11 +165,28 @@ def _ranking(
     return rows
 
 
-def _signatures(
+def effect_signatures(
     per_spec, candidates: list[Term], pred0: torch.Tensor, n: int
 ) -> list[dict[str, np.ndarray]]:
     """What each single effect adds to the disc-alone fit, per specimen (4, m), by the
-    candidate's written term."""
+    candidate's written term.
+
+    Parameters
+    ----------
+    per_spec : list of dict, length n
+        Per specimen, every fitted model -> (fit, row in the fit).
+    candidates : list of Term
+        The candidate effects; those never fitted alone for a specimen are left out.
+    pred0 : Tensor, shape (n, 4, m)
+        The disc-alone fit's curves in degrees.
+    n : int
+        Number of specimens.
+
+    Returns
+    -------
+    list of dict of str to ndarray, length n
+        Per specimen, the effect's written term -> curves minus ``pred0`` (4, m) in degrees.
+    """
     out = []
     for i in range(n):
         sig = {}
@@ -146,7 +198,7 @@ def _signatures(
     return out
 
 
-def _missing_text(
+def missing_text(
     dense: np.ndarray,
     mean: np.ndarray,
     sd: np.ndarray,
@@ -178,13 +230,34 @@ def _missing_text(
     ]
 
 
-def _summary(
+def summary_text(
     text: list[str],
     resembles: str | None,
     sim: dict[str, float],
     adequacy: dict[str, Any] | None = None,
     probabilities: dict[str, Any] | None = None,
 ) -> str:
+    """One specimen's discrepancy in one sentence: where it is, what it resembles.
+
+    Parameters
+    ----------
+    text : list of str
+        ``"<load case>: <description>"`` per load case with a discrepancy beyond the noise.
+    resembles : str or None
+        The registered effect whose signature the discrepancy resembles, if any.
+    sim : dict of str to float
+        Similarity (cosine, -1..1) of the discrepancy with each effect's signature.
+    adequacy : dict, optional
+        The adequacy tests (:func:`adequacy_tests`); its ``p_chi2`` is quoted.
+    probabilities : dict, optional
+        The specimen's probabilities; with ``unexplained`` set, the probability that
+        something outside the library is missing is quoted.
+
+    Returns
+    -------
+    str
+        The sentence.
+    """
     sure = ""
     if probabilities is not None and probabilities["unexplained"]:
         sure = (
@@ -209,7 +282,7 @@ def _summary(
     return f"missing in {', '.join(lcs)}: {what}. It {tail}.{sure}"
 
 
-def _own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Bool (4, q): the dense moments within each load case's own measured range."""
     out = np.zeros((len(LOAD_CASES), len(dense)), dtype=bool)
     for j in range(len(LOAD_CASES)):
@@ -219,14 +292,44 @@ def _own_range(dense: np.ndarray, moments: np.ndarray, mask: np.ndarray) -> np.n
     return out
 
 
-def _dense_base(base, dense: np.ndarray):
+def dense_base_model(base, dense: np.ndarray):
+    """The base model's surrogate evaluated on the dense moment grid ``dense`` (q,) in Nm.
+
+    Parameters
+    ----------
+    base : CurveModel
+        The base (disc) model; only a surrogate model has a dense counterpart.
+    dense : ndarray, shape (q,)
+        Moments in Nm.
+
+    Returns
+    -------
+    SurrogateCurveModel or None
+        Curves (.., 4, q) at ``dense``; None when ``base`` has no surrogate.
+    """
     surrogate = getattr(base, "surrogate", None)
     if surrogate is None:
         return None
     return SurrogateCurveModel(surrogate, dense, space=base.space)
 
 
-def _dense_curves(dense_base, effects: Model, v: torch.Tensor) -> np.ndarray:
+def dense_curves(dense_base, effects: Model, v: torch.Tensor) -> np.ndarray:
+    """The curves of model ``effects`` on the dense grid at parameters ``v``.
+
+    Parameters
+    ----------
+    dense_base : SurrogateCurveModel or None
+        The dense base model (:func:`dense_base_model`).
+    effects : Model
+        The effects added to the base (none: the base alone).
+    v : Tensor, shape (r, dim)
+        Parameters in unit coordinates.
+
+    Returns
+    -------
+    ndarray, shape (r, 4, q)
+        RoM in degrees, float64; all NaN with shape (r, 4, 1) when ``dense_base`` is None.
+    """
     if dense_base is None:
         return np.full((v.shape[0], len(LOAD_CASES), 1), np.nan)
     model = dense_base if not effects else EffectModel(dense_base, list(effects))
@@ -275,7 +378,7 @@ def _repeats_grid(
     return k
 
 
-def _next_measurement(
+def next_measurement(
     ranking,
     fits,
     dense_base,
@@ -335,7 +438,7 @@ def _closest_rival(
     noise_parts: tuple[np.ndarray, np.ndarray],
     min_delta: float,
 ) -> tuple[np.ndarray, tuple | None]:
-    """The rival of :func:`_next_measurement` that the fewest measurements settle against the
+    """The rival of :func:`next_measurement` that the fewest measurements settle against the
     chosen model ``best`` (ties: the larger difference in sigma, then the smaller criterion
     gap).
 
@@ -404,7 +507,7 @@ def _measurement_report(
     sigma_dense: np.ndarray,
     measured_moments,
 ) -> dict[str, Any]:
-    """The point of :func:`_next_measurement` for the rival ``pick`` of :func:`_closest_rival`
+    """The point of :func:`next_measurement` for the rival ``pick`` of :func:`_closest_rival`
     (the chosen model's curves ``best_curve`` (4, q) on the moments ``dense`` (q,), Nm): where
     the fewest repeats settle the two, else where they differ most in sigma; with
     ``measured_moments``, whether it lies within the specimen's measured range and, where it
@@ -449,10 +552,28 @@ def _measurement_report(
     return out
 
 
-def _failures(
+def failures(
     resid: np.ndarray, sigma: np.ndarray, moments: np.ndarray, x_unit: np.ndarray, names
 ) -> dict[str, Any]:
-    """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds."""
+    """Where the disc alone fails: points beyond 2 sigma, sign runs, parameters on bounds.
+
+    Parameters
+    ----------
+    resid, sigma : ndarray, shape (4, m)
+        Residuals (NaN where not measured) and noise sd, in degrees.
+    moments : ndarray, shape (m,)
+        Moments in Nm.
+    x_unit : ndarray, shape (d,)
+        The disc's parameters in unit coordinates.
+    names : sequence of str, length d
+        The parameters' names.
+
+    Returns
+    -------
+    dict
+        ``beyond_2_sigma`` (per load case: moments and largest ``|z|``), ``sign_pattern``
+        (load case -> ``"+-..."``) and ``on_bounds`` (names within ``AT_BOUND`` of a bound).
+    """
     z = resid / sigma
     out: dict[str, Any] = {"beyond_2_sigma": [], "sign_pattern": {}, "on_bounds": []}
     for j, lc in enumerate(LOAD_CASES):

@@ -3,7 +3,7 @@ the hat trace and the parameter covariance.
 
 *Starts* have one shape throughout the search: a tensor (r, g, dim), ``g`` starts of unit
 coordinates for each of ``r`` specimens (``g = 1`` for one start each). Only
-:func:`_fit_from` lays them out as Gauss-Newton takes them, through :class:`Starts`, which
+:func:`fit_from` lays them out as Gauss-Newton takes them, through :class:`Starts`, which
 holds every conversion between the two layouts.
 """
 
@@ -77,12 +77,26 @@ class Starts:
 
 
 # ------------------------------------------------------------------------ fitting helpers
-def _weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    """Relative weights 1/sigma^2 of every point (the optimiser normalises them)."""
+def point_weights(sigma: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Relative weights 1/sigma^2 of every point (the optimiser normalises them).
+
+    Parameters
+    ----------
+    sigma : ndarray, shape broadcastable to ``shape``
+        Noise sd in degrees, for example (n, 4, m) or (n, 1, 1).
+    shape : tuple of int
+        The weights' shape, for example (n, 4, m).
+
+    Returns
+    -------
+    ndarray, shape ``shape``
+        ``(min(sigma) / sigma) ** 2``: 1 at the smallest noise, dimensionless (a read-only
+        broadcast view).
+    """
     return np.broadcast_to((sigma.min() / sigma) ** 2, shape)
 
 
-def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+def chi_square(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Chi-square over the measured points, shape (n,): ``pred`` (n, 4, m), ``measured``
     (n, 4, m) NaN where not measured, ``sigma`` (n, 4, m). A prediction that is not finite at a
     measured point makes it inf (that model cannot be chosen), not a skipped point."""
@@ -91,7 +105,7 @@ def _chi2(pred: torch.Tensor, measured: np.ndarray, sigma: np.ndarray) -> np.nda
     return np.where(np.isfinite(chi2), chi2, np.inf)
 
 
-def _starts(
+def fit_starts(
     model: EffectModel,
     effects: Model,
     prev: Model,
@@ -148,7 +162,7 @@ def _split_start(v: torch.Tensor, effects: Model, split: Model) -> torch.Tensor:
     return torch.cat(parts, dim=1)
 
 
-def _split_starts(
+def split_starts(
     v: torch.Tensor, effects: Model, split: Model, levels: Sequence[float]
 ) -> torch.Tensor:
     """Starts (r, g, dim') of ``split`` from a fit of ``effects`` (r, dim): the tied values
@@ -175,19 +189,42 @@ def _split_starts(
     return torch.stack(starts, dim=1)
 
 
-def _solutions(per_spec: list[dict], rows, effects: Model) -> torch.Tensor:
+def fit_solutions(per_spec: list[dict], rows, effects: Model) -> torch.Tensor:
     """Unit coordinates (len(rows), dim) of model ``effects`` fitted to specimens ``rows``."""
     return torch.stack([per_spec[i][effects][0].v[per_spec[i][effects][1]] for i in rows])
 
 
-def _columns(n_disc: int, effects: Model, rest: Model) -> list[int]:
+def design_columns(n_disc: int, effects: Model, rest: Model) -> list[int]:
     """Columns of an EffectModel of ``effects`` that an EffectModel of ``rest`` keeps."""
     offsets = _slices_of(effects)
     return list(range(n_disc)) + [n_disc + c for e in rest for c in range(*offsets[e])]
 
 
 @dataclass
-class _Fit:
+class Fit:
+    """One model fitted to a set of specimens: its parameters, curves and goodness of fit.
+
+    Attributes
+    ----------
+    effects : Model
+        The effects added to the disc (none: the disc alone).
+    model : CurveModel
+        The fitted curve model.
+    v : Tensor, shape (r, dim)
+        Best parameters in unit coordinates, one row per specimen of ``rows``.
+    rows : ndarray of int, shape (r,)
+        Specimen indices.
+    pred : Tensor, shape (r, 4, m)
+        Fitted RoM in degrees.
+    chi2 : ndarray, shape (r,)
+        Chi-square of each specimen's fit (residuals over the stated noise).
+    k : int
+        Number of model parameters.
+    trace, cov, finite, occam : ndarray or None
+        Effective number of parameters (r,), parameter covariance (r, dim, dim) in unit
+        coordinates, whether the Jacobian is finite (r,), and ln det(I + J^T J / 2 pi) (r,).
+    """
+
     effects: Model
     model: Any
     v: torch.Tensor  # (r, dim) for the specimens ``rows``
@@ -200,7 +237,7 @@ class _Fit:
     finite: np.ndarray | None = None  # (r,) the Jacobian is finite
     occam: np.ndarray | None = None  # (r,) ln det(I + J^T J / 2 pi), unit coordinates
 
-    def take(self, positions: Sequence[int], rows: Sequence[int]) -> _Fit:
+    def take(self, positions: Sequence[int], rows: Sequence[int]) -> Fit:
         """The fit of the batch members at ``positions``, renumbered as specimens ``rows``."""
         pos = list(positions)
         sel = torch.as_tensor(pos, dtype=torch.long)
@@ -208,7 +245,7 @@ class _Fit:
         def part(x):
             return None if x is None else x[pos]
 
-        return _Fit(
+        return Fit(
             self.effects,
             self.model,
             self.v[sel],
@@ -240,11 +277,32 @@ class _Fit:
         return float(self.chi2[pos] + float(self.trace[pos]) * cost)
 
 
-def _fit_from(
-    model, measured, weight, sigma, rows: np.ndarray, starts: torch.Tensor, max_iter: int
-):
+def fit_from(model, measured, weight, sigma, rows: np.ndarray, starts: torch.Tensor, max_iter: int):
     """Gauss-Newton from ``starts`` (r, g, dim) of the specimens ``rows`` (r,); the best start
     per specimen: unit coordinates (r, dim), curves (r, 4, m) and chi-square (r,).
+
+    Parameters
+    ----------
+    model : CurveModel
+        The model fitted.
+    measured : ndarray, shape (n, 4, m)
+        Measured RoM in degrees, NaN where not measured.
+    weight : ndarray, shape (n, 4, m)
+        Point weights (:func:`point_weights`).
+    sigma : ndarray, shape (n, 4, m)
+        Noise sd in degrees.
+    rows : ndarray of int, shape (r,)
+        The specimens fitted.
+    starts : Tensor, shape (r, g, dim)
+        ``g`` starts per specimen in unit coordinates.
+    max_iter : int
+        Gauss-Newton iterations at most.
+
+    Returns
+    -------
+    v : Tensor, shape (r, dim)
+    pred : Tensor, shape (r, 4, m)
+    chi2 : ndarray, shape (r,)
 
     The starts are ranked by the chi-square of Gauss-Newton's own final residuals; only the
     best start's curves are evaluated again (its chi-square from them). The Jacobian is exact
@@ -263,4 +321,4 @@ def _fit_from(
     v = layout.pick(v, best)
     with torch.no_grad():
         pred = model.curves(v)
-    return v, pred, _chi2(pred, measured[rows], sigma[rows])
+    return v, pred, chi_square(pred, measured[rows], sigma[rows])

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from femcal.diagnose.fits import _solutions, _split_starts
+from femcal.diagnose.fits import fit_solutions, split_starts
 from femcal.effects.split import has_split_form
 from femcal.effects.terms import Model, Term
 
@@ -38,7 +38,7 @@ def choose_forms(state: DiagnosisState) -> None:
 
     Each split starts from the tied fit, its values copied into every load case, and from each
     load case's copy moved alone over the start levels
-    (:func:`femcal.diagnose.fits._split_starts`).
+    (:func:`femcal.diagnose.fits.split_starts`).
 
     Reads ``state.chosen`` and their fits in ``state.per_spec``; changes ``state.per_spec``
     (the split forms fitted) and ``state.chosen`` (where a split pays).
@@ -55,8 +55,8 @@ def choose_forms(state: DiagnosisState) -> None:
         if not jobs:
             return
         for (current, split), rows in jobs.items():
-            v = _solutions(per_spec, rows, current)
-            v0 = _split_starts(v, current, split, state.options.effect_levels)
+            v = fit_solutions(per_spec, rows, current)
+            v0 = split_starts(v, current, split, state.options.effect_levels)
             state.fit(split, np.asarray(rows), v0)
         changed = 0
         for i, current in enumerate(chosen):

@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from femcal.calibration.base import CalibrationProblem
-from femcal.calibration.starts import _combination_starts, effect_bank, nearest_starts
-from femcal.diagnose.fits import _Fit, _fit_from, _split_starts, _starts
+from femcal.calibration.starts import combination_starts, effect_bank, nearest_starts
+from femcal.diagnose.fits import Fit, fit_from, fit_starts, split_starts
 from femcal.diagnose.forms import split_one
 from femcal.diagnose.state import DiagnosisState
 from femcal.diagnose.where import engaged, wide_terms
@@ -119,7 +119,7 @@ def _split_added(
     for (current, split), rows in jobs.items():
         todo = [i for i in rows if split not in state.per_spec[i]]  # a pair's form is fitted
         if todo:
-            v0 = _split_starts(
+            v0 = split_starts(
                 state.solutions(todo, current), current, split, state.options.effect_levels
             )
             state.fit(split, np.asarray(todo), v0)
@@ -181,7 +181,7 @@ def _fit_pairs(
     flexible effect over all load cases explains more of it alone. The tied pair starts from
     the better-fitting member's solution with the other's grid and the start bank
     (:func:`_new_effect_starts`); a split form from the tied pair's fit
-    (:func:`femcal.diagnose.fits._split_starts`) and from its members' own fits side by side
+    (:func:`femcal.diagnose.fits.split_starts`) and from its members' own fits side by side
     (:func:`_members_start`); each then takes the combination rounds of the next levels.
     Returns, per specimen, the pair models fitted."""
     out: dict[int, list[Model]] = {}
@@ -203,7 +203,7 @@ def _fit_pairs(
             _refine_combination(state, fit)
         forms = _split_forms(pair)
         for form in forms:
-            v0 = _split_starts(state.solutions(rows, pair), pair, form, state.options.effect_levels)
+            v0 = split_starts(state.solutions(rows, pair), pair, form, state.options.effect_levels)
             v0 = torch.cat([v0, _members_start(state, rows, form)], 1)
             fit = state.fit(form, np.asarray(rows), v0)
             _refine_combination(state, fit)
@@ -245,7 +245,7 @@ def _fit_splits(
     """Every candidate effect split per load case for the specimens ``rows``, added to their
     ``children``: a law tied across load cases may not fit a specimen whose anatomy differs
     between them, and an effect whose tied form loses to another's may win split. Each split
-    form starts from its tied fit (:func:`femcal.diagnose.fits._split_starts`) and, like a new
+    form starts from its tied fit (:func:`femcal.diagnose.fits.split_starts`) and, like a new
     effect, from the disc alone's solution with the effect's grid and from the start bank
     (:func:`_new_effect_starts`): the disc the tied law bent holds a split fit near the tied
     one. The first level then chooses among tied and split forms, a split paying its prior
@@ -257,7 +257,7 @@ def _fit_splits(
         if has_split_form(name):
             split = Model.of(name.as_split())
             v = state.solutions(rows, Model.of(name))
-            v0 = _split_starts(v, Model.of(name), split, state.options.effect_levels)
+            v0 = split_starts(v, Model.of(name), split, state.options.effect_levels)
             w0 = _new_effect_starts(state, rows_a, Model(), name.as_split(), banks)
             state.fit(split, rows_a, torch.cat([v0, w0], dim=1))
             for i in rows:
@@ -305,7 +305,7 @@ def _new_effect_starts(
     options = state.options
     effects = current.plus(new)
     model = state.model(effects)
-    v0 = _starts(model, effects, current, state.solutions(rows, current), new, options)
+    v0 = fit_starts(model, effects, current, state.solutions(rows, current), new, options)
     if state.start_bank is not None and options.bank_starts > 0:
         if effects not in banks:
             banks[effects] = effect_bank(
@@ -349,18 +349,18 @@ def _extend(
     return children
 
 
-def _refine_combination(state: DiagnosisState, fit: _Fit) -> None:
+def _refine_combination(state: DiagnosisState, fit: Fit) -> None:
     """More rounds for the specimens whose combination fit does not explain the data yet
     (``chi2`` above ``n - k/2``): each effect again from its grid and a small design, the disc
-    and the other effects as found (:func:`femcal.calibration.starts._combination_starts`);
+    and the other effects as found (:func:`femcal.calibration.starts.combination_starts`);
     the better fit is kept (``fit`` updated in place)."""
     model, rows = fit.model, fit.rows
     for _ in range(state.options.combination_rounds):
         bad = np.flatnonzero(fit.chi2 > np.maximum(state.n_points[rows] - model.dim / 2, 1.0))
         if bad.size == 0:
             return
-        v1 = _combination_starts(model, fit.v[bad], state.options.effect_levels, 8)
-        v2, p2, c2 = _fit_from(
+        v1 = combination_starts(model, fit.v[bad], state.options.effect_levels, 8)
+        v2, p2, c2 = fit_from(
             model, state.measured, state.weight, state.sigma, rows[bad], v1, state.options.max_iter
         )
         better = c2 < fit.chi2[bad]

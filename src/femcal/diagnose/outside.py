@@ -114,7 +114,7 @@ REMEDY = (
 )
 
 
-def _ramp(flat: np.ndarray) -> np.ndarray:
+def stand_in_ramp(flat: np.ndarray) -> np.ndarray:
     """Stand-in probability of flatness values: 0 up to :data:`FLAT_ELEMENT`, 1 from
     :data:`FLAT_DISC`, linear between (NaN, where nothing acts, counts 0)."""
     ramp = (np.asarray(flat, dtype=float) - FLAT_ELEMENT) / (FLAT_DISC - FLAT_ELEMENT)
@@ -210,7 +210,7 @@ class ShapeReader:
         for name, (kind_side, share) in zip(effects, self.shares(effects, v[None, :])):
             flat = flatness(share[0], self.window[i])
             acts = np.flatnonzero(np.isfinite(flat))
-            ramp = _ramp(flat[acts])
+            ramp = stand_in_ramp(flat[acts])
             can = kind_side == side and (missing or kind_side == STIFFER)
             out[name] = {
                 "flatness": {LOAD_CASES[j]: round(float(flat[j]), 3) for j in acts},
@@ -247,7 +247,7 @@ def discrepancy_stand_in(delta: np.ndarray, pred: np.ndarray, side: str) -> dict
         ok = everywhere[j]
         if np.isfinite(flat[j]) and np.mean(share[j][ok]) <= 0:
             flat[j] = 0.0
-    ramp = np.sort(_ramp(flat))
+    ramp = np.sort(stand_in_ramp(flat))
     return {
         "flatness": {LOAD_CASES[j]: round(float(f), 3) for j, f in enumerate(flat)},
         "stand_in": float(ramp[1]) if ramp.size >= 2 else 0.0,
@@ -326,7 +326,7 @@ def assess(state, disc, probabilities: list[dict], delta: np.ndarray, final_pred
     ----------
     state : DiagnosisState
         The search's state: every fitted model, the chosen ones.
-    disc : _Fit
+    disc : Fit
         The disc alone's fit of every specimen.
     probabilities : list of dict, length n
         Each specimen's probabilities
@@ -452,7 +452,9 @@ def _reading(state, ev: dict, prob: dict, stand_ins: tuple, fitted: list[Model])
         if s["stand_in"] >= 0.5:
             lcs.update(s["stand_in_load_cases"])
     if gap is not None and gap["stand_in"] >= 0.5:
-        lcs.update(lc for lc, f in gap["flatness"].items() if _ramp(np.array([f]))[0] >= 0.5)
+        lcs.update(
+            lc for lc, f in gap["flatness"].items() if stand_in_ramp(np.array([f]))[0] >= 0.5
+        )
     space = state.base.space
     bounds = [
         {

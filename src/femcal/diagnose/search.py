@@ -58,10 +58,10 @@ import torch
 from femcal.calibration.base import CalibrationProblem
 from femcal.calibration.model import CurveModel
 from femcal.calibration.pgd import pgd
-from femcal.diagnose.assemble import _assemble
+from femcal.diagnose.assemble import assemble_result
 from femcal.diagnose.decide import decide
 from femcal.diagnose.elimination import open_world_elimination
-from femcal.diagnose.fits import _chi2, _columns, _Fit, _weights
+from femcal.diagnose.fits import Fit, chi_square, design_columns, point_weights
 from femcal.diagnose.forms import choose_forms
 from femcal.diagnose.forward import forward_selection
 from femcal.diagnose.options import DiagnoseOptions
@@ -182,11 +182,11 @@ def diagnose(
     noise_used, noise_sd = _noise(state, w, sur, noise_deg)
     state.sigma_m = np.sqrt(noise_used**2 + _per_moment(sur**2, state.mask))  # (m,): weight 1
     state.sigma = np.sqrt(noise_used**2 / w + sur**2)  # (n, 4, m): every point's own
-    state.weight = np.ascontiguousarray(_weights(state.sigma, measured.shape))
-    v_disc, pred0 = _disc_fit(state, state.weight)
+    state.weight = np.ascontiguousarray(point_weights(state.sigma, measured.shape))
+    v_disc, pred0 = disc_fit(state, state.weight)
     all_rows = np.arange(state.n)
-    chi2 = _chi2(pred0, measured, state.sigma)
-    disc = _Fit(Model(), base, v_disc, all_rows, pred0, chi2, base.dim)
+    chi2 = chi_square(pred0, measured, state.sigma)
+    disc = Fit(Model(), base, v_disc, all_rows, pred0, chi2, base.dim)
     state.per_spec = [{} for _ in range(state.n)]
     state.record(disc)
     state.chosen = [Model() for _ in range(state.n)]
@@ -198,9 +198,9 @@ def diagnose(
     return diag
 
 
-def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnosis:
+def _diagnose_group(state: DiagnosisState, *, disc: Fit, **keywords) -> Diagnosis:
     """Steps 2-8 for the specimens of ``state`` (``disc``: their disc-alone fit; ``keywords``
-    those of :func:`femcal.diagnose.assemble._assemble`): the search and the decision change
+    those of :func:`femcal.diagnose.assemble.assemble_result`): the search and the decision change
     ``state``; the description reads it and the decision."""
     forward_selection(state)
     choose_forms(state)
@@ -210,10 +210,10 @@ def _diagnose_group(state: DiagnosisState, *, disc: _Fit, **keywords) -> Diagnos
     if choose_cases(state) and state.options.backward:
         _backward(state)
     decision = decide(state, disc)
-    return _assemble(state, decision, disc=disc, **keywords)
+    return assemble_result(state, decision, disc=disc, **keywords)
 
 
-def _disc_fit(state: DiagnosisState, weight: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+def disc_fit(state: DiagnosisState, weight: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """The disc alone calibrated with ``pgd`` under ``weight`` (n, 4, m): unit coordinates
     (n, 13) and curves (n, 4, m).
 
@@ -257,7 +257,7 @@ def _noise(
             raise ConfigError(f"noise_deg must be > 0; got {noise_deg}.")
         return float(noise_deg), 0.0
     measured, mask = state.measured, state.mask
-    _, pred0 = _disc_fit(state, _weights(np.sqrt(0.05**2 / w + sur**2), measured.shape))
+    _, pred0 = disc_fit(state, point_weights(np.sqrt(0.05**2 / w + sur**2), measured.shape))
     r0 = np.where(mask, measured - pred0.double().numpy(), 0.0)
     dof = float(np.clip(state.n_points - state.base.dim / 2, 1, None).sum())
     # w r^2 estimates noise^2 + w surrogate_error^2 at a point (up to its leverage)
@@ -292,7 +292,7 @@ def _backward(state: DiagnosisState) -> None:
             v_cur = state.solutions(rows, current)
             for drop in current:
                 rest = current.without(drop)
-                v0 = v_cur[:, None, _columns(state.base.dim, current, rest)]
+                v0 = v_cur[:, None, design_columns(state.base.dim, current, rest)]
                 batch = (rest, rows.tobytes(), v0.numpy().tobytes())
                 if batch in fitted:
                     continue

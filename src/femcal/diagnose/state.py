@@ -10,8 +10,8 @@ import numpy as np
 import torch
 
 from femcal.calibration.model import CurveModel
-from femcal.diagnose.explain import _adequate_quick
-from femcal.diagnose.fits import _Fit, _fit_from, _solutions
+from femcal.diagnose.explain import adequate_quick
+from femcal.diagnose.fits import Fit, fit_from, fit_solutions
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.effects.composite import EffectModel
 from femcal.effects.terms import Model, Term
@@ -65,7 +65,7 @@ class DiagnosisState:
     candidates: list[Term]
     start_bank: np.ndarray | None
     rng: np.random.Generator
-    per_spec: list[dict[Model, tuple[_Fit, int]]] = field(default_factory=list)
+    per_spec: list[dict[Model, tuple[Fit, int]]] = field(default_factory=list)
     chosen: list[Model] = field(default_factory=list)
     _models: dict[Model, EffectModel] = field(default_factory=dict)
 
@@ -127,26 +127,26 @@ class DiagnosisState:
             sub.record(fit.take(keep, [rows.index(int(fit.rows[pos])) for pos in keep]))
         return sub
 
-    def record(self, fit: _Fit) -> None:
+    def record(self, fit: Fit) -> None:
         """Keep a batch fit as each of its specimens' fit of its model."""
         for pos, i in enumerate(fit.rows):
             self.per_spec[int(i)][fit.effects] = (fit, pos)
 
-    def fit(self, effects: Model, rows: np.ndarray, starts: torch.Tensor) -> _Fit:
+    def fit(self, effects: Model, rows: np.ndarray, starts: torch.Tensor) -> Fit:
         """Fit model ``effects`` to specimens ``rows`` (r,) from ``starts`` (r, g, dim); the
         best start per specimen, recorded."""
         model = self.model(effects)
         rows = np.asarray(rows)
-        v, pred, chi2 = _fit_from(
+        v, pred, chi2 = fit_from(
             model, self.measured, self.weight, self.sigma, rows, starts, self.options.max_iter
         )
-        fit = _Fit(effects, model, v, rows, pred, chi2, model.dim)
+        fit = Fit(effects, model, v, rows, pred, chi2, model.dim)
         self.record(fit)
         return fit
 
     def solutions(self, rows: Sequence[int], effects: Model) -> torch.Tensor:
         """Unit coordinates (r, dim) of model ``effects`` fitted to specimens ``rows``."""
-        return _solutions(self.per_spec, rows, effects)
+        return fit_solutions(self.per_spec, rows, effects)
 
     def criterion(self, effects: Model, i: int) -> float:
         """Specimen ``i``'s criterion of a fitted model: ``chi^2 + k ln n``, ``k`` the
@@ -159,6 +159,6 @@ class DiagnosisState:
         the effective degrees of freedom, and sign runs)."""
         fit, pos = self.per_spec[i][effects]
         fit.ensure_trace(self.mask, self.sigma)
-        return _adequate_quick(
+        return adequate_quick(
             fit, pos, i, self.measured, self.sigma, self.n_points, self.options.alpha
         )

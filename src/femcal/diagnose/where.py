@@ -57,7 +57,7 @@ def engaged(state: DiagnosisState, model: Model, rows: list[int]) -> np.ndarray:
     there is not flat, :func:`femcal.diagnose.outside.flatness`: a share about constant from
     low moments on is the disc's, stiffer or softer than the box, not an element's). True
     where the model holds no such load case or the disc has no network to read shapes with."""
-    from femcal.diagnose.outside import ShapeReader, _ramp, flatness
+    from femcal.diagnose.outside import ShapeReader, flatness, stand_in_ramp
 
     extra = [[LOAD_CASES.index(lc) for lc in e.beyond] for e in model]
     ok = np.ones(len(rows), dtype=bool)
@@ -70,7 +70,7 @@ def engaged(state: DiagnosisState, model: Model, rows: list[int]) -> np.ndarray:
         for js, (_, share) in zip(extra, shares):
             if js:
                 flat = flatness(share[k], reader.window[i])[js]
-                ok[k] &= bool(np.all(np.isfinite(flat)) and np.all(_ramp(flat) < 0.5))
+                ok[k] &= bool(np.all(np.isfinite(flat)) and np.all(stand_in_ramp(flat) < 0.5))
     return ok
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import os
 import shutil
 import socket
@@ -45,7 +46,6 @@ from femcal.fe.options import CampaignOptions
 from femcal.fe.store import (
     STORE_VERSION,
     CampaignStore,
-    _nan_to_none,
     job_hash,
     make_jobs,
     records_frame,
@@ -64,6 +64,11 @@ _LOG_SUFFIXES = (".sta", ".log", ".out", ".err", ".txt", ".cvg")
 
 # --------------------------------------------------------------------- worker side
 _ADAPTERS: dict[str, Any] = {}
+
+
+def _nan_to_none(values: Sequence[float]) -> list[float | None]:
+    """``values`` as JSON-ready floats, None where NaN, infinite or None."""
+    return [None if (v is None or not math.isfinite(float(v))) else float(v) for v in values]
 
 
 def _adapter(name: str, settings: Mapping[str, Any], digest: str) -> Any:

@@ -9,7 +9,6 @@ import gzip
 import hashlib
 import json
 import logging
-import math
 import os
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -122,10 +121,6 @@ def make_jobs(
 
 
 # ---------------------------------------------------------------------------- store
-def _nan_to_none(values: Sequence[float]) -> list[float | None]:
-    return [None if (v is None or not math.isfinite(float(v))) else float(v) for v in values]
-
-
 class CampaignStore:
     """An append-only JSON-lines store of finished jobs (one record per line).
 

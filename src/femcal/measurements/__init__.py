@@ -39,27 +39,27 @@ from pathlib import Path
 import numpy as np
 
 from femcal.errors import InputDataError
-from femcal.measurements.data import Measurements, _warn_missing, from_arrays
+from femcal.measurements.data import Measurements, from_arrays, warn_missing
 from femcal.measurements.parse import (
-    _LAYOUTS_HELP,
-    _LOAD_CASE_HELP,
+    LAYOUTS_HELP,
+    LOAD_CASE_HELP,
     LONG_COLUMNS,
     LONG_OPTIONAL_COLUMNS,
     WIDE_COLUMNS,
-    _assemble,
-    _curve,
-    _DataRows,
-    _fit_to_header,
-    _is_number,
-    _load_case,
-    _moment_columns,
-    _normalised_header,
-    _not_a_number,
-    _parse_number,
-    _Point,
-    _Problems,
-    _read_records,
-    _specimen,
+    DataRows,
+    Point,
+    Problems,
+    assemble_points,
+    curve_points,
+    fit_to_header,
+    is_number,
+    moment_columns,
+    normalised_header,
+    not_a_number,
+    parse_load_case,
+    parse_number,
+    parse_specimen,
+    read_records,
     stated_noise,
 )
 from femcal.schema import LOAD_CASES, canonical_load_case
@@ -74,7 +74,7 @@ _STUDY_FILE = re.compile(r"^ROM_Results_(?P<rest>.+)\.csv$", re.IGNORECASE)
 
 
 def _read_long(path: Path, header_line: int, header: list[str], records: list) -> Measurements:
-    names = _normalised_header(path, header, header_line)
+    names = normalised_header(path, header, header_line)
     lacking = [c for c in LONG_COLUMNS if c not in names]
     if lacking:
         raise InputDataError(
@@ -92,13 +92,13 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
             "Rename or delete them (a misspelt 'weight' would otherwise be ignored)."
         )
     col = {c: j for j, c in enumerate(names)}
-    rows = _DataRows(path, records, len(names))
+    rows = DataRows(path, records, len(names))
     problems = rows.problems
     for line, cells in rows:
-        specimen = _specimen(cells[col["specimen"]], line, "specimen", problems)
+        specimen = parse_specimen(cells[col["specimen"]], line, "specimen", problems)
         if specimen is not None:
             rows.add_row(specimen, line)
-        lc = _load_case(cells[col["load_case"]], line, "load_case", problems)
+        lc = parse_load_case(cells[col["load_case"]], line, "load_case", problems)
 
         values: dict[str, float] = {"weight": 1.0, "idp_mpa": math.nan}
         valid = specimen is not None and lc is not None
@@ -106,7 +106,7 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
             if name not in col:
                 continue
             text = cells[col[name]]
-            value = _parse_number(text)
+            value = parse_number(text)
             where = f"line {line}, column '{name}'"
             valid = valid and value is not None and not math.isnan(value)
             if value is None:
@@ -116,7 +116,7 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
                     "fill in the value or delete the row.",
                 )
             elif math.isnan(value):
-                problems.add(line, f"{where}: {_not_a_number(text)}.")
+                problems.add(line, f"{where}: {not_a_number(text)}.")
             elif name == "moment_nm" and value <= 0:
                 valid = False
                 problems.add(
@@ -144,7 +144,7 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
         if not valid:
             continue
         rows.points.append(
-            _Point(
+            Point(
                 specimen,
                 lc,
                 values["moment_nm"],
@@ -158,11 +158,11 @@ def _read_long(path: Path, header_line: int, header: list[str], records: list) -
 
 
 def _read_wide(path: Path, header_line: int, header: list[str], records: list) -> Measurements:
-    names = _normalised_header(path, header, header_line)
+    names = normalised_header(path, header, header_line)
     lacking = [c for c in WIDE_COLUMNS if c not in names]
     if lacking:
         study = ""
-        if all(_is_number(c) for c in header):
+        if all(is_number(c) for c in header):
             study = (
                 " If this is one of the study's ROM_Results_<LoadCase>*.csv files, pass the "
                 "folder that holds them instead of the file."
@@ -176,7 +176,7 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
     col = {c: j for j, c in enumerate(names)}
     moment_idx = [j for j, c in enumerate(names) if c not in WIDE_COLUMNS]
     moment_header = [header[j] for j in moment_idx]
-    moments = _moment_columns(
+    moments = moment_columns(
         path,
         moment_header,
         header_line,
@@ -192,12 +192,14 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
             "applied moment in Nm (e.g. 1,2,3,4,5)."
         )
     loaded = moments[moments > 0]
-    rows = _DataRows(path, records, len(names))
+    rows = DataRows(path, records, len(names))
     problems = rows.problems
     for line, cells in rows:
-        specimen = _specimen(cells[col["specimen"]], line, header[col["specimen"]], problems)
-        lc = _load_case(cells[col["load_case"]], line, header[col["load_case"]], problems)
-        values = _curve([cells[j] for j in moment_idx], moments, moment_header, line, problems)
+        specimen = parse_specimen(cells[col["specimen"]], line, header[col["specimen"]], problems)
+        lc = parse_load_case(cells[col["load_case"]], line, header[col["load_case"]], problems)
+        values = curve_points(
+            [cells[j] for j in moment_idx], moments, moment_header, line, problems
+        )
         if specimen is None:
             continue
         rows.add_row(specimen, line)
@@ -206,7 +208,7 @@ def _read_wide(path: Path, header_line: int, header: list[str], records: list) -
         # a second row of one specimen and load case: a repeated curve, combined point by
         # point with the first (as repeated rows of the long layout)
         rows.points += [
-            _Point(specimen, lc, float(mom), float(v), 1.0, math.nan, line)
+            Point(specimen, lc, float(mom), float(v), 1.0, math.nan, line)
             for mom, v in zip(loaded, values)
             if not math.isnan(v)
         ]
@@ -232,7 +234,7 @@ def _study_files(folder: Path) -> dict[int, Path]:
         if name is None:
             raise InputDataError(
                 f"{path}: the file name does not name a known load case after 'ROM_Results_'; "
-                f"{_LOAD_CASE_HELP}. Rename the file (e.g. ROM_Results_Flexion_wMoment.csv) or "
+                f"{LOAD_CASE_HELP}. Rename the file (e.g. ROM_Results_Flexion_wMoment.csv) or "
                 "move it out of the folder."
             )
         found.setdefault(LOAD_CASES.index(name), []).append(path)
@@ -247,17 +249,17 @@ def _study_files(folder: Path) -> dict[int, Path]:
         raise InputDataError(
             f"{folder} is a folder without ROM_Results_<LoadCase>*.csv files; pass the "
             f"measurement CSV file itself, or the folder of the study's result files. "
-            f"{_LAYOUTS_HELP}."
+            f"{LAYOUTS_HELP}."
         )
     return {k: paths[0] for k, paths in sorted(found.items())}
 
 
 def _read_study(folder: Path) -> Measurements:
-    points: list[_Point] = []
+    points: list[Point] = []
     rows_of: dict[str, list[int]] = {}
     for k, path in _study_files(folder).items():
-        header_line, header, records = _read_records(path)
-        moments = _moment_columns(
+        header_line, header, records = read_records(path)
+        moments = moment_columns(
             path,
             header,
             header_line,
@@ -276,12 +278,12 @@ def _read_study(folder: Path) -> Measurements:
                 f"{path} has a header (line {header_line}) but no rows; row i holds the RoM of "
                 "specimen i."
             )
-        problems = _Problems(str(path))
+        problems = Problems(str(path))
         lines = [line for line, _ in records]
         rows = []
         for line, raw in records:
-            cells = _fit_to_header(raw, len(header), line, problems) or [""] * len(header)
-            rows.append(_curve(cells, moments, header, line, problems))
+            cells = fit_to_header(raw, len(header), line, problems) or [""] * len(header)
+            rows.append(curve_points(cells, moments, header, line, problems))
         problems.raise_if_any()
         values = np.array(rows).reshape(len(rows), loaded.size)
         tail = _failed_tail(values)
@@ -297,7 +299,7 @@ def _read_study(folder: Path) -> Measurements:
         for i, j in np.argwhere(~np.isnan(values)):
             name = str(i)
             points.append(
-                _Point(name, k, float(loaded[j]), float(values[i, j]), 1.0, math.nan, lines[i])
+                Point(name, k, float(loaded[j]), float(values[i, j]), 1.0, math.nan, lines[i])
             )
             rows_of.setdefault(name, []).append(lines[i])
     order = sorted(rows_of, key=int)
@@ -310,8 +312,8 @@ def _read_study(folder: Path) -> Measurements:
             folder,
             dropped,
         )
-    return _assemble(
-        str(folder), points, order, rows_of, with_idp=False, problems=_Problems(str(folder))
+    return assemble_points(
+        str(folder), points, order, rows_of, with_idp=False, problems=Problems(str(folder))
     )
 
 
@@ -350,7 +352,7 @@ def read_measurements(path: str | Path, *, noise_deg: float | None = None) -> Me
         int(meas.mask().sum()),
         ", ".join(f"{x:g}" for x in meas.moments),
     )
-    _warn_missing(meas)
+    warn_missing(meas)
     return meas
 
 
@@ -365,15 +367,15 @@ def _read(path: Path) -> tuple[Measurements, str]:
             f"the current folder {Path.cwd()})."
         )
     else:
-        header_line, header, records = _read_records(path)
+        header_line, header, records = read_records(path)
         names = {c.lower() for c in header}
         if names & {"moment_nm", "rom_deg"}:
             meas, layout = _read_long(path, header_line, header, records), "long"
-        elif any(_is_number(c) for c in header):
+        elif any(is_number(c) for c in header):
             meas, layout = _read_wide(path, header_line, header, records), "wide"
         else:
             raise InputDataError(
                 f"{path}, line {header_line}: unrecognised layout; the header is {header}. "
-                f"{_LAYOUTS_HELP}. Rename the columns to match one of them."
+                f"{LAYOUTS_HELP}. Rename the columns to match one of them."
             )
     return meas, layout

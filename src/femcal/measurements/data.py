@@ -14,7 +14,8 @@ from femcal.schema import LOAD_CASES
 
 logger = logging.getLogger(__name__)
 
-_MAX_LISTED = 5
+#: How many items an error message lists before ``(and N more)``.
+MAX_LISTED = 5
 
 
 # ------------------------------------------------------------------ the container
@@ -132,7 +133,7 @@ class Measurements:
         """
         names = [specimens] if isinstance(specimens, str) else [str(s) for s in specimens]
         unknown = [s for s in names if s not in self.specimens]
-        repeated = _repeated(names)
+        repeated = repeated_names(names)
         if not names or unknown or repeated:
             problem = (
                 "no specimen was requested"
@@ -143,7 +144,7 @@ class Measurements:
             )
             raise InputDataError(
                 f"{self.source}: cannot select specimens: {problem}. The measurements hold "
-                f"{_listing([repr(s) for s in self.specimens])}; give each wanted name once "
+                f"{listing([repr(s) for s in self.specimens])}; give each wanted name once "
                 "(names are case-sensitive)."
             )
         return self._select([self.specimens.index(s) for s in names])
@@ -200,14 +201,28 @@ class Measurements:
 
 
 # ------------------------------------------------------------- array validation
-def _listing(items: Sequence[str], total: int | None = None) -> str:
+def listing(items: Sequence[str], total: int | None = None) -> str:
+    """``items`` joined by ``", "``, the first :data:`MAX_LISTED` of them and a count of the rest.
+
+    Parameters
+    ----------
+    items : sequence of str
+        The items, already in words.
+    total : int, optional
+        How many there are in all (default ``len(items)``), when ``items`` holds only some.
+
+    Returns
+    -------
+    str
+        For example ``"a, b (and 3 more)"``.
+    """
     total = len(items) if total is None else total
-    shown = ", ".join(items[:_MAX_LISTED])
-    more = f" (and {total - _MAX_LISTED} more)" if total > _MAX_LISTED else ""
+    shown = ", ".join(items[:MAX_LISTED])
+    more = f" (and {total - MAX_LISTED} more)" if total > MAX_LISTED else ""
     return shown + more
 
 
-def _repeated(items: Sequence[str]) -> list[str]:
+def repeated_names(items: Sequence[str]) -> list[str]:
     """The items that appear more than once, sorted."""
     return sorted({s for s in items if items.count(s) > 1})
 
@@ -243,7 +258,7 @@ def _checked_names(specimens: object, src: str) -> tuple[str, ...]:
             raise InputDataError(
                 f"{src}: specimen at position {pos} has an empty name; give every specimen a name."
             )
-    repeated = _repeated(names)
+    repeated = repeated_names(names)
     if repeated:
         raise InputDataError(
             f"{src}: repeated specimen names {repeated}; each specimen must appear once "
@@ -290,9 +305,9 @@ def _validated(
     def where(cells: np.ndarray, values: np.ndarray) -> str:
         items = [
             f"specimen {names[i]!r}, {LOAD_CASES[k]}, {m_arr[j]:g} Nm: {float(values[i, k, j])!r}"
-            for i, k, j in cells[:_MAX_LISTED]
+            for i, k, j in cells[:MAX_LISTED]
         ]
-        return _listing(items, len(cells))
+        return listing(items, len(cells))
 
     def refuse(bad: np.ndarray, values: np.ndarray, problem: str, advice: str) -> None:
         """Raise when the mask ``bad`` holds a cell: ``problem``, the cells, then ``advice``."""
@@ -421,11 +436,11 @@ def from_arrays(
         idp_mpa=idp_mpa,
         source=str(source),
     )
-    _warn_missing(meas)
+    warn_missing(meas)
     return meas
 
 
-def _warn_missing(meas: Measurements) -> None:
+def warn_missing(meas: Measurements) -> None:
     """Log one warning per set of missing load cases, naming the specimens."""
     groups: dict[tuple[str, ...], list[str]] = {}
     for name, lcs in meas.missing_load_cases().items():
@@ -436,7 +451,7 @@ def _warn_missing(meas: Measurements) -> None:
             "cases only.",
             meas.source,
             "s" if len(names) > 1 else "",
-            _listing([repr(s) for s in names]),
+            listing([repr(s) for s in names]),
             "ve" if len(names) > 1 else "s",
             ", ".join(lcs),
             "they are" if len(names) > 1 else "it is",

@@ -17,10 +17,10 @@ import numpy as np
 
 from femcal.errors import InputDataError
 from femcal.measurements.data import (
-    _MAX_LISTED,
+    MAX_LISTED,
     Measurements,
-    _listing,
-    _repeated,
+    listing,
+    repeated_names,
 )
 from femcal.schema import LOAD_CASES, canonical_load_case
 
@@ -68,13 +68,13 @@ def stated_noise(noise_deg: float | None) -> Iterator[None]:
 _MISSING_TOKENS = frozenset({"", "nan", "na", "n/a", "null", "none", "-nan"})
 
 
-_LOAD_CASE_HELP = (
+LOAD_CASE_HELP = (
     f"use one of {', '.join(LOAD_CASES)} (common spellings such as 'lateral bending', "
     "'axial_rotation' or 'Lateral-Bending' are accepted)"
 )
 
 
-_LAYOUTS_HELP = (
+LAYOUTS_HELP = (
     "Expected one of: (1) the long layout, columns "
     f"{', '.join(LONG_COLUMNS)} and optionally {', '.join(LONG_OPTIONAL_COLUMNS)}, one row "
     "per measured point; (2) the wide layout, columns specimen, load_case followed by one "
@@ -86,7 +86,7 @@ _LAYOUTS_HELP = (
 
 # ----------------------------------------------------------------- file reading
 @dataclass(frozen=True)
-class _Point:
+class Point:
     """One measured point read from a file."""
 
     specimen: str
@@ -98,7 +98,7 @@ class _Point:
     line: int
 
 
-class _Problems:
+class Problems:
     """Collects the problems of one file and raises them together."""
 
     def __init__(self, source: str) -> None:
@@ -112,15 +112,15 @@ class _Problems:
         if not self.items:
             return
         items = sorted(self.items, key=lambda item: item[0])
-        shown = "\n".join(f"  - {text}" for _, text in items[:_MAX_LISTED])
-        more = f"\n  (and {len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
+        shown = "\n".join(f"  - {text}" for _, text in items[:MAX_LISTED])
+        more = f"\n  (and {len(items) - MAX_LISTED} more)" if len(items) > MAX_LISTED else ""
         noun = "problem" if len(items) == 1 else "problems"
         raise InputDataError(
             f"{self.source}: {len(items)} {noun} in the measurement file:\n{shown}{more}"
         )
 
 
-def _parse_number(text: str) -> float | None:
+def parse_number(text: str) -> float | None:
     """A finite float, None for a missing-value token, NaN when ``text`` is not a number."""
     if text.lower() in _MISSING_TOKENS:
         return None
@@ -133,17 +133,19 @@ def _parse_number(text: str) -> float | None:
     return value if math.isfinite(value) else math.nan
 
 
-def _is_number(text: str) -> bool:
-    value = _parse_number(text)
+def is_number(text: str) -> bool:
+    """Whether ``text`` is a number (:func:`parse_number`) and not NaN."""
+    value = parse_number(text)
     return value is not None and not math.isnan(value)
 
 
-def _not_a_number(text: str) -> str:
+def not_a_number(text: str) -> str:
+    """The problem's text for a cell ``text`` that is not a finite number, with the fix."""
     hint = " with a decimal point, not a comma" if "," in text else ""
     return f"{text!r} is not a finite number; write a plain number{hint} such as 2.5"
 
 
-def _read_records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+def read_records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
     """Read a delimited text file.
 
     Returns
@@ -171,8 +173,7 @@ def _read_records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]
     first = next((line for line in text.splitlines() if line.strip()), None)
     if first is None:
         raise InputDataError(
-            f"{path} is empty; it needs a header line and one line per measurement. "
-            f"{_LAYOUTS_HELP}."
+            f"{path} is empty; it needs a header line and one line per measurement. {LAYOUTS_HELP}."
         )
     delimiter = max((",", ";", "\t"), key=first.count)
     reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
@@ -193,23 +194,21 @@ def _read_records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]
     return header_line, header, records[start + 1 :]
 
 
-def _fit_to_header(
-    cells: list[str], width: int, line: int, problems: _Problems
-) -> list[str] | None:
+def fit_to_header(cells: list[str], width: int, line: int, problems: Problems) -> list[str] | None:
     """Pad a record to the header width; None (and a problem) when it has extra cells."""
     extra = [c for c in cells[width:] if c]
     if extra:
         problems.add(
             line,
             f"line {line}: {len(cells)} cells but the header has {width} columns (extra "
-            f"{_listing([repr(c) for c in extra])}); remove the extra cells, or quote values "
+            f"{listing([repr(c) for c in extra])}); remove the extra cells, or quote values "
             "that contain the separator.",
         )
         return None
     return (cells + [""] * width)[:width]
 
 
-class _DataRows:
+class DataRows:
     """The data rows of one file and what a reader collects from them.
 
     Parameters
@@ -217,15 +216,15 @@ class _DataRows:
     path : Path
         The file (named in the problems).
     records : list of (int, list of str)
-        ``(line, cells)`` after the header (see :func:`_read_records`).
+        ``(line, cells)`` after the header (see :func:`read_records`).
     width : int
         Columns of the header.
 
     Attributes
     ----------
-    problems : _Problems
+    problems : Problems
         The problems of the file's rows.
-    points : list of _Point
+    points : list of Point
         The measured points read (the reader appends them).
     order : list of str
         Specimens in order of first appearance.
@@ -237,8 +236,8 @@ class _DataRows:
         self.path = path
         self.records = records
         self.width = width
-        self.problems = _Problems(str(path))
-        self.points: list[_Point] = []
+        self.problems = Problems(str(path))
+        self.points: list[Point] = []
         self.order: list[str] = []
         self.rows_of: dict[str, list[int]] = {}
 
@@ -248,7 +247,7 @@ class _DataRows:
         for line, raw in self.records:
             if not raw:
                 continue
-            cells = _fit_to_header(raw, self.width, line, self.problems)
+            cells = fit_to_header(raw, self.width, line, self.problems)
             if cells is not None:
                 yield line, cells
 
@@ -260,7 +259,7 @@ class _DataRows:
         self.rows_of[specimen].append(line)
 
     def measurements(self, header_line: int, *, one_row_per: str, with_idp: bool) -> Measurements:
-        """The points as :class:`Measurements` (see :func:`_assemble`).
+        """The points as :class:`Measurements` (see :func:`assemble_points`).
 
         Raises
         ------
@@ -273,7 +272,7 @@ class _DataRows:
                 f"{self.path} has a header (line {header_line}) but no data rows; add one row "
                 f"per {one_row_per}."
             )
-        return _assemble(
+        return assemble_points(
             str(self.path),
             self.points,
             self.order,
@@ -283,15 +282,36 @@ class _DataRows:
         )
 
 
-def _normalised_header(path: Path, header: list[str], header_line: int) -> list[str]:
+def normalised_header(path: Path, header: list[str], header_line: int) -> list[str]:
+    """The header's column names in lower case, checked to be named and distinct.
+
+    Parameters
+    ----------
+    path : Path
+        The file, for the message.
+    header : list of str
+        Header cells, stripped.
+    header_line : int
+        1-based line of the header, for the message.
+
+    Returns
+    -------
+    list of str
+        One lower-case name per column.
+
+    Raises
+    ------
+    InputDataError
+        A column has no name, or two columns have the same name.
+    """
     names = [c.lower() for c in header]
     empty = [j + 1 for j, c in enumerate(names) if not c]
     if empty:
         raise InputDataError(
             f"{path}, line {header_line}: header columns {empty} have no name; name every "
-            f"column. {_LAYOUTS_HELP}."
+            f"column. {LAYOUTS_HELP}."
         )
-    repeated = _repeated(names)
+    repeated = repeated_names(names)
     if repeated:
         raise InputDataError(
             f"{path}, line {header_line}: repeated columns {repeated} (names are "
@@ -300,16 +320,38 @@ def _normalised_header(path: Path, header: list[str], header_line: int) -> list[
     return names
 
 
-def _load_case(text: str, line: int, column: str, problems: _Problems) -> int | None:
+def parse_load_case(text: str, line: int, column: str, problems: Problems) -> int | None:
+    """The index in :data:`~femcal.schema.LOAD_CASES` of the load case named ``text``.
+
+    Parameters
+    ----------
+    text : str
+        The cell, any spelling :func:`~femcal.schema.canonical_load_case` accepts.
+    line : int
+        1-based line of the cell, for the message.
+    column : str
+        Column name, for the message.
+    problems : Problems
+        Collects the problem when the name is empty or unknown.
+
+    Returns
+    -------
+    int or None
+        0..3, or None after adding a problem.
+    """
     name = canonical_load_case(text) if text else None
     if name is None:
         got = "an empty load case" if not text else f"unknown load case {text!r}"
-        problems.add(line, f"line {line}, column '{column}': {got}; {_LOAD_CASE_HELP}.")
+        problems.add(line, f"line {line}, column '{column}': {got}; {LOAD_CASE_HELP}.")
         return None
     return LOAD_CASES.index(name)
 
 
-def _specimen(text: str, line: int, column: str, problems: _Problems) -> str | None:
+def parse_specimen(text: str, line: int, column: str, problems: Problems) -> str | None:
+    """The specimen name ``text``, or None after adding a problem to ``problems`` when empty.
+
+    ``line`` (1-based) and ``column`` place the cell in the message.
+    """
     if not text:
         problems.add(
             line, f"line {line}, column '{column}': empty specimen name; name the specimen."
@@ -318,14 +360,14 @@ def _specimen(text: str, line: int, column: str, problems: _Problems) -> str | N
     return text
 
 
-def _assemble(
+def assemble_points(
     source: str,
-    points: list[_Point],
+    points: list[Point],
     order: list[str],
     rows_of: dict[str, list[int]],
     *,
     with_idp: bool,
-    problems: _Problems,
+    problems: Problems,
 ) -> Measurements:
     """Check per-specimen weights, then build the arrays (raises collected problems)."""
     problems.raise_if_any()  # row problems first: a broken row is not an "empty" specimen
@@ -334,7 +376,7 @@ def _assemble(
         weights[p.specimen].append(p.weight)
     for name in order:
         own = weights[name]
-        lines = _listing([str(x) for x in rows_of.get(name, [])])
+        lines = listing([str(x) for x in rows_of.get(name, [])])
         line0 = (rows_of.get(name) or [0])[0]
         if not own:
             problems.add(
@@ -351,14 +393,14 @@ def _assemble(
             )
     problems.raise_if_any()
     if not points:
-        raise InputDataError(f"{source} holds no measured value; {_LAYOUTS_HELP}.")
+        raise InputDataError(f"{source} holds no measured value; {LAYOUTS_HELP}.")
     moments = np.unique(np.array([p.moment for p in points]))
     index = {name: i for i, name in enumerate(order)}
     shape = (len(order), len(LOAD_CASES), moments.size)
     rom = np.full(shape, np.nan)
     weight = np.zeros(shape)
     idp = np.full(shape, np.nan) if with_idp else None
-    cells: dict[tuple[int, int, int], list[_Point]] = {}
+    cells: dict[tuple[int, int, int], list[Point]] = {}
     for p in points:
         cell = (index[p.specimen], p.load_case, int(np.searchsorted(moments, p.moment)))
         cells.setdefault(cell, []).append(p)
@@ -370,7 +412,7 @@ def _assemble(
     return Measurements(tuple(order), moments, rom, weight, idp, source)
 
 
-def _combined(group: list[_Point]) -> tuple[float, float, float]:
+def _combined(group: list[Point]) -> tuple[float, float, float]:
     """One point from repeated measurements of it: (RoM, weight, IDP), their weighted means
     (plain means when every weight is 0) and the sum of their weights."""
     w = np.array([p.weight for p in group])
@@ -383,14 +425,14 @@ def _combined(group: list[_Point]) -> tuple[float, float, float]:
     )
 
 
-def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
+def _log_repeats(source: str, repeats: list[list[Point]]) -> None:
     """Say which points were measured more than once (combined), and warn where two rows
     repeat one point with the same values (a copied row counts as a second measurement)."""
     if not repeats:
         return
     shown = [
         f"{g[0].specimen!r} {LOAD_CASES[g[0].load_case]} {g[0].moment:g} Nm "
-        f"({len(g)} rows: lines {_listing([str(p.line) for p in g])})"
+        f"({len(g)} rows: lines {listing([str(p.line) for p in g])})"
         for g in repeats
     ]
     # Their scatter measures the noise without any model: the pooled sd of the rows about
@@ -405,7 +447,7 @@ def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
         source,
         len(repeats),
         "s" if len(repeats) > 1 else "",
-        _listing(shown),
+        listing(shown),
         float(np.sqrt(ss / dof)),
         dof,
     )
@@ -424,11 +466,11 @@ def _log_repeats(source: str, repeats: list[list[_Point]]) -> None:
             "%s: %s repeat a point with the same values; each counts as a measurement of its "
             "own. If one is a copy, delete it.",
             source,
-            _listing(copies),
+            listing(copies),
         )
 
 
-def _warn_conflicts(source: str, repeats: list[list[_Point]]) -> None:
+def _warn_conflicts(source: str, repeats: list[list[Point]]) -> None:
     """Warn where the repeats of one point span more than :data:`REPEAT_CONFLICT_SIGMAS` sd
     of the stated noise (:func:`stated_noise`; none stated: :data:`REPEAT_CONFLICT_DEG`),
     naming each point (specimen, load case, moment), its values and lines."""
@@ -446,7 +488,7 @@ def _warn_conflicts(source: str, repeats: list[list[_Point]]) -> None:
             conflicts.append(
                 f"specimen {g[0].specimen!r} {LOAD_CASES[g[0].load_case]} {g[0].moment:g} Nm: "
                 f"{', '.join(f'{r:g}' for r in rom)} deg (lines "
-                f"{_listing([str(p.line) for p in g])})"
+                f"{listing([str(p.line) for p in g])})"
             )
     if conflicts:
         logger.warning(
@@ -459,21 +501,19 @@ def _warn_conflicts(source: str, repeats: list[list[_Point]]) -> None:
             "s" if len(conflicts) > 1 else "",
             limit,
             why,
-            "; ".join(conflicts[:_MAX_LISTED]) + _more(len(conflicts)),
+            "; ".join(conflicts[:MAX_LISTED]) + _more(len(conflicts)),
         )
 
 
 def _more(total: int) -> str:
-    return f" (and {total - _MAX_LISTED} more)" if total > _MAX_LISTED else ""
+    return f" (and {total - MAX_LISTED} more)" if total > MAX_LISTED else ""
 
 
-def _moment_columns(
-    path: Path, header: Sequence[str], header_line: int, *, hint: str
-) -> np.ndarray:
+def moment_columns(path: Path, header: Sequence[str], header_line: int, *, hint: str) -> np.ndarray:
     """Parse moment headers (Nm, >= 0, unique); raises on the first problem."""
     moments = np.empty(len(header))
     for j, text in enumerate(header):
-        value = _parse_number(text)
+        value = parse_number(text)
         if value is None or math.isnan(value):
             raise InputDataError(
                 f"{path}, line {header_line}: column {text!r} is not a moment in Nm; {hint}"
@@ -494,12 +534,12 @@ def _moment_columns(
     return moments
 
 
-def _curve(
+def curve_points(
     cells: Sequence[str],
     moments: np.ndarray,
     header: Sequence[str],
     line: int,
-    problems: _Problems,
+    problems: Problems,
 ) -> np.ndarray:
     """Values of one row of moment columns, NaN where empty; 0 Nm columns checked, dropped.
 
@@ -510,10 +550,10 @@ def _curve(
     """
     out: list[float] = []
     for text, moment, name in zip(cells, moments, header):
-        value = _parse_number(text)
+        value = parse_number(text)
         where = f"line {line}, column {name!r}"
         if value is not None and math.isnan(value):
-            problems.add(line, f"{where}: {_not_a_number(text)}, or leave it empty.")
+            problems.add(line, f"{where}: {not_a_number(text)}, or leave it empty.")
             value = None
         elif value is None or moment == 0:
             if value is not None and abs(value) >= ZERO_MOMENT_ATOL:

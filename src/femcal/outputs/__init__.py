@@ -54,13 +54,13 @@ from typing import Any
 from femcal.errors import OutputFolderError
 from femcal.outputs.checks import (
     MARKER,
-    _files,
-    _inspect,
-    _refusal,
-    _write_json_atomic,
     check_destination,
     check_file_destination,
+    inspect_outputs,
+    output_files,
     read_marker,
+    refusal,
+    write_json_atomic,
     write_text_atomic,
 )
 
@@ -198,7 +198,9 @@ def _move_aside(dest: Path, marker: Mapping[str, Any]) -> Path:
 
 def _prune_previous(dest: Path, keep: int, *, protect: Path | None) -> list[Path]:
     """Remove femcal's own ``<dest>.previous-*`` folders beyond the newest ``keep``."""
-    ours = [p for p in _siblings(dest, PREVIOUS) if p.is_dir() and _inspect(p).kind == "femcal"]
+    ours = [
+        p for p in _siblings(dest, PREVIOUS) if p.is_dir() and inspect_outputs(p).kind == "femcal"
+    ]
     ours.sort(key=lambda p: (str((read_marker(p) or {}).get("finished") or ""), p.name))
     removed = []
     for path in ours[: max(0, len(ours) - keep)]:
@@ -339,7 +341,7 @@ class OutputStage:
         self.path.mkdir()
         self._started = _now()
         self.state = "open"
-        _write_json_atomic(self.path / MARKER, self._marker_data("running", None))
+        write_json_atomic(self.path / MARKER, self._marker_data("running", None))
         return self
 
     def note(self, **info: Any) -> None:
@@ -355,8 +357,8 @@ class OutputStage:
         logged marker is the one that moves into place; :meth:`commit` calls it otherwise.
         """
         self._require("open")
-        self._marker = self._marker_data("complete", _files(self.path))
-        _write_json_atomic(self.path / MARKER, self._marker)
+        self._marker = self._marker_data("complete", output_files(self.path))
+        write_json_atomic(self.path / MARKER, self._marker)
         return dict(self._marker)
 
     def commit(self) -> Path:
@@ -377,14 +379,14 @@ class OutputStage:
         if self.state == "committed":
             return self.destination
         self._require("open")
-        if self._marker is None or self._marker.get("files") != _files(self.path):
+        if self._marker is None or self._marker.get("files") != output_files(self.path):
             self.finalize()
         dest = self.destination
         try:
             with _locked(dest, self.lock_timeout):
-                found = _inspect(dest)
+                found = inspect_outputs(dest)
                 if found.kind in ("file", "foreign"):
-                    raise _refusal(dest, found, label=self.label)
+                    raise refusal(dest, found, label=self.label)
                 if found.kind == "empty":
                     shutil.rmtree(dest)  # empty but for system files
                 elif found.kind == "femcal":

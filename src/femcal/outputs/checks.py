@@ -25,7 +25,7 @@ SYSTEM_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
 _SHOWN = 5
 
 
-def _files(folder: Path) -> list[str]:
+def output_files(folder: Path) -> list[str]:
     """Every file under ``folder`` (relative POSIX paths, sorted), the marker excluded."""
     out = []
     for root, dirs, names in os.walk(folder):
@@ -39,7 +39,8 @@ def _files(folder: Path) -> list[str]:
     return sorted(out)
 
 
-def _write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
+def write_json_atomic(path: Path, data: Mapping[str, Any]) -> None:
+    """Write ``data`` as indented JSON to ``path`` (:func:`write_text_atomic`)."""
     write_text_atomic(path, json.dumps(data, indent=2, default=str) + "\n")
 
 
@@ -91,7 +92,7 @@ def read_marker(folder: str | Path) -> dict[str, Any] | None:
 
 
 @dataclass
-class _Found:
+class Found:
     """What is at a destination: kind in {"absent", "file", "empty", "femcal", "foreign"}."""
 
     kind: str
@@ -99,29 +100,53 @@ class _Found:
     foreign: list[str] = field(default_factory=list)
 
 
-def _inspect(path: Path) -> _Found:
+def inspect_outputs(path: Path) -> Found:
+    """What is at the output folder ``path``: nothing, a file, an empty folder, femcal's
+    outputs (with its run marker), or a folder holding files femcal did not write.
+
+    Returns
+    -------
+    Found
+        Its ``kind``, the run marker if any, and the files femcal did not write.
+    """
     if not path.exists() and not path.is_symlink():
-        return _Found("absent")
+        return Found("absent")
     if not path.is_dir():
-        return _Found("file")
+        return Found("file")
     marker = read_marker(path)
-    present = [f for f in _files(path) if Path(f).name not in SYSTEM_FILES]
+    present = [f for f in output_files(path) if Path(f).name not in SYSTEM_FILES]
     if marker is None:
         if (path / MARKER).exists():
-            return _Found("foreign", None, [MARKER, *present])
-        return _Found("empty") if not present else _Found("foreign", None, present)
+            return Found("foreign", None, [MARKER, *present])
+        return Found("empty") if not present else Found("foreign", None, present)
     listed = set(marker.get("files") or [])
     foreign = [f for f in present if f not in listed]
-    return _Found("femcal", marker) if not foreign else _Found("foreign", marker, foreign)
+    return Found("femcal", marker) if not foreign else Found("foreign", marker, foreign)
 
 
-def _describe(found: _Found) -> str:
+def _describe(found: Found) -> str:
     shown = ", ".join(found.foreign[:_SHOWN])
     more = len(found.foreign) - _SHOWN
     return shown + (f" and {more} more" if more > 0 else "")
 
 
-def _refusal(path: Path, found: _Found, *, label: str) -> OutputFolderError:
+def refusal(path: Path, found: Found, *, label: str) -> OutputFolderError:
+    """The error that refuses to write to ``path``, given what is there (:func:`inspect_outputs`).
+
+    Parameters
+    ----------
+    path : Path
+        The output folder.
+    found : Found
+        What is there: a file, or a folder holding files femcal did not write.
+    label : str
+        How the message names the folder, for example ``"output folder"``.
+
+    Returns
+    -------
+    OutputFolderError
+        Says what is in the way and how to make room.
+    """
     if found.kind == "file":
         return OutputFolderError(
             f"{label} {path} is a file, not a folder; femcal writes a folder of outputs there "
@@ -171,9 +196,9 @@ def check_destination(out: str | Path, *, label: str = "output folder") -> Path:
     path = Path(out)
     if path.is_symlink() and path.is_dir():
         path = path.resolve()
-    found = _inspect(path)
+    found = inspect_outputs(path)
     if found.kind in ("file", "foreign"):
-        raise _refusal(path, found, label=label)
+        raise refusal(path, found, label=label)
     parent = path.parent if str(path.parent) else Path(".")
     _check_parent(parent, path, label=label)
     return path

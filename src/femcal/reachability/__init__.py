@@ -56,12 +56,12 @@ import numpy as np
 
 from femcal.errors import ConfigError
 from femcal.reachability.envelope import (
-    _TINY,
     PAIRS,
+    TINY,
+    Distances,
     Envelope,
-    _Distances,
-    _distances,
     build_envelope,
+    envelope_distances,
     reference_curves,
 )
 from femcal.reachability.report import ReachabilityReport, UnreachableMeasurementsError
@@ -166,7 +166,7 @@ def _candidates(
     return out
 
 
-def _where(d: _Distances, env: Envelope, rom: np.ndarray, i: int) -> str:
+def _where(d: Distances, env: Envelope, rom: np.ndarray, i: int) -> str:
     """The worst point of specimen ``i`` in words."""
     z = np.nan_to_num(d.z[i], nan=-1.0)
     k, j = np.unravel_index(int(np.argmax(z)), z.shape)
@@ -189,7 +189,7 @@ def _where(d: _Distances, env: Envelope, rom: np.ndarray, i: int) -> str:
     )
 
 
-def _plain_cause(d: _Distances, i: int, *, z_outside: float, single: bool) -> tuple[str, str]:
+def _plain_cause(d: Distances, i: int, *, z_outside: float, single: bool) -> tuple[str, str]:
     """(key, text) of the cause of specimen ``i`` when no unit or load-case change explains it."""
     level = np.nan_to_num(d.level[i], nan=0.0)
     over = np.nan_to_num(d.level_z[i], nan=0.0) > z_outside
@@ -280,8 +280,8 @@ def check_reachability(
     rom = np.asarray(meas.rom_deg, dtype=float)
     sigma = envelope.sigma(noise)
     if np.any(sigma <= 0):
-        sigma = np.maximum(sigma, _TINY)
-    d = _distances(rom, envelope, sigma)
+        sigma = np.maximum(sigma, TINY)
+    d = envelope_distances(rom, envelope, sigma)
     n_points, n_out, worst = _counts(d.z, z_outside)
     far = (n_out >= far_fraction * n_points) & (worst > z_far)
     status = np.where(n_out == 0, "reachable", np.where(far, "far", "outside"))
@@ -294,7 +294,7 @@ def check_reachability(
         for name, transform, hint in _candidates(envelope.effects):
             if not open_.any():
                 break
-            nz = _distances(transform(sub[open_]), envelope, sigma).z
+            nz = envelope_distances(transform(sub[open_]), envelope, sigma).z
             t_points, t_out, t_worst = _counts(nz, z_outside)
             fits = (t_out <= 0.1 * t_points) & (t_worst < z_far) & (t_out < n_out[bad][open_])
             # A transform only explains a specimen clearly off (several points, or far).

@@ -30,7 +30,7 @@ MARGIN = 0.1
 PAIRS: tuple[tuple[int, int], ...] = ((0, 1), (2, 3), (0, 2), (0, 3), (1, 2), (1, 3))
 
 
-_TINY = 1e-6  # floor of RoM (deg) inside logarithms
+TINY = 1e-6  # floor of RoM (deg) inside logarithms
 
 
 # ------------------------------------------------------------------------ the envelope
@@ -93,7 +93,7 @@ class Envelope:
 
 def _features(y: Any, xp: Any) -> tuple[Any, Any]:
     """Level (B, 4, m) and balance (B, 6, m) features of curves (torch or numpy via ``xp``)."""
-    logy = xp.log(xp.clip(y, _TINY, None)) if xp is np else y.clamp_min(_TINY).log()
+    logy = xp.log(xp.clip(y, TINY, None)) if xp is np else y.clamp_min(TINY).log()
     a = [p[0] for p in PAIRS]
     b = [p[1] for p in PAIRS]
     return y, logy[:, a] - logy[:, b]
@@ -110,7 +110,7 @@ def _interpolate(ref_moments: np.ndarray, rom: np.ndarray, moments: np.ndarray) 
     """Curves (N, 4, m_t) on ``moments`` (m,) by log-log interpolation; NaN outside the range."""
     ref_moments = np.asarray(ref_moments, dtype=float)
     out = np.full(rom.shape[:2] + (moments.size,), np.nan)
-    logm, logr = np.log(ref_moments), np.log(np.clip(rom, _TINY, None))
+    logm, logr = np.log(ref_moments), np.log(np.clip(rom, TINY, None))
     for j, m in enumerate(moments):
         if not ref_moments[0] - 1e-9 <= m <= ref_moments[-1] + 1e-9:
             continue
@@ -287,7 +287,7 @@ def reference_curves(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 # ------------------------------------------------------------------------ the check
 @dataclass(frozen=True)
-class _Distances:
+class Distances:
     """Per point: sigma beyond the envelope (n, 4, m), NaN where not measured, and details."""
 
     z: np.ndarray  # max of level and balance, per point
@@ -296,7 +296,7 @@ class _Distances:
     balance_z: np.ndarray  # (n, 6, m)
 
 
-def _distances(rom: np.ndarray, env: Envelope, sigma: np.ndarray) -> _Distances:
+def envelope_distances(rom: np.ndarray, env: Envelope, sigma: np.ndarray) -> Distances:
     """Sigma distances of curves (n, 4, m) from the envelope; NaN where not measured."""
     measured = ~np.isnan(rom)
     above = np.clip(rom - env.upper, 0.0, None)
@@ -304,7 +304,7 @@ def _distances(rom: np.ndarray, env: Envelope, sigma: np.ndarray) -> _Distances:
     level = np.where(measured, above - below, np.nan)
     level_z = np.abs(level) / sigma
     safe = np.fmax(rom, sigma)  # log-ratio noise floor where a value is tiny
-    logr = np.log(np.clip(rom, _TINY, None))
+    logr = np.log(np.clip(rom, TINY, None))
     a = [p[0] for p in PAIRS]
     b = [p[1] for p in PAIRS]
     ratio = logr[:, a] - logr[:, b]
@@ -316,4 +316,4 @@ def _distances(rom: np.ndarray, env: Envelope, sigma: np.ndarray) -> _Distances:
         bz = np.nan_to_num(balance_z[:, p], nan=0.0)
         z[:, i] = np.where(measured[:, i], np.fmax(z[:, i], bz), np.nan)
         z[:, j] = np.where(measured[:, j], np.fmax(z[:, j], bz), np.nan)
-    return _Distances(z=z, level=level, level_z=level_z, balance_z=balance_z)
+    return Distances(z=z, level=level, level_z=level_z, balance_z=balance_z)

@@ -77,13 +77,16 @@ from femcal.surrogates.base import encode_features, register_baseline, register_
 # Importable from here too: files saved before the estimators had their own module name
 # them by this module's path (TRUSTED_TYPES).
 from femcal.surrogates.estimators import (  # noqa: F401, E402
-    _FACTORIES,
-    _N_CASES,
+    FACTORIES,
+    N_CASES,
+    MeanOnlyGP,
     PerLoadCaseRegressor,
     PolynomialRidge,
-    _MeanOnlyGP,
-    _threadpools,
+    threadpools,
 )
+
+#: The name by which saved files written with the class's underscore name refer to it here.
+_MeanOnlyGP = MeanOnlyGP
 
 __all__ = [
     "BASELINE_NAMES",
@@ -134,10 +137,12 @@ TRUSTED_TYPES: tuple[str, ...] = (
     "femcal.space.ParameterSpace",
     "femcal.surrogates.estimators.PerLoadCaseRegressor",
     "femcal.surrogates.estimators.PolynomialRidge",
+    "femcal.surrogates.estimators.MeanOnlyGP",
     "femcal.surrogates.estimators._MeanOnlyGP",
     # where files saved before the estimators moved to their own module name them
     "femcal.surrogates.baselines.PerLoadCaseRegressor",
     "femcal.surrogates.baselines.PolynomialRidge",
+    "femcal.surrogates.baselines.MeanOnlyGP",
     "femcal.surrogates.baselines._MeanOnlyGP",
     "femcal.surrogates.baselines.SklearnSurrogate",
     "femcal.surrogates.baselines.LinearSurrogate",
@@ -213,7 +218,7 @@ class SklearnSurrogate(RegressorMixin, BaseEstimator):
     # ----------------------------------------------------------------------- helpers
     def _name(self) -> str:
         name = self.estimator_name or type(self).registry_name
-        if name not in _FACTORIES:
+        if name not in FACTORIES:
             raise ConfigError(
                 f"Unknown baseline '{name}'; choose one of {', '.join(BASELINE_NAMES)}."
             )
@@ -222,20 +227,20 @@ class SklearnSurrogate(RegressorMixin, BaseEstimator):
     def _threads(self) -> contextlib.AbstractContextManager:
         if self.n_jobs in (None, -1):
             return contextlib.nullcontext()
-        return _threadpools().limit(limits=self.n_jobs)
+        return threadpools().limit(limits=self.n_jobs)
 
     def _build(self) -> TransformedTargetRegressor:
         name = self._name()
         try:
-            model = _FACTORIES[name](self.seed, self.n_jobs, **dict(self.hyper or {}))
+            model = FACTORIES[name](self.seed, self.n_jobs, **dict(self.hyper or {}))
         except TypeError as exc:
             raise ConfigError(f"Invalid hyperparameters for baseline '{name}': {exc}") from None
         d = self.space.dim
         scale = ColumnTransformer(
             [
-                ("load_case", "passthrough", list(range(_N_CASES))),
-                ("moment", MinMaxScaler(), [_N_CASES]),
-                ("params", "passthrough", list(range(_N_CASES + 1, _N_CASES + 1 + d))),
+                ("load_case", "passthrough", list(range(N_CASES))),
+                ("moment", MinMaxScaler(), [N_CASES]),
+                ("params", "passthrough", list(range(N_CASES + 1, N_CASES + 1 + d))),
             ]
         )
         return TransformedTargetRegressor(

@@ -24,12 +24,15 @@ from femcal.errors import (
 )
 from femcal.schema import LOAD_CASES
 
-_N_CASES = len(LOAD_CASES)  # one-hot columns 0..3 of encode_features; column 4 is the moment
+N_CASES = len(LOAD_CASES)  # one-hot columns 0..3 of encode_features; column 4 is the moment
 
 
 @functools.cache
-def _threadpools() -> ThreadpoolController:
-    # Built once (~20 ms); limiting through it then costs ~0.05 ms per fit/predict call.
+def threadpools() -> ThreadpoolController:
+    """The process's one thread-pool controller, built on first use (~20 ms).
+
+    Limiting threads through it then costs ~0.05 ms per fit or predict call.
+    """
     return ThreadpoolController()
 
 
@@ -53,13 +56,13 @@ class PerLoadCaseRegressor(RegressorMixin, BaseEstimator):
 
     @staticmethod
     def _case(Z: np.ndarray) -> np.ndarray:
-        return np.argmax(Z[:, :_N_CASES], axis=1)
+        return np.argmax(Z[:, :N_CASES], axis=1)
 
     def fit(self, Z: np.ndarray, y: np.ndarray) -> PerLoadCaseRegressor:
         """Fit one estimator per load case; ``Z`` shape (n, 4 + 1 + d), ``y`` shape (n,)."""
         case = self._case(Z)
         self.estimators_ = {
-            int(c): clone(self.estimator).fit(Z[case == c, _N_CASES:], y[case == c])
+            int(c): clone(self.estimator).fit(Z[case == c, N_CASES:], y[case == c])
             for c in np.unique(case)
         }
         return self
@@ -74,7 +77,7 @@ class PerLoadCaseRegressor(RegressorMixin, BaseEstimator):
                     f"No training rows had load case {LOAD_CASES[c]}; the surrogate cannot "
                     "predict it. Train on data that includes this load case."
                 )
-            out[case == c] = self.estimators_[int(c)].predict(Z[case == c, _N_CASES:])
+            out[case == c] = self.estimators_[int(c)].predict(Z[case == c, N_CASES:])
         return out
 
 
@@ -155,14 +158,14 @@ class PolynomialRidge(RegressorMixin, BaseEstimator):
         )
 
 
-class _MeanOnlyGP(GaussianProcessRegressor):
+class MeanOnlyGP(GaussianProcessRegressor):
     """A GaussianProcessRegressor that drops its n x n Cholesky factor after fitting.
 
     Only the predictive mean (``k(x, X) @ alpha_``) is available, and the fitted model stays
     O(n) in size instead of O(n^2) (otherwise 210 MB per load case, 840 MB in all, on Large).
     """
 
-    def fit(self, X: np.ndarray, y: np.ndarray) -> _MeanOnlyGP:
+    def fit(self, X: np.ndarray, y: np.ndarray) -> MeanOnlyGP:
         super().fit(X, y)
         del self.L_
         return self
@@ -194,10 +197,14 @@ def _random_forest(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
     return RandomForestRegressor(random_state=seed, n_jobs=n_jobs, **params)
 
 
+#: The name by which saved files (skops) written with the underscore name refer to the class.
+_MeanOnlyGP = MeanOnlyGP
+
+
 def _gaussian_process(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
     kernel = ConstantKernel(1.3535458162698054e-05) * RBF(length_scale=0.9739157609228299)
     params = {"kernel": kernel, "normalize_y": True, "optimizer": None, **hyper}
-    return PerLoadCaseRegressor(_MeanOnlyGP(random_state=seed, **params))
+    return PerLoadCaseRegressor(MeanOnlyGP(random_state=seed, **params))
 
 
 def _lightgbm(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
@@ -212,7 +219,7 @@ def _lightgbm(seed: int, n_jobs: int, **hyper: Any) -> BaseEstimator:
 
 
 #: name -> factory(seed, n_jobs, **hyper) returning the unfitted study estimator.
-_FACTORIES: dict[str, Callable[..., BaseEstimator]] = {
+FACTORIES: dict[str, Callable[..., BaseEstimator]] = {
     "linear": _linear,
     "svr": _svr,
     "poly2": _poly(2, 1.0),
