@@ -1,4 +1,5 @@
-"""Exception hierarchy: one root, mixed with the matching built-in type."""
+"""Exception hierarchy: one root, mixed with the matching built-in type; and how a message
+lists things (:func:`listed`)."""
 
 import threading
 
@@ -71,3 +72,28 @@ def __getattr__(name: str) -> type:
                 globals()[name] = _surrogate_not_fitted_error()
         return globals()[name]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def listed(items, *, total: int | None = None, most: int = 6, sep: str = ", ") -> str:
+    """How a message lists things: the first ``most`` of ``items`` joined by ``sep``, and a
+    count of the rest.
+
+    Parameters
+    ----------
+    items : sequence of str
+        The items, already in words.
+    total : int, optional
+        How many there are in all (default ``len(items)``), when ``items`` holds only some.
+    most : int
+        How many are shown.
+    sep : str
+        What joins them.
+
+    Returns
+    -------
+    str
+        For example ``"a, b (and 3 more)"``.
+    """
+    total = len(items) if total is None else total
+    more = f" (and {total - most} more)" if total > most else ""
+    return sep.join(list(items)[:most]) + more

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from femcal.errors import ConfigError, FemcalWarning, InputDataError
+from femcal.errors import ConfigError, FemcalWarning, InputDataError, listed
 
 if TYPE_CHECKING:  # pragma: no cover
     from femcal.measurements import Measurements
@@ -47,9 +47,7 @@ DROPPED_COLUMNS = ("source", "specimen", "load_case", "moment_nm", "rom_deg", "w
 
 
 def _fmt(values: Sequence[float] | np.ndarray) -> str:
-    items = [f"{float(x):g}" for x in values]
-    more = f" (and {len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
-    return ", ".join(items[:_MAX_LISTED]) + more
+    return listed([f"{float(x):g}" for x in values], most=_MAX_LISTED)
 
 
 def _range(trained_range: Any) -> tuple[float, float]:
@@ -535,14 +533,13 @@ class MomentPolicy:
             f"specimen {s!r} {lc} {m:g} Nm"
             for s, lc, m in zip(dropped["specimen"], dropped["load_case"], dropped["moment_nm"])
         ]
-        shown = "; ".join(points[:_MAX_LISTED])
-        more = f" (and {len(points) - _MAX_LISTED} more)" if len(points) > _MAX_LISTED else ""
+        shown = listed(points, most=_MAX_LISTED, sep="; ")
         gone = [s for s, x in zip(meas.specimens, lost) if x]
         whole = f" Specimens left out whole (no point left): {', '.join(gone)}." if gone else ""
         return (
             f"{meas.source}: dropped {len(points)} measured point(s) at moments "
             f"{_fmt(np.unique(dropped['moment_nm']))} Nm, outside the moments the surrogate is "
-            f"used at, [{a_lo:.3g}, {a_hi:.3g}] Nm ({self._limits()}): {shown}{more}.{whole} "
+            f"used at, [{a_lo:.3g}, {a_hi:.3g}] Nm ({self._limits()}): {shown}.{whole} "
             f"The outputs list them ({DROPPED_FILE}); the other {int(kept.mask().sum())} points "
             "are used. To use them, train the surrogate on a wider moment range."
         )

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from femcal.errors import InputDataError
+from femcal.errors import InputDataError, listed
 from femcal.schema import KEY_COLUMNS, LOAD_CASES, OUTPUT_COLUMNS, STATUS_FAILED, STATUS_OK
 from femcal.space import ParameterSpace
 
@@ -29,24 +29,9 @@ def tidy_columns(space: ParameterSpace) -> list[str]:
 
 
 def listing(items: Sequence[str], total: int | None = None) -> str:
-    """``items`` joined by ``"; "``, the first ``_MAX_LISTED`` of them and a count of the rest.
-
-    Parameters
-    ----------
-    items : sequence of str
-        The items, already in words.
-    total : int, optional
-        How many there are in all (default ``len(items)``), when ``items`` holds only some.
-
-    Returns
-    -------
-    str
-        For example ``"a; b (and 3 more)"``.
-    """
-    total = len(items) if total is None else total
-    shown = "; ".join(items[:_MAX_LISTED])
-    more = f" (and {total - _MAX_LISTED} more)" if total > _MAX_LISTED else ""
-    return shown + more
+    """``items`` joined by ``"; "``, the first ``_MAX_LISTED`` of them and a count of the rest
+    (:func:`femcal.errors.listed`; ``total``: how many there are in all)."""
+    return listed(items, total=total, most=_MAX_LISTED, sep="; ")
 
 
 def finalize(df: pd.DataFrame, space: ParameterSpace) -> pd.DataFrame:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from femcal.errors import InputDataError
+from femcal.errors import InputDataError, listed
 from femcal.schema import LOAD_CASES
 
 logger = logging.getLogger(__name__)
@@ -202,24 +202,9 @@ class Measurements:
 
 # ------------------------------------------------------------- array validation
 def listing(items: Sequence[str], total: int | None = None) -> str:
-    """``items`` joined by ``", "``, the first :data:`MAX_LISTED` of them and a count of the rest.
-
-    Parameters
-    ----------
-    items : sequence of str
-        The items, already in words.
-    total : int, optional
-        How many there are in all (default ``len(items)``), when ``items`` holds only some.
-
-    Returns
-    -------
-    str
-        For example ``"a, b (and 3 more)"``.
-    """
-    total = len(items) if total is None else total
-    shown = ", ".join(items[:MAX_LISTED])
-    more = f" (and {total - MAX_LISTED} more)" if total > MAX_LISTED else ""
-    return shown + more
+    """``items`` joined by ``", "``, the first :data:`MAX_LISTED` of them and a count of the
+    rest (:func:`femcal.errors.listed`; ``total``: how many there are in all)."""
+    return listed(items, total=total, most=MAX_LISTED)
 
 
 def repeated_names(items: Sequence[str]) -> list[str]:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from femcal.errors import InputDataError
+from femcal.errors import InputDataError, listed
 from femcal.measurements.data import (
     MAX_LISTED,
     Measurements,
@@ -501,12 +501,8 @@ def _warn_conflicts(source: str, repeats: list[list[Point]]) -> None:
             "s" if len(conflicts) > 1 else "",
             limit,
             why,
-            "; ".join(conflicts[:MAX_LISTED]) + _more(len(conflicts)),
+            listed(conflicts, most=MAX_LISTED, sep="; "),
         )
-
-
-def _more(total: int) -> str:
-    return f" (and {total - MAX_LISTED} more)" if total > MAX_LISTED else ""
 
 
 def moment_columns(path: Path, header: Sequence[str], header_line: int, *, hint: str) -> np.ndarray:

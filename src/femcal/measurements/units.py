@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from femcal.errors import InputDataError
+from femcal.errors import InputDataError, listed
 from femcal.schema import LOAD_CASES
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -26,9 +26,7 @@ _MAX_LISTED = 6
 
 
 def _fmt(values: Sequence[float] | np.ndarray) -> str:
-    items = [f"{float(x):g}" for x in values]
-    more = f" (and {len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
-    return ", ".join(items[:_MAX_LISTED]) + more
+    return listed([f"{float(x):g}" for x in values], most=_MAX_LISTED)
 
 
 def refuse_mixed_units(meas: Measurements, measured: np.ndarray) -> None:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from femcal.errors import InputDataError
+from femcal.errors import InputDataError, listed
 from femcal.reachability.envelope import (
     Envelope,
 )
@@ -229,5 +229,4 @@ class ReachabilityReport:
 
 
 def _listing(items: Sequence[str]) -> str:
-    more = f" (and {len(items) - _MAX_LISTED} more)" if len(items) > _MAX_LISTED else ""
-    return ", ".join(items[:_MAX_LISTED]) + more
+    return listed(items, most=_MAX_LISTED)
