@@ -26,15 +26,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+import pandas as pd
 
+from experiments.bench_edges import inclusion_by_effect, inclusion_scores
 from experiments.diagnosis_diff import load
-from femcal.effects.terms import parse_term
-
-#: The effects scored.
-BUILTIN = ("facet_contact", "ligament_tension", "neutral_zone")
-#: Inclusion at least this: a confident answer.
-CONFIDENT = 0.9
 
 
 def answers(path: Path) -> dict[str, set[str]]:
@@ -47,24 +42,22 @@ def answers(path: Path) -> dict[str, set[str]]:
 
 
 def scores(diagnosis: list[dict[str, Any]], truth: dict[str, set[str]]) -> dict[str, Any]:
-    """Brier score, log loss and the confident counts over every (specimen, effect) pair."""
-    p, y = [], []
-    for record in diagnosis:
-        inc: dict[str, float] = {}
-        for key, v in ((record.get("probabilities") or {}).get("inclusion") or {}).items():
-            effect = parse_term(key).effect
-            inc[effect] = min(1.0, inc.get(effect, 0.0) + float(v))
-        present = truth[str(record["specimen"])]
-        for effect in BUILTIN:
-            p.append(inc.get(effect, 0.0))
-            y.append(effect in present)
-    prob, hit = np.clip(np.array(p), 1e-3, 1 - 1e-3), np.array(y, dtype=bool)
+    """Brier score, log loss and the confident counts over every (specimen, effect) pair, as
+    the edge bench scores them (:func:`experiments.bench_edges.inclusion_scores`)."""
+    table = pd.DataFrame(
+        {
+            "expected": ["+".join(sorted(truth[str(r["specimen"])])) for r in diagnosis],
+            "inclusion": [json.dumps(inclusion_by_effect(r)) for r in diagnosis],
+        }
+    )
+    got = inclusion_scores(table)
+    present, absent = got["present_confident"], got["absent_confident"]
     return {
-        "pairs": int(prob.size),
-        "brier": round(float(np.mean((prob - hit) ** 2)), 4),
-        "log_loss": round(float(np.mean(-np.log(np.where(hit, prob, 1 - prob)))), 4),
-        "present_confident": f"{int(np.sum(prob[hit] >= CONFIDENT))}/{int(hit.sum())}",
-        "absent_confident": f"{int(np.sum(prob[~hit] >= CONFIDENT))}/{int((~hit).sum())}",
+        "pairs": got["pairs"],
+        "brier": round(got["brier"], 4),
+        "log_loss": round(got["log_loss"], 4),
+        "present_confident": f"{present['k']}/{present['n']}",
+        "absent_confident": f"{absent['k']}/{absent['n']}",
     }
 
 
