@@ -22,7 +22,7 @@ from pydantic_core import ArgsKwargs
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
-from femcal.settings._format import Doc, fail, got, problems, yaml_repr
+from femcal.settings._format import Doc, fail, got, problems, reword, yaml_repr
 from femcal.settings.keywords import (
     SOLVER,
     SOLVERS,
@@ -54,6 +54,7 @@ _ADAPT = light_class("fe.options", "AdaptOptions")  # the FE workflows' options,
 
 def _element(cls: type) -> type:
     """A posterior element's settings: a frozen pydantic dataclass, every key known."""
+    cls._reword = model_validator(mode="wrap")(classmethod(reword))
     return dataclass(frozen=True, config=ConfigDict(extra="forbid"))(cls)
 
 
@@ -264,7 +265,7 @@ def posterior_settings(
     try:
         return TypeAdapter(PosteriorSettings).validate_python(value)
     except ValidationError as exc:
-        found = problems(exc, PosteriorSettings, prefix=("fe", "settings", "posterior"))
+        found = problems(exc, prefix=("fe", "settings", "posterior"))
         listing = "\n".join(f"  - {message}" for _, message in found)
         raise ConfigError(
             f"{where}: invalid posterior elements:\n{listing}\nFix the values in {where} "

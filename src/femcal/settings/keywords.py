@@ -22,7 +22,7 @@ from pydantic import (
     model_validator,
 )
 
-from femcal.settings._format import Doc, Index, closest, describe, fail, got, unwrap
+from femcal.settings._format import Doc, closest, describe, fail, got, text, unwrap
 from femcal.settings.values import (
     MODEL_URI,
     Bool,
@@ -358,8 +358,24 @@ class CategoricalEntry(Section):
     )
 
 
-#: One search-space entry, by its ``type``.
-SearchEntry = Annotated[FloatEntry | IntEntry | CategoricalEntry, Field(discriminator="type")]
+_ENTRIES = {"float": FloatEntry, "int": IntEntry, "categorical": CategoricalEntry}
+
+
+def _entry(value: Any) -> Section:
+    """One search-space entry: the model its ``type`` names."""
+    if not isinstance(value, dict):
+        raise fail(f"expected a mapping {{type: float|int|categorical, ...}}, got {got(value)}")
+    if value.get("type") not in _ENTRIES:
+        kind = value.get("type")
+        close = closest(kind, _ENTRIES) if isinstance(kind, str) else None
+        fix = f"; did you mean {close!r}?" if close else ""
+        raise fail(
+            f"expected one of {', '.join(map(repr, _ENTRIES))}, got {got(kind)}{fix}", "type"
+        )
+    return _ENTRIES[value["type"]].model_validate(value)
+
+
+SearchEntry = Annotated[Section, PlainValidator(_entry)]
 
 
 def _kinds(annotation: Any) -> tuple[str, ...]:
@@ -394,14 +410,13 @@ class _Space(Keywords):
                     f"use {allowed}{fix}",
                     (name, "type"),
                 )
-            values = {("choices", Index(i)): c for i, c in enumerate(spec.get("choices") or ())}
+            values = {("choices", i): c for i, c in enumerate(spec.get("choices") or ())}
             values.update({(k,): spec[k] for k in ("low", "high") if k in spec})
             for where, value in values.items():  # as written: 16 for an int, 0.001 for a float
                 try:
                     TypeAdapter(annotation).validate_python(value)
-                except ValidationError:
-                    message = f"expected {describe(annotation)}, got {got(value)}"
-                    raise fail(message, (name, *where)) from None
+                except ValidationError as exc:
+                    raise fail(text(exc.errors()[0]), (name, *where)) from None
         return result
 
 

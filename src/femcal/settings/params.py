@@ -113,17 +113,17 @@ def _sections(
             found.append(((key,), message + "pipeline's fe/params.yaml"))
         elif key not in allowed:
             missing = [n for n in required if n not in data]
-            message = fmt.unknown_message(
-                key, (), sorted(allowed), missing=missing, what="unknown section"
+            message, close = fmt.unknown_message(
+                key, sorted(allowed), missing=missing, what="unknown section"
             )
-            found.append(((key,), message))
+            found.append(((key,), f"{key}: {message}".replace("{there}", str(close))))
         else:
             model = SECTIONS[key][0]
             try:
                 out[key] = model.model_validate(value, context={"complete": complete})
             except ValidationError as exc:
-                found += fmt.problems(exc, model, prefix=(key,), complete=complete)
-                missing = [e["loc"] for e in exc.errors() if e["type"] == "missing"]
+                found += fmt.problems(exc, prefix=(key,), complete=complete)
+                missing = [e["loc"] for e in exc.errors() if e["type"] == "missing_setting"]
                 if len(missing) == len(exc.errors()) and all(len(loc) == 1 for loc in missing):
                     partial[key] = _partial(model, value, f"{path}:{key}")
     unknown = {fmt.closest(str(k), allowed) for k in data if k not in allowed}

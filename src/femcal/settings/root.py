@@ -256,7 +256,7 @@ def _datasets(value: Any, handler: Any, info: ValidationInfo) -> Any:
     except ValidationError as exc:
         errors = exc.errors()
         if (info.context or {}).get("complete", True) or any(
-            e["type"] != "missing" or len(e["loc"]) != 2 for e in errors
+            e["type"] != "missing_setting" or len(e["loc"]) != 2 for e in errors
         ):
             raise
         broken = {e["loc"][0] for e in errors}

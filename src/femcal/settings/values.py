@@ -32,10 +32,19 @@ from pydantic import (
     create_model,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
 from femcal.errors import ConfigError
-from femcal.settings._format import Doc, PlainOf, closest, describe, fail, keys_of, yaml_repr
+from femcal.settings._format import (
+    Doc,
+    PlainOf,
+    closest,
+    describe,
+    fail,
+    got,
+    keys_of,
+    reword,
+    yaml_repr,
+)
 
 #: SQLAlchemy dialects (their common spellings), for suggestions.
 _SQL_DIALECTS = ("sqlite", "postgresql", "mysql", "mariadb", "oracle", "mssql", "cockroachdb")
@@ -187,10 +196,10 @@ def Text(what: str, problem: Callable[[str], str | None] | None = None) -> Any: 
 
     def check(value: Any) -> str:
         if not isinstance(value, str) or not value.strip():
-            raise PydanticCustomError("value_type", "expected {what}", {"what": what})
+            raise fail(f"expected {what}, got {got(value)}")
         why = problem(value) if problem else None
         if why is not None:
-            raise PydanticCustomError("value_problem", "{why}", {"why": why})
+            raise fail(f"expected {what}, got {yaml_repr(value)}: {why}")
         return value
 
     return Annotated[str, PlainValidator(check), Doc(what)]
@@ -198,7 +207,7 @@ def Text(what: str, problem: Callable[[str], str | None] | None = None) -> Any: 
 
 def _n_jobs(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not (value >= 1 or value == -1):
-        raise PydanticCustomError("value_type", "expected n_jobs")
+        raise fail(f"expected an integer >= 1, or -1 (all cores), got {got(value)}")
     return value
 
 
@@ -250,6 +259,7 @@ class Section(BaseModel):
 
     #: ``file:section`` of a section the file gives partially (None: complete).
     _missing_in: str | None = PrivateAttr(None)
+    _reword = model_validator(mode="wrap")(classmethod(reword))
 
     def __getattr__(self, name: str) -> Any:
         # A required key a partial section lacks: the error that names it, where it is read.
@@ -366,7 +376,7 @@ def check_options(options: Any, owner: str) -> None:
             error = exc.errors(include_url=False)[0]
             words = describe(annotation).replace(" or null", " or None")
             words = re.sub(r"^a number (?=[<>i])", "", words)
-            if error["type"] == "femcal":  # a check of the type's own (e.g. no repeats)
+            if error["type"] == "setting_problem":  # a check of the type's own (e.g. no repeats)
                 raise OptionError(owner, name, f"{name}: {error['msg']}") from None
             if words.startswith("one of "):
                 text = f"unknown {name} {value!r}; choose {words}"
