@@ -87,6 +87,14 @@ def closest(word: str, candidates: Iterable[str], cutoff: float = 0.6) -> str | 
     return max([sc for sc in scored if sc[0] >= cutoff], key=lambda sc: sc[0], default=(0, None))[1]
 
 
+def one_of(value: Any, names: Iterable[str]) -> str:
+    """``expected one of 'a', 'b', got 'c' (str); did you mean 'a'?``."""
+    names = list(names)
+    close = closest(value, names) if isinstance(value, str) else None
+    fix = f"; did you mean {close!r}?" if close else ""
+    return f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
+
+
 def unknown_message(key: Any, known: Iterable[str], **how: Any) -> tuple[str, str | None]:
     """``unknown setting; did you mean {there}?`` and the closest key (``{there}`` stands for
     its dotted path); ``how``: ``retired``/``refused`` (key -> text), ``missing`` (required
