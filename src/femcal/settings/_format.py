@@ -200,43 +200,7 @@ def text(err: dict) -> str:
     return f"{message}, got {got(value)}" + (f"; did you mean {close!r}?" if close else "")
 
 
-def _own(cls: type, err: dict, loc: tuple, missing: list) -> tuple[str | None, str, dict]:
-    """The message (None: as it is), the type and the context of an error at ``loc`` in
-    ``cls``."""
-    kind, ctx = err["type"], err.get("ctx") or {}
-    field = fields_of(cls).get(keys_of(cls).get(loc[0], "")) if loc else None
-    if kind == "extra_forbidden" and len(loc) == 1:
-        extra = getattr(cls, "_open_what", "")
-        message, close = unknown_message(
-            loc[0],
-            keys_of(cls),
-            missing=missing,
-            retired=getattr(cls, "_retired", {}),
-            refused=getattr(cls, "_refused", {}),
-            what=getattr(cls, "_unknown", "unknown setting"),
-            extra=f" (the other keys of {{parent}} are {extra})" if extra else "",
-        )
-        return message, "setting_problem", {"close": close}
-    if kind == "missing" and len(loc) == 1:
-        what = (
-            f"{loc[0]}: {field.description}; expected {describe(field.annotation, field.metadata)}"
-        )
-        message = getattr(cls, "_missing", f"missing setting; add it ({what})")
-        return (
-            message,
-            "setting_problem" if getattr(cls, "_complete", False) else "missing_setting",
-            {},
-        )
-    if not loc and kind not in CUSTOM:
-        return f"expected {describe(cls)}, got {got(err.get('input'))}", "setting_problem", {}
-    if len(loc) == 1 and field is not None and field.description and ctx.get("key") is None:
-        message = text(err)
-        return (
-            f"{message}{' ' if message.endswith('?') else '; '}{loc[0]}: {field.description}",
-            "setting_problem",
-            ctx,
-        )
-    return None, kind, ctx
+_SAME = {"unexpected_keyword_argument": "extra_forbidden", "missing_argument": "missing"}
 
 
 def reword(cls: type, data: Any, handler: Callable) -> Any:
@@ -245,33 +209,52 @@ def reword(cls: type, data: Any, handler: Callable) -> Any:
     try:
         return handler(data)
     except ValidationError as exc:
-        same = {"unexpected_keyword_argument": "extra_forbidden", "missing_argument": "missing"}
-        errors = [
-            {**e, "type": same.get(e["type"], e["type"])} for e in exc.errors(include_url=False)
-        ]
-        title = exc.title
+        title, errors = exc.title, exc.errors(include_url=False)
     keys, fields = keys_of(cls), fields_of(cls)
-    at_ = {
-        k: [e["loc"][0] for e in errors if e["type"] == k and len(e["loc"]) == 1]
-        for k in ("missing", "extra_forbidden")
-    }
-    paired = {closest(str(k), keys) for k in at_["extra_forbidden"]} & set(at_["missing"])
-    out, hint = [], getattr(cls, "_hint", None)
+    errors = [{**e, "type": _SAME.get(e["type"], e["type"])} for e in errors]
+    top = [(e["type"], e["loc"][0]) for e in errors if len(e["loc"]) == 1]
+    missing = [k for t, k in top if t == "missing"]
+    paired = {closest(str(k), keys) for t, k in top if t == "extra_forbidden"} & set(missing)
+    out = []
     for err in errors:
-        loc = err["loc"]
-        if len(loc) > 1 and isinstance(loc[1], int) and loc[0] in keys:
-            if get_origin(fields[keys[loc[0]]].annotation) is dict:  # a number key, no position
-                loc = (loc[0], str(loc[1]), *loc[2:])
+        loc, kind, ctx, message = err["loc"], err["type"], err.get("ctx") or {}, None
+        field = fields.get(keys.get(loc[0], "")) if loc else None
+        if field and loc[1:] and isinstance(loc[1], int) and get_origin(field.annotation) is dict:
+            loc = (loc[0], str(loc[1]), *loc[2:])  # a number key of a mapping, not a position
         loc = loc[1:] if loc and loc[0] == getattr(cls, "_open", None) else loc
-        if err["type"] == "missing" and len(loc) == 1 and loc[0] in paired:
-            continue
-        message, kind, ctx = _own(cls, err, loc, at_["missing"])
-        if hint and hint not in (message or text(err)):
-            message, kind = (
-                f"{message or text(err)}; {hint}",
-                "setting_problem" if kind not in CUSTOM else kind,
+        if kind == "extra_forbidden" and len(loc) == 1:
+            other = (
+                f" (the other keys of {{parent}} are {cls._open_what})"
+                if hasattr(cls, "_open_what")
+                else ""
             )
+            how = {
+                k: getattr(cls, f"_{k}") for k in ("retired", "refused") if hasattr(cls, f"_{k}")
+            }
+            what = getattr(cls, "_unknown", "unknown setting")
+            message, close = unknown_message(
+                loc[0], keys, missing=missing, what=what, extra=other, **how
+            )
+            kind, ctx = "setting_problem", {"close": close}
+        elif kind == "missing" and len(loc) == 1:
+            if loc[0] in paired:
+                continue
+            what = f"{field.description}; expected {describe(field.annotation, field.metadata)}"
+            message = getattr(cls, "_missing", f"missing setting; add it ({loc[0]}: {what})")
+            kind = "setting_problem" if getattr(cls, "_complete", False) else "missing_setting"
+        elif not loc and kind not in CUSTOM:
+            message = f"expected {describe(cls)}, got {got(err.get('input'))}"
+        elif len(loc) == 1 and field and field.description and ctx.get("key") is None:
+            message = text(err)
+            message += f"{' ' if message.endswith('?') else '; '}{loc[0]}: {field.description}"
+        hint = getattr(cls, "_hint", None)
+        message = (
+            f"{message or text(err)}; {hint}"
+            if hint and hint not in (message or text(err))
+            else message
+        )
         if message is not None or kind in CUSTOM:
+            kind = kind if kind in CUSTOM else "setting_problem"
             ctx = {**ctx, "message": message or ctx["message"]}
             err = {"type": PydanticCustomError(kind, "{message}", ctx), "input": err.get("input")}
         out.append({**err, "loc": loc})

@@ -175,31 +175,24 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
-@with_options
-class PgdKeywords(OptionSection, Keywords):
-    """The pgd calibrator's options (``calibrate.options.pgd``)."""
-
-    _owner: ClassVar[str] = "pgd calibrator"
-    _options: ClassVar[type] = light_class("calibration.pgd_options", "PgdOptions")
-    _reasons: ClassVar[dict] = {"start_bank": "set calibrate.start_bank (starts table)", **_RNG}
-
-
-@with_options
-class PgdStudyKeywords(OptionSection, Keywords):
-    """The pgd-study calibrator's options (``calibrate.options.pgd-study``)."""
-
-    _owner: ClassVar[str] = "pgd-study calibrator"
-    _options: ClassVar[type] = light_class("calibration.pgd_study_options", "PgdStudyOptions")
-    _reasons: ClassVar[dict[str, str]] = _RNG
+def _calibrator(method: str, module: str, reasons: dict[str, str]) -> type:
+    """The keyword options of the calibrator ``method``, declared by its options dataclass in
+    ``femcal.calibration.<module>``; ``reasons``: keyword not settable there -> why."""
+    name = method.title().replace("-", "")  # pgd-study -> PgdStudy
+    body = {
+        "__doc__": f"The {method} calibrator's options (``calibrate.options.{method}``).",
+        "__module__": __name__,
+        "_owner": f"{method} calibrator",
+        "_options": light_class(f"calibration.{module}", f"{name}Options"),
+        "_reasons": {**reasons, **_RNG},
+    }
+    return with_options(type(f"{name}Keywords", (OptionSection, Keywords), body))
 
 
-@with_options
-class GaKeywords(OptionSection, Keywords):
-    """The ga calibrator's options (``calibrate.options.ga``)."""
-
-    _owner: ClassVar[str] = "ga calibrator"
-    _options: ClassVar[type] = light_class("calibration.ga_options", "GaOptions")
-    _reasons: ClassVar[dict[str, str]] = _RNG
+_BANK = "set calibrate.start_bank (a prepared table whose configurations are the starts)"
+PgdKeywords = _calibrator("pgd", "pgd_options", {"start_bank": _BANK})
+PgdStudyKeywords = _calibrator("pgd-study", "pgd_study_options", {})
+GaKeywords = _calibrator("ga", "ga_options", {})
 
 
 class InverseCalibratorKeywords(Keywords):
