@@ -95,16 +95,28 @@ def one_of(value: Any, names: Iterable[str]) -> str:
     return f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
 
 
-def unknown_message(key: Any, known: Iterable[str], **how: Any) -> tuple[str, str | None]:
-    """``unknown setting; did you mean {there}?`` and the closest key (``{there}`` stands for
-    its dotted path); ``how``: ``retired``/``refused`` (key -> text), ``missing`` (required
-    keys not given), ``what`` (default "unknown setting"), ``extra`` (after the first clause)."""
-    retired, refused = how.get("retired", {}), how.get("refused", {})
-    what, extra = how.get("what", "unknown setting"), how.get("extra", "")
-    if key in refused:
-        return refused[key], None
-    if key in retired:
-        return f"retired setting; {retired[key]}", None
+def unknown_message(
+    key: Any,
+    known: Iterable[str],
+    missing: Iterable = (),
+    model: Any = None,
+    what: str = "unknown setting",
+) -> tuple[str, str | None]:
+    """``unknown setting; did you mean {there}?`` and the closest key (``{there}`` stands for its
+    dotted path); ``missing``: the required keys not given; ``model``: its ``_unknown`` (what
+    the key is called; a keyword table: ``unknown <_owner> keyword``), ``_retired``/``_refused``
+    (key -> text), ``_reasons`` (keyword not settable there -> why), ``_open_what``."""
+    reasons = {k: f"not settable here; {v}" for k, v in getattr(model, "_reasons", {}).items()}
+    retired, refused = getattr(model, "_retired", {}), {**reasons, **getattr(model, "_refused", {})}
+    what = f"unknown {model._owner} keyword" if hasattr(model, "_owner") else what
+    what = getattr(model, "_unknown", what)
+    extra = (
+        f" (the other keys of {{parent}} are {model._open_what})"
+        if hasattr(model, "_open_what")
+        else ""
+    )
+    if key in refused or key in retired:
+        return refused.get(key) or f"retired setting; {retired[key]}", None
     known = list(known)
     close = closest(str(key), [*known, *retired])
     if close is None:
@@ -112,7 +124,7 @@ def unknown_message(key: Any, known: Iterable[str], **how: Any) -> tuple[str, st
     if close in retired:
         return f"{what}; it looks like {{there}}, a retired setting: {retired[close]}", close
     message = f"{what}; did you mean {{there}}?{extra}"
-    if close in how.get("missing", ()):
+    if close in missing:
         message += f" {{there}} is required and missing: {key} is probably it, misspelt."
     return message, close
 
@@ -184,7 +196,8 @@ def describe(tp: Any, meta: Iterable = ()) -> str:
         unique = ", no repeats" if any(getattr(m, "unique", False) for m in meta) else ""
         return f"{text} (each item {describe(get_args(tp)[0])}{unique})"
     if is_model(tp):
-        return getattr(tp, "_describe", f"a mapping of settings ({', '.join(keys_of(tp))})")
+        what = f"{tp._owner} keywords" if hasattr(tp, "_owner") else "settings"
+        return getattr(tp, "_describe", f"a mapping of {what} ({', '.join(keys_of(tp))})")
     return "a mapping" if get_origin(tp) is dict else str(tp)
 
 
@@ -223,18 +236,7 @@ def reword(cls: type, data: Any, handler: Callable) -> Any:
             loc = (loc[0], str(loc[1]), *loc[2:])  # a number key of a mapping, not a position
         loc = loc[1:] if loc and loc[0] == getattr(cls, "_open", None) else loc
         if kind == "extra_forbidden" and len(loc) == 1:
-            other = (
-                f" (the other keys of {{parent}} are {cls._open_what})"
-                if hasattr(cls, "_open_what")
-                else ""
-            )
-            how = {
-                k: getattr(cls, f"_{k}") for k in ("retired", "refused") if hasattr(cls, f"_{k}")
-            }
-            what = getattr(cls, "_unknown", "unknown setting")
-            message, close = unknown_message(
-                loc[0], keys, missing=missing, what=what, extra=other, **how
-            )
+            message, close = unknown_message(loc[0], keys, missing, cls)
             kind, ctx = "setting_problem", {"close": close}
         elif kind == "missing" and len(loc) == 1:
             if loc[0] in paired:

@@ -359,6 +359,6 @@ def space_of(keywords: type[Keywords]) -> Any:
     fields = {k: (entry(k, f), keyword(f.description)) for k, f in keywords.model_fields.items()}
     doc = f"An Optuna search space over the {keywords._owner} keywords."
     model = create_model(f"{keywords.__name__}Space", __base__=Keywords, __doc__=doc, **fields)
-    model._keywords, model._unknown, model._refused = keywords, keywords._unknown, keywords._refused
+    model._keywords, model._owner, model._reasons = keywords, keywords._owner, keywords._reasons
     model._describe = "a mapping hyper-parameter -> {type: float|int|categorical, low, high, ...}"
     return plain(model)

@@ -256,19 +256,6 @@ class Keywords(Section):
 
     _owner: ClassVar[str] = "function"
     _reasons: ClassVar[dict[str, str]] = {}
-    _auto: ClassVar[frozenset] = frozenset()  # the messages' words derived from _owner
-
-    @classmethod
-    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
-        words = {
-            "_unknown": f"unknown {cls._owner} keyword",
-            "_describe": f"a mapping of {cls._owner} keywords ({', '.join(fmt.keys_of(cls))})",
-        }
-        keep = cls._auto
-        cls._auto = {k for k in words if k not in vars(cls) and (k in keep or not hasattr(cls, k))}
-        for key in cls._auto:
-            setattr(cls, key, words[key])
-        cls._refused = {k: f"not settable here; {v}" for k, v in cls._reasons.items()}
 
 
 def keyword(doc: str) -> Any:
