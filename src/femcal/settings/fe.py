@@ -17,7 +17,6 @@ from pydantic import (
     model_validator,
 )
 from pydantic.dataclasses import dataclass
-from pydantic_core import ArgsKwargs
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
@@ -156,13 +155,14 @@ class Ligaments(Keywords):
     """``fe.settings.posterior.ligaments``: ligament -> its settings (the defaults overridden)."""
 
     _unknown: ClassVar[str] = "unknown ligament"
+    _describe: ClassVar[str] = "a list of ligament names or a mapping name -> settings"
 
     @model_validator(mode="before")
     @classmethod
     def _with_defaults(cls, value: Any) -> Any:
         value = {name: {} for name in value} if isinstance(value, list | tuple) else value
         if not isinstance(value, dict):
-            raise fail(f"expected a list of ligament names or a mapping, got {got(value)}")
+            return value
         for name, overrides in value.items():
             if overrides is not None and not isinstance(overrides, dict):
                 raise fail(f"expected a mapping of ligament settings, got {got(overrides)}", name)
@@ -186,11 +186,7 @@ class PosteriorSettings:
     @model_validator(mode="before")
     @classmethod
     def _a_mapping(cls, value: Any) -> Any:
-        if isinstance(value, ArgsKwargs):  # PosteriorSettings(facets=...)
-            return value
-        if value is not None and not isinstance(value, dict):
-            raise fail(f"expected a mapping (facets, ligaments) or null, got {got(value)}")
-        return value or {}
+        return {} if value is None else value  # ArgsKwargs: PosteriorSettings(facets=...)
 
     @property
     def active(self) -> bool:

@@ -246,6 +246,7 @@ class GeometryKeywords(OptionSection, Keywords):
     """The disc geometry (femcal.fe.geometry.DiscGeometry)."""
 
     _owner: ClassVar[str] = "DiscGeometry"
+    _describe: ClassVar[str] = "a mesh preset (coarse, default, fine) or DiscGeometry fields"
     _options: ClassVar[type] = light_class("fe.options", "GeometryOptions")
 
     @model_validator(mode="before")
@@ -255,9 +256,6 @@ class GeometryKeywords(OptionSection, Keywords):
             return {"preset": value}
         if isinstance(value, str):
             raise fail(one_of(value, MESH_PRESETS))
-        if not isinstance(value, dict):
-            what = "a mesh preset (coarse, default, fine) or a mapping of DiscGeometry fields"
-            raise fail(f"expected {what}, got {got(value)}")
         return value
 
     preset: Literal[MESH_PRESETS] = keyword("mesh density the other fields start from")

@@ -7,7 +7,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import ValidationError, ValidationInfo, WrapValidator, model_validator
 
 from femcal.schema import TARGETS
-from femcal.settings._format import fail, got, keys_of
+from femcal.settings._format import fail, keys_of
 from femcal.settings.keywords import (
     BASELINE,
     METHOD,
@@ -151,6 +151,7 @@ class Sides(Section):
     """A value per side of the trained moment range; one number serves both sides."""
 
     _complete: ClassVar[bool] = True
+    _describe: ClassVar[str] = "{below, above} numbers >= 0, or one number >= 0"
 
     below: Float(0) = setting("below the trained range")
     above: Float(0) = setting("above the trained range")
@@ -160,9 +161,6 @@ class Sides(Section):
     def _one_number(cls, value: Any) -> Any:
         if isinstance(value, int | float) and not isinstance(value, bool) and 0 <= value < 1e308:
             return {"below": value, "above": value}
-        if not isinstance(value, dict):
-            what = "{below, above} numbers >= 0, or one number >= 0"
-            raise fail(f"expected {what}, got {got(value)}")
         return value
 
     def pair(self) -> tuple[float, float]:
@@ -193,6 +191,8 @@ class EffectsSettings(Section):
 class DatasetSettings(Section):
     """``calibrate.datasets.<name>``: one measurement file and the effects added to the disc."""
 
+    _describe: ClassVar[str] = "a path or {measurements: path, effects: [names], noise_deg: sd}"
+
     measurements: PATH = setting("a long/wide CSV, or a folder of ROM_Results_* files")
     effects: ListOf(NAME, unique=True) = setting("effects added to the disc ([]: none)", ())
     noise_deg: Float(gt=0) | None = setting("sd of one measurement, deg (null: not counted)", None)
@@ -200,12 +200,7 @@ class DatasetSettings(Section):
     @model_validator(mode="before")
     @classmethod
     def _a_path(cls, value: Any) -> Any:
-        if isinstance(value, str) and value.strip():
-            return {"measurements": value}
-        if not isinstance(value, dict):
-            what = "a path or {measurements: path, effects: [names], noise_deg: sd}"
-            raise fail(f"expected {what}, got {got(value)}")
-        return value
+        return {"measurements": value} if isinstance(value, str) and value.strip() else value
 
 
 def _datasets(value: Any, handler: Any, info: ValidationInfo) -> Any:
