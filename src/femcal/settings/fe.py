@@ -148,6 +148,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
 }
 #: The ligaments the model knows.
 LIGAMENTS: tuple[str, ...] = tuple(LIGAMENT_DEFAULTS)
+_LIGAMENTS = f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides"
 
 
 @with_options(**{n: (LigamentSettings, setting(f"the {n} ligament", None)) for n in LIGAMENTS})
@@ -179,9 +180,7 @@ class PosteriorSettings:
     _describe: ClassVar[str] = "a mapping (facets, ligaments) or null"
 
     facets: FacetSettings | None = setting("facet joints (GAPUNI contact; null: none)", None)
-    ligaments: plain(Ligaments, typed=True) = setting(
-        f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides", {}
-    )
+    ligaments: plain(Ligaments, typed=True) = setting(_LIGAMENTS, {})
 
     @model_validator(mode="before")
     @classmethod
@@ -252,6 +251,7 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
 
 
 _BOUNDS = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
+_SOLVER_SETTINGS = Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)]
 
 
 @with_options
@@ -271,9 +271,7 @@ class FeSettings(OptionSection):
     moments: MOMENTS = setting("moments simulated, Nm")
     out_dir: PATH = setting("dataset folder in the study's layout")
     store: PATH = setting("durable store of finished jobs (JSON lines; .jsonl.gz to commit it)")
-    settings: Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)] = setting(
-        "the adapter's keyword arguments (part of every job's hash; a plugin's as given)", {}
-    )
+    settings: _SOLVER_SETTINGS = setting("the adapter's keywords (in every job's hash)", {})
     metrics_file: PATH | None = setting("campaign figures (DVC metrics)", None)
 
     @model_validator(mode="after")
@@ -362,15 +360,11 @@ class ValidateSettings(Section):
     store: PATH = setting("campaign store of the FE runs")
     metrics_file: PATH | None = setting("figures (DVC metrics)", None)
     forces: ListOf(Float(gt=0), unique=True) = setting("axial compression forces, N", ())
-    idp_literature: dict[Float(gt=0), IdpRange] = setting(
-        "published in vitro IDP range per force: force in N -> {low, mean, high} in MPa", {}
-    )
+    idp_literature: dict[Float(gt=0), IdpRange] = setting("in vitro IDP range per force, N", {})
     idp_published: ListOf(PublishedIdp) = setting("published IDP values, no force known", ())
     idp_model_uri: MODEL_URI | None = setting("the IDP head (train@idp; null: none)", None)
     refine: RefineSettings | None = setting("FE-in-the-loop refinement (null: none)", None)
-    target_noise_deg: Float(ge=0) | None = setting(
-        "measurement noise sd, deg (null: unknown)", None
-    )
+    target_noise_deg: Float(0) | None = setting("the data's noise sd, deg (null: unknown)", None)
     predictive_report: PATH | None = setting("the predict stage's figures (null: none)", None)
     adapt_report: PATH | None = setting("the adapt stage's figures (null: none)", None)
 
@@ -389,6 +383,13 @@ def _range_of(lo: float, hi: float, unit: str) -> Any:
     return Annotated[tuple[float, float], PlainValidator(check), Doc(what)]
 
 
+_STIFFNESS, _SCALE, _SHIFT = (
+    _range_of(1, 1e5, "N/mm"),
+    _range_of(0.1, 10, ""),
+    _range_of(-0.3, 0.5, ""),
+)
+
+
 class CohortSettings(Section):
     """``cohort``: an FE-made cohort with hidden posterior elements (femcal.fe.cohort): four
     balanced classes (the disc alone, facets, ligaments, both); disc parameters uniform in
@@ -405,12 +406,8 @@ class CohortSettings(Section):
     noise_deg: Float(0) = setting("sd of the Gaussian noise added to the RoM, deg", 0.05)
     disc_margin: Float(0, 0.45) = setting("fraction of each range left out at both ends", 0.05)
     facet_gap_mm: _range_of(0, 3, "mm") = setting("facet clearance, mm", (0.25, 1.0))
-    facet_stiffness_n_per_mm: _range_of(1, 1e5, "N/mm") = setting(
-        "facet contact stiffness (log-uniform), N/mm", (25.0, 100.0)
+    facet_stiffness_n_per_mm: _STIFFNESS = setting("facet stiffness (log), N/mm", (25.0, 100.0))
+    ligament_stiffness_scale: _SCALE = setting(
+        "factor on each ligament stiffness (log)", (0.5, 2.0)
     )
-    ligament_stiffness_scale: _range_of(0.1, 10, "") = setting(
-        "factor on every ligament's stiffness (log-uniform)", (0.5, 2.0)
-    )
-    ligament_slack_shift: _range_of(-0.3, 0.5, "") = setting(
-        "added to every ligament's slack strain (clipped to its range)", (-0.15, 0.05)
-    )
+    ligament_slack_shift: _SHIFT = setting("added to each slack strain (clipped)", (-0.15, 0.05))

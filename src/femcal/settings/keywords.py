@@ -305,6 +305,9 @@ def _scalar(value: Any) -> Any:
     return value
 
 
+_CHOICES = ListOf(Annotated[Any, AfterValidator(_scalar)], min_len=1, unique=True)
+
+
 class CategoricalEntry(Section):
     """``{type: categorical, choices}``: one of the choices."""
 
@@ -317,9 +320,7 @@ class CategoricalEntry(Section):
     }
 
     type: Literal["categorical"] = setting("the Optuna distribution")
-    choices: ListOf(Annotated[Any, AfterValidator(_scalar)], min_len=1, unique=True) = setting(
-        "the values to choose from"
-    )
+    choices: _CHOICES = setting("the values to choose from")
 
 
 _ENTRIES = {"float": FloatEntry, "int": IntEntry, "categorical": CategoricalEntry}

@@ -41,6 +41,7 @@ _BASELINES = ListOf(BASELINE, unique=True)
 _MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
 _SPACE = "Optuna search space over the hyper-parameters"
 _TRIALS = "complete Optuna trials (0: train on fixed alone)"
+_TARGET = "output learnt: rom_deg, or idp_mpa (the IDP head; needs fixed log_target: false)"
 
 
 class DataSettings(Section):
@@ -48,9 +49,7 @@ class DataSettings(Section):
 
     raw_dir: PATH = setting("folder of the study's files as fetched (fetch's output)")
     prepared_dir: PATH = setting("folder of the tidy tables and parameter_space.json")
-    source_dir: PATH | None = setting(
-        "what prepare reads, the study's layout (null: raw_dir)", None
-    )
+    source_dir: PATH | None = setting("what prepare reads, as laid out (null: raw_dir)", None)
     limit_configs: Int(1) | None = setting("the first N configurations per split (null: all)", None)
 
 
@@ -73,10 +72,7 @@ class TrainSplitSettings(Section):
     seed: Int(0) | None = setting("seed of this split (default: train.seed)", None)
     split: Literal[SPLITS] | None = setting("table trained on (default: the section's name)", None)
     model_name: NAME | None = setting("registered name (default: mlflow.model_name)", None)
-    target: Literal[tuple(TARGETS)] = setting(
-        "output learnt: rom_deg, or idp_mpa (the IDP head; needs fixed log_target: false)",
-        "rom_deg",
-    )
+    target: Literal[tuple(TARGETS)] = setting(_TARGET, "rom_deg")
 
 
 class TrainSettings(Section):
@@ -218,6 +214,9 @@ def _datasets(value: Any, handler: Any, info: ValidationInfo) -> Any:
         return {k: good.get(k) or DatasetSettings.model_construct(**value[k]) for k in value}
 
 
+_DATASETS = Annotated[dict[DATASET_NAME, DatasetSettings], WrapValidator(_datasets)]
+
+
 class CalibrateSettings(Section):
     """``calibrate``: the calibration stages, one per dataset, and the calibrator."""
 
@@ -234,9 +233,7 @@ class CalibrateSettings(Section):
     out_dir: PATH = setting("outputs go to <out_dir>/<dataset>/")
     method: METHOD = setting("calibration method")
     model_uri: MODEL_URI = setting("the surrogate: a model folder or a models:/ URI")
-    datasets: Annotated[dict[DATASET_NAME, DatasetSettings], WrapValidator(_datasets)] = setting(
-        "name -> {measurements, effects, noise_deg}, one calibrate@<name> stage each", {}
-    )
+    datasets: _DATASETS = setting("name -> a dataset, one calibrate@<name> stage each", {})
     holdout_uri: MODEL_URI | None = setting("held-out surrogate re-evaluating each fit", None)
     start_bank: PATH | None = setting("prepared table whose configurations are pgd's starts", None)
     seed: Int(0) = setting("seed of the calibrator", 0)
