@@ -4,13 +4,12 @@ Each section's wrap validator (:func:`reword`) words the errors at its own keys:
 names the closest valid one, a missing key says what to add, a bad value gets pydantic's text,
 what was given and the key's doc. :func:`problems` adds the dotted paths, :func:`raise_problems`
 each line in the YAML file. :func:`describe` words what a type allows (help texts, options).
-Class variables of a section tune its messages: ``_unknown`` (what an unknown key is called),
-``_retired``/``_refused`` (key -> what to do instead), ``_complete`` (missing keys reported in
-a partial check too), ``_missing`` (its message), ``_open`` (the field holding the other keys;
-``_open_what`` says what they are), ``_describe`` (the section in words), ``_hint`` (appended).
+Class variables of a section tune its messages: ``_unknown`` (what an unknown key is called; a
+keyword table's: ``unknown <_owner> keyword``), ``_retired``/``_refused``/``_reasons`` (key ->
+what to do instead), ``_complete`` (missing keys reported in a partial check too), ``_missing``
+(its message), ``_open`` (the field holding the other keys; ``_open_what`` says what they are),
+``_describe`` (the section in words), ``_hint`` (appended to each message).
 """
-
-from __future__ import annotations
 
 import difflib
 import re

@@ -252,6 +252,7 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
 
 _BOUNDS = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
 _SOLVER_SETTINGS = Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)]
+_PATH_OR_BOUNDS = Annotated[plain(Bounds, typed=True), WrapValidator(_path_or_bounds), Doc(_BOUNDS)]
 
 
 @with_options
@@ -261,9 +262,7 @@ class FeSettings(OptionSection):
     _options: ClassVar[type] = light_class("fe.options", "CampaignOptions")
 
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
-    bounds: Annotated[plain(Bounds, typed=True), WrapValidator(_path_or_bounds), Doc(_BOUNDS)] = (
-        setting("the sampling box: " + _BOUNDS)
-    )
+    bounds: _PATH_OR_BOUNDS = setting("the sampling box: " + _BOUNDS)
     splits: plain(Splits, typed=True) = setting("configurations per split (large, small, test)")
     batches: ListOf(Int(1)) = setting("more Latin-hypercube batches of the large split", [])
     seed: Int(0) = setting("seed of the designs")
@@ -277,10 +276,8 @@ class FeSettings(OptionSection):
     @model_validator(mode="after")
     def _all_load_cases(self) -> Any:
         if sorted(self.load_cases) != sorted(LOAD_CASES):
-            message = (
-                f"a dataset in the study's layout needs all four load cases {list(LOAD_CASES)}"
-            )
-            raise fail(f"{message}; got {list(self.load_cases)}", "load_cases")
+            why = f"a dataset in the study's layout needs all four load cases {list(LOAD_CASES)}"
+            raise fail(f"{why}; got {list(self.load_cases)}", "load_cases")
         return self
 
 
@@ -383,11 +380,8 @@ def _range_of(lo: float, hi: float, unit: str) -> Any:
     return Annotated[tuple[float, float], PlainValidator(check), Doc(what)]
 
 
-_STIFFNESS, _SCALE, _SHIFT = (
-    _range_of(1, 1e5, "N/mm"),
-    _range_of(0.1, 10, ""),
-    _range_of(-0.3, 0.5, ""),
-)
+_STIFFNESS = _range_of(1, 1e5, "N/mm")
+_SCALE, _SHIFT = _range_of(0.1, 10, ""), _range_of(-0.3, 0.5, "")
 
 
 class CohortSettings(Section):
@@ -407,7 +401,5 @@ class CohortSettings(Section):
     disc_margin: Float(0, 0.45) = setting("fraction of each range left out at both ends", 0.05)
     facet_gap_mm: _range_of(0, 3, "mm") = setting("facet clearance, mm", (0.25, 1.0))
     facet_stiffness_n_per_mm: _STIFFNESS = setting("facet stiffness (log), N/mm", (25.0, 100.0))
-    ligament_stiffness_scale: _SCALE = setting(
-        "factor on each ligament stiffness (log)", (0.5, 2.0)
-    )
+    ligament_stiffness_scale: _SCALE = setting("factor on ligament stiffness (log)", (0.5, 2.0))
     ligament_slack_shift: _SHIFT = setting("added to each slack strain (clipped)", (-0.15, 0.05))
