@@ -226,7 +226,7 @@ def test_wrong_type_says_what_was_given_and_what_is_allowed(tmp_path):
     path = edited(tmp_path, ("  max_plots: 500 ", "  max_plots: ten "))
     with pytest.raises(
         ConfigError,
-        match=r"calibrate\.max_plots: expected an integer >= 0 or null, got 'ten' \(str\); "
+        match=r"calibrate\.max_plots: Input should be a valid integer, got 'ten' \(str\); "
         r"max_plots: per-specimen PNGs",
     ):
         load_params(path)
@@ -238,17 +238,17 @@ def test_wrong_type_says_what_was_given_and_what_is_allowed(tmp_path):
         (
             "  chunk_size: 512",
             '  chunk_size: "abc"',
-            r"calibrate\.chunk_size: expected an integer >= 1 or null, got 'abc' \(str\)",
+            r"calibrate\.chunk_size: Input should be a valid integer, got 'abc' \(str\)",
         ),
         (
             "  seed: 0\n  chunk_size",
             "  seed: true\n  chunk_size",
-            r"calibrate\.seed: expected an integer >= 0, got true \(bool\)",
+            r"calibrate\.seed: Input should be a valid integer, got true \(bool\)",
         ),
         (
             "  plots: true\n  max_plots: 500",
             "  plots: 1\n  max_plots: 500",
-            r"calibrate\.plots: expected true or false, got 1 \(int\)",
+            r"calibrate\.plots: Input should be a valid boolean, got 1 \(int\)",
         ),
         (
             "  n_jobs: 1",
@@ -258,17 +258,17 @@ def test_wrong_type_says_what_was_given_and_what_is_allowed(tmp_path):
         (
             "    above: 0.51",
             "    above: far",
-            r"moments\.max_log_ratio\.above: expected a number >= 0, got 'far' \(str\)",
+            r"moments\.max_log_ratio\.above: Input should be a valid number, got 'far' \(str\)",
         ),
         (
             "  max_plots: 500",
             "  max_plots: 2.5",
-            r"calibrate\.max_plots: expected an integer >= 0 or null, got 2\.5 \(float\)",
+            r"calibrate\.max_plots: Input should be a valid integer, got 2\.5 \(float\)",
         ),
         (
             "  limit_configs: null",
             "  limit_configs: [1]",
-            r"data\.limit_configs: expected an integer >= 1 or null, got \[1\] \(list\)",
+            r"data\.limit_configs: Input should be a valid integer, got \[1\] \(list\)",
         ),
     ],
 )
@@ -283,27 +283,27 @@ def test_wrong_types(tmp_path, old, new, expected):
         (
             "  alpha: 0.01",
             "  alpha: 1.5",
-            r"diagnose\.alpha: expected a number in \(0, 1\), got 1\.5 \(float\)",
+            r"diagnose\.alpha: Input should be less than 1, got 1\.5 \(float\)",
         ),
         (
             "  max_plots: 500",
             "  max_plots: -1",
-            r"calibrate\.max_plots: expected an integer >= 0 or null, got -1 \(int\)",
+            r"calibrate\.max_plots: Input should be greater than or equal to 0, got -1 \(int\)",
         ),
         (
             "  val_fraction: 0.15",
             "  val_fraction: 1",
-            r"train\.val_fraction: expected a number in \(0, 1\), got 1 \(int\)",
+            r"train\.val_fraction: Input should be less than 1, got 1 \(int\)",
         ),
         (
             "    above: 2.99",
             "    above: .nan",
-            r"moments\.error_growth\.above: expected a number >= 0, got nan \(float\)",
+            r"moments\.error_growth\.above: Input should be a finite number, got nan \(float\)",
         ),
         (
             "  moments: [1, 1.5, 2,",
             "  moments: [0, 1.5, 2,",
-            r"plant\.moments\[0\]: expected a number > 0, got 0 \(int\)",
+            r"plant\.moments\[0\]: Input should be greater than 0, got 0 \(int\)",
         ),
     ],
 )
@@ -330,8 +330,7 @@ def test_search_entries_of_each_type():
         )
     with pytest.raises(
         ConfigError,
-        match=r"search_space\.dropout\.high: expected a number in "
-        r"\[0, 1\), got 1 \(int\)",
+        match=r"search_space\.dropout\.high: Input should be less than 1, got 1 \(int\)",
     ):
         validate_params(
             {"train": {"large": {"search_space": {"dropout": {**space["dropout"], "high": 1}}}}}
@@ -421,7 +420,8 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
             "      loss: l1\n      width: 64",
             "      activation: swish\n      log_target: true\n      log_params: true\n"
             "      loss: l1\n      width: 64",
-            r"train\.small\.fixed\.activation: expected one of 'silu', 'gelu'",
+            r"train\.small\.fixed\.activation: Input should be 'silu', 'gelu', .* got 'swish' "
+            r"\(str\); activation: hidden activation",
         ),
         # a section of train that is not a mapping is a misspelt setting, not a split
         (
@@ -446,7 +446,8 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         (
             "learning_rate: {type: float, low: 0.001, high: 0.01, log: true}",
             "learning_rate: {type: float, low: 0, high: 0.01}",
-            r"train\.large\.search_space\.learning_rate\.low: expected a number > 0, got 0 \(int\)",
+            r"train\.large\.search_space\.learning_rate\.low: Input should be greater than 0, "
+            r"got 0 \(int\)",
         ),
         (
             "learning_rate: {type: float, low: 0.001, high: 0.01, log: true}",
@@ -473,7 +474,7 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         (
             "activation: {type: categorical, choices: [gelu, silu]}",
             "activation: {type: categorical, choices: [gelu, swish]}",
-            r"search_space\.activation\.choices\[1\]: expected one of .* got 'swish'",
+            r"search_space\.activation\.choices\[1\]: Input should be 'silu', .* got 'swish'",
         ),
         (
             "activation: {type: categorical, choices: [gelu, silu]}",
@@ -495,7 +496,7 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         (
             "    learning_rate: 0.0010615360772719654\n  search_space:",
             "    learning_rate: 0.0010615360772719654\n    scheduler_factor: 1.5\n  search_space:",
-            r"inverse\.fixed\.scheduler_factor: expected a number in \(0, 1\), got 1\.5",
+            r"inverse\.fixed\.scheduler_factor: Input should be less than 1, got 1\.5",
         ),
         # calibrator options (the calibrators' keyword arguments)
         (
@@ -513,13 +514,13 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         (
             "pgd: {n_starts: 8,",
             "pgd: {n_starts: -8,",
-            r"calibrate\.options\.pgd\.n_starts: expected an integer >= 0, got -8 \(int\); "
-            r"n_starts: starts per specimen",
+            r"calibrate\.options\.pgd\.n_starts: Input should be greater than or equal to 0, "
+            r"got -8 \(int\); n_starts: starts per specimen",
         ),
         (
             "pgd: {n_starts: 8,",
             "pgd: {retry_alpha: 1, n_starts: 8,",
-            r"calibrate\.options\.pgd\.retry_alpha: expected a number in \[0, 1\), got 1 "
+            r"calibrate\.options\.pgd\.retry_alpha: Input should be less than 1, got 1 "
             r"\(int\); retry_alpha: with a noise_deg: fit again from 4x the starts",
         ),
         (
@@ -536,7 +537,8 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         (
             "pgd-study: {n_starts: 500, steps: 2250, lr: 0.0971}",
             "pgd-study: {n_starts: 500, steps: 2250, lr: 0.0971, projection: clamp}",
-            r"options\.pgd-study\.projection: expected one of 'clip', 'average', got 'clamp'",
+            r"options\.pgd-study\.projection: Input should be 'clip' or 'average', got 'clamp' "
+            r"\(str\); did you mean 'clip'\?",
         ),
         (
             "inverse: {model_uri: models/inverse}",
@@ -565,7 +567,7 @@ def test_every_problem_in_one_message_in_line_order(tmp_path):
         (
             "    test: {measurements: data/raw/Test, effects: []}",
             "    test: {measurements: data/raw/Test, effects: [], noise_deg: 0}",
-            r"calibrate\.datasets\.test\.noise_deg: expected a number > 0 or null, got 0 \(int\)",
+            r"calibrate\.datasets\.test\.noise_deg: Input should be greater than 0, got 0 \(int\)",
         ),
         # URLs and URIs in the file
         (
@@ -596,7 +598,10 @@ def test_open_maps_are_validated(tmp_path, old, new, expected):
     ("effects", "expected"),
     [
         (["creep.py"], r"effects: expected a mapping of settings \(modules\), got \['creep\.py'\]"),
-        ({"modules": "creep.py"}, r"effects\.modules: expected a list"),
+        (
+            {"modules": "creep.py"},
+            r"effects\.modules: Input should be a list, got 'creep\.py' \(str\)",
+        ),
         (
             {"modules": [1]},
             r"effects\.modules\[0\]: expected a path \(a non-empty string\), "
@@ -646,17 +651,17 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
         (
             "    geometry: coarse",
             "    geometry: {preset: coarse, n_regions: 2}",
-            r"fe\.settings\.geometry\.n_regions: expected an integer >= 3, got 2",
+            r"fe\.settings\.geometry\.n_regions: Input should be greater than or equal to 3, got 2",
         ),
         (
             "    timeout_s: 90",
             "    timeout_s: -1",
-            r"fe\.settings\.timeout_s: expected a number > 0 or null, got -1 \(int\)",
+            r"fe\.settings\.timeout_s: Input should be greater than 0, got -1 \(int\)",
         ),
         (
             "  scheduler_address: null",
             "  scheduler_address: login-node:8786",
-            r"fe\.scheduler_address: expected a Dask scheduler address tcp://host:port or null, "
+            r"fe\.scheduler_address: expected a Dask scheduler address tcp://host:port, "
             r"got 'login-node:8786': no protocol; write tcp://login-node:8786",
         ),
         (
@@ -667,12 +672,12 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
         (
             "    max_fe_runs: 5",
             "    max_fe_runs: 0",
-            r"validate\.refine\.max_fe_runs: expected an integer >= 1, got 0",
+            r"validate\.refine\.max_fe_runs: Input should be greater than or equal to 1, got 0",
         ),
         (
             "    tol_deg: 0.05",
             "    tol_deg: 0",
-            r"validate\.refine\.tol_deg: expected a number > 0, got 0",
+            r"validate\.refine\.tol_deg: Input should be greater than 0, got 0",
         ),
         (
             "  solver: calculix ",
@@ -687,8 +692,8 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
         (
             "load_cases: [Flexion, Extension,",
             "load_cases: [Flexion, extension,",
-            r"fe\.load_cases\[1\]: expected one of .* got 'extension' \(str\); did you mean "
-            r"'Extension'\?",
+            r"fe\.load_cases\[1\]: Input should be 'Flexion', .* got 'extension' \(str\); did you "
+            r"mean 'Extension'\?",
         ),
         (
             "  idp_literature: {}",
@@ -704,12 +709,13 @@ def test_the_effects_section_says_its_form(tmp_path, effects, expected):
         (
             "condition: relaxed standing, idp_mpa: 0.50,",
             "condition: relaxed standing, idp_mpa: -0.50,",
-            r"validate\.idp_published\[4\]\.idp_mpa: expected a number > 0",
+            r"validate\.idp_published\[4\]\.idp_mpa: Input should be greater than 0",
         ),
         (
             "condition: relaxed standing, idp_mpa: 0.50, kind: in vivo,",
             "condition: relaxed standing, idp_mpa: 0.50, kind: invivo,",
-            r"validate\.idp_published\[4\]\.kind: expected one of",
+            r"validate\.idp_published\[4\]\.kind: Input should be 'in vivo' or 'in vitro', got "
+            r"'invivo' \(str\); did you mean 'in vivo'\?",
         ),
         (
             "  holdout_uri: null",
@@ -891,7 +897,7 @@ def test_cli_validates_without_heavy_imports(tmp_path):
         [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120
     )
     assert proc.stdout.strip() == "2 []", proc.stdout + proc.stderr
-    assert "calibrate.max_plots: expected an integer >= 0 or null, got 'ten' (str)" in proc.stderr
+    assert "calibrate.max_plots: Input should be a valid integer, got 'ten' (str)" in proc.stderr
 
 
 # ------------------------------------------------------------------ the tables match the code

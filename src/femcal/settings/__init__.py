@@ -1,8 +1,8 @@
 """Typed, validated settings: ``params.yaml``, ``fe/params.yaml`` and femcal's environment.
 
 Every key is declared once (type with bounds or choices, one-line doc, default); a file's
-problems are reported at once, each with the file, line, dotted key, what was given and what is
-allowed (an unknown key names the closest valid one). Modules: ``values`` (value types, bases),
+problems are reported at once, each with the file, line, dotted key, what was given and the fix
+(an unknown key names the closest valid one). Modules: ``values`` (value types, bases),
 ``keywords`` (registries' names, keyword arguments, search spaces), ``root`` and ``fe`` (the
 sections), ``params`` (the files), ``env`` (the environment), ``_format`` (the messages).
 Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
@@ -13,20 +13,15 @@ from typing import Any
 
 #: Where each public name lives; imported on first use (PEP 562), so that the options
 #: dataclasses can import :mod:`femcal.settings.values` without loading the sections.
-_HOMES = {
-    "env": ("ENVIRONMENT", "check_environment"),
-    "keywords": (
-        *("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS", "CALIBRATORS"),
-        *("MESH_PRESETS", "SOLVERS", "SPLITS", "GeometryKeywords"),
-        *("InverseKeywords", "SurrogateKeywords"),
-    ),
-    "fe": ("SOLVER_SETTINGS",),
-    "params": (
-        *("SCHEMAS", "SECTIONS", "Settings", "describe_setting", "detect_schema"),
-        *("load_settings", "validate_params"),
-    ),
+_HOME = {
+    **dict.fromkeys(("ENVIRONMENT", "check_environment"), "env"),
+    **dict.fromkeys(("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS"), "keywords"),
+    **dict.fromkeys(("CALIBRATORS", "MESH_PRESETS", "SOLVERS", "SPLITS"), "keywords"),
+    **dict.fromkeys(("GeometryKeywords", "InverseKeywords", "SurrogateKeywords"), "keywords"),
+    **dict.fromkeys(("SCHEMAS", "SECTIONS", "Settings", "describe_setting"), "params"),
+    **dict.fromkeys(("detect_schema", "load_settings", "validate_params"), "params"),
+    "SOLVER_SETTINGS": "fe",
 }
-_HOME = {name: module for module, names in _HOMES.items() for name in names}
 
 
 def __getattr__(name: str) -> Any:

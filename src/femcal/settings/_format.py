@@ -1,15 +1,15 @@
-"""Pydantic's validation errors as femcal's messages: file, line, key, what was given, the fix.
+"""Validation errors as femcal's messages: file, line, dotted key, what was given, the fix.
 
-:func:`describe` words what a type allows (``an integer >= 0 or null``); :func:`problems`
-turns a ValidationError into ``(path, message)`` pairs (an unknown key names the closest valid
-one); :func:`raise_problems` adds each line in the YAML file and raises one ConfigError.
-Models tune the messages with class variables: ``_unknown`` (what an unknown key is called),
-``_retired``/``_refused`` (key -> what to do instead), ``_complete`` (missing keys reported in
-a partial check too), ``_missing`` (its message), ``_open`` (the field holding the other keys;
-``_open_what`` says what they are), ``_describe`` (the model in words), ``_hint`` (appended).
+Each section's wrap validator (:func:`reword`) words the errors at its own keys: an unknown key
+names the closest valid one, a missing key says what to add, a bad value gets pydantic's text,
+what was given and the key's doc. :func:`problems` adds the dotted paths, :func:`raise_problems`
+each line in the YAML file. :func:`describe` words what a type allows (help texts, options).
+Class variables of a section tune its messages: ``_unknown`` (what an unknown key is called; a
+keyword table's: ``unknown <_owner> keyword``), ``_retired``/``_refused``/``_reasons`` (key ->
+what to do instead), ``_complete`` (missing keys reported in a partial check too), ``_missing``
+(its message), ``_open`` (the field holding the other keys; ``_open_what`` says what they are),
+``_describe`` (the section in words), ``_hint`` (appended to each message).
 """
-
-from __future__ import annotations
 
 import difflib
 import re
@@ -24,6 +24,10 @@ from pydantic.fields import FieldInfo
 from pydantic_core import PydanticCustomError
 
 from femcal.errors import ConfigError
+
+#: Our error types (their ``ctx`` holds the message); a ``missing_setting`` is reported only
+#: in a complete check.
+CUSTOM = ("setting_problem", "missing_setting")
 
 
 @dataclass(frozen=True)
@@ -40,13 +44,9 @@ class PlainOf:
     model: type
 
 
-class Index(int):
-    """A list position in a path (shown as ``[i]``, unlike an integer mapping key)."""
-
-
 def fail(message: str, key: Any = None) -> PydanticCustomError:
-    """A problem with femcal's own words; ``key`` (a model's cross check) extends its path."""
-    return PydanticCustomError("femcal", "{message}", {"message": message, "key": key})
+    """A problem in femcal's words; ``key`` (a model's cross check) extends its path."""
+    return PydanticCustomError("setting_problem", "{message}", {"message": message, "key": key})
 
 
 def yaml_repr(value: Any) -> str:
@@ -64,10 +64,10 @@ def got(value: Any) -> str:
 
 
 def dotted(path: Iterable) -> str:
-    """``calibrate.datasets.test``, ``plant.moments[0]``: a path as messages show it."""
+    """``calibrate.datasets.test``, ``plant.moments[0]`` (an int is a list position)."""
     out = ""
     for key in path:
-        out += f"[{int(key)}]" if isinstance(key, Index) else ("." if out else "") + str(key)
+        out += f"[{key}]" if isinstance(key, int) else ("." if out else "") + str(key)
     return out
 
 
@@ -86,31 +86,46 @@ def closest(word: str, candidates: Iterable[str], cutoff: float = 0.6) -> str | 
     return max([sc for sc in scored if sc[0] >= cutoff], key=lambda sc: sc[0], default=(0, None))[1]
 
 
-def unknown_message(key: Any, path: tuple, known: Iterable[str], **how: Any) -> str:
-    """``calibrate.plot_max: unknown setting; did you mean calibrate.max_plots?``; ``how``:
-    ``retired``/``refused`` (key -> text), ``missing`` (required keys not given), ``what``
-    (default "unknown setting"), ``extra`` (appended to the first clause)."""
-    retired, refused = how.get("retired", {}), how.get("refused", {})
-    what, extra, here = (
-        how.get("what", "unknown setting"),
-        how.get("extra", ""),
-        dotted((*path, key)),
+def one_of(value: Any, names: Iterable[str]) -> str:
+    """``expected one of 'a', 'b', got 'c' (str); did you mean 'a'?``."""
+    names = list(names)
+    close = closest(value, names) if isinstance(value, str) else None
+    fix = f"; did you mean {close!r}?" if close else ""
+    return f"expected one of {', '.join(map(repr, names))}, got {got(value)}{fix}"
+
+
+def unknown_message(
+    key: Any,
+    known: Iterable[str],
+    missing: Iterable = (),
+    model: Any = None,
+    what: str = "unknown setting",
+) -> tuple[str, str | None]:
+    """``unknown setting; did you mean {there}?`` and the closest key (``{there}`` stands for its
+    dotted path); ``missing``: the required keys not given; ``model``: its ``_unknown`` (what
+    the key is called; a keyword table: ``unknown <_owner> keyword``), ``_retired``/``_refused``
+    (key -> text), ``_reasons`` (keyword not settable there -> why), ``_open_what``."""
+    reasons = {k: f"not settable here; {v}" for k, v in getattr(model, "_reasons", {}).items()}
+    retired, refused = getattr(model, "_retired", {}), {**reasons, **getattr(model, "_refused", {})}
+    what = f"unknown {model._owner} keyword" if hasattr(model, "_owner") else what
+    what = getattr(model, "_unknown", what)
+    extra = (
+        f" (the other keys of {{parent}} are {model._open_what})"
+        if hasattr(model, "_open_what")
+        else ""
     )
-    if key in refused:
-        return f"{here}: {refused[key]}"
-    if key in retired:
-        return f"{here}: retired setting; {retired[key]}"
+    if key in refused or key in retired:
+        return refused.get(key) or f"retired setting; {retired[key]}", None
     known = list(known)
     close = closest(str(key), [*known, *retired])
     if close is None:
-        return f"{here}: {what}{extra}; valid here: {', '.join(map(str, known)) or 'none'}"
-    there = dotted((*path, close))
+        return f"{what}{extra}; valid here: {', '.join(map(str, known)) or 'none'}", None
     if close in retired:
-        return f"{here}: {what}; it looks like {there}, a retired setting: {retired[close]}"
-    message = f"{here}: {what}; did you mean {there}?{extra}"
-    if close in how.get("missing", ()):
-        message += f" {there} is required and missing: {key} is probably it, misspelt."
-    return message
+        return f"{what}; it looks like {{there}}, a retired setting: {retired[close]}", close
+    message = f"{what}; did you mean {{there}}?{extra}"
+    if close in missing:
+        message += f" {{there}} is required and missing: {key} is probably it, misspelt."
+    return message, close
 
 
 # ------------------------------------------------------------------------- types in words
@@ -180,153 +195,89 @@ def describe(tp: Any, meta: Iterable = ()) -> str:
         unique = ", no repeats" if any(getattr(m, "unique", False) for m in meta) else ""
         return f"{text} (each item {describe(get_args(tp)[0])}{unique})"
     if is_model(tp):
-        return getattr(tp, "_describe", f"a mapping of settings ({', '.join(keys_of(tp))})")
+        what = f"{tp._owner} keywords" if hasattr(tp, "_owner") else "settings"
+        return getattr(tp, "_describe", f"a mapping of {what} ({', '.join(keys_of(tp))})")
     return "a mapping" if get_origin(tp) is dict else str(tp)
 
 
 # ------------------------------------------------------------------------ errors in words
-@dataclass
-class _Node:
-    """Where an error's location leads: the YAML path, the type there (with its metadata),
-    the model holding the last key, that key's doc and the hints of the models passed."""
-
-    path: tuple
-    tp: Any
-    meta: Any = ()
-    model: type | None = None
-    doc: str | None = None
-    hints: tuple = ()
+def text(err: dict) -> str:
+    """One error's message without its path: ours, or pydantic's then what was given (and,
+    for a misspelt choice, the closest)."""
+    if err["type"] in CUSTOM:
+        return err["ctx"]["message"]
+    value, expected = err.get("input"), (err.get("ctx") or {}).get("expected", "")
+    message = re.sub(r"valid (tuple|list)", "list", err["msg"]).replace("dictionary", "mapping")
+    close = closest(value, re.findall(r"'([^']*)'", expected)) if isinstance(value, str) else None
+    return f"{message}, got {got(value)}" + (f"; did you mean {close!r}?" if close else "")
 
 
-def _tag(model: type) -> Any:
-    """The one value of a model's ``type`` field (the tag of a tagged union), or None."""
-    args = get_args(fields_of(model)["type"].annotation) if "type" in fields_of(model) else ()
-    return args[0] if len(args) == 1 else None
+_SAME = {"unexpected_keyword_argument": "extra_forbidden", "missing_argument": "missing"}
 
 
-def _step(node: _Node, key: Any) -> _Node:
-    """The node ``key`` leads to from ``node``."""
-    tp, meta = unwrap(node.tp, node.meta)
-    tp = next((m.model for m in meta if isinstance(m, PlainOf)), tp)
-    if _members(tp):  # Optional, or a union tagged by its ``type``: the member the key names
-        tagged = [m for m in _members(tp) if is_model(unwrap(m)[0]) and _tag(unwrap(m)[0]) == key]
-        member = _Node(node.path, (tagged or _members(tp))[0], [], node.model, node.doc, node.hints)
-        return member if tagged else _step(member, key)
-    path, hints = (*node.path, key), node.hints
-    if is_model(tp):
-        hints += (tp._hint,) if getattr(tp, "_hint", None) else ()
-        if key == getattr(tp, "_open", None):
-            return _Node(node.path, fields_of(tp)[key].annotation, [], tp, None, hints)
-        field = fields_of(tp).get(keys_of(tp).get(key, key))
-        if field is None:
-            return _Node(path, Any, [], tp, None, hints)
-        return _Node(path, field.annotation, field.metadata, tp, field.description, hints)
-    args = get_args(tp)
-    if get_origin(tp) in (tuple, list) and isinstance(key, int):
-        return _Node((*node.path, Index(key)), args[0], hints=hints)
-    return _Node(path, args[1] if get_origin(tp) is dict and args else Any, hints=hints)
-
-
-def _walk(root: type, prefix: tuple, loc: tuple) -> _Node:
-    """The node of an error's location ``loc`` in ``root``, at ``prefix`` in the file."""
-    node = _Node(prefix, root, [], hints=(root._hint,) if getattr(root, "_hint", None) else ())
-    for i, key in enumerate(loc):
-        if key == "[key]":
-            continue
-        if loc[i + 1 : i + 2] == ("[key]",):  # a mapping's key: its type, at its path
-            tp = unwrap(node.tp, node.meta)[0]
-            key_type = get_args((_members(tp) or [tp])[0])[0]
-            node = _Node((*node.path, key), key_type, [], hints=node.hints)
-        else:
-            node = _step(node, key)
-    return node
-
-
-def _value_message(err: dict, node: _Node) -> str:
-    """``key: expected <what is allowed>, got <value> (<type>)[; did you mean ...?]``."""
-    value, kind = err.get("input"), err["type"]
-    if kind == "union_tag_invalid":  # a tagged union's ``type`` names no variant
-        node = _step(node, "type")
-        value = value.get("type") if isinstance(value, Mapping) else value
-        choices = [c.strip("'") for c in err["ctx"]["expected_tags"].split(", ")]
-        message = f"expected one of {', '.join(map(repr, choices))}, got {got(value)}"
-    elif kind == "value_problem":
-        message = f"expected {describe(node.tp, node.meta)}, got {yaml_repr(value)}: "
-        return f"{dotted(node.path)}: {message}{err['ctx']['why']}"
-    else:
-        message = f"expected {describe(node.tp, node.meta)}, got {got(value)}"
-        choices = get_args(unwrap(node.tp)[0]) if kind == "literal_error" else ()
-    close = closest(value, map(str, choices)) if isinstance(value, str) else None
-    return f"{dotted(node.path)}: {message}" + (f"; did you mean {close!r}?" if close else "")
-
-
-def _with_doc(message: str, node: _Node) -> str:
-    """The message, then the key's doc (``max_plots: per-specimen PNGs ...``)."""
-    if not node.doc or not node.path or isinstance(node.path[-1], Index):
-        return message
-    return f"{message}{' ' if message.endswith('?') else '; '}{node.path[-1]}: {node.doc}"
-
-
-def _message(err: dict, node: _Node, missing: set, paired: set, complete: bool) -> str | None:
-    """The message of one error (None: not reported)."""
-    kind, model = err["type"], node.model
-    parent, key = node.path[:-1], node.path[-1] if node.path else None
-    if kind == "extra_forbidden":
-        extra = getattr(model, "_open_what", "")
-        return unknown_message(
-            key,
-            parent,
-            keys_of(model),
-            retired=getattr(model, "_retired", {}),
-            refused=getattr(model, "_refused", {}),
-            missing=[k for (p, k) in missing if p == parent],
-            what=getattr(model, "_unknown", "unknown setting"),
-            extra=f" (the other keys of {dotted(parent)} are {extra})" if extra else "",
+def reword(cls: type, data: Any, handler: Callable) -> Any:
+    """A wrap model validator of every section: the errors at the keys of ``cls`` in femcal's
+    words (a misspelt required key is reported once, as the unknown key)."""
+    try:
+        return handler(data)
+    except ValidationError as exc:
+        title, errors = exc.title, exc.errors(include_url=False)
+    keys, fields = keys_of(cls), fields_of(cls)
+    errors = [{**e, "type": _SAME.get(e["type"], e["type"])} for e in errors]
+    top = [(e["type"], e["loc"][0]) for e in errors if len(e["loc"]) == 1]
+    missing = [k for t, k in top if t == "missing"]
+    paired = {closest(str(k), keys) for t, k in top if t == "extra_forbidden"} & set(missing)
+    out = []
+    for err in errors:
+        loc, kind, ctx, message = err["loc"], err["type"], err.get("ctx") or {}, None
+        field = fields.get(keys.get(loc[0], "")) if loc else None
+        if field and loc[1:] and isinstance(loc[1], int) and get_origin(field.annotation) is dict:
+            loc = (loc[0], str(loc[1]), *loc[2:])  # a number key of a mapping, not a position
+        loc = loc[1:] if loc and loc[0] == getattr(cls, "_open", None) else loc
+        if kind == "extra_forbidden" and len(loc) == 1:
+            message, close = unknown_message(loc[0], keys, missing, cls)
+            kind, ctx = "setting_problem", {"close": close}
+        elif kind == "missing" and len(loc) == 1:
+            if loc[0] in paired:
+                continue
+            what = f"{field.description}; expected {describe(field.annotation, field.metadata)}"
+            message = getattr(cls, "_missing", f"missing setting; add it ({loc[0]}: {what})")
+            kind = "setting_problem" if getattr(cls, "_complete", False) else "missing_setting"
+        elif not loc and kind not in CUSTOM:
+            message = f"expected {describe(cls)}, got {got(err.get('input'))}"
+        elif len(loc) == 1 and field and field.description and ctx.get("key") is None:
+            message = text(err)
+            message += f"{' ' if message.endswith('?') else '; '}{loc[0]}: {field.description}"
+        hint = getattr(cls, "_hint", None)
+        message = (
+            f"{message or text(err)}; {hint}"
+            if hint and hint not in (message or text(err))
+            else message
         )
-    if kind == "missing":
-        if not (complete or getattr(model, "_complete", False)) or (parent, key) in paired:
-            return None
-        field = fields_of(model)[keys_of(model)[key]]
-        return f"{dotted(node.path)}: " + getattr(
-            model,
-            "_missing",
-            f"missing setting; add it ({key}: {field.description}; expected "
-            f"{describe(field.annotation, field.metadata)})",
-        )
-    if kind == "femcal":
-        cross = err["ctx"].get("key")
-        if cross is not None:
-            node.path += cross if isinstance(cross, tuple) else (cross,)
-            return f"{dotted(node.path)}: {err['ctx']['message']}"
-        return _with_doc(f"{dotted(node.path)}: {err['ctx']['message']}", node)
-    message = _value_message(err, node)
-    return message if kind == "union_tag_invalid" else _with_doc(message, node)
+        if message is not None or kind in CUSTOM:
+            kind = kind if kind in CUSTOM else "setting_problem"
+            ctx = {**ctx, "message": message or ctx["message"]}
+            err = {"type": PydanticCustomError(kind, "{message}", ctx), "input": err.get("input")}
+        out.append({**err, "loc": loc})
+    raise ValidationError.from_exception_data(title, out) from None
 
 
 def problems(
-    exc: ValidationError, root: Any, *, prefix: tuple = (), complete: bool = True
+    exc: ValidationError, *, prefix: tuple = (), complete: bool = True
 ) -> list[tuple[tuple, str]]:
-    """``(path, message)`` of every error of ``exc``, raised validating a value as ``root``
-    (a model or annotation) at ``prefix`` in the file (e.g. ``("calibrate",)``); missing keys
-    only when ``complete`` (or in models with ``_complete``)."""
-    same = {"unexpected_keyword_argument": "extra_forbidden", "missing_argument": "missing"}
-    errors = [dict(e, type=same.get(e["type"], e["type"])) for e in exc.errors(include_url=False)]
-    nodes = [_walk(root, prefix, err["loc"]) for err in errors]
-    missing = {(n.path[:-1], n.path[-1]) for e, n in zip(errors, nodes) if e["type"] == "missing"}
-    paired = (
-        {  # a misspelt required key: reported once, as the unknown key
-            (n.path[:-1], closest(str(n.path[-1]), keys_of(n.model)))
-            for e, n in zip(errors, nodes)
-            if e["type"] == "extra_forbidden" and n.model is not None
-        }
-        & missing
-    )
+    """``(path, message)`` of every error of ``exc`` (raised at ``prefix`` in the file); a
+    missing key only when ``complete``."""
     out = []
-    for err, node in zip(errors, nodes):
-        message = _message(err, node, missing, paired, complete)
-        if message is not None:
-            hints = [h for h in node.hints if h not in message]
-            out.append((node.path, f"{message}; {hints[0]}" if hints else message))
+    for err in exc.errors(include_url=False):
+        ctx = err.get("ctx") or {}
+        if err["type"] == "missing_setting" and not complete:
+            continue
+        key = ctx.get("key")
+        path = (*prefix, *(k for k in err["loc"] if k != "[key]"))
+        path += () if key is None else key if isinstance(key, tuple) else (key,)
+        message = text(err).replace("{parent}", dotted(path[:-1]))
+        message = message.replace("{there}", dotted((*path[:-1], ctx.get("close"))))
+        out.append((path, f"{dotted(path)}: {message}"))
     return out
 
 
@@ -345,7 +296,7 @@ def line_numbers(text: str | None) -> Callable[[tuple], int | None]:
                 if not match:
                     return found
                 found, node = match[0][0].start_mark.line + 1, match[0][1]
-            elif isinstance(node, yaml.SequenceNode) and isinstance(key, Index):
+            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int):
                 if int(key) >= len(node.value):
                     return found
                 node = node.value[int(key)]

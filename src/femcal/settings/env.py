@@ -6,19 +6,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from femcal.errors import ConfigError
-from femcal.settings.values import (
-    dask_address_problem,
-    mlflow_tracking_uri_problem,
-    sqlalchemy_url_problem,
-)
+from femcal.settings.values import dask_address_problem as _dask
+from femcal.settings.values import mlflow_tracking_uri_problem as _mlflow
+from femcal.settings.values import sqlalchemy_url_problem as _sql
 
 
 def _mirror_problem(value: str) -> str | None:
     path = Path(value.strip()).expanduser()
-    if not path.exists():
-        return f"{path.resolve()} does not exist"
     if not path.is_dir():
-        return f"{path.resolve()} is a file, not a folder"
+        return (
+            f"{path.resolve()} {'is a file, not a folder' if path.exists() else 'does not exist'}"
+        )
     if not any((path / split).is_dir() for split in ("Large", "Small", "Test")):
         return f"{path.resolve()} holds none of Large/, Small/, Test/"
     return None
@@ -35,18 +33,15 @@ class EnvVar:
     problem: Callable[[str], str | None] = field(repr=False)
 
 
-_TRACKING = (
-    *("train", "baselines", "interpolate", "evaluate", "train-inverse", "calibrate"),
-    *("diagnose", "validate"),
-)
+_TRACKING = ("train", "baselines", "interpolate", "evaluate", "train-inverse", "calibrate")
+_MIRROR = "a local folder holding the study's Large/, Small/ and Test/ (instead of the download)"
 #: The environment variables femcal reads, by name.
 ENVIRONMENT: dict[str, EnvVar] = {
     var.name: var
     for var in (
         EnvVar(
             "FEMCAL_DATA_MIRROR",
-            "a local folder holding the study's Large/, Small/ and Test/ (instead of the "
-            "download); set it to that folder (the study's datasets/), or unset it to download",
+            f"{_MIRROR}; set it to that folder (the study's datasets/), or unset it to download",
             ("fetch",),
             _mirror_problem,
         ),
@@ -55,22 +50,21 @@ ENVIRONMENT: dict[str, EnvVar] = {
             "the Optuna storage, a SQLAlchemy URL (overrides train.storage); e.g. "
             "postgresql://user:password@host/optuna, or unset it to use train.storage",
             ("train", "train-inverse"),
-            sqlalchemy_url_problem,
+            _sql,
         ),
         EnvVar(
             "FEMCAL_DASK_ADDRESS",
-            "the Dask scheduler of the FE campaign, tcp://host:port (when "
-            "fe.scheduler_address is null); e.g. tcp://login-node:8786, or unset it for a "
-            "local cluster",
+            "the Dask scheduler of the FE campaign, tcp://host:port (when fe.scheduler_address "
+            "is null); e.g. tcp://login-node:8786, or unset it for a local cluster",
             ("simulate", "validate"),
-            dask_address_problem,
+            _dask,
         ),
         EnvVar(
             "MLFLOW_TRACKING_URI",
             "the MLflow tracking server or database (overrides mlflow.store_dir); e.g. "
             "http://mlflow-server:5000, or unset it to use the project's store",
-            _TRACKING,
-            mlflow_tracking_uri_problem,
+            (*_TRACKING, "diagnose", "validate"),
+            _mlflow,
         ),
     )
 }
@@ -81,13 +75,8 @@ def check_environment(
 ) -> dict[str, str]:
     """The variables (name -> value) that the sub-command ``command`` reads (None: all of
     femcal's) set in ``environ`` (default: the process's), each checked; an empty or blank
-    variable counts as unset, as where it is read.
-
-    Raises
-    ------
-    ConfigError
-        Naming every bad variable, its value, what is wrong and the fix.
-    """
+    variable counts as unset, as where it is read. ConfigError: every bad variable, its value,
+    what is wrong and the fix."""
     environ = os.environ if environ is None else environ
     found, problems = {}, []
     for name, var in ENVIRONMENT.items():

@@ -1,9 +1,8 @@
-"""The sections only ``fe/params.yaml`` has (``fe``, ``validate``, ``adapt``, ``cohort``),
-the CalculiX adapter's keyword arguments (``fe.settings``) and the posterior elements.
-
-The posterior elements' parameters, units, ranges and defaults are declared here once; axes as
-the disc model's (x lateral, y anterior, z cranial; the lower endplate at z = 0, the disc
-centre at x = y = 0). Sources and calibration: docs/fe-posterior-elements.md.
+"""The sections only ``fe/params.yaml`` has (``fe``, ``validate``, ``adapt``, ``cohort``), the
+CalculiX adapter's keyword arguments (``fe.settings``) and the posterior elements, whose
+parameters, units, ranges and defaults are declared here once. Axes as the disc model's (x
+lateral, y anterior, z cranial; lower endplate at z = 0, disc centre at x = y = 0); sources and
+calibration: docs/fe-posterior-elements.md.
 """
 
 from typing import Annotated, Any, ClassVar, Literal
@@ -18,11 +17,10 @@ from pydantic import (
     model_validator,
 )
 from pydantic.dataclasses import dataclass
-from pydantic_core import ArgsKwargs
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
-from femcal.settings._format import Doc, fail, got, problems, yaml_repr
+from femcal.settings._format import Doc, fail, got, problems, reword, yaml_repr
 from femcal.settings.keywords import (
     SOLVER,
     SOLVERS,
@@ -54,12 +52,14 @@ _ADAPT = light_class("fe.options", "AdaptOptions")  # the FE workflows' options,
 
 def _element(cls: type) -> type:
     """A posterior element's settings: a frozen pydantic dataclass, every key known."""
+    cls._reword = model_validator(mode="wrap")(classmethod(reword))
     return dataclass(frozen=True, config=ConfigDict(extra="forbid"))(cls)
 
 
-@with_options(
-    **{n: (ListOf(Float(), min_len=2), setting("[lower, upper]", None)) for n in PARAMETER_NAMES}
-)
+_PAIR = (ListOf(Float(), min_len=2), setting("[lower, upper]", None))
+
+
+@with_options(**{n: _PAIR for n in PARAMETER_NAMES})
 class Bounds(Keywords):
     """The sampling box: parameter -> [lower, upper] in physical units."""
 
@@ -80,10 +80,8 @@ def _path_or_bounds(value: Any, handler: Any) -> Any:
     if isinstance(value, str) and value.strip():
         return value
     if not isinstance(value, dict) or not value:
-        raise fail(
-            "expected a ParameterBounds.csv path or a mapping name -> [lower, upper], got "
-            f"{got(value)}"
-        )
+        what = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
+        raise fail(f"expected {what}, got {got(value)}")
     return handler(value)
 
 
@@ -98,9 +96,8 @@ class Splits(Keywords):
 # ------------------------------------------------------------------ posterior elements
 @_element
 class FacetSettings:
-    """``fe.settings.posterior.facets``: two facet joints, each one unilateral gap element.
-
-    A CalculiX ``GAPUNI`` between a node tied to the upper endplate and a fixed one at
+    """``fe.settings.posterior.facets``: two facet joints, each a unilateral gap element: a
+    CalculiX ``GAPUNI`` between a node tied to the upper endplate and a fixed one at
     ``(+-lateral_mm, -posterior_mm, height_mm)``, closed once the upper node has moved ``gap_mm``
     along the contact normal (``axial_angle_deg`` from lateral, tilted ``inclination_deg`` down).
     """
@@ -108,50 +105,36 @@ class FacetSettings:
     _complete: ClassVar[bool] = True
 
     gap_mm: Float(0, 3) = setting("facet joint clearance, mm", 0.5)
-    stiffness_n_per_mm: Float(1, 1e5) = setting(
-        "contact stiffness of each closed facet, N/mm", 50.0
-    )
-    lateral_mm: Float(5, 40) = setting(
-        "distance of each facet from the mid-sagittal plane, mm", 16.0
-    )
-    posterior_mm: Float(18, 60) = setting("distance of the facets behind the disc centre, mm", 30.0)
-    height_mm: Float(-20, 30) = setting(
-        "height of the facet centres above the lower endplate, mm", 5.5
-    )
-    axial_angle_deg: Float(0, 90) = setting(
-        "joint plane to the sagittal plane (transverse view), deg", 45.0
-    )
+    stiffness_n_per_mm: Float(1, 1e5) = setting("contact stiffness of a closed facet, N/mm", 50.0)
+    lateral_mm: Float(5, 40) = setting("distance from the mid-sagittal plane, mm", 16.0)
+    posterior_mm: Float(18, 60) = setting("distance behind the disc centre, mm", 30.0)
+    height_mm: Float(-20, 30) = setting("centre height above the lower endplate, mm", 5.5)
+    axial_angle_deg: Float(0, 90) = setting("joint plane to sagittal plane (top view), deg", 45.0)
     inclination_deg: Float(0, 80) = setting("downward tilt of the contact normal, deg", 30.0)
 
 
 @_element
 class LigamentSettings:
-    """One ligament: a tension-only nonlinear spring (``SPRINGA``), one per side if lateral.
-
-    Vertical, at ``(+-lateral_mm, -posterior_mm, height_mm)``, rest length ``length_mm``: no
+    """One ligament: a tension-only nonlinear spring (``SPRINGA``), one per side if lateral,
+    vertical at ``(+-lateral_mm, -posterior_mm, height_mm)``, rest length ``length_mm``: no
     force below the elongation ``slack_strain * length_mm``, a quadratic toe over the next
     ``toe_strain * length_mm`` up to the slope ``stiffness_n_per_mm``, then that slope.
     """
 
     _complete: ClassVar[bool] = True
 
-    stiffness_n_per_mm: Float(0.1, 1000) = setting(
-        "stiffness of the linear region (each side), N/mm"
-    )
+    stiffness_n_per_mm: Float(0.1, 1000) = setting("linear-region stiffness (each side), N/mm")
     toe_strain: Float(0, 1) = setting("strain span of the toe region")
     slack_strain: Float(-0.3, 0.5) = setting("strain at which force starts (< 0: pre-strained)")
-    lateral_mm: Float(0, 60) = setting(
-        "distance from the mid-sagittal plane (0: one midline spring), mm"
-    )
+    lateral_mm: Float(0, 60) = setting("distance from the mid-sagittal plane (0: midline), mm")
     posterior_mm: Float(0, 100) = setting("distance behind the disc centre, mm")
     height_mm: Float(-30, 40) = setting("centre above the lower endplate, mm")
     length_mm: Float(0.5, 60) = setting("rest length (upper to lower attachment), mm")
 
 
-#: Default properties and attachment of each ligament (keys: the fields of
-#: :class:`LigamentSettings`): stiffness from Pintar et al. 1992 and Guo et al. 2021, rest
-#: lengths from Naserkhaki et al. 2018, the slack strains calibrated to the segment-to-disc RoM
-#: ratios (the sources and estimates: docs/fe-posterior-elements.md).
+#: Default properties and attachment of each ligament (the fields of :class:`LigamentSettings`):
+#: stiffness from Pintar et al. 1992 and Guo et al. 2021, rest lengths from Naserkhaki et al.
+#: 2018, slack strains calibrated to the segment-to-disc RoM ratios (docs/fe-posterior-elements.md).
 LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
     name: dict(zip(LigamentSettings.__pydantic_fields__, row, strict=True))
     for name, *row in (
@@ -165,6 +148,7 @@ LIGAMENT_DEFAULTS: dict[str, dict[str, float]] = {
 }
 #: The ligaments the model knows.
 LIGAMENTS: tuple[str, ...] = tuple(LIGAMENT_DEFAULTS)
+_LIGAMENTS = f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides"
 
 
 @with_options(**{n: (LigamentSettings, setting(f"the {n} ligament", None)) for n in LIGAMENTS})
@@ -172,47 +156,36 @@ class Ligaments(Keywords):
     """``fe.settings.posterior.ligaments``: ligament -> its settings (the defaults overridden)."""
 
     _unknown: ClassVar[str] = "unknown ligament"
+    _describe: ClassVar[str] = "a list of ligament names or a mapping name -> settings"
 
     @model_validator(mode="before")
     @classmethod
     def _with_defaults(cls, value: Any) -> Any:
-        if isinstance(value, list | tuple):
-            value = {name: {} for name in value}
+        value = {name: {} for name in value} if isinstance(value, list | tuple) else value
         if not isinstance(value, dict):
-            raise fail(
-                f"expected a list of ligament names or a mapping name -> settings, got {got(value)}"
-            )
+            return value
         for name, overrides in value.items():
             if overrides is not None and not isinstance(overrides, dict):
                 raise fail(f"expected a mapping of ligament settings, got {got(overrides)}", name)
-        return {
-            k: {**LIGAMENT_DEFAULTS[k], **(v or {})} if k in LIGAMENT_DEFAULTS else v
-            for k, v in value.items()
-        }
+        defaults = LIGAMENT_DEFAULTS
+        return {k: {**defaults[k], **(v or {})} if k in defaults else v for k, v in value.items()}
 
 
 @_element
 class PosteriorSettings:
-    """``fe.settings.posterior``: the posterior elements joined to the disc (all optional).
-
-    Null ``facets`` and no ``ligaments``: the disc alone."""
+    """``fe.settings.posterior``: the posterior elements joined to the disc (all optional;
+    null ``facets`` and no ``ligaments``: the disc alone)."""
 
     _complete: ClassVar[bool] = True
     _describe: ClassVar[str] = "a mapping (facets, ligaments) or null"
 
     facets: FacetSettings | None = setting("facet joints (GAPUNI contact; null: none)", None)
-    ligaments: plain(Ligaments, typed=True) = setting(
-        f"tension-only ligaments ({', '.join(LIGAMENTS)}): a list, or name -> overrides", {}
-    )
+    ligaments: plain(Ligaments, typed=True) = setting(_LIGAMENTS, {})
 
     @model_validator(mode="before")
     @classmethod
     def _a_mapping(cls, value: Any) -> Any:
-        if isinstance(value, ArgsKwargs):  # PosteriorSettings(facets=...)
-            return value
-        if value is not None and not isinstance(value, dict):
-            raise fail(f"expected a mapping (facets, ligaments) or null, got {got(value)}")
-        return value or {}
+        return {} if value is None else value  # ArgsKwargs: PosteriorSettings(facets=...)
 
     @property
     def active(self) -> bool:
@@ -225,9 +198,7 @@ class CalculixSettings(Keywords):
 
     _owner: ClassVar[str] = "CalculixDisc"
 
-    geometry: plain(GeometryKeywords) = keyword(
-        "disc geometry: a mesh preset (coarse, default, fine) or DiscGeometry fields"
-    )
+    geometry: plain(GeometryKeywords) = keyword("a mesh preset (coarse, default, fine) or fields")
     kappa: Literal["scale", "ignore"] = keyword("how the fibre dispersion Kappa enters")
     executable: NAME = keyword("the CalculiX executable")
     initial_increment: Float(gt=0, le=1) = keyword("first load increment")
@@ -237,10 +208,7 @@ class CalculixSettings(Keywords):
     retry_factor: Float(gt=0, le=1) = keyword("increment factor of a retry")
     nucleus_d1: Float(gt=0) = keyword("compressibility of the nucleus")
     annulus_d1: Float(gt=0) = keyword("compressibility of the annulus")
-    posterior: plain(PosteriorSettings) | None = setting(
-        "posterior elements joined to the disc: facets, ligaments (leave out for the disc alone)",
-        None,
-    )
+    posterior: plain(PosteriorSettings) | None = keyword("facets, ligaments (none: the disc alone)")
 
 
 #: The keyword arguments of each FE solver adapter (``fe.settings``), by solver.
@@ -251,20 +219,14 @@ def posterior_settings(
     value: PosteriorSettings | dict | None, where: str = "fe/params.yaml"
 ) -> PosteriorSettings:
     """Validated posterior elements from ``fe.settings.posterior`` (a mapping, an instance, or
-    None: the disc alone) of the file ``where``.
-
-    Raises
-    ------
-    ConfigError
-        Unknown elements or fields, values out of range: the file, the field, what was given
-        and what is allowed.
-    """
+    None: the disc alone) of the file ``where``; ConfigError: each problem (the field, what was
+    given and what is allowed)."""
     if isinstance(value, PosteriorSettings):
         return value
     try:
         return TypeAdapter(PosteriorSettings).validate_python(value)
     except ValidationError as exc:
-        found = problems(exc, PosteriorSettings, prefix=("fe", "settings", "posterior"))
+        found = problems(exc, prefix=("fe", "settings", "posterior"))
         listing = "\n".join(f"  - {message}" for _, message in found)
         raise ConfigError(
             f"{where}: invalid posterior elements:\n{listing}\nFix the values in {where} "
@@ -288,6 +250,11 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
     return dict(value or {})
 
 
+_BOUNDS = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
+_SOLVER_SETTINGS = Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)]
+_PATH_OR_BOUNDS = Annotated[plain(Bounds, typed=True), WrapValidator(_path_or_bounds), Doc(_BOUNDS)]
+
+
 @with_options
 class FeSettings(OptionSection):
     """``fe``: the FE campaign (fe/params.yaml)."""
@@ -295,37 +262,22 @@ class FeSettings(OptionSection):
     _options: ClassVar[type] = light_class("fe.options", "CampaignOptions")
 
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
-    bounds: Annotated[
-        plain(Bounds, typed=True),
-        WrapValidator(_path_or_bounds),
-        Doc("a ParameterBounds.csv path or a mapping name -> [lower, upper]"),
-    ] = setting("the sampling box: name -> [lower, upper], or a ParameterBounds.csv path")
+    bounds: _PATH_OR_BOUNDS = setting("the sampling box: " + _BOUNDS)
     splits: plain(Splits, typed=True) = setting("configurations per split (large, small, test)")
-    batches: ListOf(Int(1)) = setting(
-        "further Latin-hypercube batches of the large split, numbered after the splits: a "
-        "campaign grows without rerunning a stored job",
-        [],
-    )
+    batches: ListOf(Int(1)) = setting("more Latin-hypercube batches of the large split", [])
     seed: Int(0) = setting("seed of the designs")
-    load_cases: ListOf(Literal[LOAD_CASES], unique=True) = setting(
-        "load cases simulated (all four)"
-    )
+    load_cases: ListOf(Literal[LOAD_CASES], unique=True) = setting("load cases (all four)")
     moments: MOMENTS = setting("moments simulated, Nm")
     out_dir: PATH = setting("dataset folder in the study's layout")
     store: PATH = setting("durable store of finished jobs (JSON lines; .jsonl.gz to commit it)")
-    settings: Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)] = setting(
-        "the adapter's keyword arguments (part of every job's hash; a plugin's as given)", {}
-    )
+    settings: _SOLVER_SETTINGS = setting("the adapter's keywords (in every job's hash)", {})
     metrics_file: PATH | None = setting("campaign figures (DVC metrics)", None)
 
     @model_validator(mode="after")
     def _all_load_cases(self) -> Any:
         if sorted(self.load_cases) != sorted(LOAD_CASES):
-            raise fail(
-                "a dataset in the study's layout needs all four load cases "
-                f"{list(LOAD_CASES)}; got {list(self.load_cases)}",
-                "load_cases",
-            )
+            why = f"a dataset in the study's layout needs all four load cases {list(LOAD_CASES)}"
+            raise fail(f"{why}; got {list(self.load_cases)}", "load_cases")
         return self
 
 
@@ -373,20 +325,17 @@ class AdaptSettings(OptionSection):
     out_model: PATH = setting("folder of the champion's files (the winner)")
     out_dir: PATH = setting("folder of the rounds' tables")
     store: PATH = setting("campaign store of the new FE runs")
-    finetune: plain(SurrogateKeywords) = setting(
-        "NeuralSurrogate settings of the fine-tuning (warm start)", {}
-    )
+    finetune: plain(SurrogateKeywords) = setting("NeuralSurrogate settings of the fine-tuning", {})
     calibrate_options: plain(PgdKeywords) = setting("pgd options of the rounds' calibrations", {})
     seed: Int(0) = setting("seed of the candidates and calibrations", _ADAPT.seed)
 
     def options(self) -> dict[str, Any]:
         """The keywords of :class:`femcal.fe.options.AdaptOptions` this section sets."""
-        return {
-            **super().options(),
+        plain_ = {
             "finetune": dict(self.finetune),
             "calibrate_options": dict(self.calibrate_options),
-            "seed": self.seed,
         }
+        return {**super().options(), **plain_, "seed": self.seed}
 
 
 @with_options
@@ -396,9 +345,7 @@ class RefineSettings(OptionSection):
     _complete: ClassVar[bool] = True
     _options: ClassVar[type] = light_class("fe.options", "ValidateOptions")
 
-    model_uri: MODEL_URI = setting(
-        "the surrogate whose Jacobian steers the steps (a model folder or models:/ URI)"
-    )
+    model_uri: MODEL_URI = setting("the surrogate whose Jacobian steers the steps")
 
 
 class ValidateSettings(Section):
@@ -410,35 +357,13 @@ class ValidateSettings(Section):
     store: PATH = setting("campaign store of the FE runs")
     metrics_file: PATH | None = setting("figures (DVC metrics)", None)
     forces: ListOf(Float(gt=0), unique=True) = setting("axial compression forces, N", ())
-    idp_literature: dict[Float(gt=0), IdpRange] = setting(
-        "published in vitro IDP range per force: force in N -> {low, mean, high} in MPa", {}
-    )
-    idp_published: ListOf(PublishedIdp) = setting(
-        "published IDP values without a known force (in vivo postures): the axial force at "
-        "which each calibrated disc reaches them is reported",
-        (),
-    )
-    idp_model_uri: MODEL_URI | None = setting(
-        "the IDP head (train@idp), compared with FE's pressures under the moments (null: not "
-        "compared)",
-        None,
-    )
-    refine: RefineSettings | None = setting(
-        "FE-in-the-loop refinement (null: validate the calibration as is)", None
-    )
-    target_noise_deg: Float(ge=0) | None = setting(
-        "sd of the noise in the measurements validated, deg (0: noise-free FE curves; null: "
-        "unknown)",
-        None,
-    )
-    predictive_report: PATH | None = setting(
-        "the predict stage's figures, copied into the metrics file (null: none)", None
-    )
-    adapt_report: PATH | None = setting(
-        "the adapt stage's figures: when adapt.targets are the measurements validated, its "
-        "rounds (one FE run per target each) count in fe_runs_per_specimen_max (null: none)",
-        None,
-    )
+    idp_literature: dict[Float(gt=0), IdpRange] = setting("in vitro IDP range per force, N", {})
+    idp_published: ListOf(PublishedIdp) = setting("published IDP values, no force known", ())
+    idp_model_uri: MODEL_URI | None = setting("the IDP head (train@idp; null: none)", None)
+    refine: RefineSettings | None = setting("FE-in-the-loop refinement (null: none)", None)
+    target_noise_deg: Float(0) | None = setting("the data's noise sd, deg (null: unknown)", None)
+    predictive_report: PATH | None = setting("the predict stage's figures (null: none)", None)
+    adapt_report: PATH | None = setting("the adapt stage's figures (null: none)", None)
 
 
 def _range_of(lo: float, hi: float, unit: str) -> Any:
@@ -455,13 +380,15 @@ def _range_of(lo: float, hi: float, unit: str) -> Any:
     return Annotated[tuple[float, float], PlainValidator(check), Doc(what)]
 
 
-class CohortSettings(Section):
-    """``cohort``: an FE-made cohort with hidden posterior elements (femcal.fe.cohort).
+_STIFFNESS = _range_of(1, 1e5, "N/mm")
+_SCALE, _SHIFT = _range_of(0.1, 10, ""), _range_of(-0.3, 0.5, "")
 
-    Four balanced classes (the disc alone, facets, ligaments, both); each specimen's disc
-    parameters are drawn uniformly from ``fe.bounds`` (trimmed by ``disc_margin`` at each
-    side) and its elements' properties uniformly (log-uniformly for the stiffnesses) from the
-    ranges below, around the defaults of ``fe.settings.posterior`` (docs/fe-cohort.md).
+
+class CohortSettings(Section):
+    """``cohort``: an FE-made cohort with hidden posterior elements (femcal.fe.cohort): four
+    balanced classes (the disc alone, facets, ligaments, both); disc parameters uniform in
+    ``fe.bounds`` (less ``disc_margin`` at each side), the elements' properties uniform
+    (stiffnesses log-uniform) in the ranges below (docs/fe-cohort.md).
     """
 
     _complete: ClassVar[bool] = True
@@ -471,20 +398,8 @@ class CohortSettings(Section):
     per_class: Int(1) = setting("specimens per class (4 classes)", 26)
     seed: Int(0) = setting("seed of the draws and of the measurement noise", 0)
     noise_deg: Float(0) = setting("sd of the Gaussian noise added to the RoM, deg", 0.05)
-    disc_margin: Float(0, 0.45) = setting(
-        "fraction of each parameter's range left out at both ends", 0.05
-    )
-    facet_gap_mm: _range_of(0, 3, "mm") = setting(
-        "facet clearance drawn from [low, high], mm", (0.25, 1.0)
-    )
-    facet_stiffness_n_per_mm: _range_of(1, 1e5, "N/mm") = setting(
-        "facet contact stiffness drawn log-uniformly from [low, high], N/mm", (25.0, 100.0)
-    )
-    ligament_stiffness_scale: _range_of(0.1, 10, "") = setting(
-        "factor on every ligament's default stiffness, drawn log-uniformly from [low, high]",
-        (0.5, 2.0),
-    )
-    ligament_slack_shift: _range_of(-0.3, 0.5, "") = setting(
-        "added to every ligament's default slack strain (then clipped to its range)",
-        (-0.15, 0.05),
-    )
+    disc_margin: Float(0, 0.45) = setting("fraction of each range left out at both ends", 0.05)
+    facet_gap_mm: _range_of(0, 3, "mm") = setting("facet clearance, mm", (0.25, 1.0))
+    facet_stiffness_n_per_mm: _STIFFNESS = setting("facet stiffness (log), N/mm", (25.0, 100.0))
+    ligament_stiffness_scale: _SCALE = setting("factor on ligament stiffness (log)", (0.5, 2.0))
+    ligament_slack_shift: _SHIFT = setting("added to each slack strain (clipped)", (-0.15, 0.05))

@@ -1,16 +1,13 @@
-"""The registries' names, and the keyword arguments of the estimators, the calibrators and the
-disc geometry (``fixed``, ``options``, ``settings``), static so that validating imports
-nothing heavy; ``tests/test_settings.py`` checks them against the signatures and registries.
-
-A ``search_space`` (:func:`space_of`) maps keywords to Optuna entries, told apart by their
-``type`` (the form :func:`femcal.training.study.suggest` reads): ``{type: float, low, high,
-log}``, ``{type: int, low, high, log}`` or ``{type: categorical, choices}``; bounds and choices
-must be valid values of the keyword itself.
+"""The registries' names and the keyword arguments of the estimators, the calibrators and the
+disc geometry (``fixed``, ``options``, ``settings``), static so that validating imports nothing
+heavy (``tests/test_settings.py`` checks them against the signatures and registries); a
+``search_space`` (:func:`space_of`) maps keywords to Optuna entries (the form
+:func:`femcal.training.study.suggest` reads) whose bounds and choices are the keyword's values.
 """
 
 import sys
-from types import UnionType
-from typing import Annotated, Any, ClassVar, Literal, Union, get_args, get_origin
+from functools import partial
+from typing import Annotated, Any, ClassVar, Literal, get_origin
 
 from pydantic import (
     AfterValidator,
@@ -22,7 +19,7 @@ from pydantic import (
     model_validator,
 )
 
-from femcal.settings._format import Doc, Index, closest, describe, fail, got, unwrap
+from femcal.settings._format import Doc, _members, describe, fail, got, one_of, text, unwrap
 from femcal.settings.values import (
     MODEL_URI,
     Bool,
@@ -63,19 +60,18 @@ MESH_PRESETS: tuple[str, ...] = ("coarse", "default", "fine")
 
 class Registered(tuple):
     """An open registry's built-in names (what help texts list) that also contains its plugins:
-    the entry points of ``group`` and, once ``<package>.base`` is loaded, its ``<kind>_registry``'s
-    names. ``how`` says how to add one (``what`` is registered; ``page`` names the how-to)."""
+    the entry points of ``group`` and, once ``<package>.base`` is loaded, its
+    ``<kind>_registry``'s names. ``how`` says how to add one (``what`` is registered, ``page``
+    names the how-to)."""
 
-    def __new__(
-        cls, builtins: tuple[str, ...], kind: str, package: str, what: str, page: str
-    ) -> "Registered":
-        names = super().__new__(cls, builtins)
-        names.group, names.registry = f"femcal.{kind}s", f"{package}.base:{kind}_registry"
-        names.how = (
+    def __new__(cls, names: tuple, kind: str, package: str, what: str, page: str) -> "Registered":
+        self = super().__new__(cls, names)
+        self.group, self.registry = f"femcal.{kind}s", f"{package}.base:{kind}_registry"
+        self.how = (
             f'decorate {what} with @register_{kind}("name") ({package}) and name it in the entry-'
-            f"point group {names.group} of your package (docs: How-to > Write a {page} plugin)"
+            f"point group {self.group} of your package (docs: How-to > Write a {page} plugin)"
         )
-        return names
+        return self
 
     def plugins(self) -> tuple[str, ...]:
         """The plugins' names beyond the built-ins, sorted; imports and loads nothing."""
@@ -84,25 +80,21 @@ class Registered(tuple):
         names = {ep.name for ep in entry_points(group=self.group)}
         module, attribute = self.registry.split(":")
         if module in sys.modules:
-            registry = getattr(sys.modules[module], attribute)
-            names.update(name for name, _ in registry.items(load=False))
+            names.update(n for n, _ in getattr(sys.modules[module], attribute).items(load=False))
         return tuple(sorted(names - set(self)))
 
     def __contains__(self, name: object) -> bool:
         return tuple.__contains__(self, name) or name in self.plugins()
 
     def choice(self) -> Any:
-        """A setting naming one of them, checked against the built-ins and the plugins when
-        validated; an unknown name's message lists them, the closest and ``how``."""
+        """A setting naming one of them (a plugin's too, checked when validated)."""
 
         def check(value: Any) -> str:
             names = (*self, *self.plugins())
             if isinstance(value, str) and value in names:
                 return value
-            close = closest(value, names) if isinstance(value, str) else None
-            message = f"expected one of {', '.join(map(repr, names))}, got {got(value)}; "
-            message += f"did you mean {close!r}? To add one, " if close else "to add one, "
-            raise fail(message + self.how)
+            message = one_of(value, names)
+            raise fail(f"{message}{' T' if '?' in message else '; t'}o add one, {self.how}")
 
         words = f"one of {', '.join(map(repr, self))}, or a plugin's name (group {self.group})"
         return Annotated[str, PlainValidator(check), Doc(words)]
@@ -113,9 +105,8 @@ CALIBRATOR_NAMES = Registered(
     CALIBRATORS, "calibrator", "femcal.calibration", "a calibrator function", "calibrator"
 )
 SOLVER_NAMES = Registered(SOLVERS, "solver", "femcal.fe", "a solver adapter class", _PAGE)
-BASELINE_NAMES = Registered(
-    BASELINE_MODELS, "baseline", "femcal.surrogates", "a baseline class", _PAGE
-)
+_BASELINE = ("baseline", "femcal.surrogates", "a baseline class", _PAGE)
+BASELINE_NAMES = Registered(BASELINE_MODELS, *_BASELINE)
 METHOD, SOLVER, BASELINE = (n.choice() for n in (CALIBRATOR_NAMES, SOLVER_NAMES, BASELINE_NAMES))
 
 
@@ -133,11 +124,9 @@ class _Network(Keywords):
 
     @model_validator(mode="after")
     def _hidden_or_width(self) -> Any:
-        given = self.model_fields_set
-        if "hidden" in given and {"width", "depth"} & given:
-            raise fail(
-                "give either hidden or width and depth, not both (width/depth win)", "hidden"
-            )
+        if "hidden" in self.model_fields_set and {"width", "depth"} & self.model_fields_set:
+            why = "give either hidden or width and depth, not both (width/depth win)"
+            raise fail(why, "hidden")
         return self
 
 
@@ -157,14 +146,10 @@ class SurrogateKeywords(_Network):
     learning_rate: Float(gt=0) = keyword("peak learning rate (AdamW, one-cycle)")
     batch_size: Int(1) = keyword("configurations per optimisation step")
     max_epochs: Int(1) = keyword("epochs per ensemble member")
-    val_fraction: Float(0, lt=1) = keyword(
-        "validation fraction when no validation set is given (train uses train.val_fraction)"
-    )
+    val_fraction: Float(0, lt=1) = keyword("validation fraction without a validation set")
     log_params: Bool = keyword("parameters with positive bounds enter in log scale")
     lr_schedule: Literal["onecycle", "cosine", "constant"] = keyword("learning-rate schedule")
-    moment_degree: Int(0, 8) | None = keyword(
-        "degree of each curve's polynomial in log-moment (null: 3)"
-    )
+    moment_degree: Int(0, 8) | None = keyword("degree of each curve's polynomial (null: 3)")
 
 
 class InverseKeywords(_Network):
@@ -190,45 +175,31 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
-@with_options
-class PgdKeywords(OptionSection, Keywords):
-    """The pgd calibrator's options (``calibrate.options.pgd``)."""
-
-    _owner: ClassVar[str] = "pgd calibrator"
-    _options: ClassVar[type] = light_class("calibration.pgd_options", "PgdOptions")
-    _reasons: ClassVar[dict[str, str]] = {
-        "start_bank": "set calibrate.start_bank (a prepared table whose configurations are the "
-        "starts)",
-        **_RNG,
+def _calibrator(method: str, module: str, reasons: dict[str, str]) -> type:
+    """The keyword options of the calibrator ``method``, declared by its options dataclass in
+    ``femcal.calibration.<module>``; ``reasons``: keyword not settable there -> why."""
+    name = method.title().replace("-", "")  # pgd-study -> PgdStudy
+    body = {
+        "__doc__": f"The {method} calibrator's options (``calibrate.options.{method}``).",
+        "__module__": __name__,
+        "_owner": f"{method} calibrator",
+        "_options": light_class(f"calibration.{module}", f"{name}Options"),
+        "_reasons": {**reasons, **_RNG},
     }
+    return with_options(type(f"{name}Keywords", (OptionSection, Keywords), body))
 
 
-@with_options
-class PgdStudyKeywords(OptionSection, Keywords):
-    """The pgd-study calibrator's options (``calibrate.options.pgd-study``)."""
-
-    _owner: ClassVar[str] = "pgd-study calibrator"
-    _options: ClassVar[type] = light_class("calibration.pgd_study_options", "PgdStudyOptions")
-    _reasons: ClassVar[dict[str, str]] = _RNG
-
-
-@with_options
-class GaKeywords(OptionSection, Keywords):
-    """The ga calibrator's options (``calibrate.options.ga``)."""
-
-    _owner: ClassVar[str] = "ga calibrator"
-    _options: ClassVar[type] = light_class("calibration.ga_options", "GaOptions")
-    _reasons: ClassVar[dict[str, str]] = _RNG
+_BANK = "set calibrate.start_bank (a prepared table whose configurations are the starts)"
+PgdKeywords = _calibrator("pgd", "pgd_options", {"start_bank": _BANK})
+PgdStudyKeywords = _calibrator("pgd-study", "pgd_study_options", {})
+GaKeywords = _calibrator("ga", "ga_options", {})
 
 
 class InverseCalibratorKeywords(Keywords):
     """The inverse calibrator's options (``calibrate.options.inverse``)."""
 
     _owner: ClassVar[str] = "inverse calibrator"
-    _reasons: ClassVar[dict[str, str]] = {
-        "model": "give model_uri (a registered inverse model)",
-        **_RNG,
-    }
+    _reasons: ClassVar[dict] = {"model": "give model_uri (a registered inverse model)", **_RNG}
 
     model_uri: MODEL_URI = keyword("the registered inverse model (train-inverse)")
 
@@ -242,12 +213,11 @@ CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = {
 }
 
 
-@with_options(
-    **{
-        m.replace("-", "_"): (plain(model), Field(None, alias=m, description=model.__doc__))
-        for m, model in CALIBRATOR_OPTIONS.items()
-    }
-)
+def _method(method: str, model: type) -> tuple:
+    return (plain(model), Field(None, alias=method, description=model.__doc__))
+
+
+@with_options(**{m.replace("-", "_"): _method(m, model) for m, model in CALIBRATOR_OPTIONS.items()})
 class CalibratorOptions(Section):
     """``calibrate.options``: each calibrator's keyword options, by method."""
 
@@ -265,8 +235,8 @@ class CalibratorOptions(Section):
         plugins = [k for k in value if k not in CALIBRATOR_OPTIONS and k in found]
         for name in plugins:
             if value[name] is not None and not isinstance(value[name], dict):
-                message = f"expected a mapping of the {name} calibrator's keyword options"
-                raise fail(f"{message}, got {got(value[name])}", name)
+                what = f"a mapping of the {name} calibrator's keyword options"
+                raise fail(f"expected {what}, got {got(value[name])}", name)
         return {k: v for k, v in value.items() if k not in plugins}
 
 
@@ -276,6 +246,7 @@ class GeometryKeywords(OptionSection, Keywords):
     """The disc geometry (femcal.fe.geometry.DiscGeometry)."""
 
     _owner: ClassVar[str] = "DiscGeometry"
+    _describe: ClassVar[str] = "a mesh preset (coarse, default, fine) or DiscGeometry fields"
     _options: ClassVar[type] = light_class("fe.options", "GeometryOptions")
 
     @model_validator(mode="before")
@@ -283,15 +254,8 @@ class GeometryKeywords(OptionSection, Keywords):
     def _preset(cls, value: Any) -> Any:
         if isinstance(value, str) and value in MESH_PRESETS:
             return {"preset": value}
-        if isinstance(value, str) or not isinstance(value, dict):
-            close = closest(value, MESH_PRESETS) if isinstance(value, str) else None
-            fix = f"; did you mean {close!r}?" if close else ""
-            raise fail(
-                f"expected one of {', '.join(map(repr, MESH_PRESETS))}, got {got(value)}{fix}"
-                if isinstance(value, str)
-                else "expected a mesh preset (coarse, default, fine) or a mapping of "
-                f"DiscGeometry fields, got {got(value)}"
-            )
+        if isinstance(value, str):
+            raise fail(one_of(value, MESH_PRESETS))
         return value
 
     preset: Literal[MESH_PRESETS] = keyword("mesh density the other fields start from")
@@ -341,6 +305,9 @@ def _scalar(value: Any) -> Any:
     return value
 
 
+_CHOICES = ListOf(Annotated[Any, AfterValidator(_scalar)], min_len=1, unique=True)
+
+
 class CategoricalEntry(Section):
     """``{type: categorical, choices}``: one of the choices."""
 
@@ -353,65 +320,44 @@ class CategoricalEntry(Section):
     }
 
     type: Literal["categorical"] = setting("the Optuna distribution")
-    choices: ListOf(Annotated[Any, AfterValidator(_scalar)], min_len=1, unique=True) = setting(
-        "the values to choose from"
-    )
+    choices: _CHOICES = setting("the values to choose from")
 
 
-#: One search-space entry, by its ``type``.
-SearchEntry = Annotated[FloatEntry | IntEntry | CategoricalEntry, Field(discriminator="type")]
+_ENTRIES = {"float": FloatEntry, "int": IntEntry, "categorical": CategoricalEntry}
+_KINDS = {int: ("int", "categorical"), float: ("float", "int", "categorical")}
 
 
-def _kinds(annotation: Any) -> tuple[str, ...]:
-    tp = unwrap(annotation)[0]
-    if get_origin(tp) in (Union, UnionType):
-        tp = next(unwrap(a)[0] for a in get_args(tp) if a is not type(None))
-    if tp is int:
-        return ("int", "categorical")
-    if tp is float:
-        return ("float", "int", "categorical")
-    return ("categorical",) if tp is bool or get_origin(tp) is Literal else ()
-
-
-class _Space(Keywords):
-    _keywords: ClassVar[type[Keywords]]
-    _describe: ClassVar[str] = (
-        "a mapping hyper-parameter -> {type: float|int|categorical, low, high, log, choices}"
-    )
-
-    @model_validator(mode="wrap")
-    @classmethod
-    def _values_of_the_keyword(cls, data: Any, handler: Any) -> Any:
-        result = handler(data)
-        for name, spec in data.items():
-            annotation = cls._keywords.model_fields[name].rebuild_annotation()
-            kinds = _kinds(annotation)
-            if spec["type"] not in kinds:
-                allowed = " or ".join(kinds) or "none (it cannot be searched)"
-                fix = "; search width and depth instead" if name == "hidden" else ""
-                raise fail(
-                    f"{name} is {describe(annotation)}, so type {spec['type']} does not fit; "
-                    f"use {allowed}{fix}",
-                    (name, "type"),
-                )
-            values = {("choices", Index(i)): c for i, c in enumerate(spec.get("choices") or ())}
-            values.update({(k,): spec[k] for k in ("low", "high") if k in spec})
-            for where, value in values.items():  # as written: 16 for an int, 0.001 for a float
-                try:
-                    TypeAdapter(annotation).validate_python(value)
-                except ValidationError:
-                    message = f"expected {describe(annotation)}, got {got(value)}"
-                    raise fail(message, (name, *where)) from None
-        return result
+def _entry(name: str, annotation: Any, value: Any) -> Section:
+    """A search-space entry over the keyword ``name`` (``annotation``): the model its ``type``
+    names; its bounds and choices, as written, must be values of the keyword."""
+    if not isinstance(value, dict):
+        raise fail(f"expected a mapping {{type: float|int|categorical, ...}}, got {got(value)}")
+    if value.get("type") not in _ENTRIES:
+        raise fail(one_of(value.get("type"), _ENTRIES), "type")
+    entry = _ENTRIES[value["type"]].model_validate(value)
+    tp = unwrap((_members(unwrap(annotation)[0]) or [annotation])[0])[0]
+    kinds = _KINDS.get(tp) or (("categorical",) if tp is bool or get_origin(tp) is Literal else ())
+    if value["type"] not in kinds:
+        allowed = " or ".join(kinds) or "none (it cannot be searched)"
+        fix = "; search width and depth instead" if name == "hidden" else ""
+        why = f"{name} is {describe(annotation)}, so type {value['type']} does not fit"
+        raise fail(f"{why}; use {allowed}{fix}", "type")
+    values = {("choices", i): c for i, c in enumerate(value.get("choices") or ())}
+    values.update({(k,): value[k] for k in ("low", "high") if k in value})
+    for where, item in values.items():
+        try:  # as written: 16 for an int, 0.001 for a float
+            TypeAdapter(annotation).validate_python(item)
+        except ValidationError as exc:
+            raise fail(text(exc.errors()[0]), where) from None
+    return entry
 
 
 def space_of(keywords: type[Keywords]) -> Any:
     """The search space over ``keywords``: keyword -> entry, kept as plain data."""
+    entry = lambda k, f: Annotated[Any, PlainValidator(partial(_entry, k, f.rebuild_annotation()))]  # noqa: E731
+    fields = {k: (entry(k, f), keyword(f.description)) for k, f in keywords.model_fields.items()}
     doc = f"An Optuna search space over the {keywords._owner} keywords."
-    fields = {
-        k: (SearchEntry, Field(None, description=f.description))
-        for k, f in keywords.model_fields.items()
-    }
-    model = create_model(f"{keywords.__name__}Space", __base__=_Space, __doc__=doc, **fields)
-    model._keywords, model._unknown, model._refused = keywords, keywords._unknown, keywords._refused
+    model = create_model(f"{keywords.__name__}Space", __base__=Keywords, __doc__=doc, **fields)
+    model._keywords, model._owner, model._reasons = keywords, keywords._owner, keywords._reasons
+    model._describe = "a mapping hyper-parameter -> {type: float|int|categorical, low, high, ...}"
     return plain(model)

@@ -1,5 +1,5 @@
-"""The params files as a whole: :class:`Settings`, :func:`validate_params` (a loaded
-mapping; every problem in one ConfigError), :func:`load_settings` (a complete file)."""
+"""The params files as a whole: :class:`Settings`, :func:`validate_params` (a loaded mapping;
+every problem in one ConfigError), :func:`load_settings` (a complete file)."""
 
 import re
 from collections.abc import Iterable, Mapping
@@ -16,12 +16,11 @@ from femcal.settings import root as _root
 
 #: The file kinds: the root pipeline's params.yaml and the FE pipeline's fe/params.yaml.
 SCHEMAS: tuple[str, ...] = ("root", "fe")
-_BOTH, _ROOT = {"root": True, "fe": True}, {"root": True, "fe": False}
+_BOTH, _ROOT, _FE = {"root": True, "fe": True}, {"root": True, "fe": False}, {"fe": True}
 
 
 def _section(files: dict[str, bool]) -> Any:
-    """A field of :class:`Settings`: a section of the file kinds ``files`` (kind -> required
-    in a full file)."""
+    """A section of the file kinds ``files`` (kind -> required in a full file)."""
     return field(default=None, metadata={"files": files})
 
 
@@ -47,8 +46,8 @@ class Settings:
     calibrate: _root.CalibrateSettings | None = _section(_BOTH)
     plant: _root.PlantSettings | None = _section(_ROOT)
     diagnose: _root.DiagnoseSettings | None = _section(_ROOT)
-    fe: _fe.FeSettings | None = _section({"fe": True})
-    validate: _fe.ValidateSettings | None = _section({"fe": True})
+    fe: _fe.FeSettings | None = _section(_FE)
+    validate: _fe.ValidateSettings | None = _section(_FE)
     adapt: _fe.AdaptSettings | None = _section({"fe": False})
     cohort: _fe.CohortSettings | None = _section({"fe": False})
 
@@ -71,24 +70,21 @@ SECTIONS: dict[str, tuple[type, dict[str, bool]]] = {
 
 def missing_setting(path: str | Path, key: str) -> ConfigError:
     """``params.yaml: missing setting 'calibrate.method'. Add it ...``, with the key's doc."""
-    message = (
-        f"{path}: missing setting '{key}'. Add it (see the project's params.yaml for the defaults)."
-    )
+    message = f"{path}: missing setting '{key}'. Add it (see the project's params.yaml for the "
     doc = describe_setting(key.split("."))
-    return ConfigError(f"{message} {key}: {doc}." if doc else message)
+    return ConfigError(message + "defaults)." + (f" {key}: {doc}." if doc else ""))
 
 
-def _partial(model: type, value: Mapping[str, Any], path: str | Path) -> Any:
+def _partial(model: type, value: Mapping[str, Any], path: str) -> Any:
     """A section that misses required keys, with the keys it gives (each valid)."""
-    fields, names = fmt.fields_of(model), fmt.keys_of(model)
-    given = {}
-    for key, item in value.items():
-        if key not in names:  # e.g. the splits of train
-            continue
-        tp = fields[names[key]].rebuild_annotation()
-        given[names[key]] = TypeAdapter(tp).validate_python(item)
+    names = fmt.keys_of(model)
+    fields_ = {names[k]: fmt.fields_of(model)[names[k]] for k in value if k in names}
+    given = {
+        n: TypeAdapter(f.rebuild_annotation()).validate_python(value[f.alias or n])
+        for n, f in fields_.items()
+    }
     partial = model.model_construct(**given)
-    partial._missing_in = str(path)
+    partial._missing_in = path
     return partial
 
 
@@ -97,39 +93,34 @@ def detect_schema(data: Mapping[str, Any]) -> str:
     return "fe" if "fe" in data or "validate" in data else "root"
 
 
-def _sections(
-    data: Mapping[str, Any], schema: str, complete: bool, path: str | Path
-) -> tuple[dict, dict, list]:
+def _sections(data: Mapping, schema: str, complete: bool, path: Any) -> tuple[dict, dict, list]:
     """The typed sections, the partial ones (which only miss keys), and every problem."""
     allowed = [name for name, (_, files) in SECTIONS.items() if schema in files]
     required = [name for name in allowed if SECTIONS[name][1][schema]]
-    found: list[tuple[tuple, str]] = []
-    out, partial = {}, {}
+    found, out, partial = [], {}, {}
     for key, value in data.items():
-        if key == "_path":
-            continue
         if key in SECTIONS and key not in allowed:  # fe or validate in a root params file
-            message = f"{key}: not a section of the root params.yaml; {key} belongs to the FE "
-            found.append(((key,), message + "pipeline's fe/params.yaml"))
-        elif key not in allowed:
+            where = "belongs to the FE pipeline's fe/params.yaml"
+            found.append(((key,), f"{key}: not a section of the root params.yaml; {key} {where}"))
+        elif key not in allowed and key != "_path":
             missing = [n for n in required if n not in data]
-            message = fmt.unknown_message(
-                key, (), sorted(allowed), missing=missing, what="unknown section"
+            message, close = fmt.unknown_message(
+                key, sorted(allowed), missing=missing, what="unknown section"
             )
-            found.append(((key,), message))
-        else:
+            found.append(((key,), f"{key}: {message}".replace("{there}", str(close))))
+        elif key != "_path":
             model = SECTIONS[key][0]
             try:
                 out[key] = model.model_validate(value, context={"complete": complete})
             except ValidationError as exc:
-                found += fmt.problems(exc, model, prefix=(key,), complete=complete)
-                missing = [e["loc"] for e in exc.errors() if e["type"] == "missing"]
-                if len(missing) == len(exc.errors()) and all(len(loc) == 1 for loc in missing):
+                found += fmt.problems(exc, prefix=(key,), complete=complete)
+                kinds = {(e["type"], len(e["loc"])) for e in exc.errors()}
+                if kinds == {("missing_setting", 1)}:
                     partial[key] = _partial(model, value, f"{path}:{key}")
     unknown = {fmt.closest(str(k), allowed) for k in data if k not in allowed}
+    file = "fe/params.yaml" if schema == "fe" else "params.yaml"
     for name in required if complete else ():
         if name not in data and name not in unknown:
-            file = "fe/params.yaml" if schema == "fe" else "params.yaml"
             found.append(((name,), f"{name}: missing section; add it (see the project's {file})"))
     return out, partial, found
 
@@ -143,19 +134,12 @@ def validate_params(
     text: str | None = None,
     given: Mapping[tuple, str] | None = None,
 ) -> Settings:
-    """The typed :class:`Settings` of a loaded params mapping ``data`` (the file ``path``,
-    its ``text`` for line numbers; ``schema`` default :func:`detect_schema`).
-
-    ``complete`` requires every required section and key; otherwise a section missing keys
-    is partial (:meth:`Settings.require`). ``given``: path -> the command-line option whose
-    value ``data`` holds there (messages name it).
-
-    Raises
-    ------
-    ConfigError
-        Unknown, retired, missing (``complete``), mistyped or out-of-range settings, each
-        with its line.
-    """
+    """The typed :class:`Settings` of a loaded params mapping ``data`` (the file ``path``, its
+    ``text`` for line numbers; ``schema`` default :func:`detect_schema`). ``complete`` requires
+    every required section and key; otherwise a section missing keys is partial
+    (:meth:`Settings.require`). ``given``: path -> the command-line option whose value ``data``
+    holds there (messages name it). ConfigError: every unknown, retired, missing
+    (``complete``), mistyped or out-of-range setting, each with its line."""
     schema = schema or detect_schema(data)
     if schema not in SCHEMAS:
         raise ConfigError(f"schema must be one of {', '.join(SCHEMAS)}; got {schema!r}.")

@@ -1,21 +1,13 @@
-"""The sections of the root ``params.yaml``, one model each.
-
-Every field is a setting: its type (with its bounds or choices), its one-line doc and its
-default; a field without a default is required. The diagnosis' defaults are those of
-:class:`femcal.diagnose.DiagnoseOptions`, read from it.
-"""
+"""The sections of the root ``params.yaml``, one model each: every field a setting (its type
+with bounds or choices, one-line doc, default; none: required). The diagnosis' defaults are
+those of :class:`femcal.diagnose.DiagnoseOptions`, read from it."""
 
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import (
-    ValidationError,
-    ValidationInfo,
-    WrapValidator,
-    model_validator,
-)
+from pydantic import ValidationError, ValidationInfo, WrapValidator, model_validator
 
 from femcal.schema import TARGETS
-from femcal.settings._format import fail, got, keys_of
+from femcal.settings._format import fail, keys_of
 from femcal.settings.keywords import (
     BASELINE,
     METHOD,
@@ -48,6 +40,8 @@ from femcal.settings.values import (
 _BASELINES = ListOf(BASELINE, unique=True)
 _MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
 _SPACE = "Optuna search space over the hyper-parameters"
+_TRIALS = "complete Optuna trials (0: train on fixed alone)"
+_TARGET = "output learnt: rom_deg, or idp_mpa (the IDP head; needs fixed log_target: false)"
 
 
 class DataSettings(Section):
@@ -55,21 +49,14 @@ class DataSettings(Section):
 
     raw_dir: PATH = setting("folder of the study's files as fetched (fetch's output)")
     prepared_dir: PATH = setting("folder of the tidy tables and parameter_space.json")
-    source_dir: PATH | None = setting(
-        "what prepare reads, in the study's layout (null: raw_dir)", None
-    )
-    limit_configs: Int(1) | None = setting(
-        "keep only the first N configurations per split (null: all)", None
-    )
+    source_dir: PATH | None = setting("what prepare reads, as laid out (null: raw_dir)", None)
+    limit_configs: Int(1) | None = setting("the first N configurations per split (null: all)", None)
 
 
 class MlflowSettings(Section):
     """``mlflow``: the tracking store, the experiment and the registered model name."""
 
-    store_dir: PATH = setting(
-        "folder of the default store sqlite:///<store_dir>/mlflow.db (MLFLOW_TRACKING_URI "
-        "overrides it)"
-    )
+    store_dir: PATH = setting("folder of sqlite:///<store_dir>/mlflow.db (or MLFLOW_TRACKING_URI)")
     experiment: NAME = setting("MLflow experiment of every run")
     model_name: NAME = setting("registered name of the surrogate")
 
@@ -77,21 +64,15 @@ class MlflowSettings(Section):
 class TrainSplitSettings(Section):
     """``train.<split>``: one surrogate trained on a prepared split (search + ensemble)."""
 
-    n_trials: Int(0) = setting("complete Optuna trials (0: train on fixed alone)", 0)
+    n_trials: Int(0) = setting(_TRIALS, 0)
     final_members: Int(1) = setting("ensemble members of the final model", 1)
     register_model: Bool = setting("register the final model in MLflow", False, alias="register")
     fixed: plain(SurrogateKeywords) = setting("NeuralSurrogate hyper-parameters", {})
     search_space: space_of(SurrogateKeywords) = setting(_SPACE, {})
     seed: Int(0) | None = setting("seed of this split (default: train.seed)", None)
-    split: Literal[SPLITS] | None = setting(
-        "prepared table trained on (default: the section's name)", None
-    )
+    split: Literal[SPLITS] | None = setting("table trained on (default: the section's name)", None)
     model_name: NAME | None = setting("registered name (default: mlflow.model_name)", None)
-    target: Literal[tuple(TARGETS)] = setting(
-        "output learnt: rom_deg, or idp_mpa (an FE campaign's IDP head; needs fixed "
-        "log_target: false)",
-        "rom_deg",
-    )
+    target: Literal[tuple(TARGETS)] = setting(_TARGET, "rom_deg")
 
 
 class TrainSettings(Section):
@@ -100,9 +81,7 @@ class TrainSettings(Section):
     _open: ClassVar[str] = "splits"
     _open_what: ClassVar[str] = "splits: mappings such as large: {n_trials: 3, fixed: {...}}"
 
-    storage: SQL_URL = setting(
-        "Optuna RDB storage, a SQLAlchemy URL (FEMCAL_OPTUNA_STORAGE overrides it)"
-    )
+    storage: SQL_URL = setting("Optuna RDB storage, a SQLAlchemy URL (or FEMCAL_OPTUNA_STORAGE)")
     study_name: NAME = setting("base name of the Optuna studies")
     val_fraction: Float(gt=0, lt=1) = setting("fraction of configurations for validation")
     seed: Int(0) = setting("seed of the sampler, the split and the members")
@@ -113,19 +92,15 @@ class TrainSettings(Section):
     def _gather_splits(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
-        known = keys_of(cls)
-        splits = {k: v for k, v in data.items() if k not in known and isinstance(v, dict)}
+        splits = {k: v for k, v in data.items() if k not in keys_of(cls) and isinstance(v, dict)}
         return {**{k: v for k, v in data.items() if k not in splits}, "splits": splits}
 
     @model_validator(mode="after")
     def _named_splits(self) -> Any:
         for name, split in self.splits.items():
             if split.split is None and name not in SPLITS:
-                raise fail(
-                    f"{name} is not a prepared split ({', '.join(SPLITS)}); add split: large "
-                    "(the table it trains on)",
-                    (name,),
-                )
+                why = f"{name} is not a prepared split ({', '.join(SPLITS)}); add split: large"
+                raise fail(f"{why} (the table it trains on)", (name,))
         return self
 
 
@@ -147,13 +122,10 @@ class InterpolationSettings(Section):
 
     @model_validator(mode="after")
     def _disjoint(self) -> Any:
-        both = sorted(set(self.train_moments) & set(self.test_moments))
+        both = ", ".join(f"{m:g}" for m in sorted(set(self.train_moments) & set(self.test_moments)))
         if both:
-            raise fail(
-                f"{', '.join(f'{m:g}' for m in both)} Nm also trained on; test on moments left "
-                "out of train_moments",
-                "test_moments",
-            )
+            why = f"{both} Nm also trained on; test on moments left out of train_moments"
+            raise fail(why, "test_moments")
         return self
 
 
@@ -163,7 +135,7 @@ class InverseSettings(Section):
     surrogate_uri: MODEL_URI = setting("surrogate the training samples come from")
     moments: MOMENTS = setting("moment grid of the curves, Nm")
     n_samples: Int(2) = setting("surrogate samples to train on", 50_000)
-    n_trials: Int(0) = setting("complete Optuna trials (0: train on fixed alone)", 0)
+    n_trials: Int(0) = setting(_TRIALS, 0)
     seed: Int(0) = setting("seed of the samples, the split and the network", 0)
     study_name: NAME = setting("Optuna study name", "ivd-inverse")
     register_as: NAME | None = setting("registered name (null: not registered)", None)
@@ -175,6 +147,7 @@ class Sides(Section):
     """A value per side of the trained moment range; one number serves both sides."""
 
     _complete: ClassVar[bool] = True
+    _describe: ClassVar[str] = "{below, above} numbers >= 0, or one number >= 0"
 
     below: Float(0) = setting("below the trained range")
     above: Float(0) = setting("above the trained range")
@@ -184,10 +157,6 @@ class Sides(Section):
     def _one_number(cls, value: Any) -> Any:
         if isinstance(value, int | float) and not isinstance(value, bool) and 0 <= value < 1e308:
             return {"below": value, "above": value}
-        if not isinstance(value, dict):
-            raise fail(
-                f"expected {{below, above}} numbers >= 0, or one number >= 0, got {got(value)}"
-            )
         return value
 
     def pair(self) -> tuple[float, float]:
@@ -196,18 +165,11 @@ class Sides(Section):
 
 
 class MomentSettings(Section):
-    """``moments``: the moment policy every command shares (femcal.moments.MomentPolicy).
+    """``moments``: the moment policy every command shares (femcal.moments.MomentPolicy), each
+    setting one value per side of the trained range, ``{below, above}`` (or one number)."""
 
-    Each setting is one value per side of the trained range, ``{below, above}`` (one number
-    serves both sides).
-    """
-
-    error_growth: Sides = setting(
-        "growth of the surrogate's error sd per unit log-moment distance beyond range, per side"
-    )
-    max_log_ratio: Sides = setting(
-        "log-moment distance beyond the trained range up to which moments are used, per side"
-    )
+    error_growth: Sides = setting("growth of the error sd per unit log-moment beyond range")
+    max_log_ratio: Sides = setting("log-moment distance beyond range up to which moments count")
 
 
 class EffectsSettings(Section):
@@ -219,33 +181,22 @@ class EffectsSettings(Section):
         "(the effects a calibration uses are listed under calibrate.datasets.<name>.effects)"
     )
 
-    modules: ListOf(PATH) = setting(
-        ".py files or folders of them, relative to the params file's folder", ()
-    )
+    modules: ListOf(PATH) = setting(".py files or folders of them (relative paths)", ())
 
 
 class DatasetSettings(Section):
     """``calibrate.datasets.<name>``: one measurement file and the effects added to the disc."""
 
+    _describe: ClassVar[str] = "a path or {measurements: path, effects: [names], noise_deg: sd}"
+
     measurements: PATH = setting("a long/wide CSV, or a folder of ROM_Results_* files")
-    effects: ListOf(NAME, unique=True) = setting(
-        "effects added to the disc model ([] = the disc alone)", ()
-    )
-    noise_deg: Float(gt=0) | None = setting(
-        "sd of one measurement, degrees (null: only the surrogate's error is counted)", None
-    )
+    effects: ListOf(NAME, unique=True) = setting("effects added to the disc ([]: none)", ())
+    noise_deg: Float(gt=0) | None = setting("sd of one measurement, deg (null: not counted)", None)
 
     @model_validator(mode="before")
     @classmethod
     def _a_path(cls, value: Any) -> Any:
-        if isinstance(value, str) and value.strip():
-            return {"measurements": value}
-        if not isinstance(value, dict):
-            raise fail(
-                "expected a path or {measurements: path, effects: [names], noise_deg: sd}, got "
-                f"{got(value)}"
-            )
-        return value
+        return {"measurements": value} if isinstance(value, str) and value.strip() else value
 
 
 def _datasets(value: Any, handler: Any, info: ValidationInfo) -> Any:
@@ -256,14 +207,14 @@ def _datasets(value: Any, handler: Any, info: ValidationInfo) -> Any:
     except ValidationError as exc:
         errors = exc.errors()
         if (info.context or {}).get("complete", True) or any(
-            e["type"] != "missing" or len(e["loc"]) != 2 for e in errors
+            e["type"] != "missing_setting" or len(e["loc"]) != 2 for e in errors
         ):
             raise
-        broken = {e["loc"][0] for e in errors}
-        good = handler({k: v for k, v in value.items() if k not in broken})
-        return {
-            k: good[k] if k in good else DatasetSettings.model_construct(**value[k]) for k in value
-        }
+        good = handler({k: v for k, v in value.items() if k not in {e["loc"][0] for e in errors}})
+        return {k: good.get(k) or DatasetSettings.model_construct(**value[k]) for k in value}
+
+
+_DATASETS = Annotated[dict[DATASET_NAME, DatasetSettings], WrapValidator(_datasets)]
 
 
 class CalibrateSettings(Section):
@@ -282,14 +233,8 @@ class CalibrateSettings(Section):
     out_dir: PATH = setting("outputs go to <out_dir>/<dataset>/")
     method: METHOD = setting("calibration method")
     model_uri: MODEL_URI = setting("the surrogate: a model folder or a models:/ URI")
-    datasets: Annotated[dict[DATASET_NAME, DatasetSettings], WrapValidator(_datasets)] = setting(
-        "name -> {measurements: path, effects: [names], noise_deg: sd}, one calibrate@<name> "
-        "stage each",
-        {},
-    )
-    holdout_uri: MODEL_URI | None = setting(
-        "held-out surrogate that re-evaluates every calibration", None
-    )
+    datasets: _DATASETS = setting("name -> a dataset, one calibrate@<name> stage each", {})
+    holdout_uri: MODEL_URI | None = setting("held-out surrogate re-evaluating each fit", None)
     start_bank: PATH | None = setting("prepared table whose configurations are pgd's starts", None)
     seed: Int(0) = setting("seed of the calibrator", 0)
     chunk_size: Int(1) | None = setting("specimens per batch (null: all at once)", None)
@@ -322,8 +267,6 @@ class DiagnoseSettings(OptionSection):
     out_dir: PATH = setting("output folder")
     metrics_file: PATH | None = setting("summary figures (DVC metrics)", None)
     noise_deg: Float(gt=0) | None = setting("measurement noise sd, degrees (null: estimated)", None)
-    candidates: ListOf(NAME, unique=True) | None = setting(
-        "effects tried (null: every registered one)", None
-    )
+    candidates: ListOf(NAME, unique=True) | None = setting("effects tried (null: all)", None)
     plots: Bool = setting("write plots", True)
     max_plots: Int(0) | None = setting(_MAX_PLOTS, None)

@@ -1,7 +1,6 @@
-"""Value types (numbers with bounds, lists, names, paths, URLs; each ``*_problem`` says why
+"""Value types (numbers with bounds, lists, names, paths, URLs: each ``*_problem`` says why
 a string is unusable and the fix), the bases :class:`Section` and :class:`Keywords`, and the
-options of options dataclasses (:func:`option`, :func:`check_options`, :func:`with_options`).
-"""
+options of options dataclasses (:func:`option`, :func:`check_options`, :func:`with_options`)."""
 
 from __future__ import annotations
 
@@ -32,10 +31,10 @@ from pydantic import (
     create_model,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
 from femcal.errors import ConfigError
-from femcal.settings._format import Doc, PlainOf, closest, describe, fail, keys_of, yaml_repr
+from femcal.settings import _format as fmt
+from femcal.settings._format import fail
 
 #: SQLAlchemy dialects (their common spellings), for suggestions.
 _SQL_DIALECTS = ("sqlite", "postgresql", "mysql", "mariadb", "oracle", "mssql", "cockroachdb")
@@ -50,25 +49,19 @@ def sqlalchemy_url_problem(value: str) -> str | None:
     if m is None:
         if "://" not in value and (value.endswith((".db", ".sqlite", ".sqlite3")) or "/" in value):
             return f"not a SQLAlchemy URL; for a SQLite file write sqlite:///{value}"
-        return (
-            "not a SQLAlchemy URL (dialect[+driver]://...); e.g. sqlite:///mlruns/optuna.db or "
-            "postgresql://user:password@host/optuna"
-        )
+        e_g = "e.g. sqlite:///mlruns/optuna.db or postgresql://user:password@host/optuna"
+        return f"not a SQLAlchemy URL (dialect[+driver]://...); {e_g}"
     dialect, rest = m["dialect"].lower(), value[m.end() :]
     if dialect == "postgres":
         return f"SQLAlchemy names this dialect postgresql; write postgresql://{rest}"
-    if dialect not in _SQL_DIALECTS:
-        close = closest(dialect, _SQL_DIALECTS)
-        if close is not None:
-            return f"unknown database dialect {dialect!r}; did you mean {close}://{rest}?"
-    if dialect == "sqlite":
-        if not rest or rest in ("/", "/:memory:"):
-            return (
-                "an in-memory SQLite database forgets the study when the process ends; name a "
-                "file, e.g. sqlite:///mlruns/optuna.db"
-            )
-        if not rest.startswith("/"):
-            return f"a SQLite URL has three slashes before a relative path: sqlite:///{rest}"
+    close = fmt.closest(dialect, _SQL_DIALECTS) if dialect not in _SQL_DIALECTS else None
+    if close is not None:
+        return f"unknown database dialect {dialect!r}; did you mean {close}://{rest}?"
+    if dialect == "sqlite" and (not rest or rest in ("/", "/:memory:")):
+        memory = "an in-memory SQLite database forgets the study when the process ends"
+        return f"{memory}; name a file, e.g. sqlite:///mlruns/optuna.db"
+    if dialect == "sqlite" and not rest.startswith("/"):
+        return f"a SQLite URL has three slashes before a relative path: sqlite:///{rest}"
     return None
 
 
@@ -90,10 +83,8 @@ def dask_address_problem(value: str) -> str | None:
         return "not a Dask scheduler address; write tcp://host:port, e.g. tcp://login-node:8786"
     scheme, port = m["scheme"].lower(), m["port"]
     if scheme not in _DASK_SCHEMES:
-        return (
-            f"unknown protocol {scheme}://; use one of "
-            f"{', '.join(s + '://' for s in _DASK_SCHEMES)}, e.g. tcp://{m['host']}:8786"
-        )
+        schemes = ", ".join(s + "://" for s in _DASK_SCHEMES)
+        return f"unknown protocol {scheme}://; use one of {schemes}, e.g. tcp://{m['host']}:8786"
     if port is None:
         return f"no port; write {scheme}://{m['host']}:8786 (the scheduler's default port)"
     if not 1 <= int(port) <= 65535:
@@ -116,15 +107,13 @@ def mlflow_tracking_uri_problem(value: str) -> str | None:
         return None  # a local folder (a file store)
     scheme = urllib.parse.urlsplit(value).scheme.lower()
     base = scheme.split("+", 1)[0]
-    if scheme in ("http", "https"):
-        if not urllib.parse.urlsplit(value).netloc:
-            return f"no host; write {scheme}://host:5000"
-        return None
+    if scheme in ("http", "https") and not urllib.parse.urlsplit(value).netloc:
+        return f"no host; write {scheme}://host:5000"
     if scheme in _MLFLOW_SCHEMES:
         return None
     if base in _SQL_DIALECTS or base == "postgres":
         return sqlalchemy_url_problem(value)
-    close = closest(scheme, [*_MLFLOW_SCHEMES, *_SQL_DIALECTS])
+    close = fmt.closest(scheme, [*_MLFLOW_SCHEMES, *_SQL_DIALECTS])
     fix = f"; did you mean {close}://?" if close else ""
     return (
         f"unknown scheme {scheme}://{fix} (a tracking server http(s)://host:port, a database "
@@ -134,16 +123,11 @@ def mlflow_tracking_uri_problem(value: str) -> str | None:
 
 def model_uri_problem(value: str) -> str | None:
     """Why ``value`` is not an MLflow model URI (None when it looks like one)."""
-    if value.startswith("models:"):
-        if re.match(r"^models:/[^/@\s]+(@[^/@\s]+|/[^/@\s]+)$", value):
-            return None
-        return (
-            "expected models:/NAME@ALIAS or models:/NAME/VERSION, e.g. "
-            "models:/ivd-rom-surrogate@champion"
-        )
-    if value.startswith("runs:"):
-        if re.match(r"^runs:/[0-9A-Za-z]+/.+$", value):
-            return None
+    models = re.match(r"^models:/[^/@\s]+(@[^/@\s]+|/[^/@\s]+)$", value)
+    if value.startswith("models:") and not models:
+        e_g = "e.g. models:/ivd-rom-surrogate@champion"
+        return f"expected models:/NAME@ALIAS or models:/NAME/VERSION, {e_g}"
+    if value.startswith("runs:") and not re.match(r"^runs:/[0-9A-Za-z]+/.+$", value):
         return "expected runs:/RUN_ID/ARTIFACT_PATH"
     if re.match(r"^(model|modles|modells):/", value):
         return f"did you mean models:/{value.split(':/', 1)[1]}?"
@@ -172,7 +156,9 @@ _Unique = type("_Unique", (), {"unique": True})  # ListOf's mark: describe says 
 def _unique(value: tuple) -> tuple:
     for i, v in enumerate(value):
         if v in value[:i]:
-            raise fail(f"{yaml_repr(v)} is listed twice in {yaml_repr(value)}; list each once")
+            raise fail(
+                f"{fmt.yaml_repr(v)} is listed twice in {fmt.yaml_repr(value)}; list each once"
+            )
     return value
 
 
@@ -187,28 +173,28 @@ def Text(what: str, problem: Callable[[str], str | None] | None = None) -> Any: 
 
     def check(value: Any) -> str:
         if not isinstance(value, str) or not value.strip():
-            raise PydanticCustomError("value_type", "expected {what}", {"what": what})
+            raise fail(f"expected {what}, got {fmt.got(value)}")
         why = problem(value) if problem else None
         if why is not None:
-            raise PydanticCustomError("value_problem", "{why}", {"why": why})
+            raise fail(f"expected {what}, got {fmt.yaml_repr(value)}: {why}")
         return value
 
-    return Annotated[str, PlainValidator(check), Doc(what)]
+    return Annotated[str, PlainValidator(check), fmt.Doc(what)]
 
 
 def _n_jobs(value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not (value >= 1 or value == -1):
-        raise PydanticCustomError("value_type", "expected n_jobs")
+        raise fail(f"expected an integer >= 1, or -1 (all cores), got {fmt.got(value)}")
     return value
 
 
 def _dataset_name(value: Any) -> str:
     if isinstance(value, str) and re.match(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", value):
         return value
+    why = "letters, digits, '_', '.' and '-' (it names the stage calibrate@<name> and "
+    why += "reports/calibrate-<name>.json)"
     raise fail(
-        f"dataset name {yaml_repr(value)} must start with a letter or digit and hold only "
-        "letters, digits, '_', '.' and '-' (it names the stage calibrate@<name> and "
-        "reports/calibrate-<name>.json)"
+        f"dataset name {fmt.yaml_repr(value)} must start with a letter or digit and hold only {why}"
     )
 
 
@@ -218,8 +204,8 @@ MODEL_URI = Text("an MLflow model URI (models:/NAME@ALIAS)", model_uri_problem)
 PATH = Text("a path (a non-empty string)")
 NAME = Text("a non-empty name")
 MOMENTS = ListOf(Float(gt=0), min_len=1, unique=True)  # Nm
-DATASET_NAME = Annotated[str, PlainValidator(_dataset_name), Doc("a dataset name")]
-N_JOBS = Annotated[int, PlainValidator(_n_jobs), Doc("an integer >= 1, or -1 (all cores)")]
+DATASET_NAME = Annotated[str, PlainValidator(_dataset_name), fmt.Doc("a dataset name")]
+N_JOBS = Annotated[int, PlainValidator(_n_jobs), fmt.Doc("an integer >= 1, or -1 (all cores)")]
 
 
 def light_class(module: str, name: str) -> type:
@@ -250,6 +236,7 @@ class Section(BaseModel):
 
     #: ``file:section`` of a section the file gives partially (None: complete).
     _missing_in: str | None = PrivateAttr(None)
+    _reword = model_validator(mode="wrap")(classmethod(fmt.reword))
 
     def __getattr__(self, name: str) -> Any:
         # A required key a partial section lacks: the error that names it, where it is read.
@@ -269,19 +256,6 @@ class Keywords(Section):
 
     _owner: ClassVar[str] = "function"
     _reasons: ClassVar[dict[str, str]] = {}
-    _auto: ClassVar[frozenset] = frozenset()  # the messages' words derived from _owner
-
-    @classmethod
-    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
-        words = {
-            "_unknown": f"unknown {cls._owner} keyword",
-            "_describe": f"a mapping of {cls._owner} keywords ({', '.join(keys_of(cls))})",
-        }
-        auto = {k for k in words if k not in vars(cls) and (k in cls._auto or not hasattr(cls, k))}
-        for key in auto:
-            setattr(cls, key, words[key])
-        cls._auto = auto
-        cls._refused = {k: f"not settable here; {v}" for k, v in cls._reasons.items()}
 
 
 def keyword(doc: str) -> Any:
@@ -300,21 +274,17 @@ def plain(model: type, *, typed: bool = False) -> Any:
         checked = adapter.validate_python(value)
         if not typed:
             return dict(value) if isinstance(value, dict) else value
-        names = keys_of(model)
+        names, given = fmt.keys_of(model), checked.model_fields_set
         order = list(value) if isinstance(value, dict | list | tuple) else list(names)
-        return {
-            k: getattr(checked, names[k]) for k in order if names[k] in checked.model_fields_set
-        }
+        return {k: getattr(checked, names[k]) for k in order if names[k] in given}
 
-    return Annotated[dict[str, Any], WrapValidator(keep), PlainOf(model)]
+    return Annotated[dict[str, Any], WrapValidator(keep), fmt.PlainOf(model)]
 
 
 # ------------------------------------------------------------------ options dataclasses
 def option(default: Any, doc: str) -> Any:
-    """An option of an options dataclass (``DiagnoseOptions``, ``PgdOptions``, ...): its
-    default and one-line doc. The field's annotation (:func:`Int`, :func:`Float`,
-    :func:`ListOf`, ``Literal``) bounds it; the settings sections, the command line and the
-    dataclass' own check (:func:`check_options`) all read these three."""
+    """An option of an options dataclass (``DiagnoseOptions``, ...): its default and doc; its
+    annotation bounds it. Sections, the command line and :func:`check_options` read all three."""
     return dataclasses.field(default=default, metadata={"doc": doc})
 
 
@@ -347,15 +317,9 @@ def _adapter(annotation: Any) -> TypeAdapter:
 
 
 def check_options(options: Any, owner: str) -> None:
-    """Check each option of an options dataclass against its annotation (type, bounds,
-    choices; pydantic validates) and store it conformed (int, float, tuple); ``owner`` names
-    it in messages. NumPy scalars count as the Python numbers they hold, a ``Path`` as its text.
-
-    Raises
-    ------
-    OptionError
-        ``owner: alpha must be in (0, 1); got 1.5. alpha: level of the adequacy tests.``
-    """
+    """Check each option of an options dataclass against its annotation (pydantic validates;
+    NumPy scalars as the numbers they hold, a ``Path`` as its text) and store it conformed (int,
+    float, tuple); OptionError: ``owner: alpha must be in (0, 1); got 1.5. alpha: <its doc>.``"""
     for name, (annotation, _, doc) in option_fields(type(options)).items():
         value = getattr(options, name)
         given = value.item() if hasattr(value, "dtype") and hasattr(value, "item") else value
@@ -364,14 +328,13 @@ def check_options(options: Any, owner: str) -> None:
             fixed = _adapter(annotation).validate_python(os.fspath(given) if path else given)
         except ValidationError as exc:
             error = exc.errors(include_url=False)[0]
-            words = describe(annotation).replace(" or null", " or None")
+            words = fmt.describe(annotation).replace(" or null", " or None")
             words = re.sub(r"^a number (?=[<>i])", "", words)
-            if error["type"] == "femcal":  # a check of the type's own (e.g. no repeats)
-                raise OptionError(owner, name, f"{name}: {error['msg']}") from None
-            if words.startswith("one of "):
-                text = f"unknown {name} {value!r}; choose {words}"
-                raise OptionError(owner, name, text) from None
             text = f"{name} must be {words}; got {value!r}. {name}: {doc}"
+            if error["type"] in fmt.CUSTOM:  # a check of the type's own (e.g. no repeats)
+                text = f"{name}: {error['msg']}"
+            elif words.startswith("one of "):
+                text = f"unknown {name} {value!r}; choose {words}"
             raise OptionError(owner, name, text) from None
         if fixed is not value and not path:
             object.__setattr__(options, name, fixed)
@@ -410,6 +373,5 @@ def with_options(base: type | None = None, /, **fields: Any) -> Any:
         key: (tp, Field(None if unset else default, description=what))
         for key, (tp, default, what) in option_fields(base._options).items()
     }
-    return create_model(
-        base.__name__, __base__=base, __doc__=base.__doc__, __module__=base.__module__, **fields
-    )
+    where = {"__doc__": base.__doc__, "__module__": base.__module__}
+    return create_model(base.__name__, __base__=base, **where, **fields)
