@@ -393,26 +393,49 @@ def _where(s: SpecimenDiagnosis) -> str:
 _PLOTTING: tuple[Diagnosis, np.ndarray, Path] | None = None
 
 
+def _specimen_path(pdir: Path, s: SpecimenDiagnosis) -> Path:
+    """Where a specimen's figure goes: ``pdir/<specimen>.png``."""
+    return pdir / f"{safe_file_name(s.specimen)}.png"
+
+
 def _plot_one(i: int) -> None:
     diag, measured, pdir = _PLOTTING
-    name = safe_file_name(diag.specimens[i].specimen)
-    plot_specimen(diag, i, measured[i], pdir / f"{name}.png")
+    plot_specimen(diag, i, measured[i], _specimen_path(pdir, diag.specimens[i]))
+
+
+def draw_group(
+    diag: Diagnosis, rows: np.ndarray, measured: np.ndarray, pdir: Path, n: int | None
+) -> None:
+    """The figures (``pdir/<specimen>.png``) of a group's specimens among the cohort's first
+    ``n`` (None: all): ``diag`` the group's diagnosis, ``rows`` (k,) their indices in the
+    cohort, ``measured`` (N, 4, m) the cohort's RoM (deg). The figures :func:`write_diagnosis`
+    draws of them, drawn in this process (a diagnosis' worker,
+    :func:`femcal.diagnose.workers.each_group`)."""
+    _plt()
+    for j, i in enumerate(rows):
+        if n is None or i < n:
+            plot_specimen(diag, j, measured[i], _specimen_path(pdir, diag.specimens[j]))
 
 
 def _plot_specimens(diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int) -> None:
-    """The first ``n`` specimens' plots, in one worker process per free core where the
-    platform forks (the figures are independent; matplotlib takes most of a diagnosis' time)."""
+    """The first ``n`` specimens' plots not yet in ``pdir`` (:func:`draw_group` draws them in
+    the diagnosis' workers), in one worker process per free core where the platform forks
+    (the figures are independent; matplotlib takes most of a diagnosis' time)."""
     global _PLOTTING
+    todo = [i for i in range(n) if not _specimen_path(pdir, diag.specimens[i]).exists()]
+    if not todo:
+        return
     _PLOTTING = (diag, measured, pdir)
     _plt()  # imported once here, not in each worker
     try:
-        workers = min(free_cores(), n)
+        workers = min(free_cores(), len(todo))
         if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
             ctx = multiprocessing.get_context("fork")
             with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                list(pool.map(_plot_one, range(n), chunksize=max(1, n // (4 * workers))))
+                chunk = max(1, len(todo) // (4 * workers))
+                list(pool.map(_plot_one, todo, chunksize=chunk))
         else:
-            for i in range(n):
+            for i in todo:
                 _plot_one(i)
     finally:
         _PLOTTING = None
@@ -474,7 +497,10 @@ def write_diagnosis(
     plots: bool = True,
     max_plots: int | None = None,
 ) -> dict:
-    """Write ``diagnosis.json``, ``residuals.csv``, ``summary.md``, plots; return the summary."""
+    """Write ``diagnosis.json``, ``residuals.csv``, ``summary.md``, plots; return the summary.
+
+    A specimen's figure already in ``out_dir/plots`` (drawn by the diagnosis' workers,
+    :func:`draw_group`) is kept, not drawn again."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data = diag.to_dict()

@@ -157,7 +157,6 @@ def run_diagnosis(job: DiagnosisJob):
 
     from femcal.calibration import SurrogateCurveModel
     from femcal.diagnose import DiagnoseOptions, diagnose
-    from femcal.diagnose.report import write_diagnosis
     from femcal.effects import available_effects
     from femcal.effects.composite import EffectModel
     from femcal.measurements import read_measurements
@@ -185,59 +184,87 @@ def run_diagnosis(job: DiagnosisJob):
         reference=start_bank,
         noise_deg=noise_deg,
     )
-    diag = diagnose(
-        SurrogateCurveModel(surrogate, meas.moments),
-        meas.rom_deg,
-        specimens=meas.specimens,
-        noise_deg=noise_deg,
-        surrogate_error_deg=policy.sigma_surrogate(meas.moments, meas.rom_deg),  # each point's
-        point_weight=meas.weight,
-        candidates=candidates,
-        start_bank=training_configurations(start_bank) if start_bank else None,
-        moment_policy=policy,
-        options=options,
-    )
-    with (
-        staged_output(out_dir, command="diagnose") as stage,
-        mlflow.start_run(run_name="diagnose") as run,
-    ):
-        stage.note(mlflow_run_id=run.info.run_id)
-        mlflow.set_tag("femcal.stage", "diagnose")
-        mlflow.set_tags(source.tags("model"))
-        summary = write_diagnosis(
-            diag, meas.rom_deg, stage.path, plots=s.plots, max_plots=s.max_plots
-        )
-        screened.write(stage.path)
-        summary = dict(summary, n_dropped_points=len(screened.dropped))
-        mlflow.log_params(
-            {
-                "measurements": str(measurements),
-                "model_uri": model_uri,
-                "noise_deg": "estimated" if noise_deg is None else noise_deg,
-                "noise_source": s.noise_source,
-                "candidates": ",".join(candidates or []) or "all",
-                "min_delta": options.min_delta,
-                "alpha": options.alpha,
-                "max_effects": options.max_effects,
-                "cohort_verdict": diag.cohort_verdict(),
-                **policy.as_params(),
-            }
-        )
-        mlflow.log_metrics(
-            {
-                "sigma_deg": diag.sigma_deg,
-                "noise_deg": diag.noise_deg,
-                "seconds": diag.seconds,
-                # MLflow metric names take no "+": one count per effect (and "unexplained"),
-                # and one per verdict with "+" spelt "__".
-                **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
-                **{
-                    f"n_verdict_{k.replace('+', '__')}": float(v)
-                    for k, v in diag.verdicts().items()
-                },
-            }
-        )
-        stage.finalize()
-        mlflow.log_artifacts(str(stage.path), artifact_path="diagnosis")  # this run's files
-        stage.commit()
+    with staged_output(out_dir, command="diagnose") as stage:
+        with _figures_in_workers(s, meas.rom_deg, stage.path):
+            diag = diagnose(
+                SurrogateCurveModel(surrogate, meas.moments),
+                meas.rom_deg,
+                specimens=meas.specimens,
+                noise_deg=noise_deg,
+                surrogate_error_deg=policy.sigma_surrogate(meas.moments, meas.rom_deg),
+                point_weight=meas.weight,
+                candidates=candidates,
+                start_bank=training_configurations(start_bank) if start_bank else None,
+                moment_policy=policy,
+                options=options,
+            )
+        with mlflow.start_run(run_name="diagnose") as run:
+            stage.note(mlflow_run_id=run.info.run_id)
+            summary = _write_and_log(s, diag, screened, policy, options, source, stage)
     return diag, summary
+
+
+def _figures_in_workers(job: DiagnosisJob, measured, folder: Path):
+    """A context manager within which each worker process of the diagnosis draws its group's
+    figures into ``folder/plots`` as soon as the group is diagnosed
+    (:func:`femcal.diagnose.workers.each_group`, :func:`femcal.diagnose.report.draw_group`),
+    while the other worker still diagnoses its own; one that does nothing without plots.
+    ``measured`` (n, 4, m): the cohort's RoM (deg)."""
+    import contextlib
+    import functools
+
+    from femcal.diagnose.report import draw_group
+    from femcal.diagnose.workers import each_group
+
+    if not job.plots:
+        return contextlib.nullcontext()
+    (folder / "plots").mkdir(exist_ok=True)
+    return each_group(
+        functools.partial(draw_group, measured=measured, pdir=folder / "plots", n=job.max_plots)
+    )
+
+
+def _write_and_log(job: DiagnosisJob, diag, screened, policy, options, source, stage) -> dict:
+    """Write the diagnosis into the open output ``stage`` (and commit it) and log it to the
+    active MLflow run; the summary (``summary.json``'s figures and ``n_dropped_points``)."""
+    import mlflow
+
+    from femcal.diagnose.report import write_diagnosis
+
+    s, candidates = job, job.candidates
+    mlflow.set_tag("femcal.stage", "diagnose")
+    mlflow.set_tags(source.tags("model"))
+    summary = write_diagnosis(
+        diag, screened.measurements.rom_deg, stage.path, plots=s.plots, max_plots=s.max_plots
+    )
+    screened.write(stage.path)
+    summary = dict(summary, n_dropped_points=len(screened.dropped))
+    mlflow.log_params(
+        {
+            "measurements": str(s.measurements),
+            "model_uri": s.model_uri,
+            "noise_deg": "estimated" if s.noise_deg is None else s.noise_deg,
+            "noise_source": s.noise_source,
+            "candidates": ",".join(candidates or []) or "all",
+            "min_delta": options.min_delta,
+            "alpha": options.alpha,
+            "max_effects": options.max_effects,
+            "cohort_verdict": diag.cohort_verdict(),
+            **policy.as_params(),
+        }
+    )
+    mlflow.log_metrics(
+        {
+            "sigma_deg": diag.sigma_deg,
+            "noise_deg": diag.noise_deg,
+            "seconds": diag.seconds,
+            # MLflow metric names take no "+": one count per effect (and "unexplained"),
+            # and one per verdict with "+" spelt "__".
+            **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
+            **{f"n_verdict_{k.replace('+', '__')}": float(v) for k, v in diag.verdicts().items()},
+        }
+    )
+    stage.finalize()
+    mlflow.log_artifacts(str(stage.path), artifact_path="diagnosis")  # this run's files
+    stage.commit()
+    return summary
