@@ -22,7 +22,7 @@ from femcal.stages.common import (
     typed,
     write_metrics,
 )
-from femcal.stages.store import tracking
+from femcal.stages.tracking_process import TrackingProcess
 from femcal.stages.user_effects import describe_user_effects, effect_modules, load_user_effects
 
 logger = logging.getLogger(__name__)
@@ -108,6 +108,10 @@ def noise_line(diag: Any, source: str) -> str:
 def run(settings: DiagnoseSettings) -> dict[str, Any]:
     """Load the user's effects, diagnose, write the outputs and the DVC metrics (when asked).
 
+    MLflow (its imports, the store, the run) works in a child process started first
+    (:class:`~femcal.stages.tracking_process.TrackingProcess`), beside the diagnosis' own
+    imports and its work in this process before the diagnosis' workers start.
+
     Returns ``summary.json``'s figures with the :class:`~femcal.diagnose.Diagnosis`.
     """
     from femcal.headlines import diagnosis_headline
@@ -119,8 +123,8 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
         )
     else:
         logger.info("measurement noise %g deg: %s", settings.noise_deg, settings.noise_source)
-    tracking(settings.params)
-    diag, summary = run_diagnosis(settings)
+    with TrackingProcess(settings.params) as tracker:
+        diag, summary = run_diagnosis(settings, tracker=tracker)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, diagnosis_headline(summary))
     return dict(

@@ -1,8 +1,9 @@
-"""The calibration's MLflow run in a child process of the command line.
+"""The MLflow run of ``femcal calibrate`` and ``femcal diagnose`` in a child process of the
+command line.
 
-``femcal calibrate`` logs from a child process started first (:class:`TrackingProcess`): it
-imports MLflow, opens the store and runs the calls while the command imports torch and
-calibrates on the other core. Library callers log in-process
+``femcal calibrate`` and ``femcal diagnose`` log from a child process started first
+(:class:`TrackingProcess`): it imports MLflow, opens the store and runs the calls while the
+command imports torch and calibrates (diagnoses) on the other core. Library callers log in-process
 (:class:`femcal.jobs.mlflow_steps.LocalTracking`). Each step of the run is a function of
 picklable arguments (:data:`femcal.jobs.mlflow_steps.TRACKING_CALLS`).
 """
@@ -23,13 +24,13 @@ logger = logging.getLogger(__name__)
 
 
 class TrackingProcess:
-    """MLflow in a child process: its imports, the store and the calibration's run.
+    """MLflow in a child process: its imports, the store and the command's run.
 
     Started first, the child imports MLflow, points it at the store of ``params``
     (:func:`femcal.stages.store.tracking`: the store, the experiment, killed runs closed) while
-    this process imports torch, reads and calibrates: on two cores that time is hidden. The
-    calls of :data:`TRACKING_CALLS` then run in the child, in the order submitted; their
-    errors are raised here (the child's traceback as a note), a store error at the first
+    this process imports torch, reads and calibrates (diagnoses): on two cores that time is
+    hidden. The calls of :data:`TRACKING_CALLS` then run in the child, in the order submitted;
+    their errors are raised here (the child's traceback as a note), a store error at the first
     :meth:`check` or :meth:`result` after it. The run is tagged with the child's process
     (:func:`femcal.tracking_runs.tag_runs_with_process`): a killed command leaves it RUNNING,
     and the next command closes it as KILLED, as before.
@@ -144,7 +145,7 @@ class TrackingProcess:
             self._process.join(5)
             raise RuntimeError(
                 f"The MLflow process (pid {self._process.pid}) ended unexpectedly (exit code "
-                f"{self._process.exitcode}); the calibration's run was not logged."
+                f"{self._process.exitcode}); the command's run was not logged."
             ) from None
         self._pending -= 1
         if kind == "error":
