@@ -159,7 +159,9 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
                     label=f"disc + {final_label}",
                 )
         ax.plot(diag.moments[ok], measured[j][ok], "o", color="black", ms=4, label="measured")
-        ax.set_title(LABELS.get(lc, lc), fontsize=11)
+        # At the axes' top (y=1): the position matplotlib would find, as no tick or label
+        # lies above the axes, without measuring every tick label of the figure to find it.
+        ax.set_title(LABELS.get(lc, lc), fontsize=11, y=1.0)
         # Residuals: disc alone and final model, with the noise band.
         rx.fill_between(diag.moments, -2 * sig, 2 * sig, color="0.85", lw=0, label="± 2σ noise")
         rx.axhline(0.0, color="0.5", lw=0.8)
