@@ -23,7 +23,7 @@ from femcal.diagnose import (
     diagnose,
     verdict_label,
 )
-from femcal.diagnose.report import draw_group, write_diagnosis
+from femcal.diagnose.report import draw_group, drawn_figures, write_diagnosis
 from femcal.effects.planted import fe_rotation
 from femcal.effects.split import base_name
 from femcal.effects.terms import Model, Term
@@ -207,9 +207,10 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch,
     figures = sorted((drawn / "plots").iterdir())
     assert [f.name for f in figures] == [f"{name}.png" for name in names]
     stamps = [f.stat().st_mtime_ns for f in figures]
-    write_diagnosis(runs[1], rom6, drawn)
-    write_diagnosis(runs[1], rom6, tmp_path / "here")
+    assert drawn_figures(runs[1], drawn / "plots") == set(range(6))
+    write_diagnosis(runs[1], rom6, drawn, drawn=drawn_figures(runs[1], drawn / "plots"))
     assert [f.stat().st_mtime_ns for f in figures] == stamps
+    write_diagnosis(runs[1], rom6, tmp_path / "here")
     for f in figures:
         assert f.read_bytes() == (tmp_path / "here" / "plots" / f.name).read_bytes()
     assert len(workers.groups(len(rom6), 2)) == 2

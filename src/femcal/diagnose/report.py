@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import warnings
+from collections.abc import Collection
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -419,12 +420,19 @@ def draw_group(
             plot_specimen(diag, j, measured[i], _specimen_path(pdir, diag.specimens[j]))
 
 
-def _plot_specimens(diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int) -> None:
-    """The first ``n`` specimens' plots not yet in ``pdir`` (:func:`draw_group` draws them in
-    the diagnosis' workers), in one worker process per free core where the platform forks
-    (the figures are independent; matplotlib takes most of a diagnosis' time)."""
+def drawn_figures(diag: Diagnosis, pdir: Path) -> set[int]:
+    """The specimens (indices) whose figure is in ``pdir`` (:func:`draw_group`)."""
+    return {i for i, s in enumerate(diag.specimens) if _specimen_path(pdir, s).exists()}
+
+
+def _plot_specimens(
+    diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int, drawn: Collection[int]
+) -> None:
+    """The first ``n`` specimens' plots but those ``drawn`` already, in one worker process per
+    free core where the platform forks (the figures are independent; matplotlib takes most of
+    a diagnosis' time)."""
     global _PLOTTING
-    todo = [i for i in range(n) if not _specimen_path(pdir, diag.specimens[i]).exists()]
+    todo = [i for i in range(n) if i not in drawn]
     if not todo:
         return
     _PLOTTING = (diag, measured, pdir)
@@ -498,11 +506,13 @@ def write_diagnosis(
     *,
     plots: bool = True,
     max_plots: int | None = None,
+    drawn: Collection[int] = (),
 ) -> dict:
     """Write ``diagnosis.json``, ``residuals.csv``, ``summary.md``, plots; return the summary.
 
-    A specimen's figure already in ``out_dir/plots`` (drawn by the diagnosis' workers,
-    :func:`draw_group`) is kept, not drawn again."""
+    ``drawn``: the specimens (indices) whose figure is in ``out_dir/plots`` already (drawn by
+    the diagnosis' workers, :func:`draw_group`, :func:`drawn_figures`): kept, not drawn
+    again."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data = diag.to_dict()
@@ -546,7 +556,7 @@ def write_diagnosis(
         pdir = out_dir / "plots"
         pdir.mkdir(exist_ok=True)
         n = len(diag.specimens) if max_plots is None else min(len(diag.specimens), max_plots)
-        _plot_specimens(diag, measured, pdir, n)
+        _plot_specimens(diag, measured, pdir, n, set(drawn))
         plot_heatmap(diag, out_dir / "heatmap.png")
         plot_inclusion(diag, out_dir / "inclusion.png")
     return summary

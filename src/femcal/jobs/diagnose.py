@@ -249,11 +249,17 @@ def _write_and_log(
     started, and commit the stage; the summary (``summary.json``'s figures and
     ``n_dropped_points``). ``setup``: the moment policy, the search's options and the model's
     source."""
-    from femcal.diagnose.report import write_diagnosis
+    from femcal.diagnose.report import drawn_figures, write_diagnosis
 
     (policy, options, source), s = setup, job
     summary = write_diagnosis(
-        diag, screened.measurements.rom_deg, stage.path, plots=s.plots, max_plots=s.max_plots
+        diag,
+        screened.measurements.rom_deg,
+        stage.path,
+        plots=s.plots,
+        max_plots=s.max_plots,
+        # the figures the workers drew into the new staging folder
+        drawn=drawn_figures(diag, stage.path / "plots") if s.plots else (),
     )
     screened.write(stage.path)
     summary = dict(summary, n_dropped_points=len(screened.dropped))
