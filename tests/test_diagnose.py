@@ -8,6 +8,9 @@ describes), so the search is tested on data it was not built from.
 
 from __future__ import annotations
 
+import functools
+import os
+
 import numpy as np
 import pytest
 
@@ -20,6 +23,7 @@ from femcal.diagnose import (
     diagnose,
     verdict_label,
 )
+from femcal.diagnose.report import draw_group, drawn_figures, write_diagnosis
 from femcal.effects.planted import fe_rotation
 from femcal.effects.split import base_name
 from femcal.effects.terms import Model, Term
@@ -168,7 +172,13 @@ def test_same_seed_same_diagnosis(world):
     )
 
 
-def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch):
+def _note_group(diag, rows, *, folder):
+    """Writes which specimens a worker's group held (``index:name``), one file per group."""
+    names = [f"{i}:{s.specimen}" for i, s in zip(rows, diag.specimens)]
+    (folder / f"{os.getpid()}.txt").write_text(" ".join(names))
+
+
+def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch, tmp_path):
     from femcal.diagnose import workers
 
     base, rom, _, _ = world
@@ -177,11 +187,37 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch)
     rom6 = rom[:6]
     names = [f"S{i:02d}" for i in range(len(rom6))]
     runs = [
-        diagnose(base, rom6, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=k))
-        for k in (1, 2)
+        diagnose(base, rom6, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=1))
     ]
+    seen = tmp_path / "groups"
+    seen.mkdir()
+    drawn = tmp_path / "drawn"
+    (drawn / "plots").mkdir(parents=True)
+    draw = functools.partial(draw_group, measured=rom6, pdir=drawn / "plots", n=None)
+    with (
+        workers.each_group(functools.partial(_note_group, folder=seen)),
+        workers.each_group(draw),
+    ):
+        runs.append(
+            diagnose(
+                base, rom6, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=2)
+            )
+        )
+    # the figures each worker drew of its group are those of the whole diagnosis, and kept
+    figures = sorted((drawn / "plots").iterdir())
+    assert [f.name for f in figures] == [f"{name}.png" for name in names]
+    stamps = [f.stat().st_mtime_ns for f in figures]
+    assert drawn_figures(runs[1], drawn / "plots") == set(range(6))
+    write_diagnosis(runs[1], rom6, drawn, drawn=drawn_figures(runs[1], drawn / "plots"))
+    assert [f.stat().st_mtime_ns for f in figures] == stamps
+    write_diagnosis(runs[1], rom6, tmp_path / "here")
+    for f in figures:
+        assert f.read_bytes() == (tmp_path / "here" / "plots" / f.name).read_bytes()
     assert len(workers.groups(len(rom6), 2)) == 2
     assert [s.specimen for s in runs[1].specimens] == names
+    # each worker was handed its own group's diagnosis, its specimens in the cohort's order
+    groups = sorted(f.read_text().split() for f in seen.iterdir())
+    assert groups == [["0:S00", "2:S02", "4:S04"], ["1:S01", "3:S03", "5:S05"]]
     assert [s.verdict for s in runs[1].specimens] == [s.verdict for s in runs[0].specimens]
     # Batches of other sizes round differently in the last float32 digits (see above), and a
     # fit may stop a step earlier or later: within 0.001 deg (2 % of the noise).

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import warnings
+from collections.abc import Collection
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -159,7 +160,9 @@ def plot_specimen(diag: Diagnosis, i: int, measured: np.ndarray, path: Path) -> 
                     label=f"disc + {final_label}",
                 )
         ax.plot(diag.moments[ok], measured[j][ok], "o", color="black", ms=4, label="measured")
-        ax.set_title(LABELS.get(lc, lc), fontsize=11)
+        # At the axes' top (y=1): the position matplotlib would find, as no tick or label
+        # lies above the axes, without measuring every tick label of the figure to find it.
+        ax.set_title(LABELS.get(lc, lc), fontsize=11, y=1.0)
         # Residuals: disc alone and final model, with the noise band.
         rx.fill_between(diag.moments, -2 * sig, 2 * sig, color="0.85", lw=0, label="± 2σ noise")
         rx.axhline(0.0, color="0.5", lw=0.8)
@@ -393,26 +396,56 @@ def _where(s: SpecimenDiagnosis) -> str:
 _PLOTTING: tuple[Diagnosis, np.ndarray, Path] | None = None
 
 
+def _specimen_path(pdir: Path, s: SpecimenDiagnosis) -> Path:
+    """Where a specimen's figure goes: ``pdir/<specimen>.png``."""
+    return pdir / f"{safe_file_name(s.specimen)}.png"
+
+
 def _plot_one(i: int) -> None:
     diag, measured, pdir = _PLOTTING
-    name = safe_file_name(diag.specimens[i].specimen)
-    plot_specimen(diag, i, measured[i], pdir / f"{name}.png")
+    plot_specimen(diag, i, measured[i], _specimen_path(pdir, diag.specimens[i]))
 
 
-def _plot_specimens(diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int) -> None:
-    """The first ``n`` specimens' plots, in one worker process per free core where the
-    platform forks (the figures are independent; matplotlib takes most of a diagnosis' time)."""
+def draw_group(
+    diag: Diagnosis, rows: np.ndarray, measured: np.ndarray, pdir: Path, n: int | None
+) -> None:
+    """The figures (``pdir/<specimen>.png``) of a group's specimens among the cohort's first
+    ``n`` (None: all): ``diag`` the group's diagnosis, ``rows`` (k,) their indices in the
+    cohort, ``measured`` (N, 4, m) the cohort's RoM (deg). The figures :func:`write_diagnosis`
+    draws of them, drawn in this process (a diagnosis' worker,
+    :func:`femcal.diagnose.workers.each_group`)."""
+    _plt()
+    for j, i in enumerate(rows):
+        if n is None or i < n:
+            plot_specimen(diag, j, measured[i], _specimen_path(pdir, diag.specimens[j]))
+
+
+def drawn_figures(diag: Diagnosis, pdir: Path) -> set[int]:
+    """The specimens (indices) whose figure is in ``pdir`` (:func:`draw_group`)."""
+    return {i for i, s in enumerate(diag.specimens) if _specimen_path(pdir, s).exists()}
+
+
+def _plot_specimens(
+    diag: Diagnosis, measured: np.ndarray, pdir: Path, n: int, drawn: Collection[int]
+) -> None:
+    """The first ``n`` specimens' plots but those ``drawn`` already, in one worker process per
+    free core where the platform forks (the figures are independent; matplotlib takes most of
+    a diagnosis' time)."""
     global _PLOTTING
+    todo = [i for i in range(n) if i not in drawn]
+    if not todo:
+        return
     _PLOTTING = (diag, measured, pdir)
     _plt()  # imported once here, not in each worker
     try:
-        workers = min(free_cores(), n)
+        workers = min(free_cores(), len(todo))
         if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
             ctx = multiprocessing.get_context("fork")
             with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-                list(pool.map(_plot_one, range(n), chunksize=max(1, n // (4 * workers))))
+                chunk = max(1, len(todo) // (4 * workers))
+                list(pool.map(_plot_one, todo, chunksize=chunk))
         else:
-            for i in range(n):
+            for i in todo:
                 _plot_one(i)
     finally:
         _PLOTTING = None
@@ -473,8 +506,13 @@ def write_diagnosis(
     *,
     plots: bool = True,
     max_plots: int | None = None,
+    drawn: Collection[int] = (),
 ) -> dict:
-    """Write ``diagnosis.json``, ``residuals.csv``, ``summary.md``, plots; return the summary."""
+    """Write ``diagnosis.json``, ``residuals.csv``, ``summary.md``, plots; return the summary.
+
+    ``drawn``: the specimens (indices) whose figure is in ``out_dir/plots`` already (drawn by
+    the diagnosis' workers, :func:`draw_group`, :func:`drawn_figures`): kept, not drawn
+    again."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data = diag.to_dict()
@@ -518,7 +556,7 @@ def write_diagnosis(
         pdir = out_dir / "plots"
         pdir.mkdir(exist_ok=True)
         n = len(diag.specimens) if max_plots is None else min(len(diag.specimens), max_plots)
-        _plot_specimens(diag, measured, pdir, n)
+        _plot_specimens(diag, measured, pdir, n, set(drawn))
         plot_heatmap(diag, out_dir / "heatmap.png")
         plot_inclusion(diag, out_dir / "inclusion.png")
     return summary

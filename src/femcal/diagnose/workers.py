@@ -8,13 +8,18 @@ specimens; where two starts or two models are nearly tied, batches of another si
 float32 rounding) can send the search another way, so a verdict can differ with the number of
 workers (docs/anatomy-cohorts.md, *Time*). The groups interleave the specimens
 (``i % workers``), so that a cohort sorted by class shares its hard specimens out evenly.
+
+A caller can have each worker do more with its group as soon as it is diagnosed
+(:func:`each_group`): ``femcal diagnose`` draws the group's figures there, while the other
+worker still diagnoses its own.
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
@@ -30,6 +35,23 @@ MIN_ROWS = 8
 #: What the workers read: (state, the function diagnosing one group, its keywords), set before
 #: they fork.
 _SHARED: tuple[DiagnosisState, Callable[..., Diagnosis], dict[str, Any]] | None = None
+
+#: What each worker calls with its group's diagnosis (:func:`each_group`).
+_EACH_GROUP: list[Callable[[Diagnosis, np.ndarray], None]] = []
+
+
+@contextlib.contextmanager
+def each_group(fn: Callable[[Diagnosis, np.ndarray], None]) -> Iterator[None]:
+    """Within the block, each worker process of :func:`in_workers` calls ``fn(diag, rows)``
+    as soon as its group is diagnosed: ``diag`` the group's :class:`Diagnosis`, ``rows`` (k,)
+    the group's specimen indices in the cohort (``diag.specimens[j]`` is specimen
+    ``rows[j]``). Not called where the specimens are diagnosed in this process (one group);
+    ``fn``'s errors fail the diagnosis."""
+    _EACH_GROUP.append(fn)
+    try:
+        yield
+    finally:
+        _EACH_GROUP.remove(fn)
 
 
 def available_cpus() -> int:
@@ -54,9 +76,13 @@ def _one(j: int) -> Diagnosis:
     torch.set_num_threads(1)  # one process per core
     state, run, keywords = _SHARED
     keywords = dict(keywords)
-    sub = state.rows(groups(state.n, keywords.pop("_workers"))[j])
+    rows = groups(state.n, keywords.pop("_workers"))[j]
+    sub = state.rows(rows)
     disc = sub.per_spec[0][Model()][0]  # their disc-alone fit, renumbered
-    return run(sub, disc=disc, **keywords)
+    diag = run(sub, disc=disc, **keywords)
+    for fn in _EACH_GROUP:
+        fn(diag, rows)
+    return diag
 
 
 def in_workers(

@@ -24,6 +24,14 @@ from typing import Any
 from femcal.config import settings_of
 from femcal.datasets import training_configurations
 from femcal.jobs.common import moment_policy, with_given
+from femcal.jobs.mlflow_steps import (
+    LocalTracking,
+    Tracker,
+    end_calibration_run,
+    log_artifacts,
+    log_run,
+    start_diagnosis_run,
+)
 from femcal.paths import setting_path, setting_uri
 
 #: The noise source of a diagnosis without a given noise.
@@ -123,7 +131,7 @@ class DiagnosisJob:
         return cls(**with_given(cls, fields, given))
 
 
-def run_diagnosis(job: DiagnosisJob):
+def run_diagnosis(job: DiagnosisJob, *, tracker: Tracker | None = None):
     """Diagnose every specimen of a measurement file; write DIR; log one MLflow run.
 
     ``job`` (:class:`DiagnosisJob`) names the measurements, the output folder, the
@@ -141,6 +149,10 @@ def run_diagnosis(job: DiagnosisJob):
     (:mod:`femcal.outputs`).
     ``model_uri`` is a model folder (``models/surrogate-large``) or an MLflow model URI; the
     run's tags ``femcal.model.*`` name it (URI, SHA-256 of its files, registered version).
+    ``tracker`` makes the MLflow calls: None (:class:`~femcal.jobs.mlflow_steps.LocalTracking`)
+    in this process, in the store and experiment MLflow is pointed at; ``femcal diagnose``
+    passes a :class:`femcal.stages.tracking_process.TrackingProcess`, which logs from a child
+    process set up meanwhile.
     """
     from femcal.outputs import check_destination
 
@@ -153,21 +165,21 @@ def run_diagnosis(job: DiagnosisJob):
     )
     candidates, start_bank = s.candidates, s.start_bank
     check_destination(out_dir)  # a bad output folder is the first error, not the last
-    import mlflow
-
+    tracker = LocalTracking() if tracker is None else tracker
     from femcal.calibration import SurrogateCurveModel
     from femcal.diagnose import DiagnoseOptions, diagnose
-    from femcal.diagnose.report import write_diagnosis
     from femcal.effects import available_effects
     from femcal.effects.composite import EffectModel
     from femcal.measurements import read_measurements
     from femcal.moments import MomentPolicy
     from femcal.outputs import staged_output
     from femcal.reachability import assess_reachability
-    from femcal.tracking import load_surrogate, open_model
+    from femcal.tracking import is_local_model, load_surrogate, open_model
 
     options = DiagnoseOptions(**s.options)
     meas = read_measurements(measurements, noise_deg=noise_deg)  # repeats checked against it
+    if not is_local_model(model_uri):
+        tracker.use_store_here()  # models:/ URIs are resolved in the tracking store
     source = open_model(model_uri)
     surrogate = load_surrogate(source)
     policy = MomentPolicy.for_surrogate(
@@ -185,59 +197,100 @@ def run_diagnosis(job: DiagnosisJob):
         reference=start_bank,
         noise_deg=noise_deg,
     )
-    diag = diagnose(
-        SurrogateCurveModel(surrogate, meas.moments),
-        meas.rom_deg,
-        specimens=meas.specimens,
-        noise_deg=noise_deg,
-        surrogate_error_deg=policy.sigma_surrogate(meas.moments, meas.rom_deg),  # each point's
-        point_weight=meas.weight,
-        candidates=candidates,
-        start_bank=training_configurations(start_bank) if start_bank else None,
-        moment_policy=policy,
-        options=options,
-    )
-    with (
-        staged_output(out_dir, command="diagnose") as stage,
-        mlflow.start_run(run_name="diagnose") as run,
-    ):
-        stage.note(mlflow_run_id=run.info.run_id)
-        mlflow.set_tag("femcal.stage", "diagnose")
-        mlflow.set_tags(source.tags("model"))
-        summary = write_diagnosis(
-            diag, meas.rom_deg, stage.path, plots=s.plots, max_plots=s.max_plots
-        )
-        screened.write(stage.path)
-        summary = dict(summary, n_dropped_points=len(screened.dropped))
-        mlflow.log_params(
-            {
-                "measurements": str(measurements),
-                "model_uri": model_uri,
-                "noise_deg": "estimated" if noise_deg is None else noise_deg,
-                "noise_source": s.noise_source,
-                "candidates": ",".join(candidates or []) or "all",
-                "min_delta": options.min_delta,
-                "alpha": options.alpha,
-                "max_effects": options.max_effects,
-                "cohort_verdict": diag.cohort_verdict(),
-                **policy.as_params(),
-            }
-        )
-        mlflow.log_metrics(
-            {
-                "sigma_deg": diag.sigma_deg,
-                "noise_deg": diag.noise_deg,
-                "seconds": diag.seconds,
-                # MLflow metric names take no "+": one count per effect (and "unexplained"),
-                # and one per verdict with "+" spelt "__".
-                **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
-                **{
-                    f"n_verdict_{k.replace('+', '__')}": float(v)
-                    for k, v in diag.verdicts().items()
-                },
-            }
-        )
-        stage.finalize()
-        mlflow.log_artifacts(str(stage.path), artifact_path="diagnosis")  # this run's files
-        stage.commit()
+    tracker.check()  # a tracking store that failed: its error before the diagnosis
+    with staged_output(out_dir, command="diagnose") as stage:
+        with _figures_in_workers(s, meas.rom_deg, stage.path):
+            diag = diagnose(
+                SurrogateCurveModel(surrogate, meas.moments),
+                meas.rom_deg,
+                specimens=meas.specimens,
+                noise_deg=noise_deg,
+                surrogate_error_deg=policy.sigma_surrogate(meas.moments, meas.rom_deg),
+                point_weight=meas.weight,
+                candidates=candidates,
+                start_bank=training_configurations(start_bank) if start_bank else None,
+                moment_policy=policy,
+                options=options,
+            )
+        tracker.submit(start_diagnosis_run, run_name="diagnose")
+        try:
+            summary = _write_and_log(s, diag, screened, (policy, options, source), stage, tracker)
+        except BaseException:
+            tracker.abort()  # the run ends FAILED (started or not)
+            raise
+        tracker.call(end_calibration_run, status="FINISHED")
     return diag, summary
+
+
+def _figures_in_workers(job: DiagnosisJob, measured, folder: Path):
+    """A context manager within which each worker process of the diagnosis draws its group's
+    figures into ``folder/plots`` as soon as the group is diagnosed
+    (:func:`femcal.diagnose.workers.each_group`, :func:`femcal.diagnose.report.draw_group`),
+    while the other worker still diagnoses its own; one that does nothing without plots.
+    ``measured`` (n, 4, m): the cohort's RoM (deg)."""
+    import contextlib
+    import functools
+
+    from femcal.diagnose.report import draw_group
+    from femcal.diagnose.workers import each_group
+
+    if not job.plots:
+        return contextlib.nullcontext()
+    (folder / "plots").mkdir(exist_ok=True)
+    return each_group(
+        functools.partial(draw_group, measured=measured, pdir=folder / "plots", n=job.max_plots)
+    )
+
+
+def _write_and_log(
+    job: DiagnosisJob, diag, screened, setup: tuple, stage, tracker: Tracker
+) -> dict[str, Any]:
+    """Write the diagnosis into the open output ``stage``, log it to the run ``tracker``
+    started, and commit the stage; the summary (``summary.json``'s figures and
+    ``n_dropped_points``). ``setup``: the moment policy, the search's options and the model's
+    source."""
+    from femcal.diagnose.report import drawn_figures, write_diagnosis
+
+    (policy, options, source), s = setup, job
+    summary = write_diagnosis(
+        diag,
+        screened.measurements.rom_deg,
+        stage.path,
+        plots=s.plots,
+        max_plots=s.max_plots,
+        # the figures the workers drew into the new staging folder
+        drawn=drawn_figures(diag, stage.path / "plots") if s.plots else (),
+    )
+    screened.write(stage.path)
+    summary = dict(summary, n_dropped_points=len(screened.dropped))
+    tracker.submit(
+        log_run,
+        tags=source.tags("model"),
+        params={
+            "measurements": str(s.measurements),
+            "model_uri": s.model_uri,
+            "noise_deg": "estimated" if s.noise_deg is None else s.noise_deg,
+            "noise_source": s.noise_source,
+            "candidates": ",".join(s.candidates or []) or "all",
+            "min_delta": options.min_delta,
+            "alpha": options.alpha,
+            "max_effects": options.max_effects,
+            "cohort_verdict": diag.cohort_verdict(),
+            **policy.as_params(),
+        },
+        metrics={
+            "sigma_deg": diag.sigma_deg,
+            "noise_deg": diag.noise_deg,
+            "seconds": diag.seconds,
+            # MLflow metric names take no "+": one count per effect (and "unexplained"),
+            # and one per verdict with "+" spelt "__".
+            **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},
+            **{f"n_verdict_{k.replace('+', '__')}": float(v) for k, v in diag.verdicts().items()},
+        },
+    )
+    stage.note(mlflow_run_id=tracker.result())
+    tracker.result()  # the tags, parameters and metrics logged
+    stage.finalize()
+    tracker.call(log_artifacts, folder=stage.path, artifact_path="diagnosis")  # the run's files
+    stage.commit()
+    return summary

@@ -1,9 +1,11 @@
-"""The calibration's MLflow run as steps of picklable arguments, and the in-process tracker.
+"""The MLflow runs of a calibration and a diagnosis as steps of picklable arguments, and the
+in-process tracker.
 
-:func:`femcal.jobs.calibrate.run_calibration` logs its run through a tracker: each step is a
-function of picklable arguments (:data:`TRACKING_CALLS`) that runs where the tracking store is
-configured. :class:`LocalTracking` runs them in this process, in the store and experiment
-MLflow is pointed at; ``femcal calibrate`` runs them in a child process
+:func:`femcal.jobs.calibrate.run_calibration` and :func:`femcal.jobs.diagnose.run_diagnosis`
+log their run through a tracker: each step is a function of picklable arguments
+(:data:`TRACKING_CALLS`) that runs where the tracking store is configured.
+:class:`LocalTracking` runs them in this process, in the store and experiment MLflow is
+pointed at; ``femcal calibrate`` and ``femcal diagnose`` run them in a child process
 (:class:`femcal.stages.tracking_process.TrackingProcess`).
 """
 
@@ -124,9 +126,29 @@ def log_calibration(
     return compare_with_previous(measurements, params, figures, out_dir, compare_to)
 
 
+def start_diagnosis_run(run_name: str) -> str:
+    """Start the diagnosis' MLflow run (tagged ``femcal.stage = diagnose``); its id."""
+    import mlflow
+
+    run = mlflow.start_run(run_name=run_name)
+    mlflow.set_tag("femcal.stage", "diagnose")
+    return run.info.run_id
+
+
+def log_run(
+    *, tags: Mapping[str, str], params: Mapping[str, Any], metrics: Mapping[str, float]
+) -> None:
+    """Tags, parameters and metrics of the active run."""
+    import mlflow
+
+    mlflow.set_tags(dict(tags))
+    mlflow.log_params(dict(params))
+    mlflow.log_metrics(dict(metrics))
+
+
 def end_calibration_run(status: str, run_id: str | None = None) -> None:
     """End the run ``run_id`` (None: the active one) with ``status`` (FINISHED, FAILED), if it
-    is the active run."""
+    is the active run (a calibration's or a diagnosis')."""
     import mlflow
 
     active = mlflow.active_run()
@@ -135,8 +157,8 @@ def end_calibration_run(status: str, run_id: str | None = None) -> None:
 
 
 class LocalTracking:
-    """The calibration's MLflow calls in this process: the store and experiment MLflow is
-    pointed at (the library's default; the caller configures them).
+    """The MLflow calls of a calibration or a diagnosis in this process: the store and
+    experiment MLflow is pointed at (the library's default; the caller configures them).
 
     :meth:`submit` runs the call at once (its error is raised there); :meth:`result` returns
     the results in the order submitted.
@@ -148,7 +170,7 @@ class LocalTracking:
 
     def submit(self, fn: Callable[..., Any], /, **kwargs: Any) -> None:
         value = fn(**kwargs)
-        if fn is start_calibration_run:
+        if fn in (start_calibration_run, start_diagnosis_run):
             self._run_id = value
         self._results.append(value)
 
@@ -175,12 +197,20 @@ class LocalTracking:
 #: The calls a tracker makes on request, by name.
 TRACKING_CALLS: dict[str, Callable[..., Any]] = {
     f.__name__: f
-    for f in (start_calibration_run, log_calibration, log_artifacts, end_calibration_run)
+    for f in (
+        start_calibration_run,
+        log_calibration,
+        log_artifacts,
+        end_calibration_run,
+        start_diagnosis_run,
+        log_run,
+    )
 }
 
 
 class Tracker(Protocol):
-    """What :func:`femcal.jobs.calibrate.run_calibration` asks of a tracker: the calls of
+    """What :func:`femcal.jobs.calibrate.run_calibration` and
+    :func:`femcal.jobs.diagnose.run_diagnosis` ask of a tracker: the calls of
     :data:`TRACKING_CALLS` submitted in order, their results in that order."""
 
     def submit(self, fn: Callable[..., Any], /, **kwargs: Any) -> None: ...

@@ -9,7 +9,6 @@ the library's :func:`femcal.jobs.calibrate.run_calibration`.
 
 from __future__ import annotations
 
-import gc
 import inspect
 import logging
 from collections.abc import Mapping, Sequence
@@ -31,7 +30,7 @@ from femcal.stages.common import (
     typed,
     write_metrics,
 )
-from femcal.stages.tracking_process import TrackingProcess
+from femcal.stages.tracking_process import ImportCollector, TrackingProcess
 from femcal.stages.user_effects import describe_user_effects, effect_modules, load_user_effects
 
 logger = logging.getLogger(__name__)
@@ -152,44 +151,6 @@ def run(settings: CalibrateSettings) -> dict[str, Any]:
         noise_deg=settings.noise_deg,
         noise_source=settings.noise_source,
     )
-
-
-class ImportCollector:
-    """Python's cyclic garbage collector off while the command imports its libraries.
-
-    The imports of ``femcal calibrate`` (pandas and torch in this process, MLflow and its SQL
-    store in the MLflow process) build about 600,000 objects and free few of them: the
-    collector, which runs every 700 new objects and scans more of them each time, takes about
-    0.9 CPU-s of the command's 6.5 without this (0.43-0.47 s in each process; see
-    docs/benchmarks/calibrate-speed.md). Entering turns it off; :meth:`resume`, once the
-    imports are done, freezes what exists (:func:`gc.freeze`: never scanned again, nor the
-    pages of the figures' worker processes touched by a scan) and turns it back on; leaving
-    unfreezes and restores the state found.
-
-    The MLflow process (:class:`TrackingProcess`), forked while the collector is off, keeps it
-    off: it imports MLflow and logs one run, and its peak RSS is 204 MB with the collector and
-    without (logging 2,000 artifacts grows it by 4 MB, with the collector or without).
-    """
-
-    def __enter__(self) -> ImportCollector:
-        self._enabled = gc.isenabled()
-        self._frozen = False
-        gc.disable()
-        return self
-
-    def resume(self) -> None:
-        """Freeze every object that exists now, and turn the collector back on (if it was)."""
-        if not self._frozen:
-            gc.freeze()
-            self._frozen = True
-        if self._enabled:
-            gc.enable()
-
-    def __exit__(self, *_: Any) -> None:
-        if self._frozen:
-            gc.unfreeze()
-        if self._enabled:
-            gc.enable()
 
 
 def leave_a_core_to_mlflow() -> int:

@@ -22,7 +22,7 @@ from femcal.stages.common import (
     typed,
     write_metrics,
 )
-from femcal.stages.store import tracking
+from femcal.stages.tracking_process import ImportCollector, TrackingProcess
 from femcal.stages.user_effects import describe_user_effects, effect_modules, load_user_effects
 
 logger = logging.getLogger(__name__)
@@ -108,6 +108,13 @@ def noise_line(diag: Any, source: str) -> str:
 def run(settings: DiagnoseSettings) -> dict[str, Any]:
     """Load the user's effects, diagnose, write the outputs and the DVC metrics (when asked).
 
+    MLflow (its imports, the store, the run) works in a child process started first
+    (:class:`~femcal.stages.tracking_process.TrackingProcess`), beside the diagnosis' own
+    imports and its work in this process before the diagnosis' workers start. Both import
+    without the cyclic garbage collector (:class:`~femcal.stages.tracking_process.ImportCollector`):
+    what the imports built is frozen before the workers fork, so neither they nor this process
+    scan it again.
+
     Returns ``summary.json``'s figures with the :class:`~femcal.diagnose.Diagnosis`.
     """
     from femcal.headlines import diagnosis_headline
@@ -119,8 +126,10 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
         )
     else:
         logger.info("measurement noise %g deg: %s", settings.noise_deg, settings.noise_source)
-    tracking(settings.params)
-    diag, summary = run_diagnosis(settings)
+    with ImportCollector() as collector, TrackingProcess(settings.params) as tracker:
+        _import_the_diagnosis()
+        collector.resume()
+        diag, summary = run_diagnosis(settings, tracker=tracker)
     # Only when asked (the DVC stage): never ad hoc. The headline; summary.json holds all.
     write_metrics(settings.metrics_file, diagnosis_headline(summary))
     return dict(
@@ -131,6 +140,16 @@ def run(settings: DiagnoseSettings) -> dict[str, Any]:
         user_effect_paths=[str(p) for p in settings.effect_modules],
         noise_source=settings.noise_source,
     )
+
+
+def _import_the_diagnosis() -> None:
+    """Import what :func:`femcal.jobs.diagnose.run_diagnosis` runs in this process (torch,
+    pandas, the search, the surrogate's loading, the reachability check, the outputs)."""
+    import femcal.calibration  # noqa: F401
+    import femcal.diagnose.report  # noqa: F401
+    import femcal.diagnose.search  # noqa: F401
+    import femcal.reachability  # noqa: F401
+    import femcal.tracking  # noqa: F401
 
 
 #: Specimens ``describe`` names with a practical next measurement (the rest are counted).
