@@ -84,3 +84,22 @@ def registry(tmp_path, monkeypatch, registry_store):
     ensure_experiment("test", store_dir=tmp_path / "mlruns")
     yield tmp_path
     mlflow.set_tracking_uri(None)
+
+
+@pytest.fixture
+def diagnosis_keywords(registry) -> dict:
+    """The :class:`femcal.jobs.diagnose.DiagnosisJob` keywords the diagnosis tests share: the
+    champion of ``registry``, output ``registry / "diag"``, noise 0.05 deg, ``neutral_zone`` the
+    one candidate, no start bank, a quick search (``min_delta`` 10, seed 0), plots off, and the
+    moment policy of the tests' stages (error growth 3.2, log ratio 0.51)."""
+    return dict(
+        out_dir=registry / "diag",
+        model_uri="models:/ivd-rom-surrogate@champion",
+        noise_deg=0.05,
+        candidates=["neutral_zone"],
+        start_bank=None,
+        options={"min_delta": 10.0, "seed": 0},
+        plots=False,
+        error_growth=3.2,
+        max_log_ratio=0.51,
+    )

@@ -16,8 +16,6 @@ from femcal.jobs.mlflow_steps import LocalTracking
 
 from synth import long_csv
 
-MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
-
 
 class _Noting(LocalTracking):
     """The in-process tracker (MLflow itself), noting each call's name."""
@@ -31,18 +29,11 @@ class _Noting(LocalTracking):
         super().submit(fn, **kwargs)
 
 
-def test_the_diagnosis_logs_its_run_through_the_tracker(registry, truth):
+def test_the_diagnosis_logs_its_run_through_the_tracker(registry, truth, diagnosis_keywords):
     tracker = _Noting()
     job = DiagnosisJob(
         measurements=long_csv(registry / "d.csv", truth[1][:2]),
-        out_dir=registry / "diag",
-        model_uri="models:/ivd-rom-surrogate@champion",
-        noise_deg=0.05,
-        candidates=["neutral_zone"],
-        start_bank=None,
-        options={"min_delta": 10.0, "seed": 0},
-        plots=True,
-        **MOMENTS,
+        **{**diagnosis_keywords, "plots": True},
     )
     diag, summary = run_diagnosis(job, tracker=tracker)
     assert tracker.calls == [

@@ -301,21 +301,12 @@ def test_extrapolated_moments_warn_and_weigh_less(registry, small_surrogate, mon
 
 
 def test_run_diagnosis_checks_moments_and_counts_the_error_per_moment(
-    registry, small_surrogate, truth, monkeypatch
+    registry, small_surrogate, truth, monkeypatch, diagnosis_keywords
 ):
     from femcal.jobs.diagnose import DiagnosisJob, run_diagnosis
     from femcal.moments import MomentPolicy
 
-    common = dict(
-        out_dir=registry / "diag",
-        model_uri="models:/ivd-rom-surrogate@champion",
-        noise_deg=0.05,
-        candidates=["neutral_zone"],
-        start_bank=None,
-        options={"min_delta": 10.0, "seed": 0},
-        plots=False,
-        **MOMENTS,
-    )
+    common = diagnosis_keywords
     moments = (1, 2, 3, 4, 5, 6)
     curves = np.concatenate([truth[1][:1], truth[1][:1, :, -1:]], axis=2)
     with pytest.warns(UserWarning, match=r"measured moments 6 Nm lie outside"):
