@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from femcal.calibration import SurrogateCurveModel
+from femcal.calibration.report import figure_names
 from femcal.diagnose import (
     NONE,
     OUTSIDE_BOX,
@@ -193,7 +194,9 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch,
     seen.mkdir()
     drawn = tmp_path / "drawn"
     (drawn / "plots").mkdir(parents=True)
-    draw = functools.partial(draw_group, measured=rom6, pdir=drawn / "plots", n=None)
+    draw = functools.partial(
+        draw_group, measured=rom6, pdir=drawn / "plots", n=None, names=figure_names(names)
+    )
     with (
         workers.each_group(functools.partial(_note_group, folder=seen)),
         workers.each_group(draw),

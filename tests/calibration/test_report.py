@@ -13,6 +13,7 @@ from femcal.calibration import SurrogateCurveModel, calibrate
 from femcal.calibration.plots import FigureCurves, plot_specimen, plot_specimens
 from femcal.calibration.report import (
     coverage,
+    figure_names,
     holdout_scores,
     identifiability,
     plot_mode,
@@ -126,6 +127,20 @@ def test_write_outputs_plots_choose_the_figures_not_the_tables(
     for table in ("parameters.csv", "metrics.csv", "curves.csv", "summary.md", "summary.json"):
         assert (out / table).is_file(), table
     assert len(pd.read_csv(out / "metrics.csv")) == 3
+
+
+def test_specimens_whose_names_reduce_to_one_file_name_get_a_figure_each(
+    tmp_path, curve_model, truth
+):
+    names = ["a b", "a_b", "a/b"]
+    assert figure_names(names) == ["a_b", "a_b_", "a_b__"]
+    assert figure_names(["a_b", "a b"]) == ["a_b", "a_b_"]  # the first keeps the plain name
+    res = calibrate(
+        curve_model, truth[1][:3], specimens=names, method="pgd", options={"n_bank_uniform": 64}
+    )
+    write_outputs(res, tmp_path / "out", plots="all")
+    pngs = sorted(p.name for p in (tmp_path / "out" / "plots").iterdir())
+    assert pngs == ["a_b.png", "a_b_.png", "a_b__.png"]
 
 
 def test_an_unknown_plots_value_is_refused_before_any_file(tmp_path, curve_model, truth):

@@ -246,3 +246,37 @@ def test_the_summary_says_where_each_effect_of_the_verdict_acts():
         "; facet_contact acts in Extension, LateralBending 0.80, AxialRotation"
     )
     assert s.to_dict()["load_cases"] == s.load_cases
+
+
+def test_specimens_whose_names_reduce_to_one_file_name_get_a_figure_each(tmp_path, monkeypatch):
+    """Named over the whole cohort, whichever process draws them: by the workers' groups
+    (draw_group, one specimen each) or by write_diagnosis."""
+    from femcal.calibration.report import figure_names
+    from femcal.diagnose import report
+    from femcal.diagnose.result import Diagnosis
+
+    monkeypatch.setattr(report, "free_cores", lambda: 1)  # drawn in this process
+    one, other = _diagnosis(None), _diagnosis(None)
+    one.specimens[0].specimen, other.specimens[0].specimen = "a b", "a_b"
+    cohort = Diagnosis(
+        specimens=[one.specimens[0], other.specimens[0]],
+        sigma_deg=0.05,
+        noise_deg=0.05,
+        noise_sd_deg=0.0,
+        surrogate_error_deg=0.0,
+        moments=one.moments,
+        seconds=0.0,
+    )
+    rom = np.ones((2, 4, 3))
+    names = figure_names(["a b", "a_b"])
+    pdir = tmp_path / "groups"
+    pdir.mkdir()
+    for group, rows in ((one, [0]), (other, [1])):
+        report.draw_group(group, np.array(rows), rom, pdir, None, names)
+    assert sorted(p.name for p in pdir.iterdir()) == ["a_b.png", "a_b_.png"]
+    assert report.drawn_figures(cohort, pdir) == {0, 1}
+    report.write_diagnosis(cohort, rom, tmp_path / "out")
+    assert sorted(p.name for p in (tmp_path / "out" / "plots").iterdir()) == [
+        "a_b.png",
+        "a_b_.png",
+    ]

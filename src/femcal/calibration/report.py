@@ -191,6 +191,21 @@ def safe_file_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "specimen"
 
 
+def figure_names(specimens: Sequence[str]) -> list[str]:
+    """Distinct file names (without suffix) for the specimens' figures, in their order: each
+    specimen's :func:`safe_file_name`, with "_" appended until no earlier specimen's name is
+    the same (``["a b", "a_b"]`` gives ``["a_b", "a_b_"]``)."""
+    used: set[str] = set()
+    names = []
+    for specimen in specimens:
+        name = safe_file_name(str(specimen))
+        while name in used:
+            name += "_"
+        used.add(name)
+        names.append(name)
+    return names
+
+
 def plot_mode(plots: bool | str) -> str:
     """``plots`` as one of ``PLOT_CHOICES`` (True is "all", False is "none").
 
@@ -366,14 +381,7 @@ def write_outputs(
     if mode == "all":
         plot_dir = out_dir / "plots"
         plot_dir.mkdir(exist_ok=True)
-        used: set[str] = set()
-        paths = []
-        for i in range(n_plot):
-            name = safe_file_name(result.specimens[i])
-            while name in used:
-                name += "_"
-            used.add(name)
-            paths.append(plot_dir / f"{name}.png")
+        paths = [plot_dir / f"{name}.png" for name in figure_names(result.specimens[:n_plot])]
         start = time.perf_counter()
         if curves is None:
             curves = FigureCurves.at_measured(result, None if held is None else held["prediction"])

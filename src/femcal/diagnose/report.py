@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import warnings
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from femcal.calibration.report import safe_file_name
+from femcal.calibration.report import figure_names
 from femcal.diagnose.balance import flat_note
 from femcal.diagnose.outside import REPORTED
 from femcal.diagnose.result import NONE, Diagnosis, SpecimenDiagnosis
@@ -392,37 +392,45 @@ def _where(s: SpecimenDiagnosis) -> str:
     return "; " + "; ".join(parts) if parts else ""
 
 
-#: What the plotting workers read: (diagnosis, measured, folder), set before they fork.
-_PLOTTING: tuple[Diagnosis, np.ndarray, Path] | None = None
+#: What the plotting workers read: (diagnosis, measured, figures' paths), set before they fork.
+_PLOTTING: tuple[Diagnosis, np.ndarray, list[Path]] | None = None
 
 
-def _specimen_path(pdir: Path, s: SpecimenDiagnosis) -> Path:
-    """Where a specimen's figure goes: ``pdir/<specimen>.png``."""
-    return pdir / f"{safe_file_name(s.specimen)}.png"
+def figure_paths(diag: Diagnosis, pdir: Path) -> list[Path]:
+    """Where each specimen's figure goes: ``pdir/<name>.png``, the names distinct over the
+    cohort ``diag`` (:func:`femcal.calibration.report.figure_names`)."""
+    return [pdir / f"{name}.png" for name in figure_names([s.specimen for s in diag.specimens])]
 
 
 def _plot_one(i: int) -> None:
-    diag, measured, pdir = _PLOTTING
-    plot_specimen(diag, i, measured[i], _specimen_path(pdir, diag.specimens[i]))
+    diag, measured, paths = _PLOTTING
+    plot_specimen(diag, i, measured[i], paths[i])
 
 
 def draw_group(
-    diag: Diagnosis, rows: np.ndarray, measured: np.ndarray, pdir: Path, n: int | None
+    diag: Diagnosis,
+    rows: np.ndarray,
+    measured: np.ndarray,
+    pdir: Path,
+    n: int | None,
+    names: Sequence[str],
 ) -> None:
-    """The figures (``pdir/<specimen>.png``) of a group's specimens among the cohort's first
-    ``n`` (None: all): ``diag`` the group's diagnosis, ``rows`` (k,) their indices in the
-    cohort, ``measured`` (N, 4, m) the cohort's RoM (deg). The figures :func:`write_diagnosis`
-    draws of them, drawn in this process (a diagnosis' worker,
+    """The figures (``pdir/<name>.png``) of a group's specimens among the cohort's first ``n``
+    (None: all): ``diag`` the group's diagnosis, ``rows`` (k,) their indices in the cohort,
+    ``measured`` (N, 4, m) the cohort's RoM (deg), ``names`` (N,) the cohort's figure names
+    (:func:`femcal.calibration.report.figure_names` of its specimens). The figures
+    :func:`write_diagnosis` draws of them, drawn in this process (a diagnosis' worker,
     :func:`femcal.diagnose.workers.each_group`)."""
     _plt()
     for j, i in enumerate(rows):
         if n is None or i < n:
-            plot_specimen(diag, j, measured[i], _specimen_path(pdir, diag.specimens[j]))
+            plot_specimen(diag, j, measured[i], pdir / f"{names[i]}.png")
 
 
 def drawn_figures(diag: Diagnosis, pdir: Path) -> set[int]:
-    """The specimens (indices) whose figure is in ``pdir`` (:func:`draw_group`)."""
-    return {i for i, s in enumerate(diag.specimens) if _specimen_path(pdir, s).exists()}
+    """The specimens (indices) of the cohort ``diag`` whose figure is in ``pdir``
+    (:func:`draw_group`)."""
+    return {i for i, path in enumerate(figure_paths(diag, pdir)) if path.exists()}
 
 
 def _plot_specimens(
@@ -435,7 +443,7 @@ def _plot_specimens(
     todo = [i for i in range(n) if i not in drawn]
     if not todo:
         return
-    _PLOTTING = (diag, measured, pdir)
+    _PLOTTING = (diag, measured, figure_paths(diag, pdir))
     _plt()  # imported once here, not in each worker
     try:
         workers = min(free_cores(), len(todo))

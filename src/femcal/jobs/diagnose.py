@@ -199,7 +199,7 @@ def run_diagnosis(job: DiagnosisJob, *, tracker: Tracker | None = None):
     )
     tracker.check()  # a tracking store that failed: its error before the diagnosis
     with staged_output(out_dir, command="diagnose") as stage:
-        with _figures_in_workers(s, meas.rom_deg, stage.path):
+        with _figures_in_workers(s, meas, stage.path):
             diag = diagnose(
                 SurrogateCurveModel(surrogate, meas.moments),
                 meas.rom_deg,
@@ -222,15 +222,17 @@ def run_diagnosis(job: DiagnosisJob, *, tracker: Tracker | None = None):
     return diag, summary
 
 
-def _figures_in_workers(job: DiagnosisJob, measured, folder: Path):
+def _figures_in_workers(job: DiagnosisJob, meas, folder: Path):
     """A context manager within which each worker process of the diagnosis draws its group's
     figures into ``folder/plots`` as soon as the group is diagnosed
     (:func:`femcal.diagnose.workers.each_group`, :func:`femcal.diagnose.report.draw_group`),
     while the other worker still diagnoses its own; one that does nothing without plots.
-    ``measured`` (n, 4, m): the cohort's RoM (deg)."""
+    ``meas``: the cohort's measurements (its specimens and RoM), the figures' names decided
+    over the whole cohort here, before the groups are drawn."""
     import contextlib
     import functools
 
+    from femcal.calibration.report import figure_names
     from femcal.diagnose.report import draw_group
     from femcal.diagnose.workers import each_group
 
@@ -238,7 +240,13 @@ def _figures_in_workers(job: DiagnosisJob, measured, folder: Path):
         return contextlib.nullcontext()
     (folder / "plots").mkdir(exist_ok=True)
     return each_group(
-        functools.partial(draw_group, measured=measured, pdir=folder / "plots", n=job.max_plots)
+        functools.partial(
+            draw_group,
+            measured=meas.rom_deg,
+            pdir=folder / "plots",
+            n=job.max_plots,
+            names=figure_names(meas.specimens),
+        )
     )
 
 
