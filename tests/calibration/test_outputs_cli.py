@@ -17,6 +17,7 @@ import mlflow
 import pandas as pd
 import pytest
 import yaml
+from calibration_helpers import MOMENTS
 
 from femcal.cli import main
 from femcal.outputs import read_marker
@@ -28,7 +29,6 @@ from femcal.tracking import (
 from synth import long_csv
 
 ROOT = Path(__file__).resolve().parents[2]
-MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 
 
 def _params(tmp: Path, *, plots: bool) -> dict:

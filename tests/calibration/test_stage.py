@@ -10,15 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from calibration_helpers import MOMENTS
 
 from femcal.cli import main
 from femcal.errors import InputDataError, ModelRegistryError
 from femcal.jobs.calibrate import CalibrationJob, run_calibration
 
 from synth import long_csv
-
-#: The moment policy's settings (params.yaml ``moments``).
-MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 
 
 def _calibrate(measurements, out_dir, **overrides):

@@ -11,6 +11,7 @@ import mlflow
 import numpy as np
 import pandas as pd
 import pytest
+from calibration_helpers import MOMENTS
 
 from femcal.jobs.calibrate import CalibrationJob, run_calibration
 from femcal.schema import LOAD_CASES
@@ -22,8 +23,6 @@ from femcal.tracking import (
     log_surrogate,
     register_and_promote,
 )
-
-MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 
 
 @pytest.fixture

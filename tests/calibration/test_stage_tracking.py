@@ -15,6 +15,7 @@ import sys
 import mlflow
 import pytest
 import yaml
+from calibration_helpers import MOMENTS
 
 from femcal.jobs.calibrate import CalibrationJob, run_calibration
 from femcal.jobs.mlflow_steps import log_calibration, start_calibration_run
@@ -29,7 +30,6 @@ from femcal.tracking import (
 
 from synth import long_csv
 
-MOMENTS = {"error_growth": 3.2, "max_log_ratio": 0.51}
 #: MLflow and its SQL store, and the model zoo: none is needed to calibrate on model folders.
 NOT_HERE = ("mlflow", "sqlalchemy", "alembic", "lightgbm", "sklearn.compose")
 
