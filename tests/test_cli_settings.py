@@ -21,8 +21,7 @@ from femcal.config import load_params
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.errors import ConfigError
 from femcal.fe.options import AdaptOptions, CampaignOptions, GeometryOptions, ValidateOptions
-from femcal.settings import SECTIONS
-from femcal.settings._format import keys_of
+from femcal.settings import SECTIONS, keys_of
 from femcal.settings.fe import AdaptSettings, FeSettings, RefineSettings
 from femcal.settings.keywords import GaKeywords, GeometryKeywords, PgdKeywords, PgdStudyKeywords
 from femcal.settings.root import DiagnoseSettings

@@ -26,7 +26,7 @@ from typing import Any, Literal, get_args, get_origin
 
 from femcal.config import load_params
 from femcal.errors import FemcalError, FemcalWarning
-from femcal.settings._format import unwrap
+from femcal.settings import unwrap
 from femcal.settings.keywords import BUILTIN_EFFECTS, CALIBRATOR_NAMES, PLOT_CHOICES, SPLITS
 from femcal.stages import settings_class, stage_module
 from femcal.threads import limit_threads
@@ -181,8 +181,7 @@ def _add_section(
 ) -> dict[str, tuple[str, str]]:
     """The options of ``section``'s settings ``keys`` (None: all): destination -> (section,
     key)."""
-    from femcal.settings import SECTIONS
-    from femcal.settings._format import describe, fields_of, keys_of
+    from femcal.settings import SECTIONS, describe, fields_of, keys_of
     from femcal.settings.values import PATH
 
     model, added = SECTIONS[section][0], {}

@@ -18,8 +18,7 @@ from dists import install
 
 from femcal.errors import ConfigError
 from femcal.fe import FEJob, make_solver, simulate, solver_registry
-from femcal.settings import BASELINE_MODELS, validate_params
-from femcal.settings._format import describe
+from femcal.settings import BASELINE_MODELS, describe, validate_params
 from femcal.settings.keywords import BASELINE, SOLVER
 from femcal.surrogates import (
     Baseline,

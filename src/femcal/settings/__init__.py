@@ -20,6 +20,7 @@ _HOME = {
     **dict.fromkeys(("GeometryKeywords", "InverseKeywords", "SurrogateKeywords"), "keywords"),
     **dict.fromkeys(("SCHEMAS", "SECTIONS", "Settings", "describe_setting"), "params"),
     **dict.fromkeys(("detect_schema", "load_settings", "validate_params"), "params"),
+    **dict.fromkeys(("closest", "describe", "fields_of", "keys_of", "unwrap"), "_format"),
     "SOLVER_SETTINGS": "fe",
 }
 

@@ -248,7 +248,7 @@ def plugin_options(method: str, options: Mapping[str, Any], where: str) -> None:
         Naming the file, each keyword it does not take, and those it does.
     """
     from femcal.calibration import get_calibrator
-    from femcal.settings._format import closest
+    from femcal.settings import closest
 
     parameters = list(inspect.signature(get_calibrator(method)).parameters.values())
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
