@@ -11,8 +11,7 @@ Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
 from importlib import import_module
 from typing import Any
 
-#: Where each public name lives; imported on first use (PEP 562), so that the options
-#: dataclasses can import :mod:`femcal.settings.values` without loading the sections.
+#: Public name -> its module, imported on first use (PEP 562: the sections load when read).
 _HOME = {
     **dict.fromkeys(("ENVIRONMENT", "check_environment"), "env"),
     **dict.fromkeys(("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS"), "keywords"),
