@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from femcal.calibration import SurrogateCurveModel
-from femcal.calibration.report import figure_names
 from femcal.diagnose import (
     NONE,
     OUTSIDE_BOX,
@@ -24,7 +23,7 @@ from femcal.diagnose import (
     diagnose,
     verdict_label,
 )
-from femcal.diagnose.report import draw_group, drawn_figures, write_diagnosis
+from femcal.diagnose.report import draw_group, drawn_figures, figure_paths, write_diagnosis
 from femcal.effects.planted import fe_rotation
 from femcal.effects.split import base_name
 from femcal.effects.terms import Model, Term
@@ -195,7 +194,7 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch,
     drawn = tmp_path / "drawn"
     (drawn / "plots").mkdir(parents=True)
     draw = functools.partial(
-        draw_group, measured=rom6, pdir=drawn / "plots", n=None, names=figure_names(names)
+        draw_group, measured=rom6, paths=figure_paths(names, drawn / "plots"), n=None
     )
     with (
         workers.each_group(functools.partial(_note_group, folder=seen)),

@@ -251,7 +251,6 @@ def test_the_summary_says_where_each_effect_of_the_verdict_acts():
 def test_specimens_whose_names_reduce_to_one_file_name_get_a_figure_each(tmp_path, monkeypatch):
     """Named over the whole cohort, whichever process draws them: by the workers' groups
     (draw_group, one specimen each) or by write_diagnosis."""
-    from femcal.calibration.report import figure_names
     from femcal.diagnose import report
     from femcal.diagnose.result import Diagnosis
 
@@ -268,11 +267,11 @@ def test_specimens_whose_names_reduce_to_one_file_name_get_a_figure_each(tmp_pat
         seconds=0.0,
     )
     rom = np.ones((2, 4, 3))
-    names = figure_names(["a b", "a_b"])
     pdir = tmp_path / "groups"
     pdir.mkdir()
+    paths = report.figure_paths(["a b", "a_b"], pdir)
     for group, rows in ((one, [0]), (other, [1])):
-        report.draw_group(group, np.array(rows), rom, pdir, None, names)
+        report.draw_group(group, np.array(rows), rom, paths, None)
     assert sorted(p.name for p in pdir.iterdir()) == ["a_b.png", "a_b_.png"]
     assert report.drawn_figures(cohort, pdir) == {0, 1}
     report.write_diagnosis(cohort, rom, tmp_path / "out")

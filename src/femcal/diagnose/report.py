@@ -396,10 +396,10 @@ def _where(s: SpecimenDiagnosis) -> str:
 _PLOTTING: tuple[Diagnosis, np.ndarray, list[Path]] | None = None
 
 
-def figure_paths(diag: Diagnosis, pdir: Path) -> list[Path]:
+def figure_paths(specimens: Sequence[str], pdir: Path) -> list[Path]:
     """Where each specimen's figure goes: ``pdir/<name>.png``, the names distinct over the
-    cohort ``diag`` (:func:`femcal.calibration.report.figure_names`)."""
-    return [pdir / f"{name}.png" for name in figure_names([s.specimen for s in diag.specimens])]
+    cohort's ``specimens`` (:func:`femcal.calibration.report.figure_names`)."""
+    return [pdir / f"{name}.png" for name in figure_names(specimens)]
 
 
 def _plot_one(i: int) -> None:
@@ -408,29 +408,24 @@ def _plot_one(i: int) -> None:
 
 
 def draw_group(
-    diag: Diagnosis,
-    rows: np.ndarray,
-    measured: np.ndarray,
-    pdir: Path,
-    n: int | None,
-    names: Sequence[str],
+    diag: Diagnosis, rows: np.ndarray, measured: np.ndarray, paths: Sequence[Path], n: int | None
 ) -> None:
-    """The figures (``pdir/<name>.png``) of a group's specimens among the cohort's first ``n``
-    (None: all): ``diag`` the group's diagnosis, ``rows`` (k,) their indices in the cohort,
-    ``measured`` (N, 4, m) the cohort's RoM (deg), ``names`` (N,) the cohort's figure names
-    (:func:`femcal.calibration.report.figure_names` of its specimens). The figures
-    :func:`write_diagnosis` draws of them, drawn in this process (a diagnosis' worker,
+    """The figures of a group's specimens among the cohort's first ``n`` (None: all): ``diag``
+    the group's diagnosis, ``rows`` (k,) their indices in the cohort, ``measured`` (N, 4, m) the
+    cohort's RoM (deg), ``paths`` (N,) the cohort's figure paths (:func:`figure_paths`). The
+    figures :func:`write_diagnosis` draws of them, drawn in this process (a diagnosis' worker,
     :func:`femcal.diagnose.workers.each_group`)."""
     _plt()
     for j, i in enumerate(rows):
         if n is None or i < n:
-            plot_specimen(diag, j, measured[i], pdir / f"{names[i]}.png")
+            plot_specimen(diag, j, measured[i], paths[i])
 
 
 def drawn_figures(diag: Diagnosis, pdir: Path) -> set[int]:
     """The specimens (indices) of the cohort ``diag`` whose figure is in ``pdir``
     (:func:`draw_group`)."""
-    return {i for i, path in enumerate(figure_paths(diag, pdir)) if path.exists()}
+    paths = figure_paths([s.specimen for s in diag.specimens], pdir)
+    return {i for i, path in enumerate(paths) if path.exists()}
 
 
 def _plot_specimens(
@@ -443,7 +438,7 @@ def _plot_specimens(
     todo = [i for i in range(n) if i not in drawn]
     if not todo:
         return
-    _PLOTTING = (diag, measured, figure_paths(diag, pdir))
+    _PLOTTING = (diag, measured, figure_paths([s.specimen for s in diag.specimens], pdir))
     _plt()  # imported once here, not in each worker
     try:
         workers = min(free_cores(), len(todo))

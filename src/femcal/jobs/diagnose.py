@@ -232,8 +232,7 @@ def _figures_in_workers(job: DiagnosisJob, meas, folder: Path):
     import contextlib
     import functools
 
-    from femcal.calibration.report import figure_names
-    from femcal.diagnose.report import draw_group
+    from femcal.diagnose.report import draw_group, figure_paths
     from femcal.diagnose.workers import each_group
 
     if not job.plots:
@@ -243,9 +242,8 @@ def _figures_in_workers(job: DiagnosisJob, meas, folder: Path):
         functools.partial(
             draw_group,
             measured=meas.rom_deg,
-            pdir=folder / "plots",
+            paths=figure_paths(meas.specimens, folder / "plots"),
             n=job.max_plots,
-            names=figure_names(meas.specimens),
         )
     )
 
