@@ -95,8 +95,34 @@ def test_split_design_batches_keep_every_stored_configuration() -> None:
         np.testing.assert_array_equal(part, SPACE.clip(expected))
     # adding a batch leaves the earlier ones unchanged
     pd.testing.assert_frame_equal(split_design(SPACE, counts, seed=3, batches=[6]), grown.iloc[:27])
-    with pytest.raises(ConfigError, match=r"fe.batches\[1\] is 0; each batch is a number"):
+    with pytest.raises(ConfigError, match=r"fe.batches\[1\] has 0 configurations; each batch"):
         split_design(SPACE, counts, seed=3, batches=[6, 0])
+
+
+def test_a_batch_over_a_narrowed_box_samples_only_there() -> None:
+    counts = {"large": 12, "small": 4, "test": 5}
+    soft = {"FiberAngle": [7.5, 30.0], "Kappa": [0.165, 0.33]}
+    grown = split_design(SPACE, counts, seed=3, batches=[6, {"n": 16, "bounds": soft}])
+    base = split_design(SPACE, counts, seed=3, batches=[6])
+    pd.testing.assert_frame_equal(grown.iloc[: len(base)], base)
+    part = grown.iloc[len(base) :]
+    assert len(part) == 16 and (part["split"] == "large").all()
+    for name, (lo, hi) in soft.items():  # inside the narrowed range, one point per stratum
+        assert part[name].between(lo, hi).all()
+        strata = np.floor((part[name].to_numpy() - lo) / (hi - lo) * 16).astype(int)
+        assert sorted(strata) == list(range(16))
+    other = [n for n in NAMES if n not in soft]  # the rest spans the whole box
+    assert SPACE.contains(part[NAMES].to_numpy()).all()
+    assert (
+        part[other].max() - part[other].min()
+        > 0.8 * (SPACE.upper - SPACE.lower)[[NAMES.index(n) for n in other]]
+    ).all()
+    with pytest.raises(
+        ConfigError, match=r"fe.batches\[0\].bounds.Kappa is \[0.2, 0.5\]; a batch narrows"
+    ):
+        split_design(SPACE, counts, seed=3, batches=[{"n": 4, "bounds": {"Kappa": [0.2, 0.5]}}])
+    with pytest.raises(ConfigError, match=r"fe.batches\[0\].bounds names 'Kapa', not a parameter"):
+        split_design(SPACE, counts, seed=3, batches=[{"n": 4, "bounds": {"Kapa": [0.1, 0.2]}}])
 
 
 def test_design_errors() -> None:

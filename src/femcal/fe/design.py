@@ -80,11 +80,57 @@ def design(
     return df
 
 
+def batch_space(
+    space: ParameterSpace, batch: int | Mapping, index: int
+) -> tuple[int, ParameterSpace]:
+    """The size and the box of one further batch of the large split.
+
+    Parameters
+    ----------
+    space : ParameterSpace
+        The campaign's box.
+    batch : int or mapping
+        A number of configurations (a Latin hypercube over the whole box), or ``{"n": int,
+        "bounds": {name: [lower, upper]}}``: a Latin hypercube over the box narrowed to the
+        given ranges (each inside the campaign's box), e.g. the soft corner where the
+        surrogate errs most.
+    index : int
+        The batch's position in ``fe.batches`` (0-based), for messages.
+
+    Returns
+    -------
+    n : int
+    box : ParameterSpace
+        ``space`` with the given ranges replaced.
+    """
+    where = f"fe.batches[{index}]"
+    if not isinstance(batch, Mapping):
+        return int(batch), space
+    lower, upper = space.lower.copy(), space.upper.copy()
+    for name, pair in dict(batch.get("bounds") or {}).items():
+        if name not in space.names:
+            raise ConfigError(
+                f"{where}.bounds names {name!r}, not a parameter of the box; use one of "
+                f"{list(space.names)}."
+            )
+        k = space.names.index(name)
+        lo, hi = (float(v) for v in pair)
+        if not space.lower[k] <= lo < hi <= space.upper[k]:
+            raise ConfigError(
+                f"{where}.bounds.{name} is [{lo:g}, {hi:g}]; a batch narrows the box, so give "
+                f"lower < upper inside fe.bounds' [{space.lower[k]:g}, {space.upper[k]:g}] "
+                "(widen fe.bounds first to sample beyond it)."
+            )
+        lower[k], upper[k] = lo, hi
+    box = ParameterSpace(space.names, lower, upper, units=space.units, scales=space.scales)
+    return int(batch.get("n", 0)), box
+
+
 def split_design(
     space: ParameterSpace,
     counts: Mapping[str, int],
     seed: int,
-    batches: Sequence[int] = (),
+    batches: Sequence[int | Mapping] = (),
 ) -> pd.DataFrame:
     """One design holding the splits of a study-like dataset (Large, Small, Test).
 
@@ -96,7 +142,8 @@ def split_design(
     ``batches`` grows the large split without touching a stored job: batch ``b`` (1, 2, ...)
     is a Latin hypercube of its own drawn with ``default_rng([seed, 0, b])``, numbered after
     every split and every earlier batch, so each configuration keeps its ``config_id`` (part
-    of the job hash) when a batch is added.
+    of the job hash) when a batch is added. A batch given as ``{"n": ..., "bounds": ...}``
+    samples a narrowed box (:func:`batch_space`).
 
     Parameters
     ----------
@@ -104,8 +151,9 @@ def split_design(
     counts : mapping of str to int
         Configurations per split, e.g. ``{"large": 96, "small": 24, "test": 16}``.
     seed : int
-    batches : sequence of int, optional
-        Sizes of the further batches of the large split (each >= 1).
+    batches : sequence of int or mapping, optional
+        The further batches of the large split: sizes (each >= 1), or mappings ``{"n": int,
+        "bounds": {name: [lower, upper]}}`` over a narrowed box (:func:`batch_space`).
 
     Returns
     -------
@@ -131,13 +179,14 @@ def split_design(
         frames.append(part)
     if not frames:
         raise ConfigError("fe.splits asks for no configurations; give at least one split > 0.")
-    for b, n in enumerate(batches, start=1):
-        if int(n) < 1:
+    for b, batch in enumerate(batches, start=1):
+        n, box = batch_space(space, batch, b - 1)
+        if n < 1:
             raise ConfigError(
-                f"fe.batches[{b - 1}] is {n}; each batch is a number of configurations >= 1 "
-                "(remove the entry instead)."
+                f"fe.batches[{b - 1}] has {n} configurations; each batch is a number of "
+                "configurations >= 1 (remove the entry instead)."
             )
-        part = design(space, int(n), np.random.default_rng([int(seed), 0, b]), method="lhs")
+        part = design(box, n, np.random.default_rng([int(seed), 0, b]), method="lhs")
         part.insert(1, "split", "large")
         frames.append(part)
     df = pd.concat(frames, ignore_index=True)

@@ -85,6 +85,21 @@ def _path_or_bounds(value: Any, handler: Any) -> Any:
     return handler(value)
 
 
+class Batch(Section):
+    """``fe.batches[i]`` as a mapping: a Latin hypercube over the box narrowed to ``bounds``."""
+
+    n: Int(1) = setting("configurations of the batch")
+    bounds: plain(Bounds, typed=True) = setting("parameter -> [lower, upper] inside fe.bounds")
+
+
+def _size_or_box(value: Any, handler: Any) -> Any:
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
+        return value
+    if not isinstance(value, dict):
+        raise fail(f"expected a number of configurations >= 1 or {{n, bounds}}, got {got(value)}")
+    return handler(value)
+
+
 @with_options(**{n: (Int(0), setting(f"configurations of the {n} split", None)) for n in SPLITS})
 class Splits(Keywords):
     """``fe.splits``: configurations per split."""
@@ -252,6 +267,7 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
 
 _BOUNDS = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
 _SOLVER_SETTINGS = Annotated[plain(CalculixSettings), WrapValidator(_solver_settings)]
+_BATCH = Annotated[plain(Batch, typed=True), WrapValidator(_size_or_box)]
 _PATH_OR_BOUNDS = Annotated[plain(Bounds, typed=True), WrapValidator(_path_or_bounds), Doc(_BOUNDS)]
 
 
@@ -264,7 +280,7 @@ class FeSettings(OptionSection):
     solver: SOLVER = setting("FE solver adapter (femcal.fe registry; plugins too)")
     bounds: _PATH_OR_BOUNDS = setting("the sampling box: " + _BOUNDS)
     splits: plain(Splits, typed=True) = setting("configurations per split (large, small, test)")
-    batches: ListOf(Int(1)) = setting("more Latin-hypercube batches of the large split", [])
+    batches: ListOf(_BATCH) = setting("more Latin-hypercube batches of the large split", [])
     seed: Int(0) = setting("seed of the designs")
     load_cases: ListOf(Literal[LOAD_CASES], unique=True) = setting("load cases (all four)")
     moments: MOMENTS = setting("moments simulated, Nm")

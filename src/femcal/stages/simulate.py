@@ -46,7 +46,7 @@ class SimulateSettings(StageSettings):
     bounds: Any
     splits: Mapping[str, int]
     seed: int
-    batches: Sequence[int]
+    batches: Sequence[int | Mapping[str, Any]]
     load_cases: Sequence[str]
     moments: Sequence[float]
     out_dir: Path
@@ -63,7 +63,9 @@ class SimulateSettings(StageSettings):
             bounds=cfg.bounds,
             splits=cfg.splits,
             seed=cfg.seed,
-            batches=list(cfg.batches),
+            batches=[
+                b if isinstance(b, int) else b.model_dump(exclude_unset=True) for b in cfg.batches
+            ],
             load_cases=list(cfg.load_cases),
             moments=list(cfg.moments),
             out_dir=out,
@@ -117,7 +119,7 @@ def run_simulate(
     bounds: Any,
     splits: Mapping[str, int],
     seed: int,
-    batches: Sequence[int],
+    batches: Sequence[int | Mapping[str, Any]],
     load_cases: Sequence[str],
     moments: Sequence[float],
     out_dir: Path,
@@ -178,7 +180,7 @@ def run_simulate(
             "settings_hash": settings_hash(fe.solver, fe.settings),
             "seed": int(seed),
             "splits": {k: int(v) for k, v in splits.items()},
-            "batches": [int(n) for n in batches],
+            "batches": list(batches),
             "store": str(fe.store),
         },
     )
