@@ -63,9 +63,7 @@ class SimulateSettings(StageSettings):
             bounds=cfg.bounds,
             splits=cfg.splits,
             seed=cfg.seed,
-            batches=[
-                b if isinstance(b, int) else b.model_dump(exclude_unset=True) for b in cfg.batches
-            ],
+            batches=list(cfg.batches),
             load_cases=list(cfg.load_cases),
             moments=list(cfg.moments),
             out_dir=out,
