@@ -1,5 +1,5 @@
-"""The registries' names and the keyword arguments of the estimators, the calibrators and the
-disc geometry (``fixed``, ``options``, ``settings``), static so that validating imports nothing
+"""The registries' names and the keyword arguments of the estimators and the calibrators
+(``fixed``, ``options``), static so that validating imports nothing
 heavy (``tests/test_settings.py`` checks them against the signatures and registries); a
 ``search_space`` (:func:`space_of`) maps keywords to Optuna entries (the form
 :func:`femcal.training.study.suggest` reads) whose bounds and choices are the keyword's values.
@@ -238,27 +238,6 @@ class CalibratorOptions(Section):
                 what = f"a mapping of the {name} calibrator's keyword options"
                 raise fail(f"expected {what}, got {got(value[name])}", name)
         return {k: v for k, v in value.items() if k not in plugins}
-
-
-# ------------------------------------------------------------------ the disc geometry
-@with_options
-class GeometryKeywords(OptionSection, Keywords):
-    """The disc geometry (femcal.fe.geometry.DiscGeometry)."""
-
-    _owner: ClassVar[str] = "DiscGeometry"
-    _describe: ClassVar[str] = "a mesh preset (coarse, default, fine) or DiscGeometry fields"
-    _options: ClassVar[type] = light_class("fe.options", "GeometryOptions")
-
-    @model_validator(mode="before")
-    @classmethod
-    def _preset(cls, value: Any) -> Any:
-        if isinstance(value, str) and value in MESH_PRESETS:
-            return {"preset": value}
-        if isinstance(value, str):
-            raise fail(one_of(value, MESH_PRESETS))
-        return value
-
-    preset: Literal[MESH_PRESETS] = keyword("mesh density the other fields start from")
 
 
 # ------------------------------------------------------------------ search spaces
