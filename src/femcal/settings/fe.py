@@ -4,23 +4,11 @@ solver adapters' keyword arguments (``fe.settings``) are declared beside each ad
 
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import (
-    PlainValidator,
-    ValidationError,
-    ValidationInfo,
-    WrapValidator,
-    model_validator,
-)
+from pydantic import PlainValidator, ValidationError, ValidationInfo, WrapValidator, model_validator
 
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
 from femcal.settings._format import Doc, fail, got, yaml_repr
-from femcal.settings.keywords import (
-    SOLVER,
-    SOLVERS,
-    SPLITS,
-    PgdKeywords,
-    SurrogateKeywords,
-)
+from femcal.settings.keywords import SOLVER, SOLVERS, SPLITS, PgdKeywords, SurrogateKeywords
 from femcal.settings.values import (
     MODEL_URI,
     MOMENTS,
@@ -39,8 +27,7 @@ from femcal.settings.values import (
 )
 
 _ADAPT = light_class("fe.options", "AdaptOptions")  # the FE workflows' options, declared there
-
-
+_BOUNDS = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
 _PAIR = (ListOf(Float(), min_len=2), setting("[lower, upper]", None))
 
 
@@ -65,8 +52,7 @@ def _path_or_bounds(value: Any, handler: Any) -> Any:
     if isinstance(value, str) and value.strip():
         return value
     if not isinstance(value, dict) or not value:
-        what = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
-        raise fail(f"expected {what}, got {got(value)}")
+        raise fail(f"expected {_BOUNDS}, got {got(value)}")
     return handler(value)
 
 
@@ -116,7 +102,6 @@ def _solver_settings(value: Any, handler: Any, info: ValidationInfo) -> Any:
     return dict(value or {})
 
 
-_BOUNDS = "a ParameterBounds.csv path or a mapping name -> [lower, upper]"
 _CALCULIX = plain(SOLVER_SETTINGS["calculix"])
 _SOLVER_SETTINGS = Annotated[_CALCULIX, WrapValidator(_solver_settings)]
 _BATCH = Annotated[plain(Batch, typed=True), WrapValidator(_size_or_box)]
