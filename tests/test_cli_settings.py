@@ -39,6 +39,8 @@ DECLARING = [
     SRC / "calibration" / "pgd_study_options.py",
     SRC / "calibration" / "ga_options.py",
     SRC / "fe" / "options.py",
+    SRC / "fe" / "calculix_settings.py",
+    SRC / "training" / "search_space.py",
 ]
 #: Each options dataclass, the model of params.yaml that holds its options, and its module.
 OPTIONS = [
