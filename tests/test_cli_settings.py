@@ -20,10 +20,11 @@ from femcal.cli import SETTINGS_OF, build_parser, setting_overrides
 from femcal.config import load_params
 from femcal.diagnose.options import DiagnoseOptions
 from femcal.errors import ConfigError
+from femcal.fe.calculix_settings import GeometryKeywords
 from femcal.fe.options import AdaptOptions, CampaignOptions, GeometryOptions, ValidateOptions
 from femcal.settings import SECTIONS, keys_of
 from femcal.settings.fe import AdaptSettings, FeSettings, RefineSettings
-from femcal.settings.keywords import GaKeywords, GeometryKeywords, PgdKeywords, PgdStudyKeywords
+from femcal.settings.keywords import GaKeywords, PgdKeywords, PgdStudyKeywords
 from femcal.settings.root import DiagnoseSettings
 from femcal.settings.values import option_fields
 
@@ -38,6 +39,8 @@ DECLARING = [
     SRC / "calibration" / "pgd_study_options.py",
     SRC / "calibration" / "ga_options.py",
     SRC / "fe" / "options.py",
+    SRC / "fe" / "calculix_settings.py",
+    SRC / "training" / "search_space.py",
 ]
 #: Each options dataclass, the model of params.yaml that holds its options, and its module.
 OPTIONS = [

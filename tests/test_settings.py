@@ -985,10 +985,11 @@ def test_calibrator_tables_match_the_calibrators():
 def test_registry_tables_match_the_registries():
     from femcal.fe import available_solvers
     from femcal.fe.calculix import CalculixDisc
+    from femcal.fe.calculix_settings import GeometryKeywords
     from femcal.fe.design import SPLIT_SAMPLING
     from femcal.fe.geometry import MESH_PRESETS, DiscGeometry
     from femcal.prepare import SPLITS as PREPARED
-    from femcal.settings import BASELINE_MODELS, SOLVER_SETTINGS, SOLVERS, SPLITS, GeometryKeywords
+    from femcal.settings import BASELINE_MODELS, SOLVER_SETTINGS, SOLVERS, SPLITS
     from femcal.settings import MESH_PRESETS as PRESETS
     from femcal.surrogates import available_baselines, available_surrogates
 

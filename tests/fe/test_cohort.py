@@ -11,6 +11,7 @@ from fe_helpers import requires_ccx
 
 from femcal.errors import FemcalError, SolverError
 from femcal.fe import cohort as cohort_module
+from femcal.fe.calculix_settings import LIGAMENT_DEFAULTS, LIGAMENTS, posterior_settings
 from femcal.fe.campaign import PerConfigSettings
 from femcal.fe.cohort import (
     CLASSES,
@@ -26,7 +27,7 @@ from femcal.fe.runtime import FeRuntime
 from femcal.fe.store import settings_hash
 from femcal.measurements import read_measurements
 from femcal.schema import LOAD_CASES
-from femcal.settings.fe import LIGAMENT_DEFAULTS, LIGAMENTS, CohortSettings, posterior_settings
+from femcal.settings.fe import CohortSettings
 
 from synth import study_space
 

@@ -22,11 +22,7 @@ from fe_helpers import requires_ccx
 from femcal.errors import ConfigError, FemcalError
 from femcal.fe import FEJob
 from femcal.fe.calculix import CalculixDisc
-from femcal.fe.posterior import facet_normal, ligament_curve, posterior_deck
-from femcal.fe.posterior_check import BOX_CENTRE, ratio_table, segment_rom
-from femcal.fe.store import settings_hash
-from femcal.settings import validate_params
-from femcal.settings.fe import (
+from femcal.fe.calculix_settings import (
     LIGAMENT_DEFAULTS,
     LIGAMENTS,
     FacetSettings,
@@ -34,6 +30,10 @@ from femcal.settings.fe import (
     PosteriorSettings,
     posterior_settings,
 )
+from femcal.fe.posterior import facet_normal, ligament_curve, posterior_deck
+from femcal.fe.posterior_check import BOX_CENTRE, ratio_table, segment_rom
+from femcal.fe.store import settings_hash
+from femcal.settings import validate_params
 
 ROOT = Path(__file__).resolve().parents[2]
 BOUNDS = {

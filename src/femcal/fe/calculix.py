@@ -110,13 +110,13 @@ from femcal.fe.base import (
     RunOutcome,
     register_solver,
 )
+from femcal.fe.calculix_settings import PosteriorSettings, posterior_settings
 from femcal.fe.cpu_limit import CpuLimit
 from femcal.fe.dat import read_dat
 from femcal.fe.geometry import DiscGeometry, DiscMesh
 from femcal.fe.materials import region_materials, validate_parameters
 from femcal.fe.posterior import posterior_deck
 from femcal.schema import PARAMETER_NAMES, STATUS_FAILED, STATUS_OK
-from femcal.settings.fe import PosteriorSettings, posterior_settings
 
 logger = logging.getLogger(__name__)
 

@@ -40,8 +40,9 @@ import pandas as pd
 
 from femcal.dvc_metrics import write as write_dvc_metrics
 from femcal.errors import SolverError
+from femcal.fe.calculix_settings import LIGAMENT_DEFAULTS, LIGAMENTS
 from femcal.schema import LOAD_CASES, STATUS_OK
-from femcal.settings.fe import LIGAMENT_DEFAULTS, LIGAMENTS, CohortSettings
+from femcal.settings.fe import CohortSettings
 
 if TYPE_CHECKING:
     from femcal.fe.runtime import FeRuntime
@@ -69,7 +70,7 @@ FIRST_CONFIG_ID = 100_000
 MAX_ROUNDS = 4
 #: Specimens drawn in the first round per specimen wanted (failed runs are replaced later).
 FIRST_ROUND_FACTOR = 1.1
-#: Bounds of a ligament's slack strain (femcal.settings.fe.LigamentSettings).
+#: Bounds of a ligament's slack strain (femcal.fe.calculix_settings.LigamentSettings).
 SLACK_RANGE = (-0.3, 0.5)
 
 

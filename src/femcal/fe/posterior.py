@@ -6,7 +6,7 @@ to the upper endplate (added to its ``*RIGID BODY`` node set, so it moves with t
 node) with a node of the lower vertebra (fixed in all translations, like the lower endplate).
 The vertebrae themselves stay rigid; only the joints and ligaments between them deform.
 
-Facet joints (:class:`~femcal.settings.fe.FacetSettings`)
+Facet joints (:class:`~femcal.fe.calculix_settings.FacetSettings`)
     one ``GAPUNI`` element per side, both nodes at the facet's centre. CalculiX's gap condition
     ``d + n . (u2 - u1) >= 0`` (node 1 upper, node 2 lower, fixed) closes when the upper node
     has moved the clearance ``d`` along the contact normal ``n``: for the right facet
@@ -16,7 +16,7 @@ Facet joints (:class:`~femcal.settings.fe.FacetSettings`)
     the lower one when it moves laterally-anteriorly (axial rotation, one side at a time) or
     down (extension), and lifts off in flexion. A closed gap is a linear spring of the contact
     stiffness.
-Ligaments (:class:`~femcal.settings.fe.LigamentSettings`)
+Ligaments (:class:`~femcal.fe.calculix_settings.LigamentSettings`)
     one ``SPRINGA`` element (two for a bilateral ligament, ``lateral_mm > 0``), vertical, with
     a ``*SPRING, NONLINEAR`` force-elongation table (:func:`ligament_curve`): no force up to the
     slack elongation, a quadratic toe, then linear. CalculiX keeps the force constant beyond the
@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from femcal.settings.fe import FacetSettings, LigamentSettings, PosteriorSettings
+from femcal.fe.calculix_settings import FacetSettings, LigamentSettings, PosteriorSettings
 
 #: Toe-region samples of a ligament's force-elongation table.
 TOE_POINTS = 6

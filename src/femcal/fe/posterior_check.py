@@ -17,8 +17,8 @@ from pathlib import Path
 
 from femcal.fe.base import FEJob, simulate
 from femcal.fe.calculix import CalculixDisc
+from femcal.fe.calculix_settings import LIGAMENTS
 from femcal.schema import LOAD_CASES
-from femcal.settings.fe import LIGAMENTS
 
 #: The centre of the study's parameter box (its ParameterBounds.csv), physical units.
 BOX_CENTRE: dict[str, float] = {

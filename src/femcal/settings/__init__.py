@@ -16,7 +16,7 @@ _HOME = {
     **dict.fromkeys(("ENVIRONMENT", "check_environment"), "env"),
     **dict.fromkeys(("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS"), "keywords"),
     **dict.fromkeys(("CALIBRATORS", "MESH_PRESETS", "SOLVERS", "SPLITS"), "keywords"),
-    **dict.fromkeys(("GeometryKeywords", "InverseKeywords", "SurrogateKeywords"), "keywords"),
+    **dict.fromkeys(("InverseKeywords", "SurrogateKeywords"), "keywords"),
     **dict.fromkeys(("SCHEMAS", "SECTIONS", "Settings", "describe_setting"), "params"),
     **dict.fromkeys(("detect_schema", "load_settings", "validate_params"), "params"),
     **dict.fromkeys(("closest", "describe", "fields_of", "keys_of", "unwrap"), "_format"),

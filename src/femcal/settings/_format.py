@@ -139,7 +139,7 @@ def unwrap(tp: Any, meta: Iterable = ()) -> tuple[Any, list]:
     return tp, meta
 
 
-def _members(tp: Any) -> list:
+def members(tp: Any) -> list:
     """The members of a union but None (``[]``: not a union)."""
     union = get_origin(tp) in (Union, types.UnionType)
     return [m for m in get_args(tp) if m is not type(None)] if union else []
@@ -182,8 +182,8 @@ def describe(tp: Any, meta: Iterable = ()) -> str:
         found = [m for m in meta if isinstance(m, kind)]
         if found:
             return found[0].text if kind is Doc else describe(found[0].model)
-    if type(None) in get_args(tp) and _members(tp):
-        return f"{describe(_members(tp)[0], meta)} or null"
+    if type(None) in get_args(tp) and members(tp):
+        return f"{describe(members(tp)[0], meta)} or null"
     if get_origin(tp) is Literal:
         return "one of " + ", ".join(yaml_repr(c) for c in get_args(tp))
     simple = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}

@@ -15,7 +15,6 @@ from femcal.settings.keywords import (
     CalibratorOptions,
     InverseKeywords,
     SurrogateKeywords,
-    space_of,
 )
 from femcal.settings.values import (
     DATASET_NAME,
@@ -40,6 +39,7 @@ from femcal.settings.values import (
 _BASELINES = ListOf(BASELINE, unique=True)
 _MAX_PLOTS = "per-specimen PNGs for the first N specimens (null: all)"
 _SPACE = "Optuna search space over the hyper-parameters"
+space_of = light_class("training.search_space", "space_of")  # keyword -> an Optuna entry
 _TRIALS = "complete Optuna trials (0: train on fixed alone)"
 _TARGET = "output learnt: rom_deg, or idp_mpa (the IDP head; needs fixed log_target: false)"
 
