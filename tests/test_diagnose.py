@@ -158,16 +158,30 @@ def test_outputs_carry_curves_over_each_specimens_own_range(world):
     assert d["effects"] == s.effects and "ranking" in d and isinstance(d["adequate"], bool)
 
 
-def test_same_seed_same_diagnosis(world):
+@pytest.fixture(scope="module")
+def greedy(world):
+    """The combination specimens' greedy search (beam 0, up to two effects, no discrepancy):
+    rows, names, options and the diagnosis, read by several tests."""
+    base, rom, truth, _ = world
+    rows = np.flatnonzero(truth == "combination")[:3]
+    names = [f"S{i}" for i in rows]
+    options = DiagnoseOptions(beam_delta=0.0, max_effects=2, discrepancy=False)
+    diag = diagnose(base, rom[rows], specimens=names, noise_deg=NOISE, options=options)
+    return rows, names, options, diag
+
+
+def test_same_seed_same_diagnosis(world, greedy):
     base, rom, _, _ = world
+    rows, names, options, diag = greedy
     # The same batch twice: a different batch (the whole cohort) changes the floating-point
     # reductions of the batched fits in the last digits, and with 2 threads beyond 1e-6.
-    diag = diagnose(base, rom[:3], specimens=["a", "b", "c"], noise_deg=NOISE)
-    again = diagnose(base, rom[:3], specimens=["a", "b", "c"], noise_deg=NOISE)
-    assert [s.verdict for s in again.specimens] == [s.verdict for s in diag.specimens[:3]]
+    again = diagnose(base, rom[rows], specimens=names, noise_deg=NOISE, options=options)
+    assert [s.verdict for s in again.specimens] == [s.verdict for s in diag.specimens]
+    order = [[tuple(r["effects"]) for r in s.ranking] for s in diag.specimens]
+    assert [[tuple(r["effects"]) for r in s.ranking] for s in again.specimens] == order
     np.testing.assert_allclose(
         [s.final_mae_deg for s in again.specimens],
-        [s.final_mae_deg for s in diag.specimens[:3]],
+        [s.final_mae_deg for s in diag.specimens],
         atol=1e-6,
     )
 
@@ -186,9 +200,9 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch,
     monkeypatch.setattr(workers, "MIN_ROWS", 3)
     rom6 = rom[:6]
     names = [f"S{i:02d}" for i in range(len(rom6))]
-    runs = [
-        diagnose(base, rom6, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=1))
-    ]
+    # the search up to two effects, without the discrepancy: what the worker split is tested on
+    options = functools.partial(DiagnoseOptions, max_effects=2, discrepancy=False)
+    runs = [diagnose(base, rom6, specimens=names, noise_deg=NOISE, options=options(workers=1))]
     seen = tmp_path / "groups"
     seen.mkdir()
     drawn = tmp_path / "drawn"
@@ -201,9 +215,7 @@ def test_the_verdicts_do_not_depend_on_the_number_of_workers(world, monkeypatch,
         workers.each_group(draw),
     ):
         runs.append(
-            diagnose(
-                base, rom6, specimens=names, noise_deg=NOISE, options=DiagnoseOptions(workers=2)
-            )
+            diagnose(base, rom6, specimens=names, noise_deg=NOISE, options=options(workers=2))
         )
     # the figures each worker drew of its group are those of the whole diagnosis, and kept
     figures = sorted((drawn / "plots").iterdir())
@@ -461,26 +473,17 @@ def _pairs(ranking) -> set[tuple[str, str]]:
     }
 
 
-def test_the_beam_extends_every_model_close_to_the_best(world):
+def test_the_beam_extends_every_model_close_to_the_best(world, greedy):
     """A wide beam fits every pair for a specimen that goes on to a second effect; the greedy
     search (beam 0) only the pairs that extend its best single effect."""
-    base, rom, truth, _ = world
-    rows = np.flatnonzero(truth == "combination")[:3]
-    kw = dict(max_effects=2, discrepancy=False)
-    names = [f"S{i}" for i in rows]
+    base, rom, _, _ = world
+    rows, names, _, greedy = greedy
     wide = diagnose(
         base,
         rom[rows],
         specimens=names,
         noise_deg=NOISE,
-        options=DiagnoseOptions(beam_delta=1e9, **kw),
-    )
-    greedy = diagnose(
-        base,
-        rom[rows],
-        specimens=names,
-        noise_deg=NOISE,
-        options=DiagnoseOptions(beam_delta=0.0, **kw),
+        options=DiagnoseOptions(beam_delta=1e9, max_effects=2, discrepancy=False),
     )
     every = {FACET_LIGAMENT, ("facet_contact", "neutral_zone")}
     every.add(("ligament_tension", "neutral_zone"))
@@ -668,17 +671,14 @@ def test_complementary_pairs_act_on_disjoint_load_cases():
     assert complementary_pairs(terms("facet_contact", "neutral_zone")) == []
 
 
-def test_a_pair_neither_of_whose_effects_pays_alone_is_fitted_and_named(world):
+def test_a_pair_neither_of_whose_effects_pays_alone_is_fitted_and_named(world, greedy):
     """A facet and a ligament together: the greedy search (beam 0) extends only its best
     single effect, and still offers the pair, fitted at the first level in every form, at the
     second, where it names it. With one effect at most (``max_effects=1``) no pair is
     fitted."""
-    base, rom, truth, _ = world
-    rows = np.flatnonzero(truth == "combination")[:3]
-    names = [f"S{i}" for i in rows]
+    base, rom, _, _ = world
+    rows, names, _, greedy = greedy
     kw = dict(specimens=names, noise_deg=NOISE)
-    greedy = DiagnoseOptions(beam_delta=0.0, max_effects=2, discrepancy=False)
-    greedy = diagnose(base, rom[rows], options=greedy, **kw)
     one = diagnose(base, rom[rows], options=DiagnoseOptions(max_effects=1, discrepancy=False), **kw)
     forms = {
         tuple(sorted(f))

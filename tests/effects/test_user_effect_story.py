@@ -176,7 +176,8 @@ def test_repeated_measurements_in_the_file_count_as_one_point_of_their_weight(pr
     (the surrogate's own error, 1e-3 deg here, does not average out)."""
     tmp, _ = project
     meas = pd.read_csv("meas.csv")
-    s8 = meas[(meas["specimen"] == "S8") & (meas["load_case"] == "Flexion")]
+    meas = meas[meas["specimen"] == "S8"]  # one specimen: the reading is what is tested
+    s8 = meas[meas["load_case"] == "Flexion"]
     last = s8[s8["moment_nm"] == 5.0].iloc[0]
     repeats = pd.DataFrame([last] * 3).assign(
         rom_deg=last["rom_deg"] + np.array([0.0, 0.01, -0.01])
