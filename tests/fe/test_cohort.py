@@ -18,6 +18,7 @@ from femcal.fe.cohort import (
     FIRST_CONFIG_ID,
     SLACK_RANGE,
     _with_noise,
+    adapter_settings,
     build_cohort,
     complete_ids,
     draw_specimens,
@@ -87,6 +88,22 @@ def test_slack_shift_is_clipped_to_the_ligaments_range():
         assert ligaments[name]["slack_strain"] == pytest.approx(expected)
         stiffness = 2.0 * LIGAMENT_DEFAULTS[name]["stiffness_n_per_mm"]
         assert ligaments[name]["stiffness_n_per_mm"] == pytest.approx(stiffness)
+
+
+def test_only_a_pre_strained_ligament_moves_the_zero_to_the_neutral_position():
+    """A taut ligament (slack strain < 0) turns the unloaded disc: its jobs start with a step
+    without load (``neutral_step``); slack elements keep the settings, and so their hashes."""
+    lig = {"ligament_stiffness_scale": 1.0}
+    taut = adapter_settings({"class": "ligaments", **lig, "ligament_slack_shift": -0.1})
+    slack = adapter_settings({"class": "ligaments", **lig, "ligament_slack_shift": 0.0})
+    facets = {"class": "facets", "facet_gap_mm": 0.5, "facet_stiffness_n_per_mm": 50.0}
+    assert taut["neutral_step"] is True
+    assert min(v["slack_strain"] for v in taut["posterior"]["ligaments"].values()) < 0
+    assert slack == {
+        "posterior": posterior_of({"class": "ligaments", **lig, "ligament_slack_shift": 0.0})
+    }
+    assert adapter_settings(facets) == {"posterior": posterior_of(facets)}
+    assert adapter_settings({"class": "none"}) is None
 
 
 def test_per_config_settings_change_only_their_configurations_hash():

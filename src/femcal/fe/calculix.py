@@ -24,9 +24,11 @@ Compression    force -F along z        none (RoM is NaN)
 
 RoM is the rotation of the rigid top endplate about the load axis in the direction of the
 applied moment, in degrees (positive when the disc turns the way it is pushed; flexion and
-extension turn the disc in opposite directions about x). IDP is ``-mean(trace(sigma) / 3)``
-of the Cauchy stress over all integration points of the central nucleus elements
-(``CENTRAL``: the central O-grid block, layers nearest mid-height), in MPa.
+extension turn the disc in opposite directions about x), from the mesh's geometry or, with
+``neutral_step``, from the neutral position: a first step without load, in which pre-strained
+elements turn the unloaded disc, ends where the rotations are counted from. IDP is
+``-mean(trace(sigma) / 3)`` of the Cauchy stress over all integration points of the central
+nucleus elements (``CENTRAL``: the central O-grid block, layers nearest mid-height), in MPa.
 
 Materials
 ---------
@@ -191,6 +193,11 @@ class CalculixDisc:
         Posterior elements joined to the disc (:mod:`femcal.fe.posterior`): ``facets``
         and/or ``ligaments``; None (or none present): the disc alone, whose deck does not
         change with this setting.
+    neutral_step : bool
+        Start with a step without load and report every rotation from where it ends: the RoM
+        from the neutral position, as a measurement is zeroed. Pre-strained elements (a
+        ligament's negative slack strain) turn the unloaded disc; without this step their
+        rotation at rest counts as RoM. False: rotations from the mesh's geometry.
     """
 
     name = "calculix"
@@ -209,6 +216,7 @@ class CalculixDisc:
         nucleus_d1: float = 0.01,
         annulus_d1: float = 0.3,
         posterior: PosteriorSettings | dict | None = None,
+        neutral_step: bool = False,
     ) -> None:
         self.geometry = DiscGeometry.from_value(geometry)
         self.posterior = posterior_settings(posterior, where="CalculixDisc(posterior=...)")
@@ -234,6 +242,7 @@ class CalculixDisc:
         self.retry_factor = float(retry_factor)
         self.nucleus_d1 = float(nucleus_d1)
         self.annulus_d1 = float(annulus_d1)
+        self.neutral_step = bool(neutral_step)
         self._mesh: DiscMesh | None = None
         self._mesh_text: str | None = None
         self._version: str | None = None
@@ -360,13 +369,16 @@ class CalculixDisc:
         times = levels / levels[-1]
         first = min(self.initial_increment, float(times[0])) * self.retry_factor**attempt
         max_inc = self.max_increments * 4**attempt
-        lines = [
-            "*TIME POINTS, NAME=LEVELS",
-            *_data_lines([_fmt(t) for t in times]),
+        static = [
             f"*STEP, NLGEOM, INC={max_inc}",
             "*STATIC",
             f"{_fmt(first)}, 1., {_fmt(min(1e-6, first))}, {_fmt(MAX_INCREMENT)}",
         ]
+        lines = ["*TIME POINTS, NAME=LEVELS", *_data_lines([_fmt(t) for t in times])]
+        if self.neutral_step:  # the unloaded disc settles; its rotation there is the zero
+            lines += ["*TIME POINTS, NAME=NEUTRAL", "1."]
+            lines += [*static, "*NODE PRINT, NSET=ROTNODE, TIME POINTS=NEUTRAL", "U", "*END STEP"]
+        lines += static
         if job.load_case == COMPRESSION:
             lines += ["*CLOAD", f"REFNODE, 3, {_fmt(-levels[-1])}"]
         else:
@@ -383,6 +395,7 @@ class CalculixDisc:
             "times": times.tolist(),
             "initial_increment": first,
             "max_increments": max_inc,
+            "neutral_step": self.neutral_step,
         }
         return "\n".join(lines) + "\n", info
 
@@ -491,16 +504,21 @@ class CalculixDisc:
                     return value
             return None
 
+        # The .dat file gives total times: after a neutral step (1.0), each level at 1 + t,
+        # and the rotations from the neutral position are those less the rotation at 1.0.
+        start = 1.0 if prepared.info.get("neutral_step") else 0.0
+        zero = lookup(results.rotations, 1.0) if start else np.zeros(3)
         reached = 0
         for i, t in enumerate(times):
-            pressure = lookup(results.idp, t)
-            rotation = lookup(results.rotations, t)
-            if pressure is None or rotation is None:
+            pressure = lookup(results.idp, start + t)
+            rotation = lookup(results.rotations, start + t)
+            if pressure is None or rotation is None or zero is None:
                 break
             idp[i] = float(pressure)
             if job.load_case != COMPRESSION:
                 dof, sign = MOMENT_AXES[job.load_case]
-                rom[i] = math.degrees(sign * float(np.asarray(rotation)[dof - 1]))
+                turned = float(np.asarray(rotation)[dof - 1]) - float(np.asarray(zero)[dof - 1])
+                rom[i] = math.degrees(sign * turned)
             reached += 1
 
         log_path = prepared.workdir / f"{JOB_NAME}.log"

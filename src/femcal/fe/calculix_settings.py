@@ -16,6 +16,7 @@ from femcal.settings._format import fail, got, one_of, problems, reword
 from femcal.settings.keywords import MESH_PRESETS
 from femcal.settings.values import (
     NAME,
+    Bool,
     Float,
     Int,
     Keywords,
@@ -169,6 +170,7 @@ class CalculixSettings(Keywords):
     nucleus_d1: Float(gt=0) = keyword("compressibility of the nucleus")
     annulus_d1: Float(gt=0) = keyword("compressibility of the annulus")
     posterior: plain(PosteriorSettings) | None = keyword("facets, ligaments (none: the disc alone)")
+    neutral_step: Bool = keyword("a step without load first: RoM from the neutral position")
 
 
 def posterior_settings(

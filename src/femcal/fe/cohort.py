@@ -163,6 +163,24 @@ def posterior_of(row: Mapping[str, Any]) -> dict[str, Any] | None:
     return out
 
 
+def adapter_settings(row: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The adapter settings of a drawn specimen beyond ``fe.settings`` (None: the disc alone).
+
+    Its ``posterior`` elements (:func:`posterior_of`) and, where a ligament is pre-strained
+    (slack strain < 0: taut at rest, so it turns the unloaded disc), ``neutral_step``: its RoM
+    from the neutral position it settles into, as a measurement is zeroed. Elements without
+    force at rest leave the neutral position where the mesh is; their jobs keep their hashes.
+    """
+    posterior = posterior_of(row)
+    if posterior is None:
+        return None
+    strains = [lig["slack_strain"] for lig in posterior.get("ligaments", {}).values()]
+    return {
+        "posterior": posterior,
+        **({"neutral_step": True} if min(strains, default=0) < 0 else {}),
+    }
+
+
 def complete_ids(records: pd.DataFrame, n_levels: int) -> set[int]:
     """Configurations whose four load cases all reached the last of ``n_levels`` moments."""
     if not len(records):
@@ -216,9 +234,9 @@ def _run_rounds(
         new.insert(0, "config_id", FIRST_CONFIG_ID + len(drawn) + np.arange(len(new)))
         drawn = pd.concat([drawn, new], ignore_index=True)
         by_config = {
-            int(r["config_id"]): {"posterior": p}
+            int(r["config_id"]): s
             for r in drawn.to_dict(orient="records")
-            if (p := posterior_of(r)) is not None
+            if (s := adapter_settings(r)) is not None
         }
         base = {**fe.settings, "timeout_s": SHARED_MACHINE_TIMEOUT_S}
         settings = PerConfigSettings(base, by_config)
