@@ -50,12 +50,18 @@ def test_published_table_summarises_reached_and_beyond():
 
 
 def test_published_values_errors():
-    with pytest.raises(ConfigError, match=r"idp_published\[0\]: missing \['level'\]"):
+    """Each entry is checked by the settings model: the position, the field, its doc, the fix."""
+    fix = r"Each entry of validate\.idp_published is a mapping \{source, condition"
+    with pytest.raises(ConfigError, match=r"idp_published\[0\]\.level: missing setting; add it"):
         published_values([{k: v for k, v in WILKE.items() if k != "level"}])
-    with pytest.raises(ConfigError, match=r"relaxed standing\): idp_mpa must be a pressure > 0"):
+    with pytest.raises(
+        ConfigError, match=r"idp_published\[0\]\.idp_mpa: Input should be greater than 0"
+    ):
         published_values([{**WILKE, "idp_mpa": -0.5}])
-    with pytest.raises(ConfigError, match=r"idp_published\[0\]: missing"):
-        published_values(["0.5 MPa"])
+    with pytest.raises(ConfigError, match=r"idp_published\[1\]: expected a mapping .*" + fix):
+        published_values([WILKE, "0.5 MPa"])
+    with pytest.raises(ConfigError, match=r"kind: Input should be 'in vivo' or 'in vitro'"):
+        published_values([{**WILKE, "kind": "in silico"}])
 
 
 class _Linear:

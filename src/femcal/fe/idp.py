@@ -17,87 +17,43 @@ moments) is compared with FE at the validated parameters (:func:`idp_head_error`
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import pandas as pd
+from pydantic import TypeAdapter, ValidationError
 
 from femcal.errors import ConfigError
 from femcal.schema import LOAD_CASES, PARAMETER_NAMES
+from femcal.settings._format import problems
+from femcal.settings.fe import PublishedIdp
 
 IDP_PUBLISHED_CSV = "idp_published.csv"
 IDP_HEAD_CSV = "idp_head.csv"
+_PUBLISHED = ("validate", "idp_published")
 
 
-@dataclass(frozen=True)
-class PublishedIdp:
-    """A published intradiscal pressure without a known force (a posture or an activity).
-
-    Attributes
-    ----------
-    source : str
-        Citation (authors, year, journal, volume:pages).
-    condition : str
-        Posture or activity, as the source names it.
-    idp_mpa : float
-        The published value, MPa.
-    kind : {"in vivo", "in vitro"}
-    subjects : int
-        Subjects or specimens measured.
-    level : str
-        Disc level, e.g. ``"L4-L5"``.
-    """
-
-    source: str
-    condition: str
-    idp_mpa: float
-    kind: str
-    subjects: int
-    level: str
-
-
-def published_values(entries: Sequence[Mapping[str, Any]]) -> list[PublishedIdp]:
-    """Parse ``validate.idp_published`` (a list of mappings) into :class:`PublishedIdp`.
+def published_values(entries: Sequence[Any]) -> list[PublishedIdp]:
+    """``validate.idp_published`` as :class:`femcal.settings.fe.PublishedIdp` entries: each
+    mapping (or entry) checked by that settings model, which declares its fields once.
 
     Raises
     ------
     ConfigError
-        An entry lacks a field or its pressure is not a positive number.
+        An entry is not a mapping, lacks a field or holds a bad value: every problem, with its
+        position, the field's doc and what was given.
     """
-    out = []
-    fields = ("source", "condition", "idp_mpa", "kind", "subjects", "level")
-    for i, entry in enumerate(entries):
-        entry = dict(entry) if isinstance(entry, Mapping) else {}
-        missing = [f for f in fields if f not in entry]
-        if missing:
-            raise ConfigError(
-                f"validate.idp_published[{i}]: missing {missing}; each entry is a mapping "
-                "{source, condition, idp_mpa, kind, subjects, level}, e.g. {source: 'Wilke et "
-                "al. 1999, Spine 24(8):755-762', condition: relaxed standing, idp_mpa: 0.50, "
-                "kind: in vivo, subjects: 1, level: L4-L5}."
-            )
-        try:
-            value = float(entry["idp_mpa"])
-        except (TypeError, ValueError):
-            value = float("nan")
-        if not value > 0:
-            raise ConfigError(
-                f"validate.idp_published[{i}] ({entry['condition']}): idp_mpa must be a "
-                f"pressure > 0 in MPa; got {entry['idp_mpa']!r}."
-            )
-        out.append(
-            PublishedIdp(
-                source=str(entry["source"]),
-                condition=str(entry["condition"]),
-                idp_mpa=value,
-                kind=str(entry["kind"]),
-                subjects=int(entry["subjects"]),
-                level=str(entry["level"]),
-            )
-        )
-    return out
+    try:
+        return TypeAdapter(list[PublishedIdp]).validate_python(list(entries))
+    except ValidationError as exc:
+        found = "; ".join(message for _, message in problems(exc, prefix=_PUBLISHED))
+    raise ConfigError(
+        f"{found}. Each entry of validate.idp_published is a mapping {{source, condition, "
+        "idp_mpa, kind, subjects, level}, e.g. {source: 'Wilke et al. 1999, Spine "
+        "24(8):755-762', condition: relaxed standing, idp_mpa: 0.50, kind: in vivo, subjects: "
+        "1, level: L4-L5}."
+    )
 
 
 def implied_forces(forces: Sequence[float], idp_mpa: np.ndarray, value: float) -> np.ndarray:
@@ -172,7 +128,7 @@ def published_table(
         beyond = int(np.sum(highest < entry.idp_mpa))
         summary.append(
             {
-                **entry.__dict__,
+                **entry.model_dump(),
                 "force_n_min": float(reached.min()) if reached.size else float("nan"),
                 "force_n_median": float(np.median(reached)) if reached.size else float("nan"),
                 "force_n_max": float(reached.max()) if reached.size else float("nan"),

@@ -21,8 +21,8 @@ from femcal.settings.values import DASK_ADDRESS, PATH, Float, Int, check_options
 if TYPE_CHECKING:
     import numpy as np
 
-    from femcal.fe.idp import PublishedIdp
     from femcal.fe.validate import LiteratureRange
+    from femcal.settings.fe import PublishedIdp
 
 
 @dataclass(frozen=True)
