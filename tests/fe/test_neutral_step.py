@@ -17,12 +17,11 @@ from femcal.settings import validate_params
 #: into extension, so that from the mesh's geometry flexion starts below zero.
 TAUT = {"ligaments": {"intertransverse": {"slack_strain": -0.15, "stiffness_n_per_mm": 40.0}}}
 LEVELS = (0.5, 1.0)  # Nm
+JOB = FEJob(0, dict(BOX_CENTRE), "Flexion", LEVELS)
 
 
 def _deck(**settings) -> str:
-    return CalculixDisc(geometry="coarse", **settings).deck(
-        FEJob(0, dict(BOX_CENTRE), "Flexion", LEVELS)
-    )[0]
+    return CalculixDisc(geometry="coarse", **settings).deck(JOB)[0]
 
 
 def test_the_neutral_step_comes_first_without_load_and_prints_the_zero():
@@ -49,8 +48,7 @@ def test_rotations_are_counted_from_where_the_unloaded_disc_settles(tmp_path):
     results = {}
     for neutral in (False, True):
         adapter = CalculixDisc(geometry="coarse", posterior=TAUT, neutral_step=neutral)
-        job = FEJob(0, dict(BOX_CENTRE), "Flexion", LEVELS)
-        results[neutral] = simulate(adapter, job, tmp_path / str(neutral))
+        results[neutral] = simulate(adapter, JOB, tmp_path / str(neutral))
     assert all(r.ok for r in results.values()), [r.reason for r in results.values()]
     shift = results[True].rom_deg - results[False].rom_deg
     assert shift[0] > 0.1  # deg: the taut ligaments had turned the disc into extension
