@@ -228,6 +228,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--score", type=Path, default=None, help="the cohort's diagnosis folder")
     args = parser.parse_args(argv)
     params = yaml.safe_load((REPO / "fe" / "params.yaml").read_text())
+    if not (args.cohort / "answers.csv").is_file():
+        raise SystemExit(
+            f"{args.cohort / 'answers.csv'}: not found; the FE-made cohort is a DVC output: "
+            "run `dvc checkout fe/dvc.yaml:cohort` (or `dvc repro fe/dvc.yaml -s cohort`), or "
+            "give its folder with --cohort"
+        )
     answers = pd.read_csv(args.cohort / "answers.csv", dtype={"specimen": str})
     records = run(answers, params, args.store)
     table = reach(records, args.cohort, params["fe"]["moments"])

@@ -114,3 +114,10 @@ def test_reach_against_the_cohorts_own_curves(tmp_path):
         1,
         0,
     )
+
+
+def test_a_missing_cohort_says_how_to_get_it(tmp_path):
+    from experiments.fe_element_reach import main
+
+    with pytest.raises(SystemExit, match="not found; the FE-made cohort is a DVC output"):
+        main(["--out", str(tmp_path / "out"), "--cohort", str(tmp_path / "nowhere")])
