@@ -52,6 +52,7 @@ import pandas as pd
 import yaml
 
 from experiments.common import REPO
+from femcal.schema import LOAD_CASES
 
 #: The element removed -> the effect that models it and the load cases run without it.
 REMOVED: dict[str, tuple[str, tuple[str, ...]]] = {
@@ -62,7 +63,6 @@ REMOVED: dict[str, tuple[str, tuple[str, ...]]] = {
 #: REMOVED) + the specimen's number.
 FIRST_ID = 300000
 NOISE_DEG = 0.05
-LOAD_CASES = ("Flexion", "Extension", "LateralBending", "AxialRotation")
 
 
 def variants(answers: pd.DataFrame) -> pd.DataFrame:
@@ -126,17 +126,17 @@ def run(answers: pd.DataFrame, params: Mapping[str, Any], store: Path) -> pd.Dat
 
 
 def cohort_curves(cohort: Path) -> dict[tuple[str, str], np.ndarray]:
-    """The cohort's noise-free curves, (specimen, load case) -> RoM (m,) in degrees."""
-    answers = pd.read_csv(cohort / "answers.csv", dtype={"specimen": str})
-    design = pd.read_csv(cohort / "clean" / "design.csv")
-    row_of = dict(zip(design["config_id"], design["row"]))
-    out = {}
-    for lc in LOAD_CASES:
-        path = cohort / "clean" / "Test" / f"ROM_Results_{lc}_TestData_64_wMoment.csv"
-        values = pd.read_csv(path).to_numpy(float)[:, 1:]
-        for specimen, config in zip(answers["specimen"], answers["config_id"]):
-            out[(specimen, lc)] = values[row_of[config]]
-    return out
+    """The cohort's noise-free curves, (specimen, load case) -> RoM (m,) in degrees: its
+    ``clean/Test`` folder read as femcal reads measurements (specimen ``i`` is row ``i``, as
+    in the loop's diagnosis)."""
+    from femcal.measurements import read_measurements
+
+    m = read_measurements(cohort / "clean" / "Test")
+    return {
+        (s, lc): m.rom_deg[i, j]
+        for i, s in enumerate(m.specimens)
+        for j, lc in enumerate(LOAD_CASES)
+    }
 
 
 def shape(delta: np.ndarray) -> str:

@@ -48,10 +48,6 @@ PREFERRED = "the fits prefer another set"
 NOT_FITTED = "true set not fitted"
 
 
-def _model(label: str) -> Model:
-    return Model() if label == DISC_ALONE else Model.parse(label)
-
-
 def margins(
     specimen: dict[str, Any], truth: set[str], options: DiagnoseOptions
 ) -> dict[str, Any] | None:
@@ -63,7 +59,7 @@ def margins(
     kept = specimen["probabilities"]["models"]
     scored = []
     for entry in specimen["ranking"]:
-        model = _model(entry["effect"])
+        model = Model.parse(entry["effect"])
         cost = model_prior_cost(model, options.min_delta, options.min_delta_inadequate)
         scored.append((entry["criterion"] + cost, entry["effect"], set(model.effects)))
     scored.sort(key=lambda s: s[0])

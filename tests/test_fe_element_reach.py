@@ -58,11 +58,9 @@ def _cohort(tmp_path, answers):
     folder = tmp_path / "cohort"
     (folder / "clean" / "Test").mkdir(parents=True)
     answers.to_csv(folder / "answers.csv", index=False)
-    pd.DataFrame({"config_id": answers["config_id"], "row": [2, 0, 1]}).to_csv(
-        folder / "clean" / "design.csv", index=False
-    )
     for k, lc in enumerate(["Flexion", "Extension", "LateralBending", "AxialRotation"]):
-        rows = np.array([[0.0, *(np.array(MOMENTS) * (r + 1 + k))] for r in range(3)])
+        # specimen i is row i; its stiffness factor r + 1 + k
+        rows = np.array([[0.0, *(np.array(MOMENTS) * (r + 1 + k))] for r in (2, 0, 1)])
         pd.DataFrame(rows, columns=["0.0", *map(str, MOMENTS)]).to_csv(
             folder / "clean" / "Test" / f"ROM_Results_{lc}_TestData_64_wMoment.csv",
             index=False,
@@ -74,7 +72,7 @@ def test_reach_against_the_cohorts_own_curves(tmp_path):
     answers = _answers()
     folder = _cohort(tmp_path, answers)
     m = np.array(MOMENTS)
-    # specimen 2 is row 1 of the cohort's curves: extension 3 * m
+    # specimen 2: extension 3 * m
     without = 3 * m + 0.4 * (1 - np.exp(-m))
     records = pd.DataFrame(
         {
