@@ -239,3 +239,19 @@ def test_kill_9_loses_nothing_finished_and_rerun_resumes(tmp_path):
     assert len(table) == 4 * 5
     ok = table["status"] == STATUS_OK
     assert table.loc[ok, "rom_deg"].gt(0).all() and table.loc[~ok, "rom_deg"].isna().all()
+
+
+def test_two_local_clusters_at_once_do_not_compete_for_a_dashboard_port():
+    """Each local cluster's dashboard takes a free port: a second cluster beside the first (a
+    campaign and a validate on one machine) starts without Dask's "Port 8787 is already in
+    use" warning."""
+    import warnings
+
+    from femcal.fe.campaign import dask_client
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with dask_client(None, 1) as first, dask_client(None, 1) as second:
+            assert first.submit(sum, [1, 2]).result() == 3
+            assert second.submit(sum, [3, 4]).result() == 7
+    assert not [w for w in caught if "already in use" in str(w.message)]

@@ -291,7 +291,9 @@ def dask_client(scheduler_address: str | None, n_workers: int) -> Iterator[Any]:
     """A Dask client: on ``scheduler_address``, or on a new local cluster of processes.
 
     The local cluster has ``n_workers`` single-threaded worker processes (one FE solver
-    each, ``OMP_NUM_THREADS=1``) and no dashboard.
+    each, ``OMP_NUM_THREADS=1``); its dashboard listens on a free port, so that two clusters
+    on one machine do not compete for Dask's default 8787 (``None`` does not turn it off:
+    dask/distributed#8136).
     """
     from distributed import Client, LocalCluster
 
@@ -313,7 +315,7 @@ def dask_client(scheduler_address: str | None, n_workers: int) -> Iterator[Any]:
         n_workers=int(n_workers),
         threads_per_worker=1,
         processes=True,
-        dashboard_address=None,
+        dashboard_address=":0",
         silence_logs=logging.ERROR,
         env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"},
     )
