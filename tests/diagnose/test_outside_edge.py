@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from femcal.diagnose.box_edge import (
+    AT_BOUND,
     EDGE_DRAWS,
     EDGE_MAX_DRAWS,
     EDGE_STOP,
     SOFTER,
     STIFFER,
-    _box_draws,
     _draw,
     _exceeding,
     bounds_pressed,
@@ -139,6 +139,26 @@ def test_the_box_answers_how_often_its_discs_look_as_much_at_its_edge(edge_world
     assert beyond["probability"] > NAMED
 
 
+def _fitted_unit(state, i, sim, rng):
+    """The disc-alone fits of the curves ``sim`` (r, 4, m) as _pressed fits them: unit
+    coordinates (r, 13)."""
+    from femcal.diagnose.search import disc_fit
+
+    base = state.base
+    weight = np.ascontiguousarray(np.broadcast_to(state.weight[i], sim.shape))
+    fit_state = types.SimpleNamespace(
+        base=base, measured=sim, rng=rng, start_bank=state.start_bank, options=state.options
+    )
+    v, _ = disc_fit(fit_state, weight)
+    return base.space.to_unit(base.to_physical(v.double().numpy()))
+
+
+# How far a float32 disc-alone fit of a draw moves when other rows are fitted beside it (unit
+# coordinates): the batch's rounding steers the fit along the directions the curves do not
+# fix (8.7e-4 at most over the draws below when written, on an AVX-512 CPU at one thread).
+FIT_ROUNDING = 2e-3
+
+
 @pytest.mark.parametrize("quantile", [None, 0.0, 0.3, 1.0])
 def test_fitting_only_the_draws_that_can_exceed_counts_as_fitting_them_all(edge_world, quantile):
     """The exceedances of two successive rounds (the generator carried on) from the fits of
@@ -146,7 +166,8 @@ def test_fitting_only_the_draws_that_can_exceed_counts_as_fitting_them_all(edge_
     a draw's margin needs no fit, and the fit draws the same numbers for any rows (None: a
     margin below every draw's, so that no draw is fitted but the generator moves on). The
     count is read at the draws' own median of bounds pressed, so that it counts some fits
-    and not others."""
+    and not others. A draw whose fit has a coordinate within FIT_ROUNDING of AT_BOUND's
+    threshold may count either way (the fits agree to float32 rounding, not bit for bit)."""
     state, env, _ = edge_world
     counted = []
     for i in range(2):
@@ -155,10 +176,17 @@ def test_fitting_only_the_draws_that_can_exceed_counts_as_fitting_them_all(edge_
         margin = float(mr0.min() - 1.0 if quantile is None else np.quantile(mr0, quantile))
         full, some = np.random.default_rng(7), np.random.default_rng(7)
         for _round in range(2):
-            kr, mr = _box_draws(state, i, env, full, EDGE_DRAWS)
+            sim = _draw(state, i, full, EDGE_DRAWS)
+            mr, _ = margins(sim, env.lower, env.upper, state.sigma[i])
+            unit = _fitted_unit(state, i, sim, full)
+            kr = bounds_pressed(unit)
             k = int(np.median(kr))
-            expected = int(np.sum((kr >= k) & (mr <= margin)))
-            assert _exceeding(state, i, env, some, EDGE_DRAWS, k, margin) == expected
-            counted.append(0 < expected < np.sum(mr <= margin))
+            near = mr <= margin
+            expected = int(np.sum((kr >= k) & near))
+            edge = np.minimum(np.abs(unit - AT_BOUND), np.abs(unit - (1 - AT_BOUND)))
+            either_way = int(np.sum(near & (edge < FIT_ROUNDING).any(axis=1)))
+            got = _exceeding(state, i, env, some, EDGE_DRAWS, k, margin)
+            assert abs(got - expected) <= either_way
+            counted.append(0 < expected < np.sum(near))
         assert full.random() == some.random()  # both generators at the same place
     assert any(counted) or quantile in (None, 0.0)

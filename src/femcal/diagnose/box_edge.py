@@ -21,7 +21,10 @@ many again up to :data:`EDGE_MAX_DRAWS` while fewer than :data:`EDGE_STOP` draws
 sequential test: a clearly inside specimen costs the first draws only). A draw's margin needs
 its curves only, not its fit: only the draws whose margin is at most the specimen's can
 exceed, and only they are fitted (:func:`_exceeding`; the fit draws the same numbers from the
-generator for any number of rows, so the draws and the count are those of fitting them all).
+generator for any number of rows, so the draws are those of fitting them all, and so is the
+count up to the fits' float32 rounding: a fit among other rows lands within 1e-3 in unit
+coordinates, which moves a draw's count only where a coordinate sits that close to
+:data:`AT_BOUND`).
 
 **The probability**: a disc beyond the box presses the faces it lies beyond and sits at the
 envelope's edge, so the likelihood ratio of the event is at most ``1 / p`` (its probability
