@@ -21,6 +21,7 @@ from femcal.diagnose.box_edge import (
     edge_probability,
     edge_reading,
     edge_words,
+    fitted_unit,
     margins,
 )
 from femcal.diagnose.outside import NAMED, REPORTED
@@ -139,20 +140,6 @@ def test_the_box_answers_how_often_its_discs_look_as_much_at_its_edge(edge_world
     assert beyond["probability"] > NAMED
 
 
-def _fitted_unit(state, i, sim, rng):
-    """The disc-alone fits of the curves ``sim`` (r, 4, m) as _pressed fits them: unit
-    coordinates (r, 13)."""
-    from femcal.diagnose.search import disc_fit
-
-    base = state.base
-    weight = np.ascontiguousarray(np.broadcast_to(state.weight[i], sim.shape))
-    fit_state = types.SimpleNamespace(
-        base=base, measured=sim, rng=rng, start_bank=state.start_bank, options=state.options
-    )
-    v, _ = disc_fit(fit_state, weight)
-    return base.space.to_unit(base.to_physical(v.double().numpy()))
-
-
 # How far a float32 disc-alone fit of a draw moves when other rows are fitted beside it (unit
 # coordinates): the batch's rounding steers the fit along the directions the curves do not
 # fix (8.7e-4 at most over the draws below when written, on an AVX-512 CPU at one thread).
@@ -178,7 +165,7 @@ def test_fitting_only_the_draws_that_can_exceed_counts_as_fitting_them_all(edge_
         for _round in range(2):
             sim = _draw(state, i, full, EDGE_DRAWS)
             mr, _ = margins(sim, env.lower, env.upper, state.sigma[i])
-            unit = _fitted_unit(state, i, sim, full)
+            unit = fitted_unit(state, i, sim, full)
             kr = bounds_pressed(unit)
             k = int(np.median(kr))
             near = mr <= margin

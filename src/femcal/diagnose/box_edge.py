@@ -109,8 +109,8 @@ def _draw(state, i: int, rng: np.random.Generator, count: int) -> np.ndarray:
     return np.where(state.mask[i], curves + rng.normal(size=curves.shape) * state.sigma[i], np.nan)
 
 
-def _pressed(state, i: int, sim: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Bounds pressed (r,) by the disc-alone fits of the curves ``sim`` (r, 4, m) under
+def fitted_unit(state, i: int, sim: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The disc-alone fits (unit coordinates, (r, 13)) of the curves ``sim`` (r, 4, m) under
     specimen ``i``'s weights; ``rng`` feeds the fit's starts (the same draws for any r)."""
     from femcal.diagnose.search import disc_fit  # the same fit (search imports this module)
 
@@ -120,7 +120,12 @@ def _pressed(state, i: int, sim: np.ndarray, rng: np.random.Generator) -> np.nda
         base=base, measured=sim, rng=rng, start_bank=state.start_bank, options=state.options
     )
     v_fit, _ = disc_fit(fit_state, weight)
-    return bounds_pressed(base.space.to_unit(base.to_physical(v_fit.double().numpy())))
+    return base.space.to_unit(base.to_physical(v_fit.double().numpy()))
+
+
+def _pressed(state, i: int, sim: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Bounds pressed (r,) by the disc-alone fits of the curves ``sim`` (:func:`fitted_unit`)."""
+    return bounds_pressed(fitted_unit(state, i, sim, rng))
 
 
 def _box_draws(state, i: int, env, rng: np.random.Generator, count: int):
