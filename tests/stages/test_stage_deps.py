@@ -87,6 +87,8 @@ def stages() -> list[tuple[str, str, list[str], Path]]:
             cmds = body["cmd"] if isinstance(body["cmd"], list) else [body["cmd"]]
             for cmd in cmds:  # a stage may run several commands, each checked
                 words = cmd.split()
+                while words and "=" in words[0]:  # an environment setting (OMP_NUM_THREADS=1)
+                    words = words[1:]
                 # ``femcal <command>``, or ``python -m femcal.<module>`` (a library module's main)
                 command = words[2] if words[:2] == ["python", "-m"] else words[1]
                 out.append((pipeline.relative_to(ROOT).as_posix(), stage, body["deps"], command))
