@@ -224,7 +224,10 @@ def test_every_stage_with_metrics_passes_its_metrics_file(dvc_yaml):
     for name, stage in stages.items():
         body = stage.get("do", stage)
         cmd = body["cmd"][0] if isinstance(body["cmd"], list) else body["cmd"]  # the first
-        command = [w for w in cmd.split() if "=" not in w][1]  # past OMP_NUM_THREADS=1
+        words = cmd.split()
+        while words and "=" in words[0]:  # an environment setting (OMP_NUM_THREADS=1)
+            words = words[1:]
+        command = words[1]
         if command not in explicit:
             continue
         (metrics,) = [next(iter(m)) for m in body.get("metrics", [])]
