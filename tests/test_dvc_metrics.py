@@ -21,6 +21,8 @@ from femcal.dvc_metrics import (
     MetricsFileError,
     details_path,
     headline,
+    run_path,
+    split_run,
     write,
 )
 
@@ -88,7 +90,6 @@ def test_headline_maps_each_kind_onto_the_vocabulary(tmp_path):
         "n": 64,
         "flagged": 3,
         "failed": 0,
-        "seconds": 0.2,
     }
     assert all(set(keys) <= set(VOCABULARY) for keys in SOURCES.values())
     nested = {"idp_head": {"mae_mpa": 0.004}, "fe_mae_deg": 0.07, "fe_predictive": {"a": 1}}
@@ -100,6 +101,24 @@ def test_headline_maps_each_kind_onto_the_vocabulary(tmp_path):
     assert details_path(path).name == "validate.details.json"
     with pytest.raises(MetricsFileError, match="No DVC metrics mapping for stage kind 'nope'"):
         headline("nope", figures)
+
+
+def test_the_run_figures_go_to_the_run_record_not_to_the_hashed_files(tmp_path):
+    """Wall time and run id describe the run: a rebuild from the same inputs writes the same
+    metrics file and report, and the run record (not versioned) holds them."""
+    figures = {"val_mae_deg": 0.08, "n_trials": 5, "seconds": 1875.7, "mlflow_run_id": "abc"}
+    path = tmp_path / "reports" / "metrics" / "train-large.json"
+    head = write(path, "train", figures, details=True)
+    assert head == {"mae_deg": 0.08, "n": 5} == json.loads(path.read_text())
+    assert json.loads(details_path(path).read_text()) == {"val_mae_deg": 0.08, "n_trials": 5}
+    assert run_path(path) == tmp_path / "reports" / "train-large.run.json"
+    assert json.loads(run_path(path).read_text()) == {"seconds": 1875.7, "mlflow_run_id": "abc"}
+    again = dict(figures, seconds=12.0, mlflow_run_id="def")
+    before = path.read_bytes(), details_path(path).read_bytes()
+    write(path, "train", again, details=True)
+    assert (path.read_bytes(), details_path(path).read_bytes()) == before
+    assert run_path("reports/calibrate-test.json") == Path("reports/calibrate-test.run.json")
+    assert split_run({"a": 1, "seconds": 2}) == ({"a": 1}, {"seconds": 2})
 
 
 def test_a_metrics_folder_puts_the_details_at_the_report_name():

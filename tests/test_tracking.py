@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -12,6 +13,7 @@ from femcal.errors import ConfigError, ModelRegistryError, UntrustedArtifactErro
 from femcal.surrogates.nn import NeuralSurrogate
 from femcal.tracking import (
     RECORD_FILE,
+    RUN_FILE,
     champion_version,
     configure_tracking,
     ensure_experiment,
@@ -21,6 +23,7 @@ from femcal.tracking import (
     load_surrogate,
     log_surrogate,
     open_model,
+    portable_mlmodel,
     register_and_promote,
 )
 from femcal.training.pyfunc import (
@@ -30,6 +33,8 @@ from femcal.training.pyfunc import (
 )
 
 from synth import study_space, tidy_table
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
@@ -112,8 +117,27 @@ def folder(store, fitted):
     with mlflow.start_run() as run:
         info = log_surrogate(model, study_space())
     version, _ = register_and_promote(info.model_uri, name="m", val_metric=0.5)
-    record = {"run_id": run.info.run_id, "registered_model": "m", "version": version}
-    return export_model(info.model_uri, store / "models" / "surrogate-large", record=record)
+    record = {"registered_model": "m", "version": version}
+    provenance = {"run_id": run.info.run_id, "model_uri": info.model_uri}
+    dest = store / "models" / "surrogate-large"
+    return export_model(info.model_uri, dest, record=record, run=provenance)
+
+
+def test_two_loggings_of_one_model_export_the_same_files(folder, fitted, tmp_path):
+    """MLmodel keeps what loads the model, not the run, time or machine that logged it; the
+    run goes to RUN_FILE, which .dvcignore leaves out of DVC's hashes."""
+    model, _ = fitted
+    with mlflow.start_run():
+        again = export_model(log_surrogate(model, study_space()).model_uri, tmp_path / "again")
+    text = (folder / "MLmodel").read_text()
+    for key in ("run_id", "model_id", "model_uuid", "utc_time_created", "artifact_path", "uri"):
+        assert f"{key}:" not in text.replace("artifact_path: input_example", "")
+    assert "model_code_path: pyfunc_model.py" in text
+    assert (folder / "MLmodel").read_bytes() == (again / "MLmodel").read_bytes()
+    assert folder_sha256(folder) == folder_sha256(again)
+    assert json.loads((folder / RUN_FILE).read_text())["run_id"]
+    assert RUN_FILE in (ROOT / ".dvcignore").read_text().split()
+    assert portable_mlmodel(text) == text
 
 
 def test_exported_folder_is_a_complete_mlflow_model(folder, fitted):

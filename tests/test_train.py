@@ -265,3 +265,21 @@ def test_idp_target_errors(store):
             target="idp_mpa",
             fixed={**TINY, "log_target": False},
         )
+
+
+def test_a_heldout_table_sets_the_stated_error(store):
+    """The stated error (what calibrate and diagnose count) comes from the held-out rows when
+    given; the validation error still decides the promotion."""
+    table, heldout = tidy_table(20, seed=2), tidy_table(6, seed=7)
+    plain = _train(table, store, n_trials=0, register_as=None)
+    res = _train(table, store, n_trials=0, register_as=None, heldout=heldout)
+    assert res.val_mae_deg == plain.val_mae_deg
+    model = res.surrogate
+    pred = model.predict(heldout)
+    mae = float(np.mean(np.abs(pred - heldout["rom_deg"].to_numpy())))
+    assert model.best_val_mae_deg_ == pytest.approx(mae, rel=1e-12)
+    assert model.val_error_profile_ != plain.surrogate.val_error_profile_
+    assert MlflowClient().get_run(res.run_id).data.metrics["heldout_val_mae_deg"] == mae
+    empty = heldout.assign(rom_deg=np.nan)
+    with pytest.raises(ConfigError, match="held-out table for the stated error has no finite"):
+        _train(table, store, n_trials=0, register_as=None, heldout=empty)

@@ -10,6 +10,11 @@ tables, lists, names, run ids, hyperparameters) go to a plain output beside the 
 ``reports/metrics/`` and each stage's report at ``reports/<name>.json``), or stay where the
 stage writes them whole
 (``summary.json`` of calibrate and diagnose, ``reports/surrogates_table.json`` of evaluate).
+
+What describes the run rather than what it computed (:data:`RUN_KEYS`: wall time, MLflow run
+id) stays out of both, which DVC hashes: it goes to the run record ``reports/<name>.run.json``
+(:func:`run_path`; not versioned), to the stage's MLflow run and to the console. So a stage
+rebuilt from the same inputs writes the files ``dvc.lock`` names.
 """
 
 from __future__ import annotations
@@ -39,8 +44,12 @@ VOCABULARY: dict[str, str] = {
     "failed": "failures (FE jobs; calibrated parameters at a bound)",
     "version": "the registered model version",
     "promoted": "whether the model became the champion",
-    "seconds": "wall time, s (to 0.1 s)",
+    "seconds": "the FE campaign's wall time from its store, s (to 0.1 s)",
 }
+
+#: Figures of the run, not of what it computed: kept out of the metrics file and the report
+#: (:func:`write` puts them in the run record, :func:`run_path`).
+RUN_KEYS: tuple[str, ...] = ("seconds", "mlflow_run_id")
 
 Source = tuple[str, ...] | Callable[[Mapping[str, Any]], Any]
 
@@ -68,7 +77,6 @@ SOURCES: dict[str, dict[str, Source]] = {
         "n": ("n_trials",),
         "version": ("registered_version",),
         "promoted": ("promoted",),
-        "seconds": ("seconds",),
     },
     "evaluate": {
         "mae_deg": ("nn_large_mae_deg",),
@@ -83,12 +91,10 @@ SOURCES: dict[str, dict[str, Source]] = {
         "n": ("n_specimens",),
         "flagged": _total("n_r2_negative", "n_outside_envelope", "n_beyond_noise"),
         "failed": ("n_outside_bounds",),
-        "seconds": ("seconds",),
     },
     "diagnose": {
         "n": ("n_specimens",),
         "flagged": ("effects.unexplained", "n_unexplained"),
-        "seconds": ("seconds",),
     },
     "simulate": {
         "n": ("n_configurations",),
@@ -199,20 +205,48 @@ def details_path(path: str | Path) -> Path:
     return path.with_name(f"{path.stem}.details.json")
 
 
+def run_path(path: str | Path) -> Path:
+    """The run record of a metrics file's stage: ``reports/x.json`` and
+    ``reports/metrics/x.json`` -> ``reports/x.run.json`` (ignored by git, not a DVC output)."""
+    path = Path(path)
+    folder = path.parent.parent if path.parent.name == "metrics" else path.parent
+    return folder / f"{path.stem}.run.json"
+
+
+def split_run(figures: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``figures`` without :data:`RUN_KEYS`, and those keys alone (top level only)."""
+    computed = {k: v for k, v in figures.items() if k not in RUN_KEYS}
+    run = {k: v for k, v in figures.items() if k in RUN_KEYS}
+    return computed, run
+
+
+def write_run(path: str | Path, run: Mapping[str, Any]) -> None:
+    """Write the run record (:func:`run_path`) of the metrics file ``path``, when ``run`` holds
+    anything."""
+    if run:
+        from femcal.outputs import write_text_atomic
+
+        text = json.dumps(dict(run), indent=2, default=str) + "\n"
+        write_text_atomic(run_path(path), text)
+
+
 def write(
     path: str | Path | None, kind: str, figures: Mapping[str, Any], *, details: bool = False
 ) -> dict[str, Any] | None:
     """Write a stage's DVC metrics file (its :func:`headline`), and with ``details`` every
-    figure to :func:`details_path` (each written whole or not at all). Nothing when ``path`` is
-    None. Returns the headline."""
+    figure to :func:`details_path` (each written whole or not at all); :data:`RUN_KEYS` go to
+    the run record (:func:`write_run`) instead. Nothing when ``path`` is None. Returns the
+    headline."""
     if not path:
         return None
     from femcal.outputs import write_text_atomic
 
-    head = headline(kind, figures)
+    computed, run = split_run(figures)
+    head = headline(kind, computed)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     if details:
-        text = json.dumps(figures, indent=2, default=str) + "\n"
+        text = json.dumps(computed, indent=2, default=str) + "\n"
         write_text_atomic(details_path(path), text)
     write_text_atomic(path, json.dumps(head, indent=2) + "\n")
+    write_run(path, run)
     return head

@@ -73,7 +73,10 @@ def _scalar(value: Any) -> Any:
 
 def _checked(headline: dict[str, Any], what: str, kind: str) -> dict[str, Any]:
     """``headline`` checked (flat, at most :data:`MAX_KEYS`) and mapped onto the DVC metrics
-    vocabulary of a stage of ``kind`` (:func:`femcal.dvc_metrics.headline`)."""
+    vocabulary of a stage of ``kind`` (:func:`femcal.dvc_metrics.headline`); the run's own
+    figures (:data:`femcal.dvc_metrics.RUN_KEYS`) are carried as they are, for the run record
+    (:func:`femcal.stages.common.write_metrics`)."""
+    from femcal.dvc_metrics import RUN_KEYS
     from femcal.dvc_metrics import headline as on_vocabulary
 
     nested = [k for k, v in headline.items() if isinstance(v, (dict, list, tuple))]
@@ -83,7 +86,8 @@ def _checked(headline: dict[str, Any], what: str, kind: str) -> dict[str, Any]:
             f"{len(headline)} keys, nested: {nested}. Move tables to a plain output under "
             "reports/ (see femcal.headlines)."
         )
-    return on_vocabulary(kind, headline)
+    run = {k: headline[k] for k in RUN_KEYS if k in headline}
+    return {**on_vocabulary(kind, headline), **run}
 
 
 def _require(figures: Mapping[str, Any], keys: Sequence[str], what: str) -> None:

@@ -47,9 +47,17 @@ DEFAULT_MODEL_NAME = "ivd-rom-surrogate"
 CHAMPION_ALIAS = "champion"
 #: Tag on a model version holding the validation metric used for promotion.
 VALIDATION_TAG = "val_mae_deg"
-#: femcal's training record in an exported model folder (run, registered version): not part of
-#: the MLflow model, so left out of the folder's content hash (:func:`folder_sha256`).
+#: femcal's training record in an exported model folder (the registered name and version, and
+#: whether it became the champion): not part of the MLflow model, so left out of the folder's
+#: content hash (:func:`folder_sha256`).
 RECORD_FILE = "mlflow.json"
+#: The run that logged an exported model (tracking URI, run id, logged model URI): provenance of
+#: one machine's store, listed in ``.dvcignore`` so a model rebuilt from the same inputs hashes
+#: as ``dvc.lock`` says.
+RUN_FILE = ".mlflow-run.json"
+#: What an ``MLmodel`` file says about the run, the time and the machine that logged it, left
+#: out of an exported folder (:func:`portable_mlmodel`).
+_RUN_KEYS = ("artifact_path", "model_id", "model_uuid", "run_id", "utc_time_created")
 #: MLflow's note of the registered name and version, rewritten by every registry download.
 _REGISTRY_NOTE = "registered_model_meta"
 
@@ -160,14 +168,56 @@ def log_surrogate(surrogate: Any, space: ParameterSpace, *, name: str = "model")
     return log_model_from_code(surrogate, kind="surrogate", example=input_example(space), name=name)
 
 
+def portable_mlmodel(text: str) -> str:
+    """An ``MLmodel`` file without what names the run, the time and the machine that logged it.
+
+    Left out: ``run_id``, ``model_id``, ``model_uuid``, ``utc_time_created``,
+    ``artifact_path`` and each artifact's source ``uri``; ``model_code_path`` is cut to its
+    file name (MLflow loads the code file of that name inside the model folder). What loads
+    and serves the model (flavors, signature, input example, environment) is kept as is.
+
+    Parameters
+    ----------
+    text : str
+        The YAML of an ``MLmodel`` file.
+
+    Returns
+    -------
+    str
+        The same model's YAML, equal for two trainings of the same weights.
+    """
+    import yaml
+
+    data = yaml.safe_load(text)
+    if not isinstance(data, dict):
+        return text
+    for key in _RUN_KEYS:
+        data.pop(key, None)
+    for flavor in (data.get("flavors") or {}).values():
+        if not isinstance(flavor, dict):
+            continue
+        for artifact in (flavor.get("artifacts") or {}).values():
+            if isinstance(artifact, dict):
+                artifact.pop("uri", None)
+        if isinstance(flavor.get("model_code_path"), str):
+            flavor["model_code_path"] = os.path.basename(flavor["model_code_path"])
+    return yaml.safe_dump(data, default_flow_style=False)
+
+
 def export_model(
-    model_uri: str, dest: str | Path, *, record: Mapping[str, Any] | None = None
+    model_uri: str,
+    dest: str | Path,
+    *,
+    record: Mapping[str, Any] | None = None,
+    run: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write a logged MLflow model into the folder ``dest``, file for file.
 
     The folder is what the train stage leaves in ``models/`` for DVC: ``mlflow.pyfunc.
     load_model(dest)``, ``mlflow models serve -m dest`` and :func:`load_surrogate` take it,
-    and its content hash (:func:`folder_sha256`) equals the registered model's.
+    and its content hash (:func:`folder_sha256`) equals the registered model's. Its
+    ``MLmodel`` is :func:`portable_mlmodel`'s: two trainings of the same weights write the
+    same files, whichever run, machine or time logged them.
 
     Parameters
     ----------
@@ -176,8 +226,11 @@ def export_model(
     dest : str or Path
         The folder to create; it must not exist or be empty.
     record : mapping, optional
-        femcal's training record (tracking URI, run id, registered name and version), written
-        as ``mlflow.json`` beside the model files.
+        femcal's training record (registered name and version, promoted), written as
+        :data:`RECORD_FILE` beside the model files.
+    run : mapping, optional
+        The run that logged it (tracking URI, run id, model URI), written as
+        :data:`RUN_FILE` (left out of DVC's hashes by ``.dvcignore``).
 
     Returns
     -------
@@ -194,8 +247,12 @@ def export_model(
         )
     dest.mkdir(parents=True, exist_ok=True)
     mlflow.artifacts.download_artifacts(artifact_uri=model_uri, dst_path=str(dest))
-    if record is not None:
-        (dest / RECORD_FILE).write_text(json.dumps(dict(record), indent=2, default=str) + "\n")
+    mlmodel = dest / "MLmodel"
+    if mlmodel.is_file():
+        mlmodel.write_text(portable_mlmodel(mlmodel.read_text()))
+    for name, content in ((RECORD_FILE, record), (RUN_FILE, run)):
+        if content is not None:
+            (dest / name).write_text(json.dumps(dict(content), indent=2, default=str) + "\n")
     return dest
 
 
@@ -318,9 +375,10 @@ def folder_sha256(path: str | Path) -> str:
     """SHA-256 over a model folder's files: their relative paths and contents, sorted.
 
     Left out: ``__pycache__`` (written when a process imports the model's code), femcal's
-    training record (:data:`RECORD_FILE`) and MLflow's ``registered_model_meta`` (which a
-    registry download rewrites), so a folder exported from a registered model hashes like the
-    registered model itself.
+    records (:data:`RECORD_FILE`, :data:`RUN_FILE`) and MLflow's ``registered_model_meta``
+    (which a registry download rewrites); ``MLmodel`` counts as :func:`portable_mlmodel`
+    writes it. So a folder exported from a registered model hashes like the registered model
+    itself, and two trainings of the same weights hash alike.
     """
     root = Path(path)
     digest = hashlib.sha256()
@@ -330,13 +388,16 @@ def folder_sha256(path: str | Path) -> str:
         if f.is_file()
         and "__pycache__" not in f.relative_to(root).parts
         and f.suffix != ".pyc"
-        and f.relative_to(root).as_posix() not in (RECORD_FILE, _REGISTRY_NOTE)
+        and f.relative_to(root).as_posix() not in (RECORD_FILE, RUN_FILE, _REGISTRY_NOTE)
     )
     for rel, file in files:
         content = hashlib.sha256()
-        with open(file, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                content.update(block)
+        if rel == "MLmodel":
+            content.update(portable_mlmodel(file.read_text()).encode())
+        else:
+            with open(file, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    content.update(block)
         digest.update(f"{rel}\0{content.hexdigest()}\n".encode())
     return digest.hexdigest()
 

@@ -183,7 +183,10 @@ def test_an_adhoc_diagnose_leaves_the_pipelines_metrics_alone(project, capsys):
     # The DVC stage names its metrics file (dvc.yaml: --metrics-file ${diagnose.metrics_file}).
     assert main([*args[:-1], "elsewhere2", "--metrics-file", "reports/diagnose.json"]) == 0
     assert json.loads(tracked.read_text())["n"] == 2
-    assert sorted(p.name for p in tracked.parent.iterdir()) == ["diagnose.json"]
+    # beside it, the run record (wall time: not hashed by DVC, not versioned)
+    written = sorted(p.name for p in tracked.parent.iterdir())
+    assert written == ["diagnose.json", "diagnose.run.json"]
+    assert json.loads((tracked.parent / "diagnose.run.json").read_text())["seconds"] > 0
 
 
 def test_the_first_error_comes_before_any_heavy_import(settings):

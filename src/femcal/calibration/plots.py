@@ -438,7 +438,7 @@ def plot_summary(
         ax.text(0.5, 0.5, f"{result.method} gives no ranges", ha="center", va="center")
         ax.set_axis_off()
     fig.suptitle(
-        f"{result.method}: {len(result.specimens)} specimens in {result.seconds:.2f} s, "
+        f"{result.method}: {len(result.specimens)} specimens, "
         f"MAE {np.nanmean(result.mae_deg):.4f}°, mean R² {np.nanmean(result.r2_mean):.4f}, "
         f"max exceedance {np.max(result.exceedance):g}",
         fontsize=11,

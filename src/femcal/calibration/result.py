@@ -136,7 +136,7 @@ class CalibrationResult:
 
     def metrics_frame(self) -> pd.DataFrame:
         """Per-specimen metrics: specimen, method, mae_deg, r2_mean, per load case, exceedance,
-        seconds, success, missing_load_cases; with an error scale also ``error_scale_deg``,
+        success, missing_load_cases; with an error scale also ``error_scale_deg``,
         ``rms_z``, ``dof`` and ``p_value`` (:attr:`rms_z`, :attr:`dof`, :attr:`p_value`)."""
         df = pd.DataFrame(
             {
@@ -150,7 +150,6 @@ class CalibrationResult:
             df[f"mae_{lc}"] = self.mae_per_load_case[:, j]
             df[f"r2_{lc}"] = self.r2_per_load_case[:, j]
         df["exceedance"] = self.exceedance
-        df["seconds"] = self.seconds
         df["success"] = self.success
         measured = np.isfinite(self.measured).any(axis=2)
         df["missing_load_cases"] = [

@@ -1,9 +1,10 @@
 """Is the surrogate's stated error honest? Its sd against FE on held-out configurations.
 
 The diagnosis and calibrate count the surrogate's own error as an sd
-(:meth:`femcal.moments.MomentPolicy.sigma_surrogate`: the model's validation error by moment,
-relative to the RoM at each point where the model records it, grown beyond the trained
-range). Against FE curves the surrogate never saw, a calibrated sd holds about 95 % of the
+(:meth:`femcal.moments.MomentPolicy.sigma_surrogate`: the error the model states by moment,
+from its validation rows or a held-out split, ``train.<split>.stated_error_split``, relative
+to the RoM at each point where the model records it, grown beyond the trained range).
+Against FE curves the surrogate never saw, a calibrated sd holds about 95 % of the
 errors within 2 sd (Gaussian errors) in every moment band; much less means the diagnosis sees
 physics in the surrogate's error, much more that it hides effects in an inflated sd.
 

@@ -398,7 +398,7 @@ def _write_and_log(
                 before_figures=log_tables,
             )
             lap(f"outputs (tables, plots: {plots})")
-            stage.note(mlflow_run_id=tracker.result())
+            stage.note(mlflow_run_id=tracker.result(), seconds=figures["seconds"])
             compared = tracker.result()
             stage.finalize()
             tracker.call(

@@ -294,7 +294,7 @@ def _write_and_log(
             **{f"n_verdict_{k.replace('+', '__')}": float(v) for k, v in diag.verdicts().items()},
         },
     )
-    stage.note(mlflow_run_id=tracker.result())
+    stage.note(mlflow_run_id=tracker.result(), seconds=diag.seconds)
     tracker.result()  # the tags, parameters and metrics logged
     stage.finalize()
     tracker.call(log_artifacts, folder=stage.path, artifact_path="diagnosis")  # the run's files

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from femcal.dvc_metrics import split_run
 from femcal.fe.options import AdaptOptions
 from femcal.fe.runtime import FeRuntime
 from femcal.stages.common import StageSettings, path_setting, typed, write_metrics
@@ -195,10 +196,11 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
             export_model(
                 info.model_uri,
                 out_model,
-                record={
+                record={"registered_model": model_name, "version": mv.version, "promoted": True},
+                run={
+                    "tracking_uri": mlflow.get_tracking_uri(),
                     "run_id": run.info.run_id,
-                    "registered_model": model_name,
-                    "version": mv.version,
+                    "model_uri": info.model_uri,
                 },
             )
         else:
@@ -216,6 +218,7 @@ def run_adapt(settings: AdaptSettings) -> dict[str, Any]:
             "out_dir": str(out_dir),
             "mlflow_run_id": run.info.run_id,
         }
-        (out_dir / "adapt.json").write_text(json.dumps(figures, indent=2) + "\n")
+        computed = split_run(figures)[0]  # the run id is the run's: the run record holds it
+        (out_dir / "adapt.json").write_text(json.dumps(computed, indent=2) + "\n")
         mlflow.log_artifacts(str(out_dir), artifact_path="adapt")
     return figures

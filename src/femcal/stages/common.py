@@ -155,11 +155,12 @@ def write_metrics(
     """
     if not path:
         return
-    from femcal.dvc_metrics import VOCABULARY, MetricsFileError, write
+    from femcal.dvc_metrics import VOCABULARY, MetricsFileError, split_run, write, write_run
 
     if kind is not None:
         write(path, kind, figures, details=details)
         return
+    figures, run = split_run(figures)
     unknown = sorted(set(figures) - set(VOCABULARY))
     if unknown:
         raise MetricsFileError(
@@ -169,6 +170,7 @@ def write_metrics(
     from femcal.outputs import write_text_atomic
 
     write_text_atomic(path, json.dumps(dict(figures), indent=2) + "\n")
+    write_run(path, run)
 
 
 def optuna_storage(params: Mapping[str, Any]) -> str:

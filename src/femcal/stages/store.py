@@ -72,12 +72,14 @@ def export_folder(result, out_dir: Path, registered_model: str | None) -> None:
         result.model_uri,
         tmp,
         record={
-            "tracking_uri": mlflow.get_tracking_uri(),
-            "run_id": result.run_id,
-            "model_uri": result.model_uri,
             "registered_model": registered_model,
             "version": result.version,
             "promoted": result.promoted,
+        },
+        run={
+            "tracking_uri": mlflow.get_tracking_uri(),
+            "run_id": result.run_id,
+            "model_uri": result.model_uri,
         },
     )
     if out_dir.exists():

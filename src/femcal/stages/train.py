@@ -33,6 +33,7 @@ class TrainSettings(StageSettings):
     register_as: str | None
     data_split: str | None = None
     target: str = "rom_deg"
+    heldout_split: str | None = None
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any], args: Mapping[str, Any]) -> TrainSettings:
@@ -59,6 +60,7 @@ class TrainSettings(StageSettings):
             register_as=model_name if settings.register_model else None,
             data_split=settings.split or split,
             target=settings.target,
+            heldout_split=settings.stated_error_split,
             params=params,
         )
 
@@ -66,7 +68,7 @@ class TrainSettings(StageSettings):
 def run(settings: TrainSettings) -> dict[str, Any]:
     """Train and export; returns the validation MAE, trials, seconds and registry outcome."""
     tracking(settings.params)
-    result = run_train(**settings.call_args())
+    result = run_train(settings)
     return {
         "split": settings.split,
         "target": result.target,
@@ -94,45 +96,37 @@ def _validation_error(figures: Mapping[str, Any]) -> str:
     return f"{figures['val_mae_deg']:.4f} deg"
 
 
-def run_train(
-    *,
-    prepared_dir: Path,
-    split: str,
-    out_dir: Path,
-    metrics_path: Path,
-    study: StudySearch,
-    final_members: int,
-    val_fraction: float,
-    register_as: str | None,
-    data_split: str | None = None,
-    target: str = "rom_deg",
-):
+def run_train(settings: TrainSettings):
     """Train (search + final ensemble) on one split; export the model folder, write the summary.
 
-    ``split`` names the run (Optuna study, MLflow run); ``data_split`` is the prepared table
-    trained on (default: ``split``), so that e.g. a held-out surrogate trains on "large" too.
-    ``study`` is the Optuna search; ``register_as`` the registered model name (None: not
+    ``settings.split`` names the run (Optuna study, MLflow run); ``data_split`` is the prepared
+    table trained on (default: ``split``), so that e.g. a held-out surrogate trains on "large"
+    too. ``study`` is the Optuna search; ``register_as`` the registered model name (None: not
     registered); ``target`` the output learnt (``rom_deg``, or ``idp_mpa`` for the FE
-    campaign's IDP head).
+    campaign's IDP head); ``heldout_split`` a prepared table of configurations never trained
+    on whose errors become the model's stated error (``train.<split>.stated_error_split``).
 
     ``out_dir`` receives the logged MLflow model file for file (:func:`femcal.tracking.
-    export_model`), with ``mlflow.json`` recording the run and the registered version: the
-    folder DVC versions is a complete model that loads and serves without the tracking store.
+    export_model`), with ``mlflow.json`` naming the registered version: the folder DVC
+    versions is a complete model that loads and serves without the tracking store.
     """
 
     from femcal.train import train_surrogate, write_summary
 
-    table, space = load_split(prepared_dir, data_split or split)
+    s = settings
+    table, space = load_split(s.prepared_dir, s.data_split or s.split)
+    heldout = load_split(s.prepared_dir, s.heldout_split)[0] if s.heldout_split else None
     result = train_surrogate(
         table,
         space,
-        final_members=final_members,
-        val_fraction=val_fraction,
-        register_as=register_as,
-        run_name=f"train-{split}",
-        target=target,
-        **study.keywords(),
+        final_members=s.final_members,
+        val_fraction=s.val_fraction,
+        register_as=s.register_as,
+        run_name=f"train-{s.split}",
+        target=s.target,
+        heldout=heldout,
+        **s.study.keywords(),
     )
-    export_folder(result, out_dir, register_as)
-    write_summary(result, metrics_path)
+    export_folder(result, s.out_dir, s.register_as)
+    write_summary(result, s.metrics_path)
     return result
