@@ -140,6 +140,37 @@ def test_two_loggings_of_one_model_export_the_same_files(folder, fitted, tmp_pat
     assert portable_mlmodel(text) == text
 
 
+def test_two_loggings_of_one_model_hash_alike_for_dvc(folder, fitted, tmp_path, monkeypatch):
+    """DVC, with the project's .dvcignore, hashes the exported folders of two runs alike: the
+    model folder a fresh clone rebuilds matches the lock."""
+    import shutil
+
+    from dvc.repo import Repo
+
+    model, _ = fitted
+    record = json.loads((folder / RECORD_FILE).read_text())
+    with mlflow.start_run() as run:
+        info = log_surrogate(model, study_space())
+    again = export_model(
+        info.model_uri, tmp_path / "again", record=record, run={"run_id": run.info.run_id}
+    )
+    assert (again / RUN_FILE).read_text() != (folder / RUN_FILE).read_text()
+    root = tmp_path / "repo"
+    root.mkdir()
+    (root / ".dvcignore").write_text((ROOT / ".dvcignore").read_text())
+    Repo.init(str(root), no_scm=True)
+    monkeypatch.chdir(root)
+    digests = []
+    for source in (folder, again):
+        shutil.copytree(source, root / "model")
+        with Repo(str(root)) as repo:
+            repo.add("model", no_commit=True)
+        digests.append((root / "model.dvc").read_text())
+        shutil.rmtree(root / "model")
+        (root / "model.dvc").unlink()
+    assert digests[0] == digests[1]
+
+
 def test_exported_folder_is_a_complete_mlflow_model(folder, fitted):
     model, table = fitted
     frame = table[["load_case", "moment_nm", *study_space().names]]
