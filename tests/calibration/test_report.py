@@ -226,16 +226,21 @@ def test_the_residuals_are_tested_against_the_noise(tmp_path, curve_model, truth
     assert "n_beyond_noise" not in write_outputs(plain, tmp_path / "plain", plots="none")
 
 
-def test_before_figures_is_called_with_the_tables_written_and_no_figure_yet(
-    tmp_path, curve_model, truth
-):
-    result = calibrate(
+def _two_specimens(curve_model, truth):
+    """A pgd calibration of the first two specimens (a small bank: about a second)."""
+    return calibrate(
         curve_model,
         truth[1][:2],
         specimens=["S0", "S1"],
         method="pgd",
         options={"n_bank_uniform": 64},
     )
+
+
+def test_before_figures_is_called_with_the_tables_written_and_no_figure_yet(
+    tmp_path, curve_model, truth
+):
+    result = _two_specimens(curve_model, truth)
     out, seen = tmp_path / "out", {}
 
     def hook(figures):
@@ -257,13 +262,7 @@ def test_a_rerun_writes_the_same_files(tmp_path, curve_model, truth):
     their wall times differ: the time is in the returned figures only."""
     folders, times = [], []
     for name in ("first", "second"):
-        result = calibrate(
-            curve_model,
-            truth[1][:2],
-            specimens=["S0", "S1"],
-            method="pgd",
-            options={"n_bank_uniform": 64},
-        )
+        result = _two_specimens(curve_model, truth)
         figures = write_outputs(result, tmp_path / name, plots="summary")
         folders.append(tmp_path / name)
         times.append(figures["seconds"])

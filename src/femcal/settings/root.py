@@ -61,9 +61,6 @@ class MlflowSettings(Section):
     model_name: NAME = setting("registered name of the surrogate")
 
 
-_STATED = "held-out table whose errors the model states as its own (default: validation rows)"
-
-
 class TrainSplitSettings(Section):
     """``train.<split>``: one surrogate trained on a prepared split (search + ensemble)."""
 
@@ -76,7 +73,7 @@ class TrainSplitSettings(Section):
     split: Literal[SPLITS] | None = setting("table trained on (default: the section's name)", None)
     model_name: NAME | None = setting("registered name (default: mlflow.model_name)", None)
     target: Literal[tuple(TARGETS)] = setting(_TARGET, "rom_deg")
-    stated_error_split: Literal[SPLITS] | None = setting(_STATED, None)
+    stated_error_split: Literal[SPLITS] | None = setting("held-out split of its stated error", None)
 
 
 class TrainSettings(Section):
