@@ -2,9 +2,9 @@
 
 Every key is declared once (type with bounds or choices, one-line doc, default); a file's
 problems are reported at once, each with the file, line, dotted key, what was given and the fix
-(an unknown key names the closest valid one). Modules: ``values`` (value types, bases),
-``keywords`` (registries' names, keyword arguments, search spaces), ``root`` and ``fe`` (the
-sections), ``params`` (the files), ``env`` (the environment), ``_format`` (the messages).
+(an unknown key names the closest valid one). Modules: ``values`` (value types, the
+environment, bases), ``keywords`` (registries' names, keyword arguments, search spaces),
+``root`` and ``fe`` (the sections), ``params`` (the files), ``_format`` (the messages).
 Nothing here imports torch, Lightning, scikit-learn, MLflow or pandas.
 """
 
@@ -13,7 +13,7 @@ from typing import Any
 
 #: Public name -> its module, imported on first use (PEP 562: the sections load when read).
 _HOME = {
-    **dict.fromkeys(("ENVIRONMENT", "check_environment"), "env"),
+    **dict.fromkeys(("ENVIRONMENT", "check_environment"), "values"),
     **dict.fromkeys(("BASELINE_MODELS", "BUILTIN_EFFECTS", "CALIBRATOR_OPTIONS"), "keywords"),
     **dict.fromkeys(("CALIBRATORS", "MESH_PRESETS", "SOLVERS", "SPLITS"), "keywords"),
     **dict.fromkeys(("InverseKeywords", "SurrogateKeywords"), "keywords"),

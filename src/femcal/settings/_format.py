@@ -16,9 +16,10 @@ import re
 import types
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import Any, Literal, Union, get_args, get_origin
 
 import annotated_types as at
+import yaml
 from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticCustomError
@@ -65,10 +66,7 @@ def got(value: Any) -> str:
 
 def dotted(path: Iterable) -> str:
     """``calibrate.datasets.test``, ``plant.moments[0]`` (an int is a list position)."""
-    out = ""
-    for key in path:
-        out += f"[{key}]" if isinstance(key, int) else ("." if out else "") + str(key)
-    return out
+    return "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in path).removeprefix(".")
 
 
 def closest(word: str, candidates: Iterable[str], cutoff: float = 0.6) -> str | None:
@@ -102,18 +100,13 @@ def unknown_message(
     what: str = "unknown setting",
 ) -> tuple[str, str | None]:
     """``unknown setting; did you mean {there}?`` and the closest key (``{there}`` stands for its
-    dotted path); ``missing``: the required keys not given; ``model``: its ``_unknown`` (what
-    the key is called; a keyword table: ``unknown <_owner> keyword``), ``_retired``/``_refused``
-    (key -> text), ``_reasons`` (keyword not settable there -> why), ``_open_what``."""
+    dotted path); ``missing``: the required keys not given; ``model``: the section, whose class
+    variables tune the message (module docstring)."""
     reasons = {k: f"not settable here; {v}" for k, v in getattr(model, "_reasons", {}).items()}
     retired, refused = getattr(model, "_retired", {}), {**reasons, **getattr(model, "_refused", {})}
     what = f"unknown {model._owner} keyword" if hasattr(model, "_owner") else what
-    what = getattr(model, "_unknown", what)
-    extra = (
-        f" (the other keys of {{parent}} are {model._open_what})"
-        if hasattr(model, "_open_what")
-        else ""
-    )
+    what, other = getattr(model, "_unknown", what), getattr(model, "_open_what", None)
+    extra = f" (the other keys of {{parent}} are {other})" if other else ""
     if key in refused or key in retired:
         return refused.get(key) or f"retired setting; {retired[key]}", None
     known = list(known)
@@ -130,13 +123,10 @@ def unknown_message(
 
 # ------------------------------------------------------------------------- types in words
 def unwrap(tp: Any, meta: Iterable = ()) -> tuple[Any, list]:
-    """``Annotated[T, ...]`` -> ``T`` and its metadata (constraints, :class:`Doc`, ...)."""
-    meta = list(meta)
-    while get_origin(tp) is Annotated:
-        tp, *more = get_args(tp)
-        for m in more:
-            meta += [*m.metadata, m] if isinstance(m, FieldInfo) else [m]
-    return tp, meta
+    """``Annotated[T, ...]`` -> ``T`` and its metadata (constraints, :class:`Doc`, ...), after
+    ``meta``, as pydantic reads them."""
+    info = FieldInfo.from_annotation(tp)
+    return info.annotation, [*meta, *info.metadata]
 
 
 def members(tp: Any) -> list:
@@ -147,14 +137,10 @@ def members(tp: Any) -> list:
 
 def bounds_words(meta: list) -> str:
     """`` in [0, 1)``, `` >= 1`` or ``""``: the bounds of a number's metadata."""
-    b = {
-        k: getattr(m, k)
-        for m in meta
-        for k in ("ge", "gt", "le", "lt")
-        if isinstance(m, getattr(at, k.title()))
-    }
-    lo = ("ge" in b and (b["ge"], "[", ">=")) or ("gt" in b and (b["gt"], "(", ">"))
-    hi = ("le" in b and (b["le"], "]", "<=")) or ("lt" in b and (b["lt"], ")", "<"))
+    signs = {"ge": ("[", ">="), "gt": ("(", ">"), "le": ("]", "<="), "lt": (")", "<")}
+    b = {type(m).__name__.lower(): m for m in meta if isinstance(m, at.Ge | at.Gt | at.Le | at.Lt)}
+    b = {k: (getattr(m, k), *signs[k]) for k, m in b.items()}
+    lo, hi = b.get("ge") or b.get("gt"), b.get("le") or b.get("lt")
     if lo and hi:
         return f" in {lo[1]}{lo[0]:g}, {hi[0]:g}{hi[1]}"
     return f" {lo[2]} {lo[0]:g}" if lo else (f" {hi[2]} {hi[0]:g}" if hi else "")
@@ -178,10 +164,10 @@ def keys_of(model: type) -> dict[str, str]:
 def describe(tp: Any, meta: Iterable = ()) -> str:
     """What ``tp`` allows, in words: ``an integer >= 0 or null``, ``one of 'pgd', 'ga'``."""
     tp, meta = unwrap(tp, meta)
-    for kind in (Doc, PlainOf):
-        found = [m for m in meta if isinstance(m, kind)]
-        if found:
-            return found[0].text if kind is Doc else describe(found[0].model)
+    given = [m.text for m in meta if isinstance(m, Doc)]
+    given += [describe(m.model) for m in meta if isinstance(m, PlainOf)]
+    if given:
+        return given[0]
     if type(None) in get_args(tp) and members(tp):
         return f"{describe(members(tp)[0], meta)} or null"
     if get_origin(tp) is Literal:
@@ -248,16 +234,10 @@ def reword(cls: type, data: Any, handler: Callable) -> Any:
         elif len(loc) == 1 and field and field.description and ctx.get("key") is None:
             message = text(err)
             message += f"{' ' if message.endswith('?') else '; '}{loc[0]}: {field.description}"
-        hint = getattr(cls, "_hint", None)
-        message = (
-            f"{message or text(err)}; {hint}"
-            if hint and hint not in (message or text(err))
-            else message
-        )
-        if message is not None or kind in CUSTOM:
-            kind = kind if kind in CUSTOM else "setting_problem"
-            ctx = {**ctx, "message": message or ctx["message"]}
-            err = {"type": PydanticCustomError(kind, "{message}", ctx), "input": err.get("input")}
+        message, hint = message or text(err), getattr(cls, "_hint", None)
+        message += f"; {hint}" if hint and hint not in message else ""
+        kind, ctx = kind if kind in CUSTOM else "setting_problem", {**ctx, "message": message}
+        err = {"type": PydanticCustomError(kind, "{message}", ctx), "input": err.get("input")}
         out.append({**err, "loc": loc})
     raise ValidationError.from_exception_data(title, out) from None
 
@@ -282,30 +262,21 @@ def problems(
 
 
 # ----------------------------------------------------------------------------- the file
-def line_numbers(text: str | None) -> Callable[[tuple], int | None]:
-    """A function path -> 1-based line of that key in the YAML ``text`` (None if unknown)."""
-    import yaml
-
-    root = yaml.compose(text, Loader=yaml.SafeLoader) if text is not None else None
-
-    def line(path: tuple) -> int | None:
-        node, found = root, None
-        for key in path:
-            if isinstance(node, yaml.MappingNode):
-                match = [(k, v) for k, v in node.value if k.value == str(key)]
-                if not match:
-                    return found
-                found, node = match[0][0].start_mark.line + 1, match[0][1]
-            elif isinstance(node, yaml.SequenceNode) and isinstance(key, int):
-                if int(key) >= len(node.value):
-                    return found
-                node = node.value[int(key)]
-                found = node.start_mark.line + 1
-            else:
-                return found
-        return found
-
-    return line
+def line_of(root: Any, path: tuple) -> int | None:
+    """The 1-based line of the key at ``path`` in the YAML node ``root`` (of its deepest key
+    found; None: not even the first)."""
+    node, found = root, None
+    for key in path:
+        if isinstance(node, yaml.MappingNode):
+            match = [(k.start_mark.line + 1, v) for k, v in node.value if k.value == str(key)]
+        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+            match = [(node.value[key].start_mark.line + 1, node.value[key])]
+        else:
+            match = []
+        if not match:
+            return found
+        found, node = match[0]
+    return found
 
 
 def raise_problems(
@@ -314,16 +285,16 @@ def raise_problems(
     text: str | None,
     given: Mapping[tuple, str] | None = None,
 ) -> None:
-    """One ConfigError for every problem, each with its line in the file, in line order; a
-    problem under a path of ``given`` (path -> command-line option) names that option."""
+    """One ConfigError for every problem, each with its line in the YAML ``text``, in line
+    order; a problem under a path of ``given`` (path -> command-line option) names that option."""
     if not found:
         return
-    line_of, lines = line_numbers(text), []
+    root, lines = yaml.compose(text, Loader=yaml.SafeLoader) if text is not None else None, []
     for path, message in found:
         flag = next((f for p, f in (given or {}).items() if tuple(path[: len(p)]) == p), None)
         message = message if message.endswith((".", "?", "!")) else message + "."
         lines.append(
-            (None, f"{flag} (command line): {message}") if flag else (line_of(path), message)
+            (None, f"{flag} (command line): {message}") if flag else (line_of(root, path), message)
         )
     lines.sort(key=lambda lm: (lm[0] is None, lm[0] or 0))
     if len(lines) == 1:

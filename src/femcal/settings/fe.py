@@ -184,10 +184,7 @@ class AdaptSettings(OptionSection):
 
     def options(self) -> dict[str, Any]:
         """The keywords of :class:`femcal.fe.options.AdaptOptions` this section sets."""
-        plain_ = {
-            "finetune": dict(self.finetune),
-            "calibrate_options": dict(self.calibrate_options),
-        }
+        plain_ = {k: dict(getattr(self, k)) for k in ("finetune", "calibrate_options")}
         return {**super().options(), **plain_, "seed": self.seed}
 
 

@@ -164,24 +164,23 @@ class InverseKeywords(_Network):
 _RNG = {"rng": "set calibrate.seed"}  # every calibrator takes its seed from calibrate.seed
 
 
-def _calibrator(method: str, module: str, reasons: dict[str, str]) -> type:
+def _calibrator(method: str, **reasons: str) -> type:
     """The keyword options of the calibrator ``method``, declared by its options dataclass in
-    ``femcal.calibration.<module>``; ``reasons``: keyword not settable there -> why."""
-    name = method.title().replace("-", "")  # pgd-study -> PgdStudy
+    ``femcal.calibration.<method>_options``; ``reasons``: keyword not settable there -> why."""
+    name, module = method.title().replace("-", ""), method.replace("-", "_")  # PgdStudy, pgd_study
     body = {
         "__doc__": f"The {method} calibrator's options (``calibrate.options.{method}``).",
         "__module__": __name__,
         "_owner": f"{method} calibrator",
-        "_options": light_class(f"calibration.{module}", f"{name}Options"),
+        "_options": light_class(f"calibration.{module}_options", f"{name}Options"),
         "_reasons": {**reasons, **_RNG},
     }
     return with_options(type(f"{name}Keywords", (OptionSection, Keywords), body))
 
 
 _BANK = "set calibrate.start_bank (a prepared table whose configurations are the starts)"
-PgdKeywords = _calibrator("pgd", "pgd_options", {"start_bank": _BANK})
-PgdStudyKeywords = _calibrator("pgd-study", "pgd_study_options", {})
-GaKeywords = _calibrator("ga", "ga_options", {})
+PgdKeywords = _calibrator("pgd", start_bank=_BANK)
+PgdStudyKeywords, GaKeywords = _calibrator("pgd-study"), _calibrator("ga")
 
 
 class InverseCalibratorKeywords(Keywords):
@@ -194,12 +193,9 @@ class InverseCalibratorKeywords(Keywords):
 
 
 #: The options model of each calibrator, by method.
-CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = {
-    "pgd": PgdKeywords,
-    "pgd-study": PgdStudyKeywords,
-    "ga": GaKeywords,
-    "inverse": InverseCalibratorKeywords,
-}
+CALIBRATOR_OPTIONS: dict[str, type[Keywords]] = dict(
+    zip(CALIBRATORS, (PgdKeywords, PgdStudyKeywords, GaKeywords, InverseCalibratorKeywords))
+)
 
 
 def _method(method: str, model: type) -> tuple:

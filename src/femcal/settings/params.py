@@ -77,12 +77,9 @@ def missing_setting(path: str | Path, key: str) -> ConfigError:
 
 def _partial(model: type, value: Mapping[str, Any], path: str) -> Any:
     """A section that misses required keys, with the keys it gives (each valid)."""
-    names = fmt.keys_of(model)
-    fields_ = {names[k]: fmt.fields_of(model)[names[k]] for k in value if k in names}
-    given = {
-        n: TypeAdapter(f.rebuild_annotation()).validate_python(value[f.alias or n])
-        for n, f in fields_.items()
-    }
+    names, fields_ = fmt.keys_of(model), fmt.fields_of(model)
+    types = {k: fields_[names[k]].rebuild_annotation() for k in value if k in names}
+    given = {names[k]: TypeAdapter(tp).validate_python(value[k]) for k, tp in types.items()}
     partial = model.model_construct(**given)
     partial._missing_in = path
     return partial
@@ -96,16 +93,15 @@ def detect_schema(data: Mapping[str, Any]) -> str:
 def _sections(data: Mapping, schema: str, complete: bool, path: Any) -> tuple[dict, dict, list]:
     """The typed sections, the partial ones (which only miss keys), and every problem."""
     allowed = [name for name, (_, files) in SECTIONS.items() if schema in files]
-    required = [name for name in allowed if SECTIONS[name][1][schema]]
+    missing = [name for name in allowed if SECTIONS[name][1][schema] and name not in data]
     found, out, partial = [], {}, {}
     for key, value in data.items():
         if key in SECTIONS and key not in allowed:  # fe or validate in a root params file
             where = "belongs to the FE pipeline's fe/params.yaml"
             found.append(((key,), f"{key}: not a section of the root params.yaml; {key} {where}"))
         elif key not in allowed and key != "_path":
-            missing = [n for n in required if n not in data]
             message, close = fmt.unknown_message(
-                key, sorted(allowed), missing=missing, what="unknown section"
+                key, sorted(allowed), missing, what="unknown section"
             )
             found.append(((key,), f"{key}: {message}".replace("{there}", str(close))))
         elif key != "_path":
@@ -119,9 +115,8 @@ def _sections(data: Mapping, schema: str, complete: bool, path: Any) -> tuple[di
                     partial[key] = _partial(model, value, f"{path}:{key}")
     unknown = {fmt.closest(str(k), allowed) for k in data if k not in allowed}
     file = "fe/params.yaml" if schema == "fe" else "params.yaml"
-    for name in required if complete else ():
-        if name not in data and name not in unknown:
-            found.append(((name,), f"{name}: missing section; add it (see the project's {file})"))
+    add = f"missing section; add it (see the project's {file})"
+    found += [((n,), f"{n}: {add}") for n in missing if complete and n not in unknown]
     return out, partial, found
 
 

@@ -1,6 +1,7 @@
 """Value types (numbers with bounds, lists, names, paths, URLs: each ``*_problem`` says why
-a string is unusable and the fix), the bases :class:`Section` and :class:`Keywords`, and the
-options of options dataclasses (:func:`option`, :func:`check_options`, :func:`with_options`)."""
+a string is unusable and the fix), the environment variables femcal reads (:data:`ENVIRONMENT`,
+:func:`check_environment`), the bases :class:`Section` and :class:`Keywords`, and the options
+of options dataclasses (:func:`option`, :func:`check_options`, :func:`with_options`)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import os
 import re
 import sys
 import urllib.parse
-from collections.abc import Callable
+from collections import ChainMap
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -99,12 +101,10 @@ def mlflow_tracking_uri_problem(value: str) -> str | None:
     """Why ``value`` is not an MLflow tracking URI MLflow can use (None when it is)."""
     if value != value.strip():
         return f"it has spaces around it; write {value.strip()!r}"
-    if value in ("databricks", "databricks-uc", "uc"):
-        return None
-    if "://" not in value:
+    if "://" not in value:  # a local folder (a file store) or databricks, unless host:port
         if re.match(r"^[A-Za-z0-9.-]+:\d+(/.*)?$", value):
             return f"no scheme, so MLflow would read it as a folder; write http://{value}"
-        return None  # a local folder (a file store)
+        return None
     scheme = urllib.parse.urlsplit(value).scheme.lower()
     base = scheme.split("+", 1)[0]
     if scheme in ("http", "https") and not urllib.parse.urlsplit(value).netloc:
@@ -136,6 +136,87 @@ def model_uri_problem(value: str) -> str | None:
     return None  # a path or another artifact URI
 
 
+# ---------------------------------------------------------------------- the environment
+def _mirror_problem(value: str) -> str | None:
+    path = Path(value.strip()).expanduser()
+    if not path.is_dir():
+        return (
+            f"{path.resolve()} {'is a file, not a folder' if path.exists() else 'does not exist'}"
+        )
+    if not any((path / split).is_dir() for split in ("Large", "Small", "Test")):
+        return f"{path.resolve()} holds none of Large/, Small/, Test/"
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvVar:
+    """An environment variable femcal reads: its doc, the commands reading it, and why a
+    value is unusable (None when it is)."""
+
+    name: str
+    doc: str
+    commands: tuple[str, ...]
+    problem: Callable[[str], str | None] = dataclasses.field(repr=False)
+
+
+_TRACKING = ("train", "baselines", "interpolate", "evaluate", "train-inverse", "calibrate")
+_MIRROR = "a local folder holding the study's Large/, Small/ and Test/ (instead of the download)"
+#: The environment variables femcal reads, by name.
+ENVIRONMENT: dict[str, EnvVar] = {
+    var.name: var
+    for var in (
+        EnvVar(
+            "FEMCAL_DATA_MIRROR",
+            f"{_MIRROR}; set it to that folder (the study's datasets/), or unset it to download",
+            ("fetch",),
+            _mirror_problem,
+        ),
+        EnvVar(
+            "FEMCAL_OPTUNA_STORAGE",
+            "the Optuna storage, a SQLAlchemy URL (overrides train.storage); e.g. "
+            "postgresql://user:password@host/optuna, or unset it to use train.storage",
+            ("train", "train-inverse"),
+            sqlalchemy_url_problem,
+        ),
+        EnvVar(
+            "FEMCAL_DASK_ADDRESS",
+            "the Dask scheduler of the FE campaign, tcp://host:port (when fe.scheduler_address "
+            "is null); e.g. tcp://login-node:8786, or unset it for a local cluster",
+            ("simulate", "validate"),
+            dask_address_problem,
+        ),
+        EnvVar(
+            "MLFLOW_TRACKING_URI",
+            "the MLflow tracking server or database (overrides mlflow.store_dir); e.g. "
+            "http://mlflow-server:5000, or unset it to use the project's store",
+            (*_TRACKING, "diagnose", "validate"),
+            mlflow_tracking_uri_problem,
+        ),
+    )
+}
+
+
+def check_environment(
+    command: str | None = None, environ: Mapping[str, str] | None = None
+) -> dict[str, str]:
+    """The variables (name -> value) that the sub-command ``command`` reads (None: all of
+    femcal's) set in ``environ`` (default: the process's), each checked; an empty or blank
+    variable counts as unset, as where it is read. ConfigError: every bad variable, its value,
+    what is wrong and the fix."""
+    environ = os.environ if environ is None else environ
+    read = {n: v for n, v in ENVIRONMENT.items() if command is None or command in v.commands}
+    found = {n: environ[n] for n in read if environ.get(n, "").strip()}
+    whys = {n: read[n].problem(value) for n, value in found.items()}
+    problems = [f"{n}={found[n]!r}: {w}. {n} is {read[n].doc}." for n, w in whys.items() if w]
+    if len(problems) == 1:
+        raise ConfigError(f"Environment variable {problems[0]}")
+    if problems:
+        listing = "\n".join(f"  {p}" for p in problems)
+        raise ConfigError(f"Invalid environment variables:\n{listing}")
+    return found
+
+
+# ----------------------------------------------------------------------------- values
 #: ``true`` or ``false``.
 Bool = StrictBool
 
@@ -154,11 +235,8 @@ _Unique = type("_Unique", (), {"unique": True})  # ListOf's mark: describe says 
 
 
 def _unique(value: tuple) -> tuple:
-    for i, v in enumerate(value):
-        if v in value[:i]:
-            raise fail(
-                f"{fmt.yaml_repr(v)} is listed twice in {fmt.yaml_repr(value)}; list each once"
-            )
+    for v in (v for i, v in enumerate(value) if v in value[:i]):
+        raise fail(f"{fmt.yaml_repr(v)} is listed twice in {fmt.yaml_repr(value)}; list each once")
     return value
 
 
@@ -191,11 +269,9 @@ def _n_jobs(value: Any) -> int:
 def _dataset_name(value: Any) -> str:
     if isinstance(value, str) and re.match(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", value):
         return value
-    why = "letters, digits, '_', '.' and '-' (it names the stage calibrate@<name> and "
-    why += "reports/calibrate-<name>.json)"
-    raise fail(
-        f"dataset name {fmt.yaml_repr(value)} must start with a letter or digit and hold only {why}"
-    )
+    why = "must start with a letter or digit and hold only letters, digits, '_', '.' and '-'"
+    why += " (it names the stage calibrate@<name> and reports/calibrate-<name>.json)"
+    raise fail(f"dataset name {fmt.yaml_repr(value)} {why}")
 
 
 SQL_URL = Text("a SQLAlchemy database URL", sqlalchemy_url_problem)
@@ -301,11 +377,9 @@ def option_fields(cls: type) -> dict[str, tuple[Any, Any, str]]:
     """Option -> (annotation, default, doc) of the fields of an options dataclass declared
     with :func:`option`, in declaration order (its other fields are the library's alone);
     an annotation is read in the module of the class declaring it (a base's too)."""
-    names = {
-        k: v for c in reversed(cls.__mro__) for k, v in vars(sys.modules[c.__module__]).items()
-    }
+    names = ChainMap(*(vars(sys.modules[c.__module__]) for c in cls.__mro__))
     return {
-        f.name: (eval(f.type, names) if isinstance(f.type, str) else f.type, f.default, doc)
+        f.name: (eval(f.type, {}, names) if isinstance(f.type, str) else f.type, f.default, doc)
         for f in dataclasses.fields(cls)
         if (doc := f.metadata.get("doc")) is not None
     }
