@@ -335,6 +335,13 @@ def test_search_entries_of_each_type():
         validate_params(
             {"train": {"large": {"search_space": {"dropout": {**space["dropout"], "high": 1}}}}}
         )
+    for bad in (["float"], {"float": 1}):  # an unhashable type is worded, not a TypeError
+        with pytest.raises(
+            ConfigError,
+            match=r"dropout\.type: expected one of 'float', 'int', 'categorical', got (\[|\{)",
+        ):
+            entry = {**space["dropout"], "type": bad}
+            validate_params({"train": {"large": {"search_space": {"dropout": entry}}}})
     with pytest.raises(ConfigError, match=r"hidden\.type: hidden is .* search width and depth"):
         validate_params(
             {"inverse": {"search_space": {"hidden": {"type": "categorical", "choices": [1, 2]}}}}

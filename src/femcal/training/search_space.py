@@ -91,8 +91,8 @@ def _entry(name: str, annotation: Any, value: Any) -> Section:
     names; its bounds and choices, as written, must be values of the keyword."""
     if not isinstance(value, dict):
         raise fail(f"expected a mapping {{type: float|int|categorical, ...}}, got {got(value)}")
-    if value.get("type") not in _ENTRIES:
-        raise fail(one_of(value.get("type"), _ENTRIES), "type")
+    if not isinstance(value.get("type"), str) or value["type"] not in _ENTRIES:
+        raise fail(one_of(value.get("type"), _ENTRIES), "type")  # a list or mapping too
     entry = _ENTRIES[value["type"]].model_validate(value)
     tp = unwrap((members(unwrap(annotation)[0]) or [annotation])[0])[0]
     kinds = _KINDS.get(tp) or (("categorical",) if tp is bool or get_origin(tp) is Literal else ())
