@@ -14,6 +14,7 @@ from femcal.fe.hidden import (
     FE_START_BANK,
     calibration_job,
     found_effects,
+    portable_path,
     score,
     start_bank_of,
     visible_threshold,
@@ -98,3 +99,12 @@ def test_a_missing_start_bank_names_the_fix(tmp_path):
     with pytest.raises(ConfigError, match=r"is not a file.*prepare.*--start-bank ''"):
         start_bank_of(tmp_path / "absent.csv")
     assert FE_START_BANK.name == "large.csv"
+
+
+def test_paths_inside_the_project_are_recorded_relative_to_it(tmp_path):
+    root = tmp_path / "project"
+    (root / "fe" / "data").mkdir(parents=True)
+    assert portable_path(root / "fe" / "data" / "cohort", root) == "fe/data/cohort"
+    assert portable_path("models:/ivd-fe@champion", root) == "models:/ivd-fe@champion"
+    outside = tmp_path / "elsewhere" / "model"
+    assert portable_path(outside, root) == str(outside)

@@ -85,6 +85,17 @@ def start_bank_of(path: Path | None) -> dict[str, Path]:
     return {"start_bank": path.resolve()}
 
 
+def portable_path(path: str | Path, root: Path) -> str:
+    """``path`` as ``hidden.json`` records it: relative to the project ``root`` (POSIX) where
+    it lies inside it, so that the report reads alike from every clone; a ``models:/`` URI or
+    a path outside the root as given."""
+    text = str(path)
+    if "://" in text or text.startswith("models:/"):
+        return text
+    full, base = Path(text).resolve(), Path(root).resolve()
+    return full.relative_to(base).as_posix() if full.is_relative_to(base) else text
+
+
 def found_effects(effects: Sequence[str]) -> tuple[str, ...]:
     """The registered effects a verdict's terms name (:func:`femcal.effects.terms.parse_term`:
     split or not, in whichever load cases), sorted and unique."""
@@ -326,11 +337,11 @@ def run_hidden(
         ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True
     ).stdout.strip()
     figures.update(
-        model_uri=model_uri,
+        model_uri=portable_path(model_uri, root),
         noise_deg=float(noise_deg),
-        cohort=str(cohort_dir),
+        cohort=portable_path(cohort_dir, root),
         commit=commit,
-        start_bank=str(job.start_bank),
+        start_bank=portable_path(job.start_bank, root),
     )
     info = cohort_dir / "cohort.json"
     if info.is_file():  # the cohort's own figures: complete or a partial preview, its jobs
