@@ -89,8 +89,10 @@ def portable_path(path: str | Path, root: Path) -> str:
     """``path`` as ``hidden.json`` records it: relative to the project ``root`` (POSIX) where
     it lies inside it, so that the report reads alike from every clone; a ``models:/`` URI or
     a path outside the root as given."""
+    from femcal.tracking import is_local_model
+
     text = str(path)
-    if "://" in text or text.startswith("models:/"):
+    if not is_local_model(text) or text.startswith("file:"):  # a URI: as given
         return text
     full, base = Path(text).resolve(), Path(root).resolve()
     return full.relative_to(base).as_posix() if full.is_relative_to(base) else text
