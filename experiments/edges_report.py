@@ -201,8 +201,26 @@ def section(payload: dict, folder: Path | str = "") -> list[str]:
     return lines + [""]
 
 
+def written_sections(page: Path) -> dict[str, list[str]]:
+    """The sections of an existing page by label (``## <label>: seeds ...`` up to the next
+    ``## ``); empty where the page does not exist."""
+    sections: dict[str, list[str]] = {}
+    label = None
+    for line in page.read_text().splitlines() if page.exists() else []:
+        if line.startswith("## "):
+            label = line[3:].split(":", 1)[0]
+            sections[label] = []
+        if label is not None:
+            sections[label].append(line)
+    return sections
+
+
 def write_page(folders: Sequence[Path], out: Path) -> None:
-    """Write the page from the results folders, in the order given."""
+    """Write the page from the results folders, in the order given.
+
+    A folder without ``bench_edges.json`` (a run whose results are no longer on this machine)
+    keeps its section as ``out`` has it, found by the folder's name as its label; a folder
+    with neither is an error."""
     given = " ".join(str(f) for f in folders)
     lines = [
         INTRO,
@@ -210,9 +228,18 @@ def write_page(folders: Sequence[Path], out: Path) -> None:
         f"{out}`, one section per results folder.",
         "",
     ]
+    kept = written_sections(out)
     for folder in folders:
-        payload = json.loads((Path(folder) / "bench_edges.json").read_text())
-        lines += section(payload, folder)
+        result = Path(folder) / "bench_edges.json"
+        if not result.exists() and Path(folder).name in kept:
+            lines += kept[Path(folder).name]
+            continue
+        if not result.exists():
+            raise FileNotFoundError(
+                f"{result} does not exist and {out} has no section {Path(folder).name!r}: run "
+                f"python -m experiments.bench_edges --out {folder} first"
+            )
+        lines += section(json.loads(result.read_text()), folder)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines).rstrip() + "\n")
 

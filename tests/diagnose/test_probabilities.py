@@ -32,7 +32,7 @@ def test_prior_cost_charges_the_first_effect_each_further_one_and_each_split():
 
 def test_probabilities_are_the_criteria_weights_with_the_prior():
     crit = {(): 100.0, ("facet_contact",): 80.0, ("facet_contact:split",): 78.0}
-    p = specimen_probabilities(typed(crit), None, FIRST, FURTHER)
+    p = specimen_probabilities(typed(crit), (), FIRST, FURTHER)
     # scores 100, 90, 90: the disc e^-5 against 1 and 1
     w = np.exp(-np.array([10.0, 0.0, 0.0]) / 2)
     want = w / w.sum()
@@ -47,7 +47,7 @@ def test_probabilities_are_the_criteria_weights_with_the_prior():
 
 def test_two_explanations_that_fit_equally_share_the_probability():
     crit = {(): 200.0, ("facet_contact",): 50.0, ("facet_contact", "neutral_zone"): 48.0}
-    p = specimen_probabilities(typed(crit), None, FIRST, FURTHER)
+    p = specimen_probabilities(typed(crit), (), FIRST, FURTHER)
     assert p["models"]["facet_contact"] == pytest.approx(0.5, abs=1e-3)
     assert p["inclusion"]["neutral_zone"] == pytest.approx(0.5, abs=1e-3)
     assert p["inclusion"]["facet_contact"] == pytest.approx(1.0, abs=1e-3)
@@ -56,16 +56,36 @@ def test_two_explanations_that_fit_equally_share_the_probability():
 def test_a_discrepancy_that_pays_its_prior_makes_the_verdict_unexplained():
     crit = {(): 300.0, ("ligament_tension",): 120.0}
     # the discrepancy on the ligament model: 40 below it, beyond the first effect's 10
-    p = specimen_probabilities(typed(crit), (M("ligament_tension"), 80.0), FIRST, FURTHER)
+    p = specimen_probabilities(typed(crit), [(M("ligament_tension"), 80.0)], FIRST, FURTHER)
     assert p["unexplained"] and p["most_probable"] == "ligament_tension+unexplained"
     assert p["outside_library"] > 0.99 and p["inclusion"]["ligament_tension"] > 0.99
-    q = specimen_probabilities(typed(crit), (M("ligament_tension"), 115.0), FIRST, FURTHER)
+    q = specimen_probabilities(typed(crit), [(M("ligament_tension"), 115.0)], FIRST, FURTHER)
     assert not q["unexplained"] and q["most_probable"] == "ligament_tension"
     assert q["outside_library"] == pytest.approx(1 / (1 + np.exp(2.5)), abs=1e-3)
 
 
+def test_a_discrepancy_in_place_of_the_effect_takes_its_certainty():
+    # the ligament fits within the noise (criterion 120 + prior 10 = 130); the disc alone with
+    # a discrepancy in the ligament's place scores 121 + 10 = 131: odds e^0.5 for the ligament
+    crit = {(): 300.0, ("ligament_tension",): 120.0}
+    lig = M("ligament_tension")
+    on_top = (lig, 200.0)  # a discrepancy on top of the ligament does not pay
+    p = specimen_probabilities(typed(crit), [on_top, (Model(), 121.0)], FIRST, FURTHER)
+    want = 1 / (1 + np.exp(-0.5))
+    assert p["inclusion"]["ligament_tension"] == pytest.approx(want, abs=1e-3)
+    assert p["outside_library"] == pytest.approx(1 - want, abs=1e-3)
+    assert p["most_probable"] == "ligament_tension" and not p["unexplained"]
+    # where the discrepancy alone is the more probable, the verdict says so
+    q = specimen_probabilities(typed(crit), [on_top, (Model(), 110.0)], FIRST, FURTHER)
+    assert q["unexplained"] and q["most_probable"] == "unexplained"
+    assert q["inclusion"]["ligament_tension"] < 0.01
+    # without it, the ligament is certain
+    r = specimen_probabilities(typed(crit), [on_top], FIRST, FURTHER)
+    assert r["inclusion"]["ligament_tension"] > 0.999
+
+
 def test_no_finite_criterion_gives_no_probabilities():
-    p = specimen_probabilities({Model(): np.inf}, None, FIRST, FURTHER)
+    p = specimen_probabilities({Model(): np.inf}, (), FIRST, FURTHER)
     assert p["models"] == {} and p["most_probable"] is None and not p["unexplained"]
 
 
@@ -112,7 +132,7 @@ def test_where_an_effect_acts_is_the_share_of_its_models_acting_there():
     wide = "facet_contact@Extension,LateralBending,AxialRotation"
     lift = -2 * np.log(0.3 / 0.7)  # what acting in lateral bending costs: the prior's ratio
     crit = {(): 200.0, ("facet_contact",): 50.0, (wide,): 50.0 - lift}
-    p = specimen_probabilities(typed(crit), None, FIRST, FURTHER)
+    p = specimen_probabilities(typed(crit), (), FIRST, FURTHER)
     # equal scores once the prior's cost is counted: half the facet's probability acts there
     assert p["models"]["facet_contact"] == pytest.approx(p["models"][wide], abs=1e-3)
     where = p["acts_in"]["facet_contact"]
@@ -143,9 +163,9 @@ def test_evidence_every_point_gives_alike_keeps_the_point_posterior():
 def test_evidence_from_one_point_is_spread_over_the_models_that_fit():
     pointwise = _one_point_apart()
     crit = {(k,): float(v.sum()) for k, v in pointwise.items()}
-    point = specimen_probabilities(typed(crit), None, FIRST, FURTHER)
+    point = specimen_probabilities(typed(crit), (), FIRST, FURTHER)
     boot = specimen_probabilities(
-        typed(crit), None, FIRST, FURTHER, pointwise=pointwise, rng=np.random.default_rng(0)
+        typed(crit), (), FIRST, FURTHER, pointwise=pointwise, rng=np.random.default_rng(0)
     )
     # 20 chi-square units: odds e^10 for the facet under the point posterior
     assert point["inclusion"]["facet_contact"] > 0.9999
@@ -162,9 +182,7 @@ def test_the_bootstrap_is_seeded_per_specimen():
 
     def run(name: str) -> dict:
         rng = bootstrap_rng(0, name)
-        return specimen_probabilities(
-            typed(crit), None, FIRST, FURTHER, pointwise=pointwise, rng=rng
-        )
+        return specimen_probabilities(typed(crit), (), FIRST, FURTHER, pointwise=pointwise, rng=rng)
 
     assert run("S01")["models"] == run("S01")["models"]
     assert run("S01")["models"] != run("S02")["models"]
@@ -175,6 +193,6 @@ def test_the_bootstrap_needs_every_models_points():
     crit = {(k,): float(v.sum()) for k, v in pointwise.items()}
     crit[()] = 500.0  # the disc alone, without pointwise contributions: the point posterior
     p = specimen_probabilities(
-        typed(crit), None, FIRST, FURTHER, pointwise=pointwise, rng=np.random.default_rng(0)
+        typed(crit), (), FIRST, FURTHER, pointwise=pointwise, rng=np.random.default_rng(0)
     )
     assert p["inclusion"]["facet_contact"] > 0.9999

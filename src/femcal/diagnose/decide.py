@@ -1,9 +1,10 @@
 """The step that decides each specimen's model (a step of :func:`femcal.diagnose.diagnose`):
 how probable every fitted model is, with and without a discrepancy, and the most probable one.
 
-Each final model gets the discrepancy it needs (type-II maximum likelihood): how probable
-something outside the library is. The probabilities of every fitted model and of the final
-model with its discrepancy follow (:func:`femcal.diagnose.probabilities.specimen_probabilities`).
+Each final model gets the discrepancy it needs (type-II maximum likelihood), and so does the
+disc alone: how probable something outside the library is, on top of the effects or in their
+place. The probabilities of every fitted model and of those models with their discrepancy
+follow (:func:`femcal.diagnose.probabilities.specimen_probabilities`).
 The verdict is the most probable explanation: where a fitted model is more probable than the
 search's choice (and no discrepancy is the most probable), that model is chosen, and the
 discrepancies and probabilities are computed again for the models that changed. Last, the
@@ -25,7 +26,12 @@ from femcal.diagnose.balance import balance_stand_ins
 from femcal.diagnose.discrepancy import DiscrepancyFit, fit_discrepancy
 from femcal.diagnose.fits import Fit
 from femcal.diagnose.outside import assess
-from femcal.diagnose.probabilities import bootstrap_rng, outside_label, specimen_probabilities
+from femcal.diagnose.probabilities import (
+    bootstrap_rng,
+    outside_label,
+    outside_models,
+    specimen_probabilities,
+)
 from femcal.diagnose.result import UNEXPLAINED, model_label, verdict_label
 from femcal.diagnose.state import DiagnosisState
 from femcal.diagnose.where import not_engaged
@@ -105,7 +111,8 @@ def decide(state: DiagnosisState, disc: Fit) -> Decision:
             f.ensure_trace(state.mask, state.sigma)
     finals = _finals(state)
     gp = {effects: _gp_fit(state, effects, rows) for effects, rows in finals.items()}
-    probabilities = _probabilities(state, finals, gp)
+    alone = _gp_fit(state, Model(), list(range(state.n)))
+    probabilities = _probabilities(state, finals, gp, alone)
     switched = {}
     for i, p in enumerate(probabilities):
         top = p["most_probable"]
@@ -121,7 +128,7 @@ def decide(state: DiagnosisState, disc: Fit) -> Decision:
         for effects, rows in finals.items():
             if rows != old.get(effects):  # the fits are per group, in its order
                 gp[effects] = _gp_fit(state, effects, rows)
-        probabilities = _probabilities(state, finals, gp)
+        probabilities = _probabilities(state, finals, gp, alone)
     probabilities, outside = _outside_box(state, disc, finals, gp, probabilities)
     return Decision(
         finals=MappingProxyType({m: tuple(rows) for m, rows in finals.items()}),
@@ -191,15 +198,20 @@ def _gp_fit(state: DiagnosisState, effects: Model, rows: list[int]) -> Discrepan
     )
 
 
-def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
+def _probabilities(state: DiagnosisState, finals, gp, alone) -> list[dict[str, Any]]:
     """Per specimen, :func:`~femcal.diagnose.probabilities.specimen_probabilities` of every
-    fitted model and of its final model with its discrepancy (``gp``, per final model, fitted
-    to ``finals[model]`` in that order). A model with an effect in a load case beyond its
+    fitted model, of its final model with its discrepancy (``gp``, per final model, fitted to
+    ``finals[model]`` in that order) and of the disc alone with its discrepancy (``alone``,
+    fitted to every specimen). A model with an effect in a load case beyond its
     likely ones where it does not engage is left out (:func:`femcal.diagnose.where.not_engaged`),
     as the search leaves it out."""
-    outside = _outside_criteria(state, finals, gp)
+    everyone = list(range(state.n))
+    criteria = {
+        "own": _outside_criteria(state, finals, gp),
+        "alone": _outside_criteria(state, {Model(): everyone}, {Model(): alone}),
+    }
     aside = not_engaged(state)
-    pointwise = _pointwise(state, finals, gp)
+    pointwise = _pointwise(state, finals, gp, alone)
     return [
         specimen_probabilities(
             {
@@ -207,7 +219,10 @@ def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
                 for m in state.per_spec[i]
                 if m == state.chosen[i] or not (_idle_effect(state, m, i) or (i, m) in aside)
             },
-            (state.chosen[i], outside[i]),
+            [
+                (m, float(criteria["own" if m == state.chosen[i] else "alone"][i]))
+                for m in outside_models(state.chosen[i])
+            ],
             state.options.min_delta,
             state.options.min_delta_inadequate,
             pointwise=pointwise[i],
@@ -217,10 +232,11 @@ def _probabilities(state: DiagnosisState, finals, gp) -> list[dict[str, Any]]:
     ]
 
 
-def _pointwise(state: DiagnosisState, finals, gp) -> list[dict[str, np.ndarray]]:
+def _pointwise(state: DiagnosisState, finals, gp, alone) -> list[dict[str, np.ndarray]]:
     """Per specimen, each fitted model's chi-square contribution at each measured point
-    (label -> (p,)), and its final model's with the discrepancy's mean added (the
-    discrepancy's label): what the Bayesian bootstrap of the probabilities reweighs."""
+    (label -> (p,)), and its final model's and the disc alone's with their discrepancy's mean
+    added (the discrepancies' labels; ``alone`` fitted to every specimen): what the Bayesian
+    bootstrap of the probabilities reweighs."""
     out: list[dict[str, np.ndarray]] = [{} for _ in range(state.n)]
     for i in range(state.n):
         ok = state.mask[i]
@@ -229,9 +245,13 @@ def _pointwise(state: DiagnosisState, finals, gp) -> list[dict[str, np.ndarray]]
             out[i][model_label(m)] = r[ok] ** 2
     for effects, rows in finals.items():
         for pos, i in enumerate(rows):
-            f, at = state.per_spec[i][effects]
-            r = state.measured[i] - f.pred[at].double().numpy() - gp[effects].delta_at_points[pos]
+            fit = gp[effects]  # the model at its joint optimum with the discrepancy
+            r = state.measured[i] - fit.pred[pos].double().numpy() - fit.delta_at_points[pos]
             out[i][outside_label(effects)] = (r / state.sigma[i])[state.mask[i]] ** 2
+    for i in range(state.n):
+        if state.chosen[i]:  # the disc at its joint optimum with the discrepancy
+            r = state.measured[i] - alone.pred[i].double().numpy() - alone.delta_at_points[i]
+            out[i][UNEXPLAINED] = (r / state.sigma[i])[state.mask[i]] ** 2
     return out
 
 

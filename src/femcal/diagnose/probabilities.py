@@ -10,11 +10,15 @@ their likely ones, ``-2 ln`` of the ratio of their priors (:func:`model_prior_co
 :mod:`femcal.effects.terms`). So the search's bars are prior odds, and the most probable
 model is what a search that saw every model would name.
 
-*Outside the library*: the chosen model with a smooth discrepancy (the Gaussian process of
+*Outside the library*: a model with a smooth discrepancy (the Gaussian process of
 :mod:`femcal.diagnose.discrepancy`, its amplitude per load case by type-II maximum likelihood),
 weighted by its marginal likelihood, ``-2 log ML + (k + a) ln n + P + first``, ``a`` the load
-cases whose amplitude is not zero: a discrepancy is named like a first effect. The model's
-probabilities are shared out over the rest.
+cases whose amplitude is not zero: a discrepancy is named like a first effect. Two such models
+compete: the chosen model with a discrepancy on top (an effect helped but did not finish the
+job), and the disc alone with a discrepancy in place of every effect (the effects only stood in
+for physics the library lacks: a softening, a law of another family). The second is what keeps
+a flexible effect that fits within the noise from being named with certainty where a smooth
+discrepancy explains the data about as well.
 
 The inclusion probability of an effect is the sum over the models that hold it (tied or split,
 in any load cases, and the discrepancy's model when it holds it); the probability that it acts
@@ -39,7 +43,7 @@ models that fit. The most probable model, which the verdict names, is the point 
 from __future__ import annotations
 
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -112,6 +116,12 @@ def outside_label(effects: Model) -> str:
     return f"{model_label(effects)}+{UNEXPLAINED}" if effects else UNEXPLAINED
 
 
+def outside_models(chosen: Model) -> tuple[Model, ...]:
+    """The models a discrepancy is fitted on for a specimen whose chosen model is ``chosen``:
+    that model, and the disc alone where ``chosen`` has effects."""
+    return (chosen, Model()) if chosen else (chosen,)
+
+
 def acts_in(prob: Mapping[str, float], models: Mapping[str, Model]) -> dict:
     """Per effect, the probability that it acts in each load case given that it is present:
     over the models that hold it (``prob``: label -> probability, ``models``: label ->
@@ -133,7 +143,7 @@ def acts_in(prob: Mapping[str, float], models: Mapping[str, Model]) -> dict:
 
 def specimen_probabilities(
     criteria: Mapping[Model, float],
-    outside: tuple[Model, float] | None,
+    outside: Sequence[tuple[Model, float]],
     first: float,
     further: float,
     pointwise: Mapping[str, np.ndarray] | None = None,
@@ -145,9 +155,11 @@ def specimen_probabilities(
     ----------
     criteria : mapping of Model to float
         Every fitted model's criterion (the disc alone is ``Model()``).
-    outside : (Model, float) or None
-        The model the discrepancy sits on and the criterion of that model with the
-        discrepancy (``-2 log ML - sum ln sigma^2 + (k + a) ln n``), or None.
+    outside : sequence of (Model, float)
+        Each model a discrepancy sits on and the criterion of that model with its
+        discrepancy (``-2 log ML - sum ln sigma^2 + (k + a) ln n``): the chosen model's first,
+        then the disc alone's where the chosen model has effects (:func:`outside_models`);
+        empty where no discrepancy was fitted.
     first, further : float
         Prior costs (:func:`prior_cost`).
     pointwise : mapping of str to ndarray of shape (p,), optional
@@ -161,21 +173,20 @@ def specimen_probabilities(
     -------
     dict
         ``models``: label -> probability (``a+b``, ``a:split``, ``none``, and
-        ``<model>+unexplained`` for the discrepancy), most probable first; ``inclusion``:
-        effect name -> probability; ``outside_library``: the discrepancy's probability;
+        ``<model>+unexplained`` and ``unexplained`` for the discrepancies), most probable first;
+        ``inclusion``: effect name -> probability; ``outside_library``: the discrepancies'
+        probability;
         ``most_probable``: the top label of the point posterior and ``most_probable_effects``
-        its model's terms, written; ``unexplained``: the discrepancy is more probable than the model
-        it sits on alone (point posterior);
+        its model's terms, written; ``unexplained``: a discrepancy is more probable than the chosen
+        model alone (point posterior);
         ``acts_in``: effect -> load case -> the probability that it acts there given that it
         is present (:func:`acts_in`).
     """
     scores = {
         model_label(m): (m, c + model_prior_cost(m, first, further)) for m, c in criteria.items()
     }
-    if outside is not None:
-        m, c = outside
-        label = outside_label(m)
-        scores[label] = (m, c + model_prior_cost(m, first, further) + first)
+    for m, c in outside:
+        scores[outside_label(m)] = (m, c + model_prior_cost(m, first, further) + first)
     finite = {k: v for k, v in scores.items() if np.isfinite(v[1])}
     if not finite:
         return {
@@ -200,15 +211,16 @@ def specimen_probabilities(
     for label, p in prob.items():
         for e in set(finite[label][0].effects):
             inclusion[e] = inclusion.get(e, 0.0) + p
-    out_label = next((k for k in prob if k.endswith(UNEXPLAINED)), None)
-    own = model_label(outside[0]) if outside is not None else None
+    out_labels = [k for k in labels if k.endswith(UNEXPLAINED)]
+    own = model_label(outside[0][0]) if outside else None
     at = {k: j for j, k in enumerate(labels)}
     point_own = point[at[own]] if own in at else 0.0
+    point_out = max((point[at[k]] for k in out_labels), default=0.0)
     return {
-        "unexplained": bool(out_label and point[at[out_label]] > point_own),
+        "unexplained": bool(point_out > point_own),
         "models": {k: round(p, 4) for k, p in prob.items() if p >= 1e-4},
         "inclusion": {k: round(v, 4) for k, v in sorted(inclusion.items())},
-        "outside_library": round(prob.get(out_label, 0.0), 4) if out_label else 0.0,
+        "outside_library": round(sum(prob[k] for k in out_labels), 4),
         "most_probable": top,
         "most_probable_effects": [str(t) for t in finite[top][0]],
         "acts_in": acts_in(prob, {k: m for k, (m, _) in finite.items()}),

@@ -27,11 +27,11 @@ For every specimen, :func:`diagnose` runs these steps over one :class:`Diagnosis
    (forward selection fitted each candidate in every load case its prior allows too); the
    backward check again where that changed a model;
 7. **the decision** (:mod:`femcal.diagnose.decide`): the posterior probability of every
-   fitted model, of each effect and of something outside the library
-   (:mod:`femcal.diagnose.probabilities`); each specimen's model is the most probable fitted
-   one; the verdict says ``unexplained`` where a discrepancy on top of the model is more
-   probable than the model alone, and names the box where a disc beyond the parameter box is
-   the likelier reading (:mod:`femcal.diagnose.outside`). The
+   fitted model, of each effect and of something outside the library (a discrepancy on top of
+   the model, or in place of its effects: :mod:`femcal.diagnose.probabilities`); each
+   specimen's model is the most probable fitted one; the verdict says ``unexplained`` where a
+   discrepancy is more probable than the model alone, and names the box where a disc beyond
+   the parameter box is the likelier reading (:mod:`femcal.diagnose.outside`). The
    :class:`~femcal.diagnose.decide.Decision` holds each specimen's model, verdict,
    probabilities and out-of-box reading, frozen;
 8. **the description** (:mod:`femcal.diagnose.assemble`), which reads the state and the
