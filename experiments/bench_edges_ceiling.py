@@ -62,7 +62,11 @@ from scipy import stats
 from experiments.common import REPO, reproduce_command, screened_cohort
 
 #: The cohorts issue 55's closing figures were measured on: never fitted here.
-FRESH_SEEDS = (285572, 847237, 310379, 406164, 636007, 866352)
+FRESH_SEEDS = (
+    *(285572, 847237, 310379, 406164, 636007, 866352),
+    *(126342, 395602, 154743, 749727, 973235, 901506),
+    *(631497, 121571, 898715, 316067, 263252, 524140),
+)
 CLASSES = ("facets", "ligaments", "neutral_zone", "facets+ligaments", "facets+neutral_zone")
 SINGLE, COMBOS = CLASSES[:3], CLASSES[3:]
 EFFECT_OF = {"facets": "facet_contact", "ligaments": "ligament_tension", "laxity": "neutral_zone"}
