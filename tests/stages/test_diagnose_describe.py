@@ -66,3 +66,28 @@ def test_beyond_a_few_close_calls_the_rest_are_counted():
 
 def test_without_a_practical_measurement_nothing_is_printed_about_it():
     assert not [x for x in _printed([_specimen("B", 0.3)]) if x.startswith("close calls")]
+
+
+def _fitted(name: str, chi2_per_dof: float) -> SpecimenDiagnosis:
+    s = _specimen(name, None)
+    s.adequacy = {"final": {"chi2": 20.0 * chi2_per_dof, "dof": 20.0}}
+    return s
+
+
+def test_residuals_beyond_the_stated_noise_say_it_looks_too_small():
+    # eight specimens whose final fits leave 3 chi-square units per degree of freedom: the
+    # residuals' sd is sqrt(3) = 1.7 times the noise counted
+    lines = _printed([_fitted(f"S{k}", 3.0) for k in range(8)])
+    (line,) = [x for x in lines if x.startswith("the stated noise looks too small")]
+    assert "median chi-square per degree of freedom is 3.00 over 8 specimens" in line
+    assert "about 1.7 times the 0.05 deg counted" in line and "--noise-deg" in line
+
+
+def test_residuals_within_the_noise_or_too_few_specimens_say_nothing():
+    assert not [
+        x for x in _printed([_fitted(f"S{k}", 0.8) for k in range(8)]) if "noise looks" in x
+    ]
+    few = [_fitted(f"S{k}", 3.0) for k in range(7)]  # the median of seven is not enough
+    assert not [x for x in _printed(few) if "noise looks" in x]
+    diag = Diagnosis(few, 0.05, 0.05, 0.0, 0.0, np.array([1.0]), 1.0)
+    assert diag.noise_check() is None and diag.to_dict()["noise_check"] is None

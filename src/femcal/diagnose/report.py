@@ -537,12 +537,14 @@ def write_diagnosis(
         f"Noise σ = {sig_text} (measurement {diag.noise_deg:.4f} ± {diag.noise_sd_deg:.4f}°, "
         "surrogate's own error in quadrature). Each explanation's probability weighs its "
         "criterion with the evidence the search asks before naming it; the verdict says "
-        "`unexplained` where a smooth discrepancy on top of the model is more probable than "
-        "the model alone (the χ² test's p beside it), and `outside_box` where a disc outside "
-        "the sampled parameter box is more probable than not (its effects act from about 0 Nm "
+        "`unexplained` where a smooth discrepancy (on top of the model, or in place of its "
+        "effects) is more probable than the model alone (the χ² test's p beside it), and "
+        "`outside_box` where a disc outside the sampled parameter box is more probable than "
+        "not (its effects act from about 0 Nm "
         "rather than engage; the remedy: widen `fe.bounds` and run the FE campaign on the "
         f"widened box, `dvc repro fe/dvc.yaml`). Verdicts {diag.verdicts()}; effects "
         f"named {diag.effect_counts()}.",
+        *_noise_warning(diag),
         "",
         "| specimen | verdict | probabilities | disc-alone MAE (°) | final MAE (°) | χ² p | "
         "effect parameters | what is missing | to settle it, measure |",
@@ -565,3 +567,12 @@ def write_diagnosis(
         plot_heatmap(diag, out_dir / "heatmap.png")
         plot_inclusion(diag, out_dir / "inclusion.png")
     return summary
+
+
+def _noise_warning(diag: Diagnosis) -> list[str]:
+    """summary.md's lines for :meth:`Diagnosis.noise_check` where it says the noise is too
+    small (none otherwise)."""
+    check = diag.noise_check()
+    if not check or not check["message"]:
+        return []
+    return ["", f"**Noise:** {check['message'][0].upper()}{check['message'][1:]}."]

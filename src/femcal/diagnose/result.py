@@ -185,6 +185,16 @@ class SpecimenDiagnosis:
         return out
 
 
+#: The median chi-square per degree of freedom of the final fits above which the stated noise
+#: is said to be too small (1.5: the residuals' sd is 1.22 x what the noise allows). With the
+#: noise right the median lies near or below 1: the fits' effective parameters are counted in
+#: their degrees of freedom, and the search fits part of the noise.
+NOISE_TOO_SMALL = 1.5
+#: Specimens a cohort needs for :meth:`Diagnosis.noise_check`: the median of fewer is too
+#: uncertain to say the noise is wrong.
+NOISE_CHECK_MIN = 8
+
+
 @dataclass
 class Diagnosis:
     """Diagnosis of a cohort.
@@ -241,6 +251,41 @@ class Diagnosis:
             for e in self.found_effects()
         ]
 
+    def noise_check(self) -> dict[str, Any] | None:
+        """Whether the residuals of the final fits say the stated noise is too small.
+
+        Returns None for fewer than :data:`NOISE_CHECK_MIN` specimens with a final fit; else
+        ``median_chi2_per_dof`` of the final fits, ``factor`` (its square root: about how many
+        times the noise the residuals' sd is), ``too_small`` (the median exceeds
+        :data:`NOISE_TOO_SMALL`) and ``message`` (None unless ``too_small``).
+        """
+        ratios = [
+            f["chi2"] / f["dof"]
+            for s in self.specimens
+            if (f := (s.adequacy or {}).get("final")) and f.get("dof", 0) > 0
+        ]
+        if len(ratios) < NOISE_CHECK_MIN:
+            return None
+        median = float(np.median(ratios))
+        factor = float(np.sqrt(median))
+        too_small = median > NOISE_TOO_SMALL
+        message = None
+        if too_small:
+            message = (
+                f"the stated noise looks too small: the final fits' median chi-square per "
+                f"degree of freedom is {median:.2f} over {len(ratios)} specimens (about 1 or "
+                f"below when the noise is right), so the residuals' sd is about {factor:.2g} "
+                f"times the {self.noise_deg:.3g} deg counted. Effects named at this noise may "
+                "be false alarms: give the sd of one measurement with --noise-deg, or set "
+                "diagnose.noise_deg: null to estimate it from the data"
+            )
+        return {
+            "median_chi2_per_dof": round(median, 4),
+            "factor": round(factor, 4),
+            "too_small": too_small,
+            "message": message,
+        }
+
     def cohort_verdict(self) -> str:
         """The most frequent verdict other than ``none`` if it covers at least a quarter of
         the cohort, else ``none``."""
@@ -260,6 +305,7 @@ class Diagnosis:
             "noise_sd_deg": self.noise_sd_deg,
             "surrogate_error_deg": self.surrogate_error_deg,
             "alpha": self.alpha,
+            "noise_check": self.noise_check(),
             "cohort_verdict": self.cohort_verdict(),
             "verdicts": self.verdicts(),
             "effects": self.effect_counts(),

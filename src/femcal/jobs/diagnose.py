@@ -288,6 +288,11 @@ def _write_and_log(
             "sigma_deg": diag.sigma_deg,
             "noise_deg": diag.noise_deg,
             "seconds": diag.seconds,
+            **(
+                {"median_final_chi2_per_dof": check["median_chi2_per_dof"]}
+                if (check := diag.noise_check())
+                else {}
+            ),
             # MLflow metric names take no "+": one count per effect (and "unexplained"),
             # and one per verdict with "+" spelt "__".
             **{f"n_{k}": float(v) for k, v in diag.effect_counts().items()},

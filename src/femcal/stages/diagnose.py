@@ -168,6 +168,9 @@ def describe(figures: Mapping[str, Any]) -> list[str]:
         f"{diag.cohort_verdict()}"
     )
     lines.append(noise_line(diag, figures.get("noise_source", ESTIMATED_NOISE)))
+    check = diag.noise_check()
+    if check and check["message"]:
+        lines.append(check["message"])
     counts = diag.effect_counts()
     found = diag.found_effects()
     forms = diag.found_forms()
