@@ -205,11 +205,8 @@ def _probabilities(state: DiagnosisState, finals, gp, alone) -> list[dict[str, A
     fitted to every specimen). A model with an effect in a load case beyond its
     likely ones where it does not engage is left out (:func:`femcal.diagnose.where.not_engaged`),
     as the search leaves it out."""
-    everyone = list(range(state.n))
-    criteria = {
-        "own": _outside_criteria(state, finals, gp),
-        "alone": _outside_criteria(state, {Model(): everyone}, {Model(): alone}),
-    }
+    own = _outside_criteria(state, finals, gp)
+    in_place = _outside_criteria(state, {Model(): list(range(state.n))}, {Model(): alone})
     aside = not_engaged(state)
     pointwise = _pointwise(state, finals, gp, alone)
     return [
@@ -220,7 +217,7 @@ def _probabilities(state: DiagnosisState, finals, gp, alone) -> list[dict[str, A
                 if m == state.chosen[i] or not (_idle_effect(state, m, i) or (i, m) in aside)
             },
             [
-                (m, float(criteria["own" if m == state.chosen[i] else "alone"][i]))
+                (m, float((own if m == state.chosen[i] else in_place)[i]))
                 for m in outside_models(state.chosen[i])
             ],
             state.options.min_delta,
@@ -239,20 +236,26 @@ def _pointwise(state: DiagnosisState, finals, gp, alone) -> list[dict[str, np.nd
     bootstrap of the probabilities reweighs."""
     out: list[dict[str, np.ndarray]] = [{} for _ in range(state.n)]
     for i in range(state.n):
-        ok = state.mask[i]
         for m, (f, at) in state.per_spec[i].items():
-            r = (state.measured[i] - f.pred[at].double().numpy()) / state.sigma[i]
-            out[i][model_label(m)] = r[ok] ** 2
+            out[i][model_label(m)] = _chi2_points(state, i, f.pred[at])
+    # the discrepancies' models at their joint optimum with the discrepancy's mean
     for effects, rows in finals.items():
         for pos, i in enumerate(rows):
-            fit = gp[effects]  # the model at its joint optimum with the discrepancy
-            r = state.measured[i] - fit.pred[pos].double().numpy() - fit.delta_at_points[pos]
-            out[i][outside_label(effects)] = (r / state.sigma[i])[state.mask[i]] ** 2
+            fit = gp[effects]
+            out[i][outside_label(effects)] = _chi2_points(
+                state, i, fit.pred[pos], fit.delta_at_points[pos]
+            )
     for i in range(state.n):
-        if state.chosen[i]:  # the disc at its joint optimum with the discrepancy
-            r = state.measured[i] - alone.pred[i].double().numpy() - alone.delta_at_points[i]
-            out[i][UNEXPLAINED] = (r / state.sigma[i])[state.mask[i]] ** 2
+        if state.chosen[i]:
+            out[i][UNEXPLAINED] = _chi2_points(state, i, alone.pred[i], alone.delta_at_points[i])
     return out
+
+
+def _chi2_points(state: DiagnosisState, i: int, pred, delta: np.ndarray | float = 0.0):
+    """Specimen ``i``'s chi-square contribution at each measured point, shape (p,), of curves
+    ``pred`` (4, m) plus ``delta`` (a discrepancy's mean at the points, or 0)."""
+    r = state.measured[i] - pred.double().numpy() - delta
+    return (r / state.sigma[i])[state.mask[i]] ** 2
 
 
 def _idle_effect(state: DiagnosisState, effects: Model, i: int) -> bool:
